@@ -1,0 +1,50 @@
+"""Angle helpers. Radians everywhere in the core."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def wrap_to_pi(angle_rad):
+    """Wrap angles to the half-open interval (-pi, pi].
+
+    Parameters
+    ----------
+    angle_rad : float or ndarray
+        Angles in radians, any shape.
+
+    Returns
+    -------
+    float or ndarray
+        Same shape, wrapped.
+    """
+    wrapped = np.mod(np.asarray(angle_rad, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
+    wrapped = np.where(wrapped == -np.pi, np.pi, wrapped)
+    return wrapped if np.ndim(wrapped) else float(wrapped)
+
+
+def wrap_to_2pi(angle_rad):
+    """Wrap angles to [0, 2 pi), the range of a compass azimuth."""
+    wrapped = np.mod(np.asarray(angle_rad, dtype=float), 2.0 * np.pi)
+    return wrapped if np.ndim(wrapped) else float(wrapped)
+
+
+def line_of_sight_enu(azimuth_rad, elevation_rad):
+    """Unit line-of-sight vectors in a station's ENU frame.
+
+    Parameters
+    ----------
+    azimuth_rad : ndarray, shape (...)
+        Compass azimuth, clockwise from north.
+    elevation_rad : ndarray, shape (...)
+        Elevation above the station's horizontal plane.
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        ``[cos(el) sin(az), cos(el) cos(az), sin(el)]``.
+    """
+    az = np.asarray(azimuth_rad, dtype=float)
+    el = np.asarray(elevation_rad, dtype=float)
+    cos_el = np.cos(el)
+    return np.stack([cos_el * np.sin(az), cos_el * np.cos(az), np.sin(el)], axis=-1)
