@@ -1,0 +1,488 @@
+"""A localisation problem in one exact common ENU frame.
+
+:func:`build_problem` turns stations (geodetic or local) and measurements into
+a :class:`Problem`: stations in the common tangent frame, each station's
+rotation (its own ENU <- common ENU), and flat measurement arrays in radians,
+metres and seconds. Every estimator reads only a :class:`Problem`.
+
+The common frame (ALGORITHMS.md section 1) is the tangent plane at the given
+origin, else at the stations' centroid on the ellipsoid. Station positions and
+lines of sight are rotated into it exactly, with no flat-earth shortcut. A
+``local`` problem without an origin is a flat plane with no earth under it:
+every station shares the plane's axes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import numpy as np
+
+from core import geodesy
+from core.errors import InvalidInput
+from core.measurements import SPEED_OF_LIGHT_MPS, Kind
+
+
+@dataclass(frozen=True)
+class GeodeticPoint:
+    """WGS84 position: radians and metres above the ellipsoid."""
+
+    lat_rad: float
+    lon_rad: float
+    alt_m: float
+
+
+@dataclass(frozen=True)
+class LocalPoint:
+    """East/north/up metres in a tangent plane."""
+
+    east_m: float
+    north_m: float
+    up_m: float
+
+
+@dataclass(frozen=True)
+class Bearing:
+    """A line of sight measured by a station, angles in its own ENU frame.
+
+    ``elevation_rad`` None means azimuth-only. ``sigma_azimuth_rad`` None
+    means unknown (only ``taylor_wls`` estimates it).
+    """
+
+    station_id: str
+    azimuth_rad: float
+    elevation_rad: float | None = None
+    sigma_azimuth_rad: float | None = None
+    sigma_elevation_rad: float | None = None
+
+
+@dataclass(frozen=True)
+class Range:
+    """Slant range from a station."""
+
+    station_id: str
+    range_m: float
+    sigma_m: float
+
+
+@dataclass(frozen=True)
+class TimeOfArrival:
+    """Time of arrival at a station with synchronised clocks; emission time unknown."""
+
+    station_id: str
+    toa_s: float
+    sigma_s: float
+
+
+Measurement = Bearing | Range | TimeOfArrival
+
+
+@dataclass(frozen=True)
+class CommonFrame:
+    """The tangent frame every estimator works in.
+
+    Parameters
+    ----------
+    origin : GeodeticPoint or None
+        Where the frame touches the earth; None for a flat local plane.
+    """
+
+    origin: GeodeticPoint | None
+
+    @property
+    def is_geodetic(self) -> bool:
+        return self.origin is not None
+
+    @property
+    def ecef_to_enu(self) -> np.ndarray:
+        """Rotation ``(3, 3)``: ECEF vectors to the frame's ENU axes."""
+        return geodesy.ecef_to_enu_rotation(self.origin.lat_rad, self.origin.lon_rad)
+
+    def to_ecef(self, position_enu_m):
+        """Frame ENU ``(..., 3)`` to ECEF ``(..., 3)``."""
+        o = self.origin
+        return geodesy.enu_to_ecef(position_enu_m, o.lat_rad, o.lon_rad, o.alt_m)
+
+    def to_geodetic(self, position_enu_m):
+        """Frame ENU ``(..., 3)`` to ``(lat_rad, lon_rad, alt_m)``."""
+        return geodesy.ecef_to_geodetic(self.to_ecef(position_enu_m))
+
+    def from_geodetic(self, lat_rad, lon_rad, alt_m):
+        """Geodetic to frame ENU ``(..., 3)``."""
+        o = self.origin
+        return geodesy.geodetic_to_enu(lat_rad, lon_rad, alt_m, o.lat_rad, o.lon_rad, o.alt_m)
+
+    def covariance_to_ecef(self, covariance_enu_m2):
+        """Rotate covariances ``(..., 3, 3)`` from the frame's ENU to ECEF."""
+        r = self.ecef_to_enu
+        return r.T @ covariance_enu_m2 @ r
+
+    def origin_array(self) -> np.ndarray:
+        """``(lat_rad, lon_rad, alt_m)`` of the origin, zeros for a flat plane."""
+        o = self.origin
+        return np.zeros(3) if o is None else np.array([o.lat_rad, o.lon_rad, o.alt_m])
+
+    def local_axes(self, position_enu_m):
+        """Local east/north/up unit vectors at points; see :func:`local_axes`."""
+        p = np.asarray(position_enu_m, dtype=float)
+        return local_axes(p, self.origin_array(), self.is_geodetic)
+
+    def onto_altitude(self, position_enu_m, altitude_m):
+        """Points moved onto a constant altitude; see :func:`onto_altitude`."""
+        p = np.asarray(position_enu_m, dtype=float)
+        return onto_altitude(p, altitude_m, self.origin_array(), self.is_geodetic)
+
+
+def local_axes(position_enu_m, origin, geodetic):
+    """Local east/north/up unit vectors at points, in their frames' coordinates.
+
+    Parameters
+    ----------
+    position_enu_m : ndarray, shape (..., 3)
+    origin : ndarray, shape (..., 3)
+        Each frame's ``(lat_rad, lon_rad, alt_m)``.
+    geodetic : bool or ndarray of bool, shape (...)
+        False for a flat plane (axes are the identity there).
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        Rows east, north, up at each point (point ENU <- frame ENU).
+    """
+    origin = np.asarray(origin, dtype=float)
+    lat, lon, _ = geodesy.enu_to_geodetic(position_enu_m, origin[..., 0], origin[..., 1], origin[..., 2])
+    curved = geodesy.enu_to_enu_rotation(origin[..., 0], origin[..., 1], lat, lon)
+    return np.where(np.asarray(geodetic)[..., None, None], curved, np.eye(3))
+
+
+def onto_altitude(position_enu_m, altitude_m, origin, geodetic):
+    """Move points along their local vertical onto a constant altitude.
+
+    Parameters
+    ----------
+    position_enu_m : ndarray, shape (..., 3)
+    altitude_m : float or ndarray, shape (...)
+        Geodetic altitude, or the ``up`` coordinate in a flat plane.
+    origin, geodetic
+        As in :func:`local_axes`.
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+    """
+    origin = np.asarray(origin, dtype=float)
+    o_lat, o_lon, o_alt = origin[..., 0], origin[..., 1], origin[..., 2]
+    lat, lon, _ = geodesy.enu_to_geodetic(position_enu_m, o_lat, o_lon, o_alt)
+    curved = geodesy.geodetic_to_enu(lat, lon, np.broadcast_to(altitude_m, np.shape(lat)), o_lat, o_lon, o_alt)
+    flat = np.array(position_enu_m, dtype=float, copy=True)
+    flat[..., 2] = altitude_m
+    return np.where(np.asarray(geodetic)[..., None], curved, flat)
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One localisation problem in its common frame.
+
+    Attributes
+    ----------
+    frame : CommonFrame
+    station_ids : tuple of str, length N
+    stations_enu_m : ndarray, shape (N, 3)
+        Station positions in the common frame.
+    station_rotations : ndarray, shape (N, 3, 3)
+        Station ENU <- common ENU (identity in a flat plane).
+    kinds : ndarray of int, shape (M,)
+        :class:`~core.measurements.Kind` of each scalar measurement.
+    station_index : ndarray of int, shape (M,)
+    values : ndarray, shape (M,)
+        Radians for angles, metres for ranges, seconds after
+        ``toa_reference_s`` for TOA.
+    sigmas : ndarray, shape (M,)
+        Same units; NaN where the caller gave no sigma.
+    bearing_index : ndarray of int, shape (M,)
+        Which line of sight an angle belongs to (``-1`` for range and TOA).
+    source_index : ndarray of int, shape (M,)
+        Index of the caller's measurement this scalar came from (a bearing
+        gives an azimuth and possibly an elevation).
+    toa_reference_s : float
+        Subtracted from every TOA before any arithmetic.
+    altitude_m : float or None
+        Known target altitude (geodetic, or ``up`` in a flat plane).
+    initial_guess_enu_m : ndarray, shape (3,), or None
+    """
+
+    frame: CommonFrame
+    station_ids: tuple[str, ...]
+    stations_enu_m: np.ndarray
+    station_rotations: np.ndarray
+    kinds: np.ndarray
+    station_index: np.ndarray
+    values: np.ndarray
+    sigmas: np.ndarray
+    bearing_index: np.ndarray
+    source_index: np.ndarray
+    toa_reference_s: float = 0.0
+    altitude_m: float | None = None
+    initial_guess_enu_m: np.ndarray | None = None
+
+    @property
+    def n_measurements(self) -> int:
+        return int(self.kinds.size)
+
+    @property
+    def has_toa(self) -> bool:
+        return bool(np.any(self.kinds == Kind.TOA))
+
+    def count(self, kind: Kind) -> int:
+        return int(np.count_nonzero(self.kinds == kind))
+
+    def unit_scale(self) -> np.ndarray:
+        """Factor ``(M,)`` from problem units to model units (TOA seconds -> metres)."""
+        return np.where(self.kinds == Kind.TOA, SPEED_OF_LIGHT_MPS, 1.0)
+
+    def model_values(self) -> np.ndarray:
+        """Values ``(M,)`` in the units of :func:`core.measurements.predict`."""
+        return self.values * self.unit_scale()
+
+    def model_sigmas(self) -> np.ndarray:
+        """Sigmas ``(M,)`` in the units of :func:`core.measurements.predict`."""
+        return self.sigmas * self.unit_scale()
+
+    def lines_of_sight(self) -> "LinesOfSight":
+        """The bearings of this problem grouped per line of sight."""
+        return LinesOfSight.from_problem(self)
+
+    def with_values(self, values) -> "Problem":
+        """A copy with other measured values (problem units: rad, m, s after the TOA reference)."""
+        return replace(self, values=np.asarray(values, dtype=float))
+
+    def with_sigmas(self, sigmas) -> "Problem":
+        """A copy with other measurement sigmas (same units as ``sigmas``)."""
+        return replace(self, sigmas=np.asarray(sigmas, dtype=float))
+
+
+@dataclass(frozen=True)
+class LinesOfSight:
+    """Bearings as lines of sight, in request order.
+
+    Attributes
+    ----------
+    station_index : ndarray of int, shape (K,)
+    origins_enu_m : ndarray, shape (K, 3)
+        Station position of each line, common frame.
+    rotations : ndarray, shape (K, 3, 3)
+        Station ENU <- common ENU.
+    azimuth_rad, elevation_rad : ndarray, shape (K,)
+        Elevation NaN for an azimuth-only bearing.
+    sigma_azimuth_rad, sigma_elevation_rad : ndarray, shape (K,)
+        NaN where not given.
+    azimuth_row, elevation_row : ndarray of int, shape (K,)
+        Index of the scalar measurement in the problem (``-1`` if absent).
+    """
+
+    station_index: np.ndarray
+    origins_enu_m: np.ndarray
+    rotations: np.ndarray
+    azimuth_rad: np.ndarray
+    elevation_rad: np.ndarray
+    sigma_azimuth_rad: np.ndarray
+    sigma_elevation_rad: np.ndarray
+    azimuth_row: np.ndarray
+    elevation_row: np.ndarray
+
+    @classmethod
+    def from_problem(cls, problem: Problem) -> "LinesOfSight":
+        n_los = int(problem.bearing_index.max()) + 1 if problem.bearing_index.size else 0
+        az_row = np.full(n_los, -1)
+        el_row = np.full(n_los, -1)
+        for row, (kind, los) in enumerate(zip(problem.kinds, problem.bearing_index)):
+            if kind == Kind.AZIMUTH:
+                az_row[los] = row
+            elif kind == Kind.ELEVATION:
+                el_row[los] = row
+        station = problem.station_index[az_row]
+        has_el = el_row >= 0
+        el_values = np.where(has_el, problem.values[el_row], np.nan)
+        el_sigmas = np.where(has_el, problem.sigmas[el_row], np.nan)
+        return cls(
+            station_index=station,
+            origins_enu_m=problem.stations_enu_m[station],
+            rotations=problem.station_rotations[station],
+            azimuth_rad=problem.values[az_row],
+            elevation_rad=el_values,
+            sigma_azimuth_rad=problem.sigmas[az_row],
+            sigma_elevation_rad=el_sigmas,
+            azimuth_row=az_row,
+            elevation_row=el_row,
+        )
+
+    @property
+    def count(self) -> int:
+        return int(self.station_index.size)
+
+    @property
+    def has_elevation(self) -> np.ndarray:
+        return ~np.isnan(self.elevation_rad)
+
+    def directions_enu(self) -> np.ndarray:
+        """Unit line-of-sight vectors ``(K, 3)`` in the common frame (azimuth-only: horizontal)."""
+        from core.angles import line_of_sight_enu
+
+        el = np.where(self.has_elevation, self.elevation_rad, 0.0)
+        local = line_of_sight_enu(self.azimuth_rad, el)
+        return np.einsum("kji,kj->ki", self.rotations, local)
+
+
+def _check_finite(value, loc):
+    if value is None or not np.isfinite(value):
+        raise InvalidInput(f"{loc[-1]} must be a finite number", loc)
+
+
+def _check_sigma(value, loc, required=True):
+    if value is None:
+        if required:
+            raise InvalidInput(f"{loc[-1]} is required", loc)
+        return
+    _check_finite(value, loc)
+    if value <= 0:
+        raise InvalidInput(f"{loc[-1]} must be > 0", loc)
+
+
+def build_problem(
+    stations: Sequence[tuple[str, GeodeticPoint | LocalPoint]],
+    measurements: Sequence[Measurement],
+    origin: GeodeticPoint | None = None,
+    altitude_m: float | None = None,
+    initial_guess: GeodeticPoint | LocalPoint | None = None,
+    require_sigmas: bool = True,
+) -> Problem:
+    """Validate stations and measurements and place them in the common frame.
+
+    Parameters
+    ----------
+    stations : sequence of (id, position)
+        All positions geodetic (frame ``wgs84``) or all local.
+    measurements : sequence of Bearing, Range or TimeOfArrival
+    origin : GeodeticPoint, optional
+        Tangent point of the common frame; for local positions, where their
+        plane touches the earth. Default: the geodetic stations' centroid on
+        the ellipsoid, or a flat plane for local positions.
+    altitude_m : float, optional
+        Known target altitude.
+    initial_guess : GeodeticPoint or LocalPoint, optional
+    require_sigmas : bool
+        False lets a bearing omit ``sigma_azimuth_rad`` (estimated later).
+
+    Raises
+    ------
+    InvalidInput
+        With ``loc`` naming the offending field.
+    """
+    if not stations:
+        raise InvalidInput("at least one station is required", ("stations",))
+    if not measurements:
+        raise InvalidInput("at least one measurement is required", ("measurements",))
+    ids: dict[str, int] = {}
+    for i, (station_id, _) in enumerate(stations):
+        if station_id in ids:
+            raise InvalidInput(f"duplicate station id {station_id!r}", ("stations", i, "id"))
+        ids[station_id] = i
+
+    geodetic = [isinstance(p, GeodeticPoint) for _, p in stations]
+    if any(geodetic) and not all(geodetic):
+        i = geodetic.index(not geodetic[0])
+        raise InvalidInput("stations mix geodetic and local positions", ("stations", i, "position"))
+    for i, (_, p) in enumerate(stations):
+        for name, value in vars(p).items():
+            _check_finite(value, ("stations", i, "position", name))
+        if isinstance(p, GeodeticPoint) and abs(p.lat_rad) > np.pi / 2:
+            raise InvalidInput("latitude must be within [-90, 90] deg", ("stations", i, "position", "lat_deg"))
+
+    if all(geodetic):
+        if origin is None:
+            lat = np.array([p.lat_rad for _, p in stations])
+            lon = np.array([p.lon_rad for _, p in stations])
+            origin = GeodeticPoint(*geodesy.centroid_on_ellipsoid(lat, lon), 0.0)
+        frame = CommonFrame(origin)
+        lat = np.array([p.lat_rad for _, p in stations])
+        lon = np.array([p.lon_rad for _, p in stations])
+        alt = np.array([p.alt_m for _, p in stations])
+        stations_enu = frame.from_geodetic(lat, lon, alt)
+        rotations = geodesy.enu_to_enu_rotation(origin.lat_rad, origin.lon_rad, lat, lon)
+    else:
+        frame = CommonFrame(origin)
+        stations_enu = np.array([[p.east_m, p.north_m, p.up_m] for _, p in stations], dtype=float)
+        rotations = frame.local_axes(stations_enu).copy()
+
+    kinds, station_index, values, sigmas, bearing_index, source_index = [], [], [], [], [], []
+    toa_values = [m.toa_s for m in measurements if isinstance(m, TimeOfArrival)]
+    toa_reference_s = float(min(toa_values)) if toa_values and all(np.isfinite(toa_values)) else 0.0
+    n_bearings = 0
+
+    def add(kind, station, value, sigma, bearing, source):
+        kinds.append(kind)
+        station_index.append(station)
+        values.append(value)
+        sigmas.append(np.nan if sigma is None else sigma)
+        bearing_index.append(bearing)
+        source_index.append(source)
+
+    for i, m in enumerate(measurements):
+        loc = ("measurements", i)
+        if m.station_id not in ids:
+            raise InvalidInput(f"unknown station id {m.station_id!r}", loc + ("station_id",))
+        s = ids[m.station_id]
+        if isinstance(m, Bearing):
+            _check_finite(m.azimuth_rad, loc + ("azimuth_deg",))
+            _check_sigma(m.sigma_azimuth_rad, loc + ("sigma_azimuth_deg",), required=require_sigmas)
+            add(Kind.AZIMUTH, s, m.azimuth_rad, m.sigma_azimuth_rad, n_bearings, i)
+            if m.elevation_rad is not None:
+                _check_finite(m.elevation_rad, loc + ("elevation_deg",))
+                if abs(m.elevation_rad) > np.pi / 2:
+                    raise InvalidInput("elevation must be within [-90, 90] deg", loc + ("elevation_deg",))
+                _check_sigma(m.sigma_elevation_rad, loc + ("sigma_elevation_deg",))
+                add(Kind.ELEVATION, s, m.elevation_rad, m.sigma_elevation_rad, n_bearings, i)
+            n_bearings += 1
+        elif isinstance(m, Range):
+            _check_finite(m.range_m, loc + ("range_m",))
+            if m.range_m < 0:
+                raise InvalidInput("range_m must be >= 0", loc + ("range_m",))
+            _check_sigma(m.sigma_m, loc + ("sigma_m",))
+            add(Kind.RANGE, s, m.range_m, m.sigma_m, -1, i)
+        elif isinstance(m, TimeOfArrival):
+            _check_finite(m.toa_s, loc + ("toa_s",))
+            _check_sigma(m.sigma_s, loc + ("sigma_s",))
+            add(Kind.TOA, s, m.toa_s - toa_reference_s, m.sigma_s, -1, i)
+        else:
+            raise InvalidInput(f"unsupported measurement {type(m).__name__}", loc)
+
+    guess = None
+    if initial_guess is not None:
+        for name, value in vars(initial_guess).items():
+            _check_finite(value, ("options", "initial_guess", name))
+        if isinstance(initial_guess, GeodeticPoint):
+            if not frame.is_geodetic:
+                raise InvalidInput("a geodetic initial guess needs a geodetic frame or an origin",
+                                   ("options", "initial_guess"))
+            guess = frame.from_geodetic(initial_guess.lat_rad, initial_guess.lon_rad, initial_guess.alt_m)
+        else:
+            guess = np.array([initial_guess.east_m, initial_guess.north_m, initial_guess.up_m])
+    if altitude_m is not None:
+        _check_finite(altitude_m, ("constraints", "altitude_m"))
+
+    return Problem(
+        frame=frame,
+        station_ids=tuple(ids),
+        stations_enu_m=np.asarray(stations_enu, dtype=float).reshape(-1, 3),
+        station_rotations=np.asarray(rotations, dtype=float).reshape(-1, 3, 3),
+        kinds=np.array(kinds, dtype=np.int8),
+        station_index=np.array(station_index, dtype=np.intp),
+        values=np.array(values, dtype=float),
+        sigmas=np.array(sigmas, dtype=float),
+        bearing_index=np.array(bearing_index, dtype=np.intp),
+        source_index=np.array(source_index, dtype=np.intp),
+        toa_reference_s=toa_reference_s,
+        altitude_m=None if altitude_m is None else float(altitude_m),
+        initial_guess_enu_m=guess,
+    )
