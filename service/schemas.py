@@ -1,0 +1,232 @@
+"""Request and response models of the HTTP contract (API.md). Field names are binding.
+
+Every float is finite (NaN and Infinity are rejected on input); unknown fields
+are rejected so that a misspelt optional field is an error, not a silent
+default. Units are in the names; angles are degrees.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
+
+from core.estimators import REGISTRY
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+class GeodeticPosition(Strict):
+    lat_deg: float = Field(ge=-90.0, le=90.0, description="WGS84 latitude, degrees north")
+    lon_deg: float = Field(ge=-180.0, le=360.0, description="WGS84 longitude, degrees east")
+    alt_m: float = Field(0.0, ge=-1.2e4, le=1e9, description="height above the WGS84 ellipsoid, metres")
+
+
+class LocalPosition(Strict):
+    east_m: float
+    north_m: float
+    up_m: float = 0.0
+
+
+def _position_kind(value: Any) -> str | None:
+    if isinstance(value, dict):
+        return "geodetic" if "lat_deg" in value or "lon_deg" in value else "local"
+    if isinstance(value, GeodeticPosition):
+        return "geodetic"
+    if isinstance(value, LocalPosition):
+        return "local"
+    return None
+
+
+Position = Annotated[
+    Union[Annotated[GeodeticPosition, Tag("geodetic")], Annotated[LocalPosition, Tag("local")]],
+    Discriminator(_position_kind),
+]
+
+StationId = Annotated[str, Field(min_length=1, max_length=128)]
+
+
+class Station(Strict):
+    id: StationId
+    position: Position
+
+
+class BearingMeasurement(Strict):
+    type: Literal["bearing"]
+    station_id: StationId
+    azimuth_deg: float = Field(ge=-360.0, le=720.0, description="clockwise from true north")
+    elevation_deg: float | None = Field(None, ge=-90.0, le=90.0, description="absent = azimuth-only")
+    sigma_azimuth_deg: float | None = Field(None, gt=0.0, le=180.0,
+                                            description="optional only for method taylor_wls (then estimated)")
+    sigma_elevation_deg: float | None = Field(None, gt=0.0, le=90.0, description="required with elevation_deg")
+
+    @model_validator(mode="after")
+    def _elevation_sigma(self):
+        if self.elevation_deg is not None and self.sigma_elevation_deg is None:
+            raise ValueError("sigma_elevation_deg is required when elevation_deg is given")
+        return self
+
+
+class RangeMeasurement(Strict):
+    type: Literal["range"]
+    station_id: StationId
+    range_m: float = Field(ge=0.0)
+    sigma_m: float = Field(gt=0.0)
+
+
+class ToaMeasurement(Strict):
+    type: Literal["toa"]
+    station_id: StationId
+    toa_s: float = Field(description="time of arrival, synchronised clocks; emission time unknown")
+    sigma_s: float = Field(gt=0.0)
+
+
+Measurement = Annotated[Union[BearingMeasurement, RangeMeasurement, ToaMeasurement], Field(discriminator="type")]
+
+Method = Literal[tuple(["auto", *sorted(REGISTRY)])]  # type: ignore[valid-type]
+
+
+class Constraints(Strict):
+    altitude_m: float | None = Field(None, description="known target altitude (surface emitter)")
+
+
+class Options(Strict):
+    max_iterations: int = Field(50, ge=1, le=1000)
+    tolerance_m: float = Field(1e-3, gt=0.0)
+    initial_guess: Position | None = None
+    variant: str | None = Field(None, max_length=32, description="method variant, e.g. ctls: projected | newton")
+
+
+Format = Literal["geojson", "cot"]
+
+
+class FixRequest(Strict):
+    frame: Literal["wgs84", "local"] = "wgs84"
+    origin: GeodeticPosition | None = None
+    stations: list[Station] = Field(min_length=1, max_length=256)
+    measurements: list[Measurement] = Field(min_length=1, max_length=4096)
+    method: Method = "auto"  # type: ignore[valid-type]
+    constraints: Constraints | None = None
+    options: Options = Field(default_factory=Options)
+    formats: list[Format] = Field(default_factory=list, max_length=2)
+
+    @model_validator(mode="after")
+    def _stations_match_frame(self):
+        wanted = GeodeticPosition if self.frame == "wgs84" else LocalPosition
+        for station in self.stations:
+            if not isinstance(station.position, wanted):
+                raise ValueError(
+                    f"frame {self.frame!r} needs {wanted.__name__} station positions; station {station.id!r} differs")
+        return self
+
+
+class Ellipse(BaseModel):
+    semi_major_m: float
+    semi_minor_m: float
+    orientation_deg: float = Field(description="major axis, clockwise from north, [0, 180)")
+
+
+class ErrorSummary(BaseModel):
+    cep50_m: float
+    sep50_m: float
+    vertical_sigma_m: float
+    gdop: float = Field(description="sqrt(trace(covariance)) in metres, the passive-location GDOP")
+    ellipse95: Ellipse
+
+
+class Residual(BaseModel):
+    station_id: str
+    measurement_index: int = Field(description="index of the request measurement")
+    component: Literal["azimuth", "elevation", "range", "toa"]
+    residual: float = Field(description="measured minus fitted: deg, m or s")
+    normalized: float = Field(description="residual / sigma")
+
+
+class Fit(BaseModel):
+    chi2: float
+    dof: int
+    p_value: float | None
+    sigma_scale: float | None
+
+
+class Warning(BaseModel):
+    code: str
+    message: str
+
+
+class Stages(BaseModel):
+    coarse: LocalPosition | None = None
+
+
+Matrix3 = list[list[float]]
+
+
+class FixResponse(BaseModel):
+    method: str
+    position: GeodeticPosition | None = None
+    position_local: LocalPosition
+    position_ecef_m: list[float] | None = None
+    covariance_enu_m2: Matrix3
+    covariance_ecef_m2: Matrix3 | None = None
+    covariance_source: Literal["information", "propagated", "crlb"]
+    crlb_enu_m2: Matrix3
+    error: ErrorSummary
+    residuals: list[Residual]
+    fit: Fit
+    converged: bool
+    iterations: int
+    stages: Stages | None = None
+    estimated_bearing_errors_deg: list[float] | None = None
+    warnings: list[Warning]
+    geojson: dict[str, Any] | None = None
+    cot: str | None = None
+
+
+class SensorSpec(Strict):
+    station_id: StationId
+    azimuth: bool = True
+    elevation: bool = True
+    range: bool = False
+    toa: bool = False
+    sigma_azimuth_deg: float | None = Field(None, gt=0.0)
+    sigma_elevation_deg: float | None = Field(None, gt=0.0)
+    sigma_range_m: float | None = Field(None, gt=0.0)
+    sigma_toa_s: float | None = Field(None, gt=0.0)
+
+    @model_validator(mode="after")
+    def _sigmas_present(self):
+        for flag, sigma in (("azimuth", "sigma_azimuth_deg"), ("elevation", "sigma_elevation_deg"),
+                            ("range", "sigma_range_m"), ("toa", "sigma_toa_s")):
+            if getattr(self, flag) and getattr(self, sigma) is None:
+                raise ValueError(f"{sigma} is required when {flag} is true")
+        if self.elevation and not self.azimuth:
+            raise ValueError("an elevation needs an azimuth on the same sensor")
+        return self
+
+
+class CrlbRequest(Strict):
+    frame: Literal["wgs84", "local"] = "wgs84"
+    origin: GeodeticPosition | None = None
+    stations: list[Station] = Field(min_length=1, max_length=256)
+    sensors: list[SensorSpec] = Field(min_length=1, max_length=1024)
+    target: Position
+    constraints: Constraints | None = None
+
+
+class CrlbResponse(BaseModel):
+    crlb_enu_m2: Matrix3
+    error: ErrorSummary
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details."""
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    code: str
+    errors: list[dict[str, Any]] = Field(default_factory=list)
+    request_id: str | None = None
