@@ -230,3 +230,20 @@ class Problem(BaseModel):
     code: str
     errors: list[dict[str, Any]] = Field(default_factory=list)
     request_id: str | None = None
+
+
+class BatchRequest(Strict):
+    problems: list[dict[str, Any]] = Field(
+        min_length=1, max_length=10000,
+        description="FixRequest objects; each is validated on its own so one bad problem fails only its slot")
+
+
+class BatchResult(BaseModel):
+    index: int
+    ok: bool
+    fix: FixResponse | None = None
+    error: Problem | None = None
+
+
+class BatchResponse(BaseModel):
+    results: list[BatchResult]
