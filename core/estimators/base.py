@@ -16,12 +16,12 @@ import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
 from core.angles import line_of_sight_enu
-from core.crlb import Information, information_at
+from core.crlb import Information, information_at, local_parameterisation, normal_matrix
 from core.errors import InvalidInput, LocalizationError
 from core.measurements import Kind, predict, residuals
 from core.problem import Problem
 
-#: Normalised residual above which a measurement is flagged as a suspected outlier.
+#: Studentized residual above which a measurement is flagged as a suspected outlier.
 OUTLIER_SIGMAS = 4.0
 #: Chi-square p-value below which the stated sigmas are reported as too small.
 SIGMA_MISMATCH_P = 1e-3
@@ -36,7 +36,7 @@ WARNING_CODES = {
     "collinear_geometry": "lines of sight or stations are nearly collinear with the target",
     "behind_station": "the fix lies behind a station's measured line of sight",
     "not_converged": "the iteration stopped before converging; the last good iterate is returned",
-    "outlier_suspected": "a measurement's normalised residual exceeds 4 sigma",
+    "outlier_suspected": "a measurement's studentized residual exceeds 4 (named in the message)",
     "sigma_mismatch": "chi-square says the stated sigmas are too small for the residuals",
     "sigma_estimated": "sigmas were estimated from the residuals and scale the covariance",
     "reference_point_moved": "the linearisation point was moved onto a station's line of sight",
@@ -210,8 +210,8 @@ def finish_fix(
     sig = problem.sigmas if sigmas is None else np.asarray(sigmas, dtype=float)
     bias = best_bias_m(problem, position) if bias_m is None else bias_m
     s = problem.station_index
-    predicted, _ = predict(position[None], np.array([bias]), problem.stations_enu_m[s][None],
-                           problem.station_rotations[s][None], problem.kinds[None])
+    predicted, jacobian = predict(position[None], np.array([bias]), problem.stations_enu_m[s][None],
+                                  problem.station_rotations[s][None], problem.kinds[None])
     raw = residuals(problem.model_values(), predicted[0], problem.kinds) / problem.unit_scale()
     known = np.isfinite(sig)
     normalized = np.where(known, raw / np.where(known, sig, 1.0), 0.0)
@@ -222,6 +222,7 @@ def finish_fix(
 
     if crlb is None:
         crlb = information_at(problem, position, sigmas=np.where(known, sig, np.nan) if sigmas is not None else None)
+    studentized = _studentized(problem, position, jacobian, normalized, np.where(known, sig, np.inf), crlb)
     if covariance_enu_m2 is None:
         covariance_enu_m2, covariance_source = crlb.covariance_enu_m2[0], "crlb"
     covariance = np.asarray(covariance_enu_m2, dtype=float)
@@ -234,12 +235,12 @@ def finish_fix(
         found.append(FixWarning("ill_conditioned",
                                 f"information matrix nearly singular (min scaled eigenvalue {crlb.min_eigenvalue[0]:.1e})"))
     found.extend(geometry_warnings(problem, position))
-    worst = int(np.argmax(np.abs(normalized))) if normalized.size else 0
-    if dof > 0 and abs(normalized[worst]) > OUTLIER_SIGMAS:
+    worst = int(np.argmax(np.abs(studentized))) if studentized.size else 0
+    if dof > 0 and abs(studentized[worst]) > OUTLIER_SIGMAS:
         found.append(FixWarning(
             "outlier_suspected",
             f"measurement {int(problem.source_index[worst])} ({Kind(problem.kinds[worst]).name.lower()} at "
-            f"{problem.station_ids[s[worst]]}) is {abs(normalized[worst]):.1f} sigma from the fix"))
+            f"{problem.station_ids[s[worst]]}) has a studentized residual of {studentized[worst]:.1f}"))
     if p_value is not None and p_value < SIGMA_MISMATCH_P:
         found.append(FixWarning(
             "sigma_mismatch",
@@ -263,6 +264,20 @@ def finish_fix(
         estimated_bearing_errors_rad=estimated_bearing_errors_rad,
         details=dict(details or {}),
     )
+
+
+def _studentized(problem: Problem, position, jacobian, normalized, sigmas, crlb: Information) -> np.ndarray:
+    """Internally studentized residuals ``r_i / (sigma_i sqrt(1 - h_i))``, ``h`` the leverages.
+
+    A gross error on a high-leverage measurement is partly absorbed by the fit
+    and spread over the others; dividing by the residual's own standard
+    deviation undoes that, so the largest value points at the culprit.
+    """
+    axes, free = local_parameterisation(problem, position[None])
+    weights = (1.0 / (sigmas * problem.unit_scale()) ** 2)[None]
+    _, local = normal_matrix(jacobian, weights, axes, free)
+    leverage = weights[0] * np.einsum("mi,ij,mj->m", local[0], crlb.covariance_params[0], local[0])
+    return normalized / np.sqrt(np.clip(1.0 - leverage, 1e-12, None))
 
 
 Estimator = Callable[[Problem, SolveOptions], Fix]

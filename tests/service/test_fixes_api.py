@@ -1,0 +1,306 @@
+"""POST /v1/fixes and /v1/crlb through the real app: answers, problem+json errors, headers."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import numpy as np
+import pytest
+
+from core import geodesy
+from service import schemas
+from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request, look_angles_deg
+
+PROBLEM_JSON = "application/problem+json"
+
+
+def _ecef(p: dict) -> np.ndarray:
+    return geodesy.geodetic_to_ecef(math.radians(p["lat_deg"]), math.radians(p["lon_deg"]), p["alt_m"])
+
+
+def assert_problem(response, status: int, loc: list | None = None, code: str | None = None) -> dict:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith(PROBLEM_JSON)
+    body = response.json()
+    schemas.Problem.model_validate(body)
+    assert body["status"] == status and body["type"].endswith(body["code"])
+    if code is not None:
+        assert body["code"] == code
+    if loc is not None:
+        assert loc in [e["loc"] for e in body["errors"]], body
+    return body
+
+
+def test_noise_free_bearings_300km_geodetic(client):
+    response = client.post("/v1/fixes", json=bearing_request(STATIONS_300KM, TARGET, formats=["geojson", "cot"]))
+    assert response.status_code == 200, response.text
+    fix = response.json()
+    schemas.FixResponse.model_validate(fix)
+    assert fix["method"] == "ml"
+    assert np.linalg.norm(_ecef(fix["position"]) - _ecef(TARGET)) < 1e-3  # 1 mm over 300 km baselines
+    assert np.linalg.norm(np.array(fix["position_ecef_m"]) - _ecef(TARGET)) < 1e-3
+    assert fix["converged"] and fix["fit"]["chi2"] < 1e-12
+    assert fix["geojson"]["geometry"]["coordinates"][:2] == pytest.approx([TARGET["lon_deg"], TARGET["lat_deg"]])
+    assert "<point" in fix["cot"]
+    cov = np.array(fix["covariance_enu_m2"])
+    assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert len(fix["residuals"]) == 8 and {r["component"] for r in fix["residuals"]} == {"azimuth", "elevation"}
+
+
+def test_local_frame_with_origin_places_plane_on_earth(client):
+    origin = {"lat_deg": 35.0, "lon_deg": 110.0, "alt_m": 0.0}
+    o = [math.radians(origin["lat_deg"]), math.radians(origin["lon_deg"]), 0.0]
+    stations, measurements = [], []
+    target_enu = geodesy.geodetic_to_enu(math.radians(TARGET["lat_deg"]), math.radians(TARGET["lon_deg"]),
+                                         TARGET["alt_m"], *o)
+    for sid, pos in STATIONS_300KM.items():
+        enu = geodesy.geodetic_to_enu(math.radians(pos["lat_deg"]), math.radians(pos["lon_deg"]), pos["alt_m"], *o)
+        stations.append({"id": sid, "position": {"east_m": enu[0], "north_m": enu[1], "up_m": enu[2]}})
+        az, el, _ = look_angles_deg(pos, TARGET)
+        measurements.append({"type": "bearing", "station_id": sid, "azimuth_deg": az, "elevation_deg": el,
+                             "sigma_azimuth_deg": 1, "sigma_elevation_deg": 1})
+    body = {"frame": "local", "origin": origin, "stations": stations, "measurements": measurements}
+    fix = client.post("/v1/fixes", json=body).json()
+    local = fix["position_local"]
+    assert np.allclose([local["east_m"], local["north_m"], local["up_m"]], target_enu, atol=1e-3)  # 1 mm
+    assert np.linalg.norm(_ecef(fix["position"]) - _ecef(TARGET)) < 1e-3
+
+
+def test_two_lines_of_sight_meet_exactly_local_frame(client):
+    target = np.array([200.0, 100.0, 50.0])
+    measurements = []
+    for sid, s in (("a", np.zeros(3)), ("b", np.array([100.0, 0.0, 0.0]))):
+        v = target - s
+        measurements.append({"type": "bearing", "station_id": sid,
+                             "azimuth_deg": math.degrees(math.atan2(v[0], v[1])),
+                             "elevation_deg": math.degrees(math.atan2(v[2], math.hypot(v[0], v[1]))),
+                             "sigma_azimuth_deg": 0.5, "sigma_elevation_deg": 0.5})
+    body = {"frame": "local", "measurements": measurements,
+            "stations": [{"id": "a", "position": {"east_m": 0, "north_m": 0, "up_m": 0}},
+                         {"id": "b", "position": {"east_m": 100, "north_m": 0, "up_m": 0}}]}
+    fix = client.post("/v1/fixes", json=body).json()
+    p = fix["position_local"]
+    assert np.allclose([p["east_m"], p["north_m"], p["up_m"]], target, atol=1e-9)  # 1 nm
+    assert "position" not in fix and "position_ecef_m" not in fix
+
+
+def test_bearings_and_ranges_from_two_stations(client):
+    request = bearing_request(dict(list(STATIONS_300KM.items())[:2]), TARGET)
+    for sid, pos in list(STATIONS_300KM.items())[:2]:
+        request["measurements"].append({"type": "range", "station_id": sid,
+                                        "range_m": look_angles_deg(pos, TARGET)[2], "sigma_m": 100.0})
+    fix = client.post("/v1/fixes", json=request).json()
+    assert np.linalg.norm(_ecef(fix["position"]) - _ecef(TARGET)) < 1e-3
+
+
+def test_toa_from_five_stations(client):
+    stations = dict(STATIONS_300KM, **{"rx-5": {"lat_deg": 35.5, "lon_deg": 110.5, "alt_m": 2000.0}})
+    measurements = [{"type": "toa", "station_id": sid, "sigma_s": 1e-8,
+                     "toa_s": 12.000183 + look_angles_deg(pos, TARGET)[2] / 299_792_458.0}
+                    for sid, pos in stations.items()]
+    body = {"stations": [{"id": k, "position": v} for k, v in stations.items()], "measurements": measurements}
+    fix = client.post("/v1/fixes", json=body).json()
+    assert np.linalg.norm(_ecef(fix["position"]) - _ecef(TARGET)) < 1e-3
+    assert {r["component"] for r in fix["residuals"]} == {"toa"}
+
+
+def test_known_altitude_constraint_with_azimuth_only(client):
+    request = bearing_request(dict(list(STATIONS_300KM.items())[:2]), TARGET, constraints={"altitude_m": 9000.0})
+    for m in request["measurements"]:
+        del m["elevation_deg"], m["sigma_elevation_deg"]
+    fix = client.post("/v1/fixes", json=request).json()
+    assert fix["position"]["alt_m"] == pytest.approx(9000.0, abs=1e-6)  # on the surface
+    assert np.linalg.norm(_ecef(fix["position"]) - _ecef(TARGET)) < 1e-3
+
+
+@pytest.mark.parametrize("method", ["eove", "weighted_eove", "ove", "ml", "auto"])
+def test_methods_report_what_ran(client, method):
+    response = client.post("/v1/fixes", json=bearing_request(STATIONS_300KM, TARGET, method=method))
+    assert response.status_code == 200
+    assert response.json()["method"] == ("ml" if method == "auto" else method)
+
+
+# --- bad input: each a 4xx problem+json with the field path, never a 500 -------------------------
+
+def _good() -> dict:
+    return bearing_request(STATIONS_300KM, TARGET)
+
+
+def _raw(client, text: str):
+    return client.post("/v1/fixes", content=text.encode(), headers={"content-type": "application/json"})
+
+
+@pytest.mark.parametrize("literal", ["NaN", "Infinity", "-Infinity"])
+def test_non_finite_numbers_rejected(client, literal):
+    body = _good()
+    body["measurements"][0]["azimuth_deg"] = "PLACEHOLDER"
+    raw = json.dumps(body).replace('"PLACEHOLDER"', literal)
+    assert_problem(_raw(client, raw), 422, ["measurements", 0, "azimuth_deg"])
+
+
+def test_nan_in_station_position(client):
+    raw = json.dumps(_good()).replace('"lat_deg": 34.0', '"lat_deg": NaN', 1)
+    assert_problem(_raw(client, raw), 422, ["stations", 0, "position", "lat_deg"])
+
+
+def test_latitude_91(client):
+    body = _good()
+    body["stations"][1]["position"]["lat_deg"] = 91
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["stations", 1, "position", "lat_deg"])
+
+
+@pytest.mark.parametrize("sigma", [0, -1])
+def test_sigma_not_positive(client, sigma):
+    body = _good()
+    body["measurements"][2]["sigma_elevation_deg"] = sigma
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["measurements", 2, "sigma_elevation_deg"])
+
+
+def test_unknown_station_id(client):
+    body = _good()
+    body["measurements"][3]["station_id"] = "nobody"
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["measurements", 3, "station_id"])
+
+
+def test_duplicate_station_ids(client):
+    body = _good()
+    body["stations"][2]["id"] = body["stations"][0]["id"]
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["stations", 2, "id"])
+
+
+def test_zero_measurements(client):
+    body = _good()
+    body["measurements"] = []
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["measurements"])
+
+
+def test_missing_sigma_for_ml(client):
+    body = _good()
+    del body["measurements"][1]["sigma_azimuth_deg"]
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["measurements", 1, "sigma_azimuth_deg"])
+
+
+def test_elevation_without_sigma(client):
+    body = _good()
+    del body["measurements"][1]["sigma_elevation_deg"]
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["measurements", 1])
+
+
+def test_frame_and_position_kinds_must_agree(client):
+    body = _good()
+    body["stations"][0]["position"] = {"east_m": 1, "north_m": 2, "up_m": 3}
+    assert_problem(client.post("/v1/fixes", json=body), 422)
+
+
+def test_unknown_field_rejected(client):
+    body = _good()
+    body["measurements"][0]["sigma_azimuth"] = 1.0
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["measurements", 0, "sigma_azimuth"])
+
+
+def test_unknown_method(client):
+    body = _good()
+    body["method"] = "magic"
+    assert_problem(client.post("/v1/fixes", json=body), 422, ["method"])
+
+
+def test_malformed_json_is_400(client):
+    assert_problem(_raw(client, '{"frame": "wgs84", '), 400, code="malformed_json")
+
+
+def test_body_over_limit_is_413(make_client):
+    small = make_client(max_body_bytes=2048)
+    body = _good()
+    body["stations"][0]["id"] = "x" * 100
+    body["measurements"] = body["measurements"] * 20
+    assert_problem(small.post("/v1/fixes", json=body), 413, code="body_too_large")
+    assert small.get("/healthz").status_code == 200
+
+
+def test_azimuth_only_two_stations_without_altitude_is_unobservable(client):
+    body = bearing_request(dict(list(STATIONS_300KM.items())[:2]), TARGET)
+    for m in body["measurements"]:
+        del m["elevation_deg"], m["sigma_elevation_deg"]
+    problem = assert_problem(client.post("/v1/fixes", json=body), 422, code="unobservable")
+    assert problem["detail"]
+
+
+def test_parallel_lines_of_sight_are_unobservable(client):
+    body = {"frame": "local",
+            "stations": [{"id": "a", "position": {"east_m": 0, "north_m": 0, "up_m": 0}},
+                         {"id": "b", "position": {"east_m": 1000, "north_m": 0, "up_m": 0}}],
+            "measurements": [{"type": "bearing", "station_id": s, "azimuth_deg": 0.0, "elevation_deg": 5.0,
+                              "sigma_azimuth_deg": 1, "sigma_elevation_deg": 1} for s in ("a", "b")]}
+    assert_problem(client.post("/v1/fixes", json=body), 422, code="unobservable")
+
+
+def test_request_id_echoed_and_generated(client):
+    r = client.post("/v1/fixes", json=_good(), headers={"x-request-id": "c2-trace-42"})
+    assert r.headers["x-request-id"] == "c2-trace-42"
+    bad = client.post("/v1/fixes", json={"stations": []})
+    assert len(bad.headers["x-request-id"]) >= 16 and bad.json()["request_id"] == bad.headers["x-request-id"]
+
+
+def test_unknown_route_is_problem_json(client):
+    assert_problem(client.get("/v1/nothing"), 404)
+
+
+def test_api_keys(make_client):
+    secured = make_client(api_keys=["k1"])
+    assert_problem(secured.post("/v1/fixes", json=_good()), 401)
+    assert_problem(secured.post("/v1/fixes", json=_good(), headers={"authorization": "Bearer nope"}), 403)
+    assert secured.post("/v1/fixes", json=_good(), headers={"authorization": "Bearer k1"}).status_code == 200
+    assert secured.get("/healthz").status_code == 200
+
+
+def test_rate_limit(make_client):
+    limited = make_client(rate_limit_per_s=0.001, rate_limit_burst=2)
+    codes = [limited.get("/healthz").status_code for _ in range(3)]
+    assert codes == [200, 200, 429]
+    assert int(limited.get("/healthz").headers["retry-after"]) >= 1
+
+
+def test_operations(client):
+    assert client.get("/healthz").json()["status"] == "ok"
+    assert client.get("/readyz").json()["status"] == "ready"
+    client.post("/v1/fixes", json=_good())
+    text = client.get("/metrics").text
+    assert 'passive_locator_requests_total{method="POST",path="/v1/fixes",status="200"} 1' in text
+
+
+def test_crlb_matches_fix_bound(client):
+    fix = client.post("/v1/fixes", json=_good()).json()
+    sensors = [{"station_id": sid, "sigma_azimuth_deg": 1.0, "sigma_elevation_deg": 1.0} for sid in STATIONS_300KM]
+    body = {"stations": [{"id": k, "position": v} for k, v in STATIONS_300KM.items()], "sensors": sensors,
+            "target": TARGET}
+    response = client.post("/v1/crlb", json=body)
+    assert response.status_code == 200, response.text
+    bound = np.array(response.json()["crlb_enu_m2"])
+    assert np.allclose(bound, fix["crlb_enu_m2"], rtol=1e-6)
+    schemas.CrlbResponse.model_validate(response.json())
+
+
+def test_crlb_unobservable(client):
+    sensors = [{"station_id": sid, "elevation": False, "sigma_azimuth_deg": 1.0} for sid in list(STATIONS_300KM)[:2]]
+    body = {"stations": [{"id": k, "position": v} for k, v in STATIONS_300KM.items()], "sensors": sensors,
+            "target": TARGET}
+    assert_problem(client.post("/v1/crlb", json=body), 422, code="unobservable")
+
+
+def test_every_registered_method_is_in_the_schema(client):
+    spec = client.get("/openapi.json").json()
+    methods = set(spec["components"]["schemas"]["FixRequest"]["properties"]["method"]["enum"])
+    from core.estimators import REGISTRY
+
+    assert methods == {"auto", *REGISTRY}
+
+
+def test_outlier_is_flagged(client):
+    body = copy.deepcopy(_good())
+    body["measurements"][0]["azimuth_deg"] += 12.0
+    fix = client.post("/v1/fixes", json=body).json()
+    codes = {w["code"]: w["message"] for w in fix["warnings"]}
+    assert "sigma_mismatch" in codes
+    assert "measurement 0 " in codes["outlier_suspected"]  # the culprit, not a neighbour it was smeared onto
