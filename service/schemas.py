@@ -247,3 +247,29 @@ class BatchResult(BaseModel):
 
 class BatchResponse(BaseModel):
     results: list[BatchResult]
+
+
+class EvaluationRequest(Strict):
+    scenario: CrlbRequest
+    methods: list[Method] = Field(min_length=1, max_length=16)  # type: ignore[valid-type]
+    trials: int = Field(1000, ge=1, le=100000)
+    seed: int = Field(7, ge=0, le=2**63 - 1)
+    noise: Literal["gaussian", "uniform"] = Field(
+        "gaussian", description="uniform: zero-mean with the same sigma (half-width sigma*sqrt(3))")
+
+
+class MethodEvaluation(BaseModel):
+    rmse_m: float | None = Field(description="null when every trial failed")
+    rmse_enu_m: list[float] | None
+    bias_enu_m: list[float] | None
+    crlb_rmse_m: float
+    efficiency: float | None = Field(description="rmse^2 / trace(crlb); 1 is efficient")
+    nees_mean: float | None = Field(description="mean e^T C^-1 e with the method's own covariance; 3 if honest")
+    failures: int
+
+
+class EvaluationResponse(BaseModel):
+    methods: dict[str, MethodEvaluation]
+    trials: int
+    seed: int
+    noise: str

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.errors import LocalizationError
+from core.errors import LocalizationError, UnobservableGeometry
 from core.measurements import predict
 from core.problem import Problem
 
@@ -114,7 +114,10 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, rng: np.rando
     clean = true_values(problem, target)
     draws = clean + draw_noise(rng, problem.sigmas, noise, size=trials)
     noisy = [problem.with_values(v) for v in draws]
-    bound = information_at(problem, target).covariance_enu_m2[0]
+    information = information_at(problem, target)
+    if not information.observable[0]:
+        raise UnobservableGeometry("the scenario's sensors do not determine the target (singular information)")
+    bound = information.covariance_enu_m2[0]
     out = {}
     for method in methods:
         results = solve_many(noisy, [method] * trials, [options] * trials)

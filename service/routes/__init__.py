@@ -1,5 +1,5 @@
 """Every router of the service, in the order they are mounted."""
 
-from service.routes import fixes, health
+from service.routes import evaluations, fixes, health
 
-ROUTERS = [health.router, fixes.router]
+ROUTERS = [health.router, fixes.router, evaluations.router]

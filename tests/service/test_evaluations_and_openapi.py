@@ -1,0 +1,70 @@
+"""POST /v1/evaluations, and the committed OpenAPI document against the app's."""
+
+from __future__ import annotations
+
+import json
+import pathlib
+
+import numpy as np
+from scipy.stats import chi2
+
+from service import schemas
+from tests.service.conftest import STATIONS_300KM, TARGET
+from tests.service.test_fixes_api import assert_problem
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+
+
+def _scenario(**sensor) -> dict:
+    sensors = [{"station_id": sid, "sigma_azimuth_deg": 1.0, "sigma_elevation_deg": 1.0, **sensor}
+               for sid in STATIONS_300KM]
+    return {"stations": [{"id": k, "position": v} for k, v in STATIONS_300KM.items()], "sensors": sensors,
+            "target": TARGET}
+
+
+def test_evaluation_ml_is_efficient_and_honest(client):
+    trials = 600
+    body = {"scenario": _scenario(), "methods": ["ml", "eove"], "trials": trials, "seed": 11}
+    response = client.post("/v1/evaluations", json=body)
+    assert response.status_code == 200, response.text
+    result = schemas.EvaluationResponse.model_validate(response.json())
+    ml = result.methods["ml"]
+    assert ml.failures == 0
+    assert 0.9 < ml.rmse_m / ml.crlb_rmse_m < 1.1
+    low, high = chi2.ppf([0.005, 0.995], 3 * trials) / trials
+    assert low < ml.nees_mean < high
+    assert result.methods["eove"].rmse_m >= ml.rmse_m * 0.98  # the ML is the reference
+
+
+def test_evaluation_is_reproducible_by_seed(client):
+    body = {"scenario": _scenario(), "methods": ["ml"], "trials": 50, "seed": 3}
+    first = client.post("/v1/evaluations", json=body).json()
+    assert client.post("/v1/evaluations", json=body).json() == first
+    body["seed"] = 4
+    assert client.post("/v1/evaluations", json=body).json() != first
+
+
+def test_uniform_noise_has_the_stated_sigma(client):
+    body = {"scenario": _scenario(), "methods": ["ml"], "trials": 600, "seed": 5, "noise": "uniform"}
+    ml = client.post("/v1/evaluations", json=body).json()["methods"]["ml"]
+    assert 0.85 < ml["rmse_m"] / ml["crlb_rmse_m"] < 1.15
+
+
+def test_evaluation_of_unobservable_scenario(client):
+    scenario = _scenario(elevation=False)
+    scenario["sensors"] = scenario["sensors"][:2]
+    for s in scenario["sensors"]:
+        del s["sigma_elevation_deg"]
+    assert_problem(client.post("/v1/evaluations", json={"scenario": scenario, "methods": ["ml"], "trials": 5}),
+                   422, code="unobservable")
+
+
+def test_committed_openapi_matches_the_app():
+    from scripts.write_openapi import render
+
+    committed = (ROOT / "openapi" / "openapi.json").read_text()
+    assert committed == render(), "openapi/openapi.json is stale: run `make openapi`"
+    spec = json.loads(committed)
+    operation_ids = [op["operationId"] for path in spec["paths"].values() for op in path.values()]
+    assert len(operation_ids) == len(set(operation_ids))
+    assert all("-" in op for op in operation_ids)  # {tag}-{name}, for generated clients
