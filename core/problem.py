@@ -334,6 +334,10 @@ class LinesOfSight:
         return np.einsum("kji,kj->ki", self.rotations, local)
 
 
+#: API field names of point attributes held in radians here (loc paths name the API field).
+_API_FIELD = {"lat_rad": "lat_deg", "lon_rad": "lon_deg"}
+
+
 def _check_finite(value, loc):
     if value is None or not np.isfinite(value):
         raise InvalidInput(f"{loc[-1]} must be a finite number", loc)
@@ -395,7 +399,7 @@ def build_problem(
         raise InvalidInput("stations mix geodetic and local positions", ("stations", i, "position"))
     for i, (_, p) in enumerate(stations):
         for name, value in vars(p).items():
-            _check_finite(value, ("stations", i, "position", name))
+            _check_finite(value, ("stations", i, "position", _API_FIELD.get(name, name)))
         if isinstance(p, GeodeticPoint) and abs(p.lat_rad) > np.pi / 2:
             raise InvalidInput("latitude must be within [-90, 90] deg", ("stations", i, "position", "lat_deg"))
 
@@ -460,7 +464,7 @@ def build_problem(
     guess = None
     if initial_guess is not None:
         for name, value in vars(initial_guess).items():
-            _check_finite(value, ("options", "initial_guess", name))
+            _check_finite(value, ("options", "initial_guess", _API_FIELD.get(name, name)))
         if isinstance(initial_guess, GeodeticPoint):
             if not frame.is_geodetic:
                 raise InvalidInput("a geodetic initial guess needs a geodetic frame or an origin",
