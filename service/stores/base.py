@@ -1,20 +1,145 @@
-"""The session-store interface."""
+"""The session-store interface and the record every backend keeps.
+
+A store persists :class:`SessionRecord` values and knows nothing about
+filters: the session service (``service/sessions.py``) decides what a record
+becomes. What a store guarantees is that :meth:`SessionStore.update` is a
+read-modify-write applied one at a time per session, across threads and
+across processes (and, for Redis, across replicas), so two concurrent posts
+to one session never lose each other's epochs.
+"""
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass, replace
+from typing import Any, Callable
+
+import orjson
+
+Clock = Callable[[], float]
+
+
+@dataclass(frozen=True)
+class SessionRecord:
+    """One session as stored.
+
+    Attributes
+    ----------
+    id : str
+        Opaque, URL-safe; ids sort in creation order (a millisecond time prefix).
+    owner : str
+        Digest of the API key that created the session (``anonymous`` without keys).
+    config : dict
+        The session's creation parameters as given at the API (JSON-able).
+    state : dict
+        The filter state as its ``to_dict()`` gave it (JSON-able, exact round trip).
+    version : int
+        1 at creation, +1 on every write; the ``ETag``.
+    last_seq : int or None
+        Highest measurement ``seq`` applied (None before the first).
+    last_time_s : float or None
+        ``time_s`` of that measurement.
+    updates : int
+        Measurement epochs applied.
+    created_at, updated_at, expires_at : float
+        Unix seconds (from the store's clock). A session is gone once
+        ``expires_at <= now``.
+    ttl_s : float
+        Idle lifetime: every write sets ``expires_at = now + ttl_s``.
+    """
+
+    id: str
+    owner: str
+    config: dict[str, Any]
+    state: dict[str, Any]
+    version: int
+    last_seq: int | None
+    last_time_s: float | None
+    updates: int
+    created_at: float
+    updated_at: float
+    expires_at: float
+    ttl_s: float
+
+    def to_json(self) -> bytes:
+        return orjson.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, data: bytes | str) -> "SessionRecord":
+        return cls(**orjson.loads(data))
+
+    def expired(self, now: float) -> bool:
+        return self.expires_at <= now
+
+
+#: ``change(record) -> new record | None``: what :meth:`SessionStore.update` applies.
+Change = Callable[[SessionRecord], "SessionRecord | None"]
 
 
 class SessionStore(ABC):
-    """Durable storage of session records (implemented by the sessions work).
+    """Durable storage of session records.
+
+    Every method that takes an ``owner`` treats a session of another owner
+    exactly like a missing one, and so is an expired session.
 
     Attributes
     ----------
     kind : str
         ``"sqlite"`` or ``"redis"``, reported by ``/readyz``.
+    clock : callable returning float
+        Unix seconds; injectable so that tests can expire sessions without sleeping.
     """
 
     kind: str
+
+    def __init__(self, clock: Clock | None = None):
+        self.clock: Clock = clock or time.time
+
+    def now(self) -> float:
+        return self.clock()
+
+    @abstractmethod
+    def create(self, record: SessionRecord) -> None:
+        """Store a new record (its id must be new)."""
+
+    @abstractmethod
+    def get(self, owner: str, session_id: str) -> SessionRecord | None:
+        """The owner's live session, or None."""
+
+    @abstractmethod
+    def page(self, owner: str, limit: int, after: str | None = None) -> tuple[list[SessionRecord], bool]:
+        """The owner's live sessions with ids above ``after``, in id order.
+
+        Returns
+        -------
+        records : list of SessionRecord
+            At most ``limit``.
+        more : bool
+            Whether live sessions follow the last one returned.
+        """
+
+    @abstractmethod
+    def update(self, owner: str, session_id: str, change: Change) -> SessionRecord | None:
+        """Read-modify-write one session atomically.
+
+        ``change`` gets the current record and returns the new one, or None
+        to write nothing; whatever it raises propagates and nothing is
+        written. The store sets the new record's ``version`` to the old one
+        plus 1. ``change`` may be called more than once (a backend that
+        retries on a conflicting write calls it again on the fresh record),
+        so it must depend only on its argument.
+
+        Returns
+        -------
+        SessionRecord or None
+            The record as stored after the call (unchanged when ``change``
+            returned None); None when the session does not exist for this owner.
+        """
+
+    @abstractmethod
+    def delete(self, owner: str, session_id: str) -> bool:
+        """Remove the owner's session; False when there was none."""
 
     @abstractmethod
     def ping(self) -> None:
@@ -23,3 +148,8 @@ class SessionStore(ABC):
     @abstractmethod
     def close(self) -> None:
         """Release connections."""
+
+
+def next_version(old: SessionRecord, new: SessionRecord) -> SessionRecord:
+    """``new`` with the version that follows ``old``'s (what every backend writes)."""
+    return replace(new, id=old.id, owner=old.owner, version=old.version + 1)

@@ -1,0 +1,199 @@
+"""The store contract, run over every backend (SQLite file, Redis)."""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import replace
+
+import pytest
+
+from service.problems import ApiError
+from service.stores import SessionRecord, open_store
+
+
+def make_record(session_id: str, owner: str = "alice", now: float = 1.7e9, ttl_s: float = 100.0) -> SessionRecord:
+    return SessionRecord(
+        id=session_id, owner=owner, config={"model": "test", "sigma": 0.1 + 0.2},
+        state={"x": [1.0 / 3.0, -2.5e-300, 1e300], "n": 0}, version=1, last_seq=None, last_time_s=None,
+        updates=0, created_at=now, updated_at=now, expires_at=now + ttl_s, ttl_s=ttl_s)
+
+
+def bump(record: SessionRecord) -> SessionRecord:
+    state = dict(record.state, n=record.state["n"] + 1)
+    return replace(record, state=state, updates=record.updates + 1)
+
+
+def test_create_get_round_trip_is_exact(store):
+    record = make_record("0001", now=store.now())
+    store.create(record)
+    assert store.get("alice", "0001") == record
+
+
+def test_another_owner_sees_nothing(store):
+    store.create(make_record("0001", now=store.now()))
+    assert store.get("bob", "0001") is None
+    assert store.update("bob", "0001", bump) is None
+    assert store.delete("bob", "0001") is False
+    assert store.page("bob", 10) == ([], False)
+    assert store.get("alice", "0001").version == 1
+
+
+def test_create_refuses_an_existing_id(store):
+    store.create(make_record("0001", now=store.now()))
+    with pytest.raises(Exception):
+        store.create(make_record("0001", now=store.now()))
+
+
+def test_update_bumps_the_version_and_keeps_id_and_owner(store):
+    store.create(make_record("0001", now=store.now()))
+    updated = store.update("alice", "0001", lambda r: replace(bump(r), id="other", owner="mallory", version=99))
+    assert (updated.id, updated.owner, updated.version, updated.state["n"]) == ("0001", "alice", 2, 1)
+    assert store.get("alice", "0001") == updated
+
+
+def test_update_that_returns_none_writes_nothing(store):
+    original = make_record("0001", now=store.now())
+    store.create(original)
+    assert store.update("alice", "0001", lambda r: None) == original
+    assert store.get("alice", "0001") == original
+
+
+def test_update_that_raises_writes_nothing(store):
+    original = make_record("0001", now=store.now())
+    store.create(original)
+
+    def fails(record):
+        bump(record)
+        raise ApiError(409, "conflict", "no")
+
+    with pytest.raises(ApiError):
+        store.update("alice", "0001", fails)
+    assert store.get("alice", "0001") == original
+
+
+def test_update_of_a_missing_session_does_not_call_the_change(store):
+    calls = []
+    assert store.update("alice", "nope", lambda r: calls.append(r)) is None
+    assert calls == []
+
+
+def test_delete(store):
+    store.create(make_record("0001", now=store.now()))
+    assert store.delete("alice", "0001") is True
+    assert store.get("alice", "0001") is None
+    assert store.delete("alice", "0001") is False
+    assert store.page("alice", 10) == ([], False)
+
+
+def test_pages_walk_every_live_session_once_in_id_order(store):
+    ids = [f"{i:04d}" for i in range(23)]
+    for session_id in reversed(ids):
+        store.create(make_record(session_id, now=store.now()))
+    store.create(make_record("0100", owner="bob", now=store.now()))
+    store.delete("alice", "0007")
+    seen, after, pages = [], None, 0
+    while True:
+        records, more = store.page("alice", 5, after)
+        pages += 1
+        seen += [r.id for r in records]
+        if not more:
+            break
+        after = records[-1].id
+    assert seen == [i for i in ids if i != "0007"]
+    assert pages == 5  # 22 sessions: 5 + 5 + 5 + 5 + 2
+
+
+def test_expired_sessions_are_gone(store, clock):
+    store.create(make_record("0001", now=clock(), ttl_s=10.0))
+    store.create(make_record("0002", now=clock(), ttl_s=1000.0))
+    clock.advance(9.9)
+    assert store.get("alice", "0001") is not None
+    clock.advance(0.1)
+    assert store.get("alice", "0001") is None
+    assert store.update("alice", "0001", bump) is None
+    assert store.delete("alice", "0001") is False
+    assert [r.id for r in store.page("alice", 10)[0]] == ["0002"]
+
+
+def test_an_update_that_moves_expires_at_keeps_the_session_alive(store, clock):
+    store.create(make_record("0001", now=clock(), ttl_s=10.0))
+    clock.advance(8.0)
+    store.update("alice", "0001", lambda r: replace(bump(r), updated_at=clock(), expires_at=clock() + r.ttl_s))
+    clock.advance(8.0)
+    assert store.get("alice", "0001").state["n"] == 1
+
+
+def test_concurrent_updates_through_two_store_instances_lose_nothing(store_url, clock):
+    """Two instances (as two replicas or processes would have), four threads each."""
+    stores = [open_store(store_url, clock=clock) for _ in range(2)]
+    stores[0].create(make_record("0001", now=clock()))
+    per_thread, errors = 25, []
+
+    def work(s):
+        try:
+            for _ in range(per_thread):
+                s.update("alice", "0001", bump)
+        except Exception as error:  # reported below; a thread's exception would otherwise vanish
+            errors.append(error)
+
+    threads = [threading.Thread(target=work, args=(stores[i % 2],)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert errors == []
+    final = stores[1].get("alice", "0001")
+    assert final.state["n"] == 8 * per_thread
+    assert final.version == 1 + 8 * per_thread
+    for s in stores:
+        s.close()
+
+
+def test_sqlite_survives_reopening(tmp_path):
+    url = f"sqlite:///{tmp_path}/s.db"
+    first = open_store(url)
+    record = make_record("0001", now=first.now())
+    first.create(record)
+    first.close()
+    second = open_store(url)
+    assert second.get("alice", "0001") == record
+    assert second.kind == "sqlite"
+    second.ping()
+    second.close()
+
+
+def test_sqlite_uses_wal_and_full_sync(tmp_path):
+    s = open_store(f"sqlite:///{tmp_path}/s.db")
+    with s._db() as db:
+        assert db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+        assert db.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
+    s.close()
+
+
+def test_sqlite_relative_and_memory_urls(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    s = open_store("sqlite:///./var/sessions.db")
+    assert (tmp_path / "var" / "sessions.db").exists()
+    s.close()
+    m = open_store("sqlite:///:memory:")
+    m.create(make_record("0001", now=m.now()))
+    assert m.update("alice", "0001", bump).state["n"] == 1
+    m.close()
+
+
+@pytest.mark.redis
+def test_redis_keys_live_under_the_prefix_with_a_ttl(redis_url, clock):
+    s = open_store(redis_url, clock=clock)
+    assert s.kind == "redis"
+    s.ping()
+    s.create(make_record("0001", now=clock(), ttl_s=100.0))
+    prefix = redis_url.split("key_prefix=")[1]
+    keys = sorted(k.decode() for k in s.client.scan_iter(match=f"{prefix}*"))
+    assert keys == [f"{prefix}owner:alice", f"{prefix}session:0001"]
+    assert 0 < s.client.pttl(f"{prefix}session:0001") <= 100_000
+    s.close()
+
+
+def test_unknown_store_url_is_refused():
+    with pytest.raises(ValueError):
+        open_store("postgres://nowhere")
