@@ -76,6 +76,12 @@ def bancroft(stations_enu_m, pseudoranges_m, weights=None):
     s = np.asarray(stations_enu_m, dtype=float)
     rho = np.asarray(pseudoranges_m, dtype=float)
     w = np.ones(rho.size) if weights is None else np.sqrt(weights)
+    # The linear system is singular when the stations lie in a plane through the origin
+    # (ground receivers of a local frame): solve from a point below their centroid instead.
+    centroid = s.mean(axis=0)
+    _, spread, axes = np.linalg.svd(s - centroid)
+    below = centroid - np.copysign(1.0, axes[-1][2]) * axes[-1] * max(spread[0], 1.0)
+    s = s - below
     m = np.column_stack([s, -rho])
     half_norm = 0.5 * (np.sum(s * s, axis=1) - rho * rho)
     pinv = np.linalg.pinv(m * w[:, None]) * w[None, :]
@@ -92,13 +98,14 @@ def bancroft(stations_enu_m, pseudoranges_m, weights=None):
     else:
         disc = max(qb * qb - 4 * qa * qc, 0.0)
         roots = [(-qb + sg * np.sqrt(disc)) / (2 * qa) for sg in (1.0, -1.0)]
-    best, best_cost = None, np.inf
-    for lam in roots:
-        y = lam * u + v
-        cost = np.sum((np.linalg.norm(s - y[:3], axis=1) + y[3] - rho) ** 2)
-        if cost < best_cost:
-            best, best_cost = y, cost
-    return best[:3], float(best[3])
+    fits = sorted(((float(np.sum(w * w * (np.linalg.norm(s - y[:3], axis=1) + y[3] - rho) ** 2)), y)
+                   for y in (lam * u + v for lam in roots)), key=lambda fit: fit[0])
+    best = fits[0][1]
+    # Near-coplanar stations barely tell a point from its mirror image through their plane:
+    # when the other root fits as well (chi-square within 9), take the upper one, as trilaterate does.
+    if len(fits) == 2 and fits[1][0] - fits[0][0] < 9.0 and fits[1][1][2] > best[2]:
+        best = fits[1][1]
+    return best[:3] + below, float(best[3])
 
 
 def trilaterate(stations_enu_m, ranges_m):
