@@ -63,7 +63,8 @@ class SessionRecord:
     ttl_s: float
 
     def to_json(self) -> bytes:
-        return orjson.dumps(asdict(self))
+        """Exact JSON (shortest round-trip floats); numpy scalars a core ``to_dict`` may leave are accepted."""
+        return orjson.dumps(asdict(self), option=orjson.OPT_SERIALIZE_NUMPY)
 
     @classmethod
     def from_json(cls, data: bytes | str) -> "SessionRecord":
