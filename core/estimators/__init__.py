@@ -27,12 +27,14 @@ def resolve_method(problem: Problem, method: str) -> str:
     """The estimator ``auto`` stands for, given the measurement mix.
 
     ML (started from the best closed form for the mix) whenever sigmas are
-    known; ``taylor_wls`` when bearings come without sigmas and it is available.
+    known; ``taylor_wls``, which estimates them, when azimuth-only bearings
+    come without sigmas.
     """
     if method != AUTO:
         return get_estimator(method).name
     unknown_sigma = np.isnan(problem.sigmas) & (problem.kinds == Kind.AZIMUTH)
-    if np.any(unknown_sigma) and "taylor_wls" in REGISTRY:
+    azimuth_only = problem.count(Kind.AZIMUTH) == problem.n_measurements
+    if np.any(unknown_sigma) and azimuth_only and "taylor_wls" in REGISTRY:
         return "taylor_wls"
     return "ml"
 
