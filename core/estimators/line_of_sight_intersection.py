@@ -73,7 +73,7 @@ def line_of_sight_derivatives(azimuth_rad, elevation_rad, rotations):
         np.stack([cos_el * cos_az, -cos_el * sin_az, zero], axis=-1),
         np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1),
     ])
-    common = np.einsum("...ji,c...j->c...i", rotations, local)
+    common = (local[..., None, :] @ rotations)[..., 0, :]
     return common[0], common[1], common[2]
 
 
@@ -101,11 +101,11 @@ def common_perpendicular(origins_enu_m, rotations, azimuth_rad, elevation_rad):
     u, du_az, du_el = line_of_sight_derivatives(azimuth_rad, elevation_rad, rotations)
     u1, u2 = u[..., 0, :], u[..., 1, :]
     w = origins_enu_m[..., 0, :] - origins_enu_m[..., 1, :]
-    a = np.einsum("...i,...i->...", u1, u1)
-    b = np.einsum("...i,...i->...", u1, u2)
-    c = np.einsum("...i,...i->...", u2, u2)
-    d = np.einsum("...i,...i->...", u1, w)
-    e = np.einsum("...i,...i->...", u2, w)
+    a = np.sum(u1 * u1, axis=-1)
+    b = np.sum(u1 * u2, axis=-1)
+    c = np.sum(u2 * u2, axis=-1)
+    d = np.sum(u1 * w, axis=-1)
+    e = np.sum(u2 * w, axis=-1)
     sin2 = a * c - b * b
     safe = np.where(sin2 > 0, sin2, 1.0)[..., None]
     t1 = (b * e - c * d) / safe[..., 0]
@@ -128,7 +128,7 @@ def common_perpendicular(origins_enu_m, rotations, azimuth_rad, elevation_rad):
     v2 = np.stack([du_az[..., 1, :], du_el[..., 1, :]], axis=-2)
 
     def dot(gradient, tangents):
-        return np.einsum("...i,...ci->...c", gradient, tangents)
+        return np.sum(gradient[..., None, :] * tangents, axis=-1)
 
     foot1 = np.concatenate([
         u1[..., :, None] * dot(dt1_du1, v1)[..., None, :] + t1[..., None, None] * np.swapaxes(v1, -1, -2),
