@@ -216,7 +216,7 @@ class IntersectionBatch:
     valid: np.ndarray
 
 
-def _pairs(problem: Problem, los):
+def _pairs(los):
     """Pairs of lines with elevation from distinct station positions, as index arrays ``(P,)``."""
     with_elevation = np.flatnonzero(los.has_elevation)
     stations = np.unique(los.station_index[with_elevation])
@@ -260,7 +260,7 @@ def intersect_lines_of_sight(problem: Problem, values=None) -> IntersectionBatch
     values = np.atleast_2d(problem.values if values is None else np.asarray(values, dtype=float))
     trials = values.shape[0]
     los = problem.lines_of_sight()
-    first, second = _pairs(problem, los)
+    first, second = _pairs(los)
 
     elevation = np.where(los.has_elevation, values[:, los.elevation_row], 0.0)
     azimuth = values[:, los.azimuth_row]
