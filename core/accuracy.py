@@ -1,7 +1,8 @@
 """Error summaries of a 3x3 ENU covariance: CEP50, SEP50, the 95 % ellipse, GDOP.
 
-CEP50 and SEP50 are computed exactly (to ~1e-9 relative) for any covariance
-shape, not by the circular-error rules of thumb: with ``x = C^1/2 z`` and
+CEP50 and SEP50 are computed from the distribution itself, not by the
+circular-error rules of thumb (to about 1e-6 relative for CEP50 and 1e-4 for
+SEP50 at a 100:1 axis ratio, the quadrature's limit; better for rounder ones): with ``x = C^1/2 z`` and
 ``z = s w`` (``w`` uniform on the unit circle or sphere, ``s^2`` chi-square),
 ``P(|x| <= r) = E_w[F_chi2(r^2 / (w^T Lambda w))]``. The expectation is a
 smooth integral over directions, done by fixed quadrature on one quadrant or
