@@ -1,6 +1,7 @@
 """Closed-form starting points for the ML iteration, chosen by measurement mix.
 
-- bearings: weighted EOVE (``core.estimators.orthogonal_vector``);
+- bearings: weighted EOVE (``core.estimators.orthogonal_vector``), over a
+  whole batch at once in :func:`weighted_eove_batch`;
 - a station with a bearing and a range: its polar point ``s + R u``, fused
   over stations by inverse covariance;
 - four or more TOAs: Bancroft's algebraic solution (exact without noise);
@@ -12,10 +13,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.batch import ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
-from core.estimators.orthogonal_vector import solve_orthogonal
+from core.estimators.orthogonal_vector import ALTITUDE_ROW_WEIGHT, solve_orthogonal
 from core.measurements import Kind
-from core.problem import Problem
+from core.problem import Problem, local_axes, onto_altitude
+
+#: Smallest eigenvalue ratio of a batched weighted-EOVE normal matrix that is
+#: solved in the batch; a problem below it is started one by one (SVD, with
+#: the per-problem fallbacks), so a near-degenerate geometry is judged exactly.
+BATCH_CONDITION_LIMIT = 1e-12
 
 
 def polar_points(problem: Problem):
@@ -178,3 +185,168 @@ def initial_position(problem: Problem):
     raise TooFewMeasurements(
         "too few measurements for a fix: need bearings from 2 stations, a bearing and a range, "
         "4 TOAs or 3 ranges", ("measurements",))
+
+
+def _symmetric_solve(n, right):
+    """Solve symmetric 3x3 systems given by their six entries; also their eigenvalue ratio.
+
+    Parameters
+    ----------
+    n : tuple of 6 ndarray, shape (B,)
+        ``(n00, n01, n02, n11, n12, n22)``.
+    right : tuple of 3 ndarray, shape (B,)
+
+    Returns
+    -------
+    solution : ndarray, shape (B, 3)
+    ratio : ndarray, shape (B,)
+        Smallest over largest eigenvalue (analytic, to ~1e-16 of the largest).
+    """
+    a, b, c, d, e, f = n
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    safe = np.where(det != 0, det, 1.0)
+    r0, r1, r2 = right
+    solution = np.stack([c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2,
+                         c02 * r0 + c12 * r1 + c22 * r2], axis=-1) / safe[:, None]
+    q = (a + d + f) / 3.0
+    off = b * b + c * c + e * e
+    p = np.sqrt(((a - q) ** 2 + (d - q) ** 2 + (f - q) ** 2 + 2.0 * off) / 6.0)
+    ps = np.where(p > 0, p, 1.0)
+    ba, bd, bf = (a - q) / ps, (d - q) / ps, (f - q) / ps
+    bb, bc, be = b / ps, c / ps, e / ps
+    half_det = 0.5 * (ba * (bd * bf - be * be) - bb * (bb * bf - be * bc) + bc * (bb * be - bd * bc))
+    phi = np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0
+    largest = q + 2.0 * p * np.cos(phi)
+    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    ratio = np.where(largest > 0, smallest / np.where(largest > 0, largest, 1.0), 0.0)
+    return solution, np.where(det != 0, ratio, 0.0)
+
+
+def weighted_eove_batch(batch: ProblemBatch):
+    """Weighted EOVE (three passes, as :func:`~core.estimators.orthogonal_vector.solve_orthogonal`) for a batch.
+
+    Each line of sight gives its elevation-plane row (when it has an
+    elevation) and its azimuth-plane row; a known altitude adds the local up
+    row with weight ``ALTITUDE_ROW_WEIGHT`` times the strongest row. Every pass
+    solves the ``(B, 3, 3)`` normal equations at once, element-wise.
+
+    Parameters
+    ----------
+    batch : ProblemBatch
+
+    Returns
+    -------
+    position_enu_m : ndarray, shape (B, 3)
+    solved : ndarray of bool, shape (B,)
+        False where the rows are too few or too close to rank-deficient for
+        the normal equations (see ``BATCH_CONDITION_LIMIT``); those problems
+        need the per-problem start.
+    """
+    is_az, elevation, sigma_elevation = batch.lines_of_sight()
+    has_el = ~np.isnan(elevation)
+    az = np.where(is_az, batch.values, 0.0)
+    el = np.where(has_el, elevation, 0.0)
+    stations, rotations = batch.measurement_stations()
+    s = np.moveaxis(stations, -1, 0)
+    rot = np.moveaxis(rotations, (-2, -1), (0, 1))
+    sin_az, cos_az, sin_el, cos_el = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
+    v0, v1 = -sin_el * sin_az, -sin_el * cos_az
+    vertical = [rot[0, j] * v0 + rot[1, j] * v1 + rot[2, j] * cos_el for j in range(3)]
+    horizontal = [rot[0, j] * cos_az - rot[1, j] * sin_az for j in range(3)]
+    rhs_v = vertical[0] * s[0] + vertical[1] * s[1] + vertical[2] * s[2]
+    rhs_h = horizontal[0] * s[0] + horizontal[1] * s[1] + horizontal[2] * s[2]
+    sigma_v = np.where(has_el & np.isfinite(sigma_elevation), sigma_elevation, 1.0)
+    sigma_h = np.where(is_az & np.isfinite(batch.sigmas), batch.sigmas, 1.0)
+
+    constrained = batch.constrained
+    any_constrained = bool(np.any(constrained))
+    altitude = np.where(constrained, batch.altitude_m, 0.0)
+    size = batch.size
+    up_axis = np.zeros((size, 3))
+    up_axis[:, 2] = 1.0
+    up_rhs = altitude
+    solved = np.count_nonzero(has_el, axis=-1) + np.count_nonzero(is_az, axis=-1) + constrained >= 3
+    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+    def solve(weight_v, weight_h):
+        wv2 = np.where(has_el, weight_v, 0.0) ** 2
+        wh2 = np.where(is_az, weight_h, 0.0) ** 2
+        hv = [wv2 * c for c in vertical]
+        hh = [wh2 * c for c in horizontal]
+        normal = [np.sum(hv[i] * vertical[j] + hh[i] * horizontal[j], axis=-1) for i, j in pairs]
+        right = [np.sum(hv[i] * rhs_v + hh[i] * rhs_h, axis=-1) for i in range(3)]
+        if any_constrained:
+            strongest = np.maximum(np.max(np.where(has_el, weight_v, 0.0), axis=-1),
+                                   np.max(np.where(is_az, weight_h, 0.0), axis=-1))
+            strong2 = (ALTITUDE_ROW_WEIGHT * strongest) ** 2 * constrained
+            normal = [nij + strong2 * up_axis[:, i] * up_axis[:, j] for nij, (i, j) in zip(normal, pairs)]
+            right = [ri + strong2 * up_axis[:, i] * up_rhs for i, ri in enumerate(right)]
+        return _symmetric_solve(normal, right)
+
+    ones = np.ones_like(az)
+    position, ratio = solve(ones, ones)
+    solved &= ratio > BATCH_CONDITION_LIMIT
+    for _ in range(2):
+        if any_constrained:
+            on_surface = onto_altitude(position, altitude, batch.origin, batch.geodetic)
+            axes_up = local_axes(on_surface, batch.origin, batch.geodetic)[:, 2]
+            up_axis = np.where(constrained[:, None], axes_up, up_axis)
+            up_rhs = np.where(constrained, np.einsum("bi,bi->b", up_axis, on_surface), up_rhs)
+        dx, dy, dz = (position[:, i, None] - s[i] for i in range(3))
+        e = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        n = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        u = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        horizontal_distance = np.hypot(e, n)
+        slant = np.sqrt(horizontal_distance**2 + u * u)
+        position, ratio = solve(1.0 / (sigma_v * np.maximum(slant, 1e-9)),
+                                1.0 / (sigma_h * np.maximum(horizontal_distance, 1e-9)))
+        solved &= ratio > BATCH_CONDITION_LIMIT
+    if any_constrained:
+        position = np.where(constrained[:, None],
+                            onto_altitude(position, altitude, batch.origin, batch.geodetic), position)
+    solved &= np.all(np.isfinite(position), axis=-1)
+    return position, solved
+
+
+def initial_positions(batch: ProblemBatch):
+    """:func:`initial_position` for every problem of a batch.
+
+    The initial guess where one is given; else the batched weighted EOVE for
+    problems with bearings; the rest (and the few the batch cannot solve) one
+    by one through :func:`initial_position`.
+
+    Returns
+    -------
+    position_enu_m : ndarray, shape (B, 3)
+        NaN rows where no start could be found.
+    names : list of str or None
+        Which start was used; None where none could be found.
+    failures : dict of int to LocalizationError
+        Why a problem has no start.
+    """
+    size = batch.size
+    positions = np.full((size, 3), np.nan)
+    names: list[str | None] = [None] * size
+    failures: dict[int, LocalizationError] = {}
+    guessed = ~np.isnan(batch.initial_guess_enu_m[:, 0])
+    positions[guessed] = batch.initial_guess_enu_m[guessed]
+    for b in np.flatnonzero(guessed):
+        names[b] = "initial_guess"
+    with_bearings = ~guessed & np.any(batch.valid & (batch.kinds == Kind.AZIMUTH), axis=-1)
+    pending = set(np.flatnonzero(~guessed & ~with_bearings).tolist())
+    if np.any(with_bearings):
+        subset = np.flatnonzero(with_bearings)
+        start, solved = weighted_eove_batch(batch if subset.size == size else batch.take(subset))
+        positions[subset[solved]] = start[solved]
+        for b in subset[solved]:
+            names[b] = "weighted_eove"
+        pending.update(subset[~solved].tolist())
+    for b in sorted(pending):
+        try:
+            position, names[b] = initial_position(batch.problem(b))
+            positions[b] = position
+        except LocalizationError as error:
+            failures[b] = error
+    return positions, names, failures

@@ -1,0 +1,367 @@
+"""Many localisation problems at once, padded to common sizes.
+
+A :class:`ProblemBatch` holds B problems, each in its own common frame, with
+stations padded to N and measurements to M. Padding is marked by
+``n_stations`` and ``n_measurements`` (and :attr:`ProblemBatch.valid`); it
+never carries weight. The batched ML estimator and its closed-form start work
+on a batch; :meth:`ProblemBatch.problem` gives one :class:`~core.problem.Problem`
+back for the per-problem code paths.
+
+:func:`build_problem_batch` is :func:`core.problem.build_problem` over a batch,
+for inputs that already passed its checks: the frame placement is the same
+(exact geodesy, the stations' centroid on the ellipsoid as the default origin),
+done once for every station of every problem.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from core import geodesy
+from core.measurements import SPEED_OF_LIGHT_MPS, Kind
+from core.problem import CommonFrame, GeodeticPoint, Problem, local_axes
+
+#: Kind written into measurement padding (any kind works: padding has zero weight).
+PAD_KIND = Kind.RANGE
+
+
+@dataclass(frozen=True)
+class ProblemBatch:
+    """B problems padded to N stations and M measurements.
+
+    Attributes
+    ----------
+    station_ids : tuple of tuple of str, length B
+    origin : ndarray, shape (B, 3)
+        Each frame's origin ``(lat_rad, lon_rad, alt_m)``; zeros for a flat plane.
+    geodetic : ndarray of bool, shape (B,)
+        Whether the frame touches the earth (``CommonFrame.is_geodetic``).
+    n_stations : ndarray of int, shape (B,)
+    stations_enu_m : ndarray, shape (B, N, 3)
+    station_rotations : ndarray, shape (B, N, 3, 3)
+        Station ENU <- common ENU; the identity on padding.
+    n_measurements : ndarray of int, shape (B,)
+    kinds : ndarray of int8, shape (B, M)
+    station_index : ndarray of int, shape (B, M)
+    values : ndarray, shape (B, M)
+        Problem units (rad, m, s after ``toa_reference_s``); 0 on padding.
+    sigmas : ndarray, shape (B, M)
+        Problem units; NaN where not given and on padding.
+    bearing_index, source_index : ndarray of int, shape (B, M)
+        As in :class:`~core.problem.Problem`; -1 on padding.
+    toa_reference_s : ndarray, shape (B,)
+    altitude_m : ndarray, shape (B,)
+        Known target altitude; NaN where unconstrained.
+    initial_guess_enu_m : ndarray, shape (B, 3)
+        NaN rows where none was given.
+    """
+
+    station_ids: tuple[tuple[str, ...], ...]
+    origin: np.ndarray
+    geodetic: np.ndarray
+    n_stations: np.ndarray
+    stations_enu_m: np.ndarray
+    station_rotations: np.ndarray
+    n_measurements: np.ndarray
+    kinds: np.ndarray
+    station_index: np.ndarray
+    values: np.ndarray
+    sigmas: np.ndarray
+    bearing_index: np.ndarray
+    source_index: np.ndarray
+    toa_reference_s: np.ndarray
+    altitude_m: np.ndarray
+    initial_guess_enu_m: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.n_measurements.size)
+
+    @property
+    def valid(self) -> np.ndarray:
+        """``(B, M)``: True on real measurements, False on padding."""
+        return np.arange(self.kinds.shape[1]) < self.n_measurements[:, None]
+
+    @property
+    def constrained(self) -> np.ndarray:
+        """``(B,)``: a known altitude is given."""
+        return ~np.isnan(self.altitude_m)
+
+    @property
+    def has_toa(self) -> np.ndarray:
+        """``(B,)``: some measurement is a TOA (so the emission offset is a free parameter)."""
+        return np.any(self.kinds == Kind.TOA, axis=-1)
+
+    def unit_scale(self) -> np.ndarray:
+        """``(B, M)`` factor from problem units to model units (TOA seconds -> metres)."""
+        return np.where(self.kinds == Kind.TOA, SPEED_OF_LIGHT_MPS, 1.0)
+
+    def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
+        """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement."""
+        rows = np.arange(self.size)[:, None]
+        return self.stations_enu_m[rows, self.station_index], self.station_rotations[rows, self.station_index]
+
+    def lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Bearings as lines of sight, one per azimuth row.
+
+        Returns
+        -------
+        is_line : ndarray of bool, shape (B, M)
+            True on the azimuth row of each bearing.
+        elevation_rad, sigma_elevation_rad : ndarray, shape (B, M)
+            The bearing's elevation and its sigma on its azimuth row; NaN
+            for an azimuth-only bearing and off azimuth rows.
+        """
+        valid = self.valid
+        is_line = valid & (self.kinds == Kind.AZIMUTH)
+        elevation = np.full(self.values.shape, np.nan)
+        sigma = np.full(self.values.shape, np.nan)
+        b, m = np.nonzero(valid & (self.kinds == Kind.ELEVATION))
+        if b.size:
+            width = int(self.bearing_index.max()) + 1
+            azimuth_row = np.zeros((self.size, width), dtype=np.intp)
+            ab, am = np.nonzero(is_line)
+            azimuth_row[ab, self.bearing_index[ab, am]] = am
+            target = azimuth_row[b, self.bearing_index[b, m]]
+            elevation[b, target] = self.values[b, m]
+            sigma[b, target] = self.sigmas[b, m]
+        return is_line, elevation, sigma
+
+    def frame(self, b: int) -> CommonFrame:
+        """The common frame of problem ``b``."""
+        if not self.geodetic[b]:
+            return CommonFrame(None)
+        lat, lon, alt = (float(v) for v in self.origin[b])
+        return CommonFrame(GeodeticPoint(lat, lon, alt))
+
+    def problem(self, b: int) -> Problem:
+        """Problem ``b`` on its own (no padding)."""
+        n, m = int(self.n_stations[b]), int(self.n_measurements[b])
+        altitude = float(self.altitude_m[b])
+        guess = self.initial_guess_enu_m[b]
+        return Problem(
+            frame=self.frame(b),
+            station_ids=self.station_ids[b],
+            stations_enu_m=self.stations_enu_m[b, :n].copy(),
+            station_rotations=self.station_rotations[b, :n].copy(),
+            kinds=self.kinds[b, :m].copy(),
+            station_index=self.station_index[b, :m].copy(),
+            values=self.values[b, :m].copy(),
+            sigmas=self.sigmas[b, :m].copy(),
+            bearing_index=self.bearing_index[b, :m].copy(),
+            source_index=self.source_index[b, :m].copy(),
+            toa_reference_s=float(self.toa_reference_s[b]),
+            altitude_m=None if np.isnan(altitude) else altitude,
+            initial_guess_enu_m=None if np.isnan(guess[0]) else guess.copy(),
+        )
+
+    def take(self, indices) -> "ProblemBatch":
+        """The sub-batch of ``indices``, padding trimmed to its own largest problem."""
+        idx = np.asarray(indices, dtype=np.intp)
+        n = int(self.n_stations[idx].max(initial=1))
+        m = int(self.n_measurements[idx].max(initial=1))
+        return ProblemBatch(
+            station_ids=tuple(self.station_ids[i] for i in idx),
+            origin=self.origin[idx],
+            geodetic=self.geodetic[idx],
+            n_stations=self.n_stations[idx],
+            stations_enu_m=self.stations_enu_m[idx, :n],
+            station_rotations=self.station_rotations[idx, :n],
+            n_measurements=self.n_measurements[idx],
+            kinds=self.kinds[idx, :m],
+            station_index=self.station_index[idx, :m],
+            values=self.values[idx, :m],
+            sigmas=self.sigmas[idx, :m],
+            bearing_index=self.bearing_index[idx, :m],
+            source_index=self.source_index[idx, :m],
+            toa_reference_s=self.toa_reference_s[idx],
+            altitude_m=self.altitude_m[idx],
+            initial_guess_enu_m=self.initial_guess_enu_m[idx],
+        )
+
+    @classmethod
+    def from_problems(cls, problems: Sequence[Problem]) -> "ProblemBatch":
+        """Pad built problems into one batch (inverse of :meth:`problem`)."""
+        n_stations = np.array([p.stations_enu_m.shape[0] for p in problems], dtype=np.intp)
+        n_measurements = np.array([p.kinds.size for p in problems], dtype=np.intp)
+        stations = _pad(np.concatenate([p.stations_enu_m for p in problems]), n_stations, 0.0)
+        rotations = _pad(np.concatenate([p.station_rotations for p in problems]), n_stations, 0.0)
+        rotations[~(np.arange(rotations.shape[1]) < n_stations[:, None])] = np.eye(3)
+
+        def measured(name, fill):
+            return _pad(np.concatenate([getattr(p, name) for p in problems]), n_measurements, fill)
+
+        frames = [p.frame for p in problems]
+        return cls(
+            station_ids=tuple(p.station_ids for p in problems),
+            origin=np.array([f.origin_array() for f in frames]).reshape(-1, 3),
+            geodetic=np.array([f.is_geodetic for f in frames], dtype=bool),
+            n_stations=n_stations,
+            stations_enu_m=stations,
+            station_rotations=rotations,
+            n_measurements=n_measurements,
+            kinds=measured("kinds", PAD_KIND).astype(np.int8),
+            station_index=measured("station_index", 0).astype(np.intp),
+            values=measured("values", 0.0),
+            sigmas=measured("sigmas", np.nan),
+            bearing_index=measured("bearing_index", -1).astype(np.intp),
+            source_index=measured("source_index", -1).astype(np.intp),
+            toa_reference_s=np.array([p.toa_reference_s for p in problems], dtype=float),
+            altitude_m=np.array([np.nan if p.altitude_m is None else p.altitude_m for p in problems], dtype=float),
+            initial_guess_enu_m=np.array([np.full(3, np.nan) if p.initial_guess_enu_m is None
+                                          else p.initial_guess_enu_m for p in problems], dtype=float).reshape(-1, 3),
+        )
+
+
+def _pad(flat, counts, fill):
+    """Scatter rows of a flat array ``(sum(counts), ...)`` into ``(B, max(counts), ...)``."""
+    flat = np.asarray(flat)
+    counts = np.asarray(counts, dtype=np.intp)
+    width = int(counts.max(initial=1))
+    out = np.full((counts.size, max(width, 1), *flat.shape[1:]), fill, dtype=flat.dtype)
+    rows = np.repeat(np.arange(counts.size), counts)
+    starts = np.cumsum(counts) - counts
+    cols = np.arange(rows.size) - starts[rows]
+    out[rows, cols] = flat
+    return out
+
+
+def size_groups(n_measurements, n_stations=None) -> list[np.ndarray]:
+    """Indices grouped so that padding stays under 2x: by the power of two at or above each size.
+
+    Parameters
+    ----------
+    n_measurements : ndarray of int, shape (B,)
+    n_stations : ndarray of int, shape (B,), optional
+
+    Returns
+    -------
+    list of ndarray of int
+        Each group in input order; groups by increasing size.
+    """
+    sizes = np.maximum(np.asarray(n_measurements, dtype=np.intp), 1)
+    if n_stations is not None:
+        sizes = np.maximum(sizes, np.asarray(n_stations, dtype=np.intp))
+    bucket = np.ceil(np.log2(sizes)).astype(np.intp)
+    return [np.flatnonzero(bucket == k) for k in np.unique(bucket)]
+
+
+def build_problem_batch(
+    station_counts,
+    station_ids: Sequence[tuple[str, ...]],
+    station_coordinates,
+    geodetic_stations,
+    origin,
+    measurement_counts,
+    kinds,
+    station_index,
+    values,
+    sigmas,
+    bearing_index,
+    source_index,
+    altitude_m,
+    initial_guess,
+    geodetic_guess,
+) -> ProblemBatch:
+    """:func:`core.problem.build_problem` for a batch of inputs that already pass its checks.
+
+    Parameters
+    ----------
+    station_counts : ndarray of int, shape (B,)
+        Stations of each problem (>= 1); their rows are consecutive below.
+    station_ids : sequence of tuple of str, length B
+    station_coordinates : ndarray, shape (S, 3)
+        ``(lat_rad, lon_rad, alt_m)`` for geodetic stations, ``(east_m, north_m, up_m)`` for local ones;
+        ``S = sum(station_counts)``.
+    geodetic_stations : ndarray of bool, shape (B,)
+    origin : ndarray, shape (B, 3)
+        Given origin ``(lat_rad, lon_rad, alt_m)``; NaN rows where none was given.
+    measurement_counts : ndarray of int, shape (B,)
+        Scalar measurements of each problem (>= 1); rows consecutive below.
+    kinds, station_index, values, sigmas, bearing_index, source_index : ndarray, shape (T,)
+        As in :class:`~core.problem.Problem`, except that TOA values are the raw
+        seconds (the per-problem reference is subtracted here); ``station_index``
+        counts within the problem.
+    altitude_m : ndarray, shape (B,)
+        NaN where unconstrained.
+    initial_guess : ndarray, shape (B, 3)
+        Geodetic ``(lat_rad, lon_rad, alt_m)`` or local ENU; NaN rows where none.
+    geodetic_guess : ndarray of bool, shape (B,)
+
+    Returns
+    -------
+    ProblemBatch
+    """
+    station_counts = np.asarray(station_counts, dtype=np.intp)
+    measurement_counts = np.asarray(measurement_counts, dtype=np.intp)
+    coords = np.asarray(station_coordinates, dtype=float).reshape(-1, 3)
+    geodetic_stations = np.asarray(geodetic_stations, dtype=bool)
+    origin = np.array(origin, dtype=float).reshape(-1, 3)
+    batch = station_counts.size
+    owner = np.repeat(np.arange(batch), station_counts)
+    starts = np.cumsum(station_counts) - station_counts
+
+    needs_centroid = geodetic_stations & np.isnan(origin[:, 0])
+    if np.any(needs_centroid):
+        surface = geodesy.geodetic_to_ecef(coords[:, 0], coords[:, 1], np.zeros(owner.size))
+        mean = np.add.reduceat(surface, starts, axis=0) / station_counts[:, None]
+        degenerate = np.linalg.norm(mean, axis=-1) < 1.0
+        if np.any(degenerate):
+            mean[degenerate] = surface[starts[degenerate]]
+        lat, lon, _ = geodesy.ecef_to_geodetic(mean[needs_centroid])
+        origin[needs_centroid] = np.stack([lat, lon, np.zeros_like(lat)], axis=-1)
+    geodetic = ~np.isnan(origin[:, 0])
+    origin = np.where(geodetic[:, None], origin, 0.0)
+
+    o = origin[owner]
+    is_geodetic_station = geodetic_stations[owner]
+    enu = coords.copy()
+    rotations = np.empty((owner.size, 3, 3))
+    g = np.flatnonzero(is_geodetic_station)
+    if g.size:
+        lat, lon, alt = coords[g, 0], coords[g, 1], coords[g, 2]
+        enu[g] = geodesy.geodetic_to_enu(lat, lon, alt, o[g, 0], o[g, 1], o[g, 2])
+        rotations[g] = geodesy.enu_to_enu_rotation(o[g, 0], o[g, 1], lat, lon)
+    loc = np.flatnonzero(~is_geodetic_station)
+    if loc.size:
+        rotations[loc] = local_axes(enu[loc], o[loc], geodetic[owner[loc]])
+
+    kinds = np.asarray(kinds, dtype=np.int8)
+    values = np.asarray(values, dtype=float)
+    kinds_padded = _pad(kinds, measurement_counts, PAD_KIND)
+    values_padded = _pad(values, measurement_counts, 0.0)
+    is_toa = kinds_padded == Kind.TOA
+    reference = np.where(is_toa, values_padded, np.inf).min(axis=-1)
+    reference = np.where(np.isfinite(reference), reference, 0.0)
+    values_padded = np.where(is_toa, values_padded - reference[:, None], values_padded)
+
+    guess = np.array(initial_guess, dtype=float).reshape(-1, 3)
+    geodetic_guess = np.asarray(geodetic_guess, dtype=bool) & ~np.isnan(guess[:, 0])
+    if np.any(geodetic_guess):
+        k = np.flatnonzero(geodetic_guess)
+        guess[k] = geodesy.geodetic_to_enu(guess[k, 0], guess[k, 1], guess[k, 2],
+                                           origin[k, 0], origin[k, 1], origin[k, 2])
+
+    rotations_padded = _pad(rotations, station_counts, 0.0)
+    rotations_padded[~(np.arange(rotations_padded.shape[1]) < station_counts[:, None])] = np.eye(3)
+    return ProblemBatch(
+        station_ids=tuple(station_ids),
+        origin=origin,
+        geodetic=geodetic,
+        n_stations=station_counts,
+        stations_enu_m=_pad(enu, station_counts, 0.0),
+        station_rotations=rotations_padded,
+        n_measurements=measurement_counts,
+        kinds=kinds_padded,
+        station_index=_pad(np.asarray(station_index, dtype=np.intp), measurement_counts, 0),
+        values=values_padded,
+        sigmas=_pad(np.asarray(sigmas, dtype=float), measurement_counts, np.nan),
+        bearing_index=_pad(np.asarray(bearing_index, dtype=np.intp), measurement_counts, -1),
+        source_index=_pad(np.asarray(source_index, dtype=np.intp), measurement_counts, -1),
+        toa_reference_s=reference,
+        altitude_m=np.asarray(altitude_m, dtype=float).reshape(-1),
+        initial_guess_enu_m=guess,
+    )
