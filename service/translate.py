@@ -11,7 +11,9 @@ import math
 
 import numpy as np
 
+from core import geodesy
 from core.accuracy import error_summary
+from core.batch import ProblemBatch, build_problem_batch
 from core.estimators import Fix, SolveOptions
 from core.measurements import Kind
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
@@ -194,3 +196,414 @@ def _cot(body: dict) -> str | None:
     return (f'<event version="2.0" uid="passive-locator-fix" type="a-u-G" how="m-g">'
             f'<point lat="{pos["lat_deg"]:.8f}" lon="{pos["lon_deg"]:.8f}" hae="{pos["alt_m"]:.2f}" '
             f'ce="{ce:.1f}" le="{le:.1f}"/></event>')
+
+
+# --- The batch path: many fix requests straight from parsed JSON to one core batch, and back. ---
+
+_GEODETIC_KEYS = frozenset(schemas.GeodeticPosition.model_fields)
+_LOCAL_KEYS = frozenset(schemas.LocalPosition.model_fields)
+_REQUEST_KEYS = frozenset(schemas.FixRequest.model_fields)
+_STATION_KEYS = frozenset(schemas.Station.model_fields)
+_BEARING_KEYS = frozenset(schemas.BearingMeasurement.model_fields)
+_RANGE_KEYS = frozenset(schemas.RangeMeasurement.model_fields)
+_TOA_KEYS = frozenset(schemas.ToaMeasurement.model_fields)
+_OPTION_KEYS = frozenset(schemas.Options.model_fields)
+_CONSTRAINT_KEYS = frozenset(schemas.Constraints.model_fields)
+_FORMATS = frozenset(("geojson", "cot"))
+_ML_METHODS = frozenset(("ml", "auto"))
+_DEFAULT_OPTIONS = schemas.Options()
+_NAN3 = (math.nan, math.nan, math.nan)
+
+
+def _bounds(model, name: str) -> tuple[float, float, bool, bool]:
+    """``(low, high, low_inclusive, high_inclusive)`` of a float field, read from its schema."""
+    low, high, low_in, high_in = -math.inf, math.inf, True, True
+    for rule in model.model_fields[name].metadata:
+        if getattr(rule, "ge", None) is not None:
+            low, low_in = float(rule.ge), True
+        if getattr(rule, "gt", None) is not None:
+            low, low_in = float(rule.gt), False
+        if getattr(rule, "le", None) is not None:
+            high, high_in = float(rule.le), True
+        if getattr(rule, "lt", None) is not None:
+            high, high_in = float(rule.lt), False
+    return low, high, low_in, high_in
+
+
+class _Reject(Exception):
+    """The lean reader cannot vouch for this problem: the full schema path decides."""
+
+
+def _number(value, bounds=None) -> float:
+    if type(value) is not float and type(value) is not int:
+        raise _Reject
+    value = float(value)
+    if not math.isfinite(value):
+        raise _Reject
+    if bounds is not None:
+        low, high, low_in, high_in = bounds
+        if not ((low <= value if low_in else low < value) and (value <= high if high_in else value < high)):
+            raise _Reject
+    return value
+
+
+def _optional_number(body: dict, key: str, bounds=None):
+    value = body.get(key)
+    return None if value is None else _number(value, bounds)
+
+
+_LAT = _bounds(schemas.GeodeticPosition, "lat_deg")
+_LON = _bounds(schemas.GeodeticPosition, "lon_deg")
+_ALT = _bounds(schemas.GeodeticPosition, "alt_m")
+_AZIMUTH = _bounds(schemas.BearingMeasurement, "azimuth_deg")
+_ELEVATION = _bounds(schemas.BearingMeasurement, "elevation_deg")
+_SIGMA_AZIMUTH = _bounds(schemas.BearingMeasurement, "sigma_azimuth_deg")
+_SIGMA_ELEVATION = _bounds(schemas.BearingMeasurement, "sigma_elevation_deg")
+_RANGE = _bounds(schemas.RangeMeasurement, "range_m")
+_SIGMA_RANGE = _bounds(schemas.RangeMeasurement, "sigma_m")
+_SIGMA_TOA = _bounds(schemas.ToaMeasurement, "sigma_s")
+_TOLERANCE = _bounds(schemas.Options, "tolerance_m")
+_STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
+                       if getattr(rule, "max_length", None) is not None)
+_ABSENT = object()
+
+
+def _position(body, geodetic: bool) -> tuple[float, float, float]:
+    """A position dict as core coordinates: ``(lat_rad, lon_rad, alt_m)`` or ``(east_m, north_m, up_m)``."""
+    if type(body) is not dict:
+        raise _Reject
+    if geodetic:
+        if not body.keys() <= _GEODETIC_KEYS:
+            raise _Reject
+        return (math.radians(_number(body["lat_deg"], _LAT)), math.radians(_number(body["lon_deg"], _LON)),
+                _number(body.get("alt_m", 0.0), _ALT))
+    if not body.keys() <= _LOCAL_KEYS or "lat_deg" in body or "lon_deg" in body:
+        raise _Reject
+    return _number(body["east_m"]), _number(body["north_m"]), _number(body.get("up_m", 0.0))
+
+
+def _station_id(value) -> str:
+    if type(value) is not str or not 0 < len(value) <= _STATION_ID_MAX:
+        raise _Reject
+    return value
+
+
+class _Columns:
+    """Flat columns of the problems the lean reader accepted (see :func:`to_problem_batch`)."""
+
+    def __init__(self):
+        self.slots: list[int] = []
+        self.station_counts: list[int] = []
+        self.station_ids: list[tuple[str, ...]] = []
+        self.coordinates: list[tuple[float, float, float]] = []
+        self.geodetic: list[bool] = []
+        self.origin: list[tuple[float, float, float]] = []
+        self.measurement_counts: list[int] = []
+        self.kinds: list[int] = []
+        self.station_index: list[int] = []
+        self.values: list[float] = []
+        self.sigmas: list[float] = []
+        self.bearing_index: list[int] = []
+        self.source_index: list[int] = []
+        self.altitude: list[float] = []
+        self.guess: list[tuple[float, float, float]] = []
+        self.guess_geodetic: list[bool] = []
+        self.options: list[tuple[int, float]] = []
+        self.formats: list[tuple[str, ...]] = []
+
+    def add(self, slot: int, body) -> None:
+        """Read one FixRequest dict, or raise ``_Reject`` leaving the columns untouched."""
+        if type(body) is not dict or not body.keys() <= _REQUEST_KEYS:
+            raise _Reject
+        frame = body.get("frame", "wgs84")
+        if frame != "wgs84" and frame != "local":
+            raise _Reject
+        geodetic = frame == "wgs84"
+        if body.get("method", "auto") not in _ML_METHODS:
+            raise _Reject
+        origin = body.get("origin")
+        origin = _NAN3 if origin is None else _position(origin, True)
+        options, guess, guess_geodetic = self._options(body.get("options", _ABSENT), geodetic, origin)
+        constraints = body.get("constraints")
+        altitude = None
+        if constraints is not None:
+            if type(constraints) is not dict or not constraints.keys() <= _CONSTRAINT_KEYS:
+                raise _Reject
+            altitude = _optional_number(constraints, "altitude_m")
+        formats = body.get("formats", ())
+        if type(formats) is not list and formats != ():
+            raise _Reject
+        if len(formats) > 2 or any(type(f) is not str or f not in _FORMATS for f in formats):
+            raise _Reject
+
+        stations = body["stations"]
+        if type(stations) is not list or not 0 < len(stations) <= 256:
+            raise _Reject
+        ids: dict[str, int] = {}
+        coordinates = []
+        for station in stations:
+            if type(station) is not dict or station.keys() != _STATION_KEYS:
+                raise _Reject
+            sid = _station_id(station["id"])
+            if sid in ids:
+                raise _Reject
+            ids[sid] = len(ids)
+            coordinates.append(_position(station["position"], geodetic))
+
+        measurements = body["measurements"]
+        if type(measurements) is not list or not 0 < len(measurements) <= 4096:
+            raise _Reject
+        kinds, index, values, sigmas, bearing, source = [], [], [], [], [], []
+        toa_values = []
+        n_bearings = 0
+        for i, m in enumerate(measurements):
+            if type(m) is not dict:
+                raise _Reject
+            kind = m.get("type")
+            station = ids.get(m.get("station_id"))
+            if station is None:
+                raise _Reject
+            if kind == "bearing":
+                if not m.keys() <= _BEARING_KEYS:
+                    raise _Reject
+                azimuth = _number(m["azimuth_deg"], _AZIMUTH)
+                sigma_azimuth = _number(m["sigma_azimuth_deg"], _SIGMA_AZIMUTH)
+                kinds.append(Kind.AZIMUTH.value)
+                index.append(station)
+                values.append(math.radians(azimuth))
+                sigmas.append(math.radians(sigma_azimuth))
+                bearing.append(n_bearings)
+                source.append(i)
+                elevation = _optional_number(m, "elevation_deg", _ELEVATION)
+                sigma_elevation = _optional_number(m, "sigma_elevation_deg", _SIGMA_ELEVATION)
+                if elevation is not None:
+                    if sigma_elevation is None:
+                        raise _Reject
+                    kinds.append(Kind.ELEVATION.value)
+                    index.append(station)
+                    values.append(math.radians(elevation))
+                    sigmas.append(math.radians(sigma_elevation))
+                    bearing.append(n_bearings)
+                    source.append(i)
+                n_bearings += 1
+            elif kind == "range":
+                if m.keys() != _RANGE_KEYS:
+                    raise _Reject
+                kinds.append(Kind.RANGE.value)
+                index.append(station)
+                values.append(_number(m["range_m"], _RANGE))
+                sigmas.append(_number(m["sigma_m"], _SIGMA_RANGE))
+                bearing.append(-1)
+                source.append(i)
+            elif kind == "toa":
+                if m.keys() != _TOA_KEYS:
+                    raise _Reject
+                toa = _number(m["toa_s"])
+                kinds.append(Kind.TOA.value)
+                index.append(station)
+                values.append(toa)
+                toa_values.append(toa)
+                sigmas.append(_number(m["sigma_s"], _SIGMA_TOA))
+                bearing.append(-1)
+                source.append(i)
+            else:
+                raise _Reject
+        self.slots.append(slot)
+        self.station_counts.append(len(coordinates))
+        self.station_ids.append(tuple(ids))
+        self.coordinates.extend(coordinates)
+        self.geodetic.append(geodetic)
+        self.origin.append(origin)
+        self.measurement_counts.append(len(kinds))
+        self.kinds.extend(kinds)
+        self.station_index.extend(index)
+        self.values.extend(values)
+        self.sigmas.extend(sigmas)
+        self.bearing_index.extend(bearing)
+        self.source_index.extend(source)
+        self.altitude.append(math.nan if altitude is None else altitude)
+        self.guess.append(guess)
+        self.guess_geodetic.append(guess_geodetic)
+        self.options.append(options)
+        self.formats.append(tuple(formats))
+
+    @staticmethod
+    def _options(options, geodetic_frame: bool, origin) -> tuple[tuple[int, float], tuple, bool]:
+        if options is _ABSENT:
+            return (_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m), _NAN3, False
+        if type(options) is not dict or not options.keys() <= _OPTION_KEYS:
+            raise _Reject
+        iterations = options.get("max_iterations", _DEFAULT_OPTIONS.max_iterations)
+        if type(iterations) is not int or not 1 <= iterations <= 1000:
+            raise _Reject
+        tolerance = _number(options.get("tolerance_m", _DEFAULT_OPTIONS.tolerance_m), _TOLERANCE)
+        variant = options.get("variant")
+        if variant is not None and (type(variant) is not str or len(variant) > 32):
+            raise _Reject
+        guess, guess_geodetic = _NAN3, False
+        if options.get("initial_guess") is not None:
+            raw = options["initial_guess"]
+            guess_geodetic = type(raw) is dict and ("lat_deg" in raw or "lon_deg" in raw)
+            if guess_geodetic and not geodetic_frame and math.isnan(origin[0]):
+                raise _Reject
+            guess = _position(raw, guess_geodetic)
+        return (iterations, tolerance), guess, guess_geodetic
+
+
+def to_problem_batch(bodies: list) -> tuple[list[int], list[tuple[int, float]], list[tuple[str, ...]],
+                                            ProblemBatch | None, list[int]]:
+    """Read FixRequest dicts straight into one core batch, for the ML problems the lean reader vouches for.
+
+    A problem is taken when it is plainly valid (the exact types, bounds and
+    fields of :class:`schemas.FixRequest`, known station ids, unique ids),
+    asks for ``ml`` or for ``auto`` with every sigma given (which resolves to
+    ML), and builds exactly as :func:`to_problem` would build it. Anything
+    else is left to the full path (``FixRequest.model_validate``,
+    :func:`to_problem`, :func:`core.estimators.solve_many`), which decides
+    and words its errors.
+
+    Parameters
+    ----------
+    bodies : list
+        Parsed JSON of each problem.
+
+    Returns
+    -------
+    slots : list of int
+        Request index of each batch row.
+    options : list of (int, float)
+        ``(max_iterations, tolerance_m)`` of each row.
+    formats : list of tuple of str
+        Extra renderings asked for by each row.
+    batch : ProblemBatch or None
+        None when no problem was taken.
+    rest : list of int
+        Request indices for the full path.
+    """
+    columns = _Columns()
+    rest = []
+    for slot, body in enumerate(bodies):
+        try:
+            columns.add(slot, body)
+        except (_Reject, KeyError, TypeError):
+            rest.append(slot)
+    if not columns.slots:
+        return [], [], [], None, rest
+    batch = build_problem_batch(
+        station_counts=np.array(columns.station_counts),
+        station_ids=columns.station_ids,
+        station_coordinates=np.array(columns.coordinates, dtype=float),
+        geodetic_stations=np.array(columns.geodetic),
+        origin=np.array(columns.origin, dtype=float),
+        measurement_counts=np.array(columns.measurement_counts),
+        kinds=np.array(columns.kinds, dtype=np.int8),
+        station_index=np.array(columns.station_index),
+        values=np.array(columns.values, dtype=float),
+        sigmas=np.array(columns.sigmas, dtype=float),
+        bearing_index=np.array(columns.bearing_index),
+        source_index=np.array(columns.source_index),
+        altitude_m=np.array(columns.altitude, dtype=float),
+        initial_guess=np.array(columns.guess, dtype=float),
+        geodetic_guess=np.array(columns.guess_geodetic),
+    )
+    return columns.slots, columns.options, columns.formats, batch, rest
+
+
+def fix_batch_to_dicts(fixes, formats) -> list[dict | None]:
+    """Response bodies of a :class:`core.estimators.ml.FixBatch`, as :func:`fix_to_dict` gives them one by one.
+
+    Conversions (error summaries, geodetic positions, ECEF covariances,
+    degrees) run once over the batch; only the dicts are built per fix.
+
+    Parameters
+    ----------
+    fixes : FixBatch
+    formats : sequence of tuple of str, length B
+
+    Returns
+    -------
+    list of dict or None
+        None for the rows in ``fixes.errors``.
+    """
+    batch = fixes.problems
+    size = batch.size
+    ok = np.ones(size, dtype=bool)
+    ok[list(fixes.errors)] = False
+    position = np.where(ok[:, None], fixes.position_enu_m, 0.0)
+    covariance = np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0)
+    summary = error_summary(covariance)
+    geodetic = batch.geodetic
+    o = batch.origin
+    ecef = geodesy.enu_to_ecef(position, o[:, 0], o[:, 1], o[:, 2])
+    lat, lon, alt = geodesy.ecef_to_geodetic(ecef)
+    rotation = geodesy.ecef_to_enu_rotation(o[:, 0], o[:, 1])
+    covariance_ecef = np.swapaxes(rotation, -1, -2) @ covariance @ rotation
+
+    position_l = position.tolist()
+    covariance_l = covariance.tolist()
+    crlb_l = fixes.crlb_enu_m2.tolist()
+    ecef_l = ecef.tolist()
+    covariance_ecef_l = covariance_ecef.tolist()
+    lat_l, lon_l, alt_l = np.degrees(lat).tolist(), np.degrees(lon).tolist(), alt.tolist()
+    cep, sep = summary.cep50_m.tolist(), summary.sep50_m.tolist()
+    vertical, gdop = summary.vertical_sigma_m.tolist(), summary.gdop_m.tolist()
+    major, minor = summary.ellipse_semi_major_m.tolist(), summary.ellipse_semi_minor_m.tolist()
+    orientation = np.degrees(summary.ellipse_orientation_rad).tolist()
+    is_angle = (batch.kinds == Kind.AZIMUTH) | (batch.kinds == Kind.ELEVATION)
+    residual_l = np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals).tolist()
+    normalized_l = fixes.normalized_residuals.tolist()
+    component_l = [[_COMPONENT_NAMES[k] for k in row] for row in batch.kinds.tolist()]
+    station_l = batch.station_index.tolist()
+    source_l = batch.source_index.tolist()
+    counts = batch.n_measurements.tolist()
+    chi2, dof = fixes.chi2.tolist(), fixes.dof.tolist()
+    p_value = [None if math.isnan(v) else v for v in fixes.p_value.tolist()]
+    sigma_scale = [None if math.isnan(v) else v for v in fixes.sigma_scale.tolist()]
+    converged, iterations = fixes.converged.tolist(), fixes.iterations.tolist()
+    geodetic_l = geodetic.tolist()
+    method, source = fixes.method, fixes.covariance_source
+
+    out: list[dict | None] = []
+    for b in range(size):
+        if not ok[b]:
+            out.append(None)
+            continue
+        p = position_l[b]
+        ids = batch.station_ids[b]
+        stations, components, sources = station_l[b], component_l[b], source_l[b]
+        res, nres = residual_l[b], normalized_l[b]
+        body = {
+            "method": method,
+            "position_local": {"east_m": p[0], "north_m": p[1], "up_m": p[2]},
+            "covariance_enu_m2": covariance_l[b],
+            "covariance_source": source,
+            "crlb_enu_m2": crlb_l[b],
+            "error": {
+                "cep50_m": cep[b], "sep50_m": sep[b], "vertical_sigma_m": vertical[b], "gdop": gdop[b],
+                "ellipse95": {"semi_major_m": major[b], "semi_minor_m": minor[b], "orientation_deg": orientation[b]},
+            },
+            "residuals": [
+                {"station_id": ids[stations[m]], "measurement_index": sources[m], "component": components[m],
+                 "residual": res[m], "normalized": nres[m]}
+                for m in range(counts[b])
+            ],
+            "fit": {"chi2": chi2[b], "dof": dof[b], "p_value": p_value[b], "sigma_scale": sigma_scale[b]},
+            "converged": converged[b],
+            "iterations": iterations[b],
+            "warnings": [{"code": w.code, "message": w.message} for w in fixes.warnings[b]],
+        }
+        if geodetic_l[b]:
+            body["position"] = {"lat_deg": lat_l[b], "lon_deg": lon_l[b], "alt_m": alt_l[b]}
+            body["position_ecef_m"] = ecef_l[b]
+            body["covariance_ecef_m2"] = covariance_ecef_l[b]
+        wanted = formats[b]
+        if wanted:
+            if "geojson" in wanted:
+                body["geojson"] = _geojson(body)
+            if "cot" in wanted:
+                body["cot"] = _cot(body)
+        out.append(body)
+    return out
+
+
+_COMPONENT_NAMES = {int(k): name for k, name in _COMPONENT.items()}

@@ -3,3 +3,6 @@
 from service.routes import evaluations, fixes, health
 
 ROUTERS = [health.router, fixes.router, evaluations.router]
+
+from service.routes import batch  # noqa: E402  (the batch path: issue 6)
+ROUTERS.append(batch.router)
