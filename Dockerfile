@@ -1,21 +1,32 @@
 # syntax=docker/dockerfile:1
+# Base: the official python:3.11-slim (Debian bookworm). Only `python -m venv` and /opt/venv/bin/* are
+# used, never /usr/local/bin/python or a global pip, so a Debian-python stand-in base builds it too
+# (scripts/container_smoke.sh says how to make one without registry access).
+# podman/buildah: build with `--format docker`; the OCI default format drops HEALTHCHECK.
 FROM python:3.11-slim AS build
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1
 WORKDIR /src
 RUN python -m venv /opt/venv
-COPY pyproject.toml README.md ./
-# Dependencies first (cached while only the source changes).
-RUN /opt/venv/bin/pip install "numpy>=1.26" "scipy>=1.11" "pymap3d>=3.1" "fastapi>=0.110" "uvicorn[standard]>=0.29" \
-        "pydantic>=2.6" "pydantic-settings>=2.2" "orjson>=3.9" "httpx>=0.27" "redis>=5.0"
+# Dependencies first, read from pyproject.toml itself (no second list to drift from it): this layer is
+# rebuilt only when pyproject.toml changes, not when the source or the README does.
+COPY pyproject.toml ./
+RUN /opt/venv/bin/python -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" \
+        > /tmp/requirements.txt \
+    && /opt/venv/bin/pip install -r /tmp/requirements.txt
+COPY README.md ./
 COPY core ./core
 COPY service ./service
-RUN /opt/venv/bin/pip install --no-deps .
+RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check
 
 FROM python:3.11-slim
-RUN useradd --system --uid 10001 --home /app locator && mkdir -p /app/var && chown locator /app/var
+# Fixed numeric ids: USER is numeric so a runtime can verify non-root (Kubernetes runAsNonRoot), and the
+# store directory's owner matches the user a volume or `--user 10001:10001` brings.
+RUN groupadd --system --gid 10001 locator \
+    && useradd --system --uid 10001 --gid 10001 --home-dir /app --no-create-home --shell /usr/sbin/nologin locator \
+    && mkdir -p /app/var && chown 10001:10001 /app/var
 COPY --from=build /opt/venv /opt/venv
 WORKDIR /app
-USER locator
+USER 10001:10001
 ENV PATH=/opt/venv/bin:$PATH PASSIVE_LOCATOR_STORE=sqlite:////app/var/sessions.db
 EXPOSE 8080
 HEALTHCHECK --interval=30s --timeout=3s CMD python -c "import urllib.request,sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8080/healthz').status == 200 else 1)"
