@@ -1,4 +1,3 @@
-# syntax=docker/dockerfile:1
 # Base: the official python:3.11-slim (Debian bookworm). Only `python -m venv` and /opt/venv/bin/* are
 # used, never /usr/local/bin/python or a global pip, so a Debian-python stand-in base builds it too
 # (scripts/container_smoke.sh says how to make one without registry access).
@@ -28,6 +27,7 @@ COPY --from=build /opt/venv /opt/venv
 WORKDIR /app
 USER 10001:10001
 ENV PATH=/opt/venv/bin:$PATH PASSIVE_LOCATOR_STORE=sqlite:////app/var/sessions.db
+VOLUME ["/app/var"]
 EXPOSE 8080
-HEALTHCHECK --interval=30s --timeout=3s CMD python -c "import urllib.request,sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8080/healthz').status == 200 else 1)"
+HEALTHCHECK --interval=30s --timeout=3s --start-period=10s CMD python -c "import urllib.request,sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8080/healthz').status == 200 else 1)"
 CMD ["passive-locator", "serve", "--host", "0.0.0.0", "--port", "8080"]
