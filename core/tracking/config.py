@@ -1,0 +1,208 @@
+"""Configuration and input epoch of the moving-emitter session filter (paper 001).
+
+Everything here is in SI units and radians, in the observer's local ENU frame
+(east, north, up, origin at the observer). Degrees belong to the service.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import asdict, dataclass, fields
+
+from core.errors import InvalidInput
+
+SPEED_OF_LIGHT_MPS = 299_792_458.0
+
+#: Filter models a session may run, with what each is.
+MODELS = {
+    "velocity_kinematic": "paper 001: velocity KF from TOA differences, range from the azimuth rate, UKF on position",
+    "joint_ukf": "baseline: one UKF on position, velocity and period error fed with the raw measurements",
+}
+
+#: How ``velocity_kinematic`` treats the errors of successive range pseudo-measurements.
+PSEUDO_RANGE_ERRORS = ("correlated", "independent")
+
+#: Default prior standard deviation of the period, as a fraction of ``period_s``, when the period is unknown.
+DEFAULT_PERIOD_PRIOR_FRACTION = 1e-4
+
+
+class TimeNotIncreasing(InvalidInput):
+    """An epoch's ``time_s`` is not after the last applied epoch's."""
+
+    code = "time_not_increasing"
+
+
+@dataclass(frozen=True)
+class TrackerConfig:
+    """Settings of one session filter; validated on construction.
+
+    Attributes
+    ----------
+    model : str
+        One of :data:`MODELS`.
+    period_s : float
+        Pulse repetition period (s): the truth when ``period_known``, else the
+        initial estimate.
+    period_known : bool
+    pulses_per_observation : int
+        Nominal pulses ``N`` between reports (``T = N period_s``). Gaps are
+        allowed: the pulse count between two TOAs is measured, not assumed.
+    sigma_azimuth_rad, sigma_elevation_rad : float
+        Standard deviation of the azimuth and elevation measurements (rad).
+    sigma_azimuth_rate_rad_s : float
+        Standard deviation of the azimuth-rate measurement (rad/s).
+    sigma_toa_s : float
+        Standard deviation of one time of arrival (s).
+    accel_sigma_mps2 : float
+        Intensity of the white acceleration noise of the constant-velocity
+        model: a continuous white noise of power spectral density
+        ``accel_sigma_mps2**2 * 1 s`` (m^2/s^3), so the velocity random walk
+        grows by ``accel_sigma_mps2`` m/s per square-root second, whatever the
+        report interval (a gap of k intervals equals k steps).
+    velocity_prior_sigma_mps : float
+        Prior standard deviation of each velocity component (m/s).
+    period_prior_sigma_s : float or None
+        Prior standard deviation of the period when it is unknown (s);
+        None means ``DEFAULT_PERIOD_PRIOR_FRACTION * period_s``.
+    min_azimuth_rate_snr : float
+        ``|azimuth rate| / sigma_azimuth_rate_rad_s`` below which the range is
+        declared unobservable (near-radial motion).
+    max_initial_range_fraction : float
+        The filter initialises once the range pseudo-measurement's standard
+        deviation is below this fraction of the range.
+    pseudo_range_errors : str
+        ``velocity_kinematic`` only. ``"correlated"`` (default): step 3 knows
+        that successive range pseudo-measurements share the slowly changing
+        error of the step-1 velocity and carries that correlation (a consider
+        update). ``"independent"``: each pseudo-measurement is treated as
+        independent, as the paper writes it; the covariance is then
+        optimistic (see the tests for the figures).
+
+    Raises
+    ------
+    InvalidInput
+        On an unknown model or a value outside its domain.
+    """
+
+    model: str
+    period_s: float
+    period_known: bool
+    pulses_per_observation: int
+    sigma_azimuth_rad: float
+    sigma_elevation_rad: float
+    sigma_azimuth_rate_rad_s: float
+    sigma_toa_s: float
+    accel_sigma_mps2: float = 1.0
+    velocity_prior_sigma_mps: float = 500.0
+    period_prior_sigma_s: float | None = None
+    min_azimuth_rate_snr: float = 4.0
+    max_initial_range_fraction: float = 0.3
+    pseudo_range_errors: str = "correlated"
+
+    def __post_init__(self):
+        if not isinstance(self.model, str) or self.model not in MODELS:
+            raise InvalidInput(f"unknown model {self.model!r}; known: {', '.join(sorted(MODELS))}", ("model",))
+        if self.pseudo_range_errors not in PSEUDO_RANGE_ERRORS:
+            raise InvalidInput(f"pseudo_range_errors must be one of {', '.join(PSEUDO_RANGE_ERRORS)}",
+                               ("pseudo_range_errors",))
+        if not isinstance(self.period_known, bool):
+            raise InvalidInput("period_known must be a boolean", ("period_known",))
+        n = self.pulses_per_observation
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise InvalidInput("pulses_per_observation must be an integer >= 1", ("pulses_per_observation",))
+        positive = ("period_s", "sigma_azimuth_rad", "sigma_elevation_rad", "sigma_azimuth_rate_rad_s",
+                    "sigma_toa_s", "velocity_prior_sigma_mps", "max_initial_range_fraction")
+        for name in positive:
+            _check_real(name, getattr(self, name), minimum=0.0, strict=True)
+        _check_real("accel_sigma_mps2", self.accel_sigma_mps2, minimum=0.0, strict=False)
+        _check_real("min_azimuth_rate_snr", self.min_azimuth_rate_snr, minimum=0.0, strict=False)
+        if self.period_prior_sigma_s is not None:
+            _check_real("period_prior_sigma_s", self.period_prior_sigma_s, minimum=0.0, strict=True)
+        for name in positive + ("accel_sigma_mps2", "min_azimuth_rate_snr"):
+            object.__setattr__(self, name, float(getattr(self, name)))
+        if self.period_prior_sigma_s is not None:
+            object.__setattr__(self, "period_prior_sigma_s", float(self.period_prior_sigma_s))
+        if self.max_initial_range_fraction >= 1.0:
+            raise InvalidInput("max_initial_range_fraction must be below 1", ("max_initial_range_fraction",))
+        for name in ("sigma_azimuth_rad", "sigma_elevation_rad"):
+            if getattr(self, name) >= 0.5:
+                raise InvalidInput(f"{name} must be below 0.5 rad", (name,))
+
+    @property
+    def period_prior_sigma(self) -> float:
+        """Prior standard deviation of the period (s) actually used."""
+        if self.period_prior_sigma_s is None:
+            return DEFAULT_PERIOD_PRIOR_FRACTION * self.period_s
+        return self.period_prior_sigma_s
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able fields, for storing a session next to its state."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TrackerConfig":
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidInput`."""
+        if not isinstance(data, dict):
+            raise InvalidInput("tracker config must be a mapping")
+        known = {f.name for f in fields(cls)}
+        extra = sorted(set(data) - known)
+        if extra:
+            raise InvalidInput(f"unknown tracker config fields: {', '.join(extra)}", (extra[0],))
+        try:
+            return cls(**data)
+        except TypeError as error:
+            raise InvalidInput(f"incomplete tracker config: {error}") from None
+
+
+@dataclass(frozen=True)
+class Epoch:
+    """One report of the observer.
+
+    Attributes
+    ----------
+    time_s : float
+        Observer time of the report (s); must increase from epoch to epoch.
+    azimuth_rad : float
+        Compass azimuth of the emitter, clockwise from north (rad).
+    elevation_rad : float
+        Elevation above the observer's horizontal plane (rad), in (-pi/2, pi/2).
+    azimuth_rate_rad_s : float
+        Measured rate of change of the azimuth (rad/s).
+    toa_s : float
+        Time of arrival of the report's pulse (s) on a clock of any epoch;
+        only differences are used.
+    """
+
+    time_s: float
+    azimuth_rad: float
+    elevation_rad: float
+    azimuth_rate_rad_s: float
+    toa_s: float
+
+
+_EPOCH_FIELDS = ("time_s", "azimuth_rad", "elevation_rad", "azimuth_rate_rad_s", "toa_s")
+
+
+def validate_epoch(epoch: Epoch) -> tuple[float, float, float, float, float]:
+    """The epoch's values as floats, or :class:`InvalidInput` naming the bad field."""
+    values = []
+    for name in _EPOCH_FIELDS:
+        value = getattr(epoch, name, None)
+        if type(value) is not float:
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise InvalidInput(f"epoch {name} must be a finite number, got {value!r}", (name,))
+            value = float(value)
+        if not math.isfinite(value):
+            raise InvalidInput(f"epoch {name} must be a finite number, got {value!r}", (name,))
+        values.append(value)
+    if not -0.5 * math.pi < values[2] < 0.5 * math.pi:
+        raise InvalidInput("epoch elevation_rad must be inside (-pi/2, pi/2)", ("elevation_rad",))
+    return tuple(values)
+
+
+def _check_real(name: str, value, minimum: float, strict: bool) -> None:
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise InvalidInput(f"{name} must be a finite number, got {value!r}", (name,))
+    if value < minimum or (strict and value == minimum):
+        raise InvalidInput(f"{name} must be {'>' if strict else '>='} {minimum}, got {value!r}", (name,))
