@@ -16,6 +16,7 @@ done once for every station of every problem.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Sequence
 
 import numpy as np
@@ -100,12 +101,16 @@ class ProblemBatch:
         return np.where(self.kinds == Kind.TOA, SPEED_OF_LIGHT_MPS, 1.0)
 
     def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
-        """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement."""
+        """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement (computed once)."""
+        return self._measurement_stations
+
+    @cached_property
+    def _measurement_stations(self):
         rows = np.arange(self.size)[:, None]
         return self.stations_enu_m[rows, self.station_index], self.station_rotations[rows, self.station_index]
 
     def lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Bearings as lines of sight, one per azimuth row.
+        """Bearings as lines of sight, one per azimuth row (computed once).
 
         Returns
         -------
@@ -115,6 +120,10 @@ class ProblemBatch:
             The bearing's elevation and its sigma on its azimuth row; NaN
             for an azimuth-only bearing and off azimuth rows.
         """
+        return self._lines_of_sight
+
+    @cached_property
+    def _lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         valid = self.valid
         is_line = valid & (self.kinds == Kind.AZIMUTH)
         elevation = np.full(self.values.shape, np.nan)
@@ -185,6 +194,8 @@ class ProblemBatch:
     @classmethod
     def from_problems(cls, problems: Sequence[Problem]) -> "ProblemBatch":
         """Pad built problems into one batch (inverse of :meth:`problem`)."""
+        if len(problems) == 1:
+            return cls._from_one(problems[0])
         n_stations = np.array([p.stations_enu_m.shape[0] for p in problems], dtype=np.intp)
         n_measurements = np.array([p.kinds.size for p in problems], dtype=np.intp)
         stations = _pad(np.concatenate([p.stations_enu_m for p in problems]), n_stations, 0.0)
@@ -213,6 +224,29 @@ class ProblemBatch:
             altitude_m=np.array([np.nan if p.altitude_m is None else p.altitude_m for p in problems], dtype=float),
             initial_guess_enu_m=np.array([np.full(3, np.nan) if p.initial_guess_enu_m is None
                                           else p.initial_guess_enu_m for p in problems], dtype=float).reshape(-1, 3),
+        )
+
+
+    @classmethod
+    def _from_one(cls, p: Problem) -> "ProblemBatch":
+        guess = np.full(3, np.nan) if p.initial_guess_enu_m is None else p.initial_guess_enu_m
+        return cls(
+            station_ids=(p.station_ids,),
+            origin=p.frame.origin_array()[None],
+            geodetic=np.array([p.frame.is_geodetic]),
+            n_stations=np.array([p.stations_enu_m.shape[0]], dtype=np.intp),
+            stations_enu_m=p.stations_enu_m[None],
+            station_rotations=p.station_rotations[None],
+            n_measurements=np.array([p.kinds.size], dtype=np.intp),
+            kinds=p.kinds.astype(np.int8, copy=False)[None],
+            station_index=p.station_index.astype(np.intp, copy=False)[None],
+            values=p.values[None],
+            sigmas=p.sigmas[None],
+            bearing_index=p.bearing_index.astype(np.intp, copy=False)[None],
+            source_index=p.source_index.astype(np.intp, copy=False)[None],
+            toa_reference_s=np.array([p.toa_reference_s], dtype=float),
+            altitude_m=np.array([np.nan if p.altitude_m is None else p.altitude_m], dtype=float),
+            initial_guess_enu_m=np.asarray(guess, dtype=float).reshape(1, 3),
         )
 
 

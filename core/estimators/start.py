@@ -187,29 +187,24 @@ def initial_position(problem: Problem):
         "4 TOAs or 3 ranges", ("measurements",))
 
 
-def _symmetric_solve(n, right):
-    """Solve symmetric 3x3 systems given by their six entries; also their eigenvalue ratio.
+def _solve_normal(normal, right):
+    """Solve ``(B, 3, 3)`` symmetric systems; also their smallest-to-largest eigenvalue ratio ``(B,)``.
 
-    Parameters
-    ----------
-    n : tuple of 6 ndarray, shape (B,)
-        ``(n00, n01, n02, n11, n12, n22)``.
-    right : tuple of 3 ndarray, shape (B,)
-
-    Returns
-    -------
-    solution : ndarray, shape (B, 3)
-    ratio : ndarray, shape (B,)
-        Smallest over largest eigenvalue (analytic, to ~1e-16 of the largest).
+    LAPACK solves each system on its own, so a problem's start does not
+    depend on what else is in the batch; the ratio comes in closed form.
     """
-    a, b, c, d, e, f = n
-    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
-    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * c00 + b * c01 + c * c02
-    safe = np.where(det != 0, det, 1.0)
-    r0, r1, r2 = right
-    solution = np.stack([c00 * r0 + c01 * r1 + c02 * r2, c01 * r0 + c11 * r1 + c12 * r2,
-                         c02 * r0 + c12 * r1 + c22 * r2], axis=-1) / safe[:, None]
+    entries = (normal[:, 0, 0], normal[:, 0, 1], normal[:, 0, 2], normal[:, 1, 1], normal[:, 1, 2], normal[:, 2, 2])
+    ratio = _eigenvalue_ratio(*entries)
+    safe = np.where((ratio > BATCH_CONDITION_LIMIT)[:, None, None], normal, np.eye(3))
+    return np.linalg.solve(safe, right[..., None])[..., 0], ratio
+
+
+def _eigenvalue_ratio(a, b, c, d, e, f):
+    """Smallest over largest eigenvalue of symmetric 3x3 matrices ``[[a, b, c], [b, d, e], [c, e, f]]`` ``(B,)``.
+
+    The trigonometric closed form: accurate to ~1e-16 of the largest eigenvalue, which is all the
+    rank test needs; 0 for a zero matrix.
+    """
     q = (a + d + f) / 3.0
     off = b * b + c * c + e * e
     p = np.sqrt(((a - q) ** 2 + (d - q) ** 2 + (f - q) ** 2 + 2.0 * off) / 6.0)
@@ -220,8 +215,7 @@ def _symmetric_solve(n, right):
     phi = np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0
     largest = q + 2.0 * p * np.cos(phi)
     smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    ratio = np.where(largest > 0, smallest / np.where(largest > 0, largest, 1.0), 0.0)
-    return solution, np.where(det != 0, ratio, 0.0)
+    return np.where(largest > 0, smallest / np.where(largest > 0, largest, 1.0), 0.0)
 
 
 def weighted_eove_batch(batch: ProblemBatch):
@@ -249,44 +243,37 @@ def weighted_eove_batch(batch: ProblemBatch):
     az = np.where(is_az, batch.values, 0.0)
     el = np.where(has_el, elevation, 0.0)
     stations, rotations = batch.measurement_stations()
-    s = np.moveaxis(stations, -1, 0)
-    rot = np.moveaxis(rotations, (-2, -1), (0, 1))
+    size, width = az.shape
     sin_az, cos_az, sin_el, cos_el = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
-    v0, v1 = -sin_el * sin_az, -sin_el * cos_az
-    vertical = [rot[0, j] * v0 + rot[1, j] * v1 + rot[2, j] * cos_el for j in range(3)]
-    horizontal = [rot[0, j] * cos_az - rot[1, j] * sin_az for j in range(3)]
-    rhs_v = vertical[0] * s[0] + vertical[1] * s[1] + vertical[2] * s[2]
-    rhs_h = horizontal[0] * s[0] + horizontal[1] * s[1] + horizontal[2] * s[2]
-    sigma_v = np.where(has_el & np.isfinite(sigma_elevation), sigma_elevation, 1.0)
-    sigma_h = np.where(is_az & np.isfinite(batch.sigmas), batch.sigmas, 1.0)
+    local = np.zeros((size, 2, width, 3))
+    local[:, 0, :, 0], local[:, 0, :, 1], local[:, 0, :, 2] = -sin_el * sin_az, -sin_el * cos_az, cos_el
+    local[:, 1, :, 0], local[:, 1, :, 1] = cos_az, -sin_az
+    rows = (local[..., None, :] @ rotations[:, None]).reshape(size, 2 * width, 3)
+    rhs = np.einsum("bri,bri->br", rows, np.concatenate([stations, stations], axis=1))
+    used = np.concatenate([has_el, is_az], axis=1)
+    sigma = np.concatenate([np.where(has_el, sigma_elevation, 1.0), np.where(is_az, batch.sigmas, 1.0)], axis=1)
+    sigma = np.where(np.isfinite(sigma), sigma, 1.0)
 
     constrained = batch.constrained
     any_constrained = bool(np.any(constrained))
     altitude = np.where(constrained, batch.altitude_m, 0.0)
-    size = batch.size
     up_axis = np.zeros((size, 3))
     up_axis[:, 2] = 1.0
     up_rhs = altitude
-    solved = np.count_nonzero(has_el, axis=-1) + np.count_nonzero(is_az, axis=-1) + constrained >= 3
-    pairs = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    solved = np.count_nonzero(used, axis=-1) + constrained >= 3
 
-    def solve(weight_v, weight_h):
-        wv2 = np.where(has_el, weight_v, 0.0) ** 2
-        wh2 = np.where(is_az, weight_h, 0.0) ** 2
-        hv = [wv2 * c for c in vertical]
-        hh = [wh2 * c for c in horizontal]
-        normal = [np.sum(hv[i] * vertical[j] + hh[i] * horizontal[j], axis=-1) for i, j in pairs]
-        right = [np.sum(hv[i] * rhs_v + hh[i] * rhs_h, axis=-1) for i in range(3)]
+    def solve(weights):
+        weights = np.where(used, weights, 0.0)
+        weighted = rows * (weights * weights)[..., None]
+        normal = np.swapaxes(weighted, -1, -2) @ rows
+        right = np.einsum("bri,br->bi", weighted, rhs)
         if any_constrained:
-            strongest = np.maximum(np.max(np.where(has_el, weight_v, 0.0), axis=-1),
-                                   np.max(np.where(is_az, weight_h, 0.0), axis=-1))
-            strong2 = (ALTITUDE_ROW_WEIGHT * strongest) ** 2 * constrained
-            normal = [nij + strong2 * up_axis[:, i] * up_axis[:, j] for nij, (i, j) in zip(normal, pairs)]
-            right = [ri + strong2 * up_axis[:, i] * up_rhs for i, ri in enumerate(right)]
-        return _symmetric_solve(normal, right)
+            strong2 = (ALTITUDE_ROW_WEIGHT * np.max(weights, axis=-1)) ** 2 * constrained
+            normal += strong2[:, None, None] * up_axis[:, :, None] * up_axis[:, None, :]
+            right += (strong2 * up_rhs)[:, None] * up_axis
+        return _solve_normal(normal, right)
 
-    ones = np.ones_like(az)
-    position, ratio = solve(ones, ones)
+    position, ratio = solve(np.ones_like(sigma))
     solved &= ratio > BATCH_CONDITION_LIMIT
     for _ in range(2):
         if any_constrained:
@@ -294,14 +281,11 @@ def weighted_eove_batch(batch: ProblemBatch):
             axes_up = local_axes(on_surface, batch.origin, batch.geodetic)[:, 2]
             up_axis = np.where(constrained[:, None], axes_up, up_axis)
             up_rhs = np.where(constrained, np.einsum("bi,bi->b", up_axis, on_surface), up_rhs)
-        dx, dy, dz = (position[:, i, None] - s[i] for i in range(3))
-        e = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
-        n = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
-        u = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
-        horizontal_distance = np.hypot(e, n)
-        slant = np.sqrt(horizontal_distance**2 + u * u)
-        position, ratio = solve(1.0 / (sigma_v * np.maximum(slant, 1e-9)),
-                                1.0 / (sigma_h * np.maximum(horizontal_distance, 1e-9)))
+        seen = (rotations @ (position[:, None, :] - stations)[..., None])[..., 0]
+        horizontal = np.hypot(seen[..., 0], seen[..., 1])
+        slant = np.sqrt(horizontal**2 + seen[..., 2] ** 2)
+        scale = np.concatenate([slant, horizontal], axis=1)
+        position, ratio = solve(1.0 / (sigma * np.maximum(scale, 1e-9)))
         solved &= ratio > BATCH_CONDITION_LIMIT
     if any_constrained:
         position = np.where(constrained[:, None],
