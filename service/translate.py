@@ -20,6 +20,9 @@ from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, Tim
 from service import schemas
 
 _COMPONENT = {Kind.AZIMUTH: "azimuth", Kind.ELEVATION: "elevation", Kind.RANGE: "range", Kind.TOA: "toa"}
+_COMPONENT_NAMES = {int(k): name for k, name in _COMPONENT.items()}
+_AZ, _EL, _RG, _TOA = int(Kind.AZIMUTH), int(Kind.ELEVATION), int(Kind.RANGE), int(Kind.TOA)
+_ANGLE_CODES = frozenset((_AZ, _EL))
 
 
 def to_point(position) -> GeodeticPoint | LocalPoint:
@@ -120,7 +123,7 @@ def error_dict(summary, i: int = 0) -> dict:
 
 
 def _residual_value(kind: int, value: float) -> float:
-    return math.degrees(value) if kind in (Kind.AZIMUTH, Kind.ELEVATION) else float(value)
+    return math.degrees(value) if kind in _ANGLE_CODES else float(value)
 
 
 def fix_to_dict(problem: Problem, fix: Fix, formats=(), summary=None, index: int = 0) -> dict:
@@ -136,6 +139,7 @@ def fix_to_dict(problem: Problem, fix: Fix, formats=(), summary=None, index: int
     if summary is None:
         summary, index = error_summary(fix.covariance_enu_m2), 0
     p = fix.position_enu_m
+    names = problem.station_ids
     body: dict = {
         "method": fix.method,
         "position_local": _local(p),
@@ -145,14 +149,15 @@ def fix_to_dict(problem: Problem, fix: Fix, formats=(), summary=None, index: int
         "error": error_dict(summary, index),
         "residuals": [
             {
-                "station_id": problem.station_ids[s],
-                "measurement_index": int(src),
-                "component": _COMPONENT[Kind(k)],
+                "station_id": names[s],
+                "measurement_index": src,
+                "component": _COMPONENT_NAMES[k],
                 "residual": _residual_value(k, r),
-                "normalized": float(n),
+                "normalized": n,
             }
-            for s, src, k, r, n in zip(problem.station_index, problem.source_index, problem.kinds,
-                                       fix.residuals, fix.normalized_residuals)
+            for s, src, k, r, n in zip(problem.station_index.tolist(), problem.source_index.tolist(),
+                                       problem.kinds.tolist(), fix.residuals.tolist(),
+                                       fix.normalized_residuals.tolist())
         ],
         "fit": {"chi2": fix.chi2, "dof": fix.dof, "p_value": fix.p_value, "sigma_scale": fix.sigma_scale},
         "converged": fix.converged,
@@ -160,10 +165,12 @@ def fix_to_dict(problem: Problem, fix: Fix, formats=(), summary=None, index: int
         "warnings": [{"code": w.code, "message": w.message} for w in fix.warnings],
     }
     if problem.frame.is_geodetic:
-        lat, lon, alt = problem.frame.to_geodetic(p)
+        ecef = problem.frame.to_ecef(p)
+        lat, lon, alt = geodesy.ecef_to_geodetic(ecef)
+        rotation = problem.frame.ecef_to_enu
         body["position"] = {"lat_deg": math.degrees(lat), "lon_deg": math.degrees(lon), "alt_m": float(alt)}
-        body["position_ecef_m"] = problem.frame.to_ecef(p).tolist()
-        body["covariance_ecef_m2"] = _matrix(problem.frame.covariance_to_ecef(fix.covariance_enu_m2))
+        body["position_ecef_m"] = ecef.tolist()
+        body["covariance_ecef_m2"] = _matrix(rotation.T @ np.asarray(fix.covariance_enu_m2, dtype=float) @ rotation)
     if fix.coarse_position_enu_m is not None:
         body["stages"] = {"coarse": _local(fix.coarse_position_enu_m)}
     if fix.estimated_bearing_errors_rad is not None:
@@ -288,179 +295,174 @@ def _station_id(value) -> str:
     return value
 
 
-class _Columns:
-    """Flat columns of the problems the lean reader accepted (see :func:`to_problem_batch`)."""
-
-    def __init__(self):
-        self.slots: list[int] = []
-        self.station_counts: list[int] = []
-        self.station_ids: list[tuple[str, ...]] = []
-        self.coordinates: list[tuple[float, float, float]] = []
-        self.geodetic: list[bool] = []
-        self.origin: list[tuple[float, float, float]] = []
-        self.measurement_counts: list[int] = []
-        self.kinds: list[int] = []
-        self.station_index: list[int] = []
-        self.values: list[float] = []
-        self.sigmas: list[float] = []
-        self.bearing_index: list[int] = []
-        self.source_index: list[int] = []
-        self.altitude: list[float] = []
-        self.guess: list[tuple[float, float, float]] = []
-        self.guess_geodetic: list[bool] = []
-        self.options: list[tuple[int, float]] = []
-        self.formats: list[tuple[str, ...]] = []
-
-    def add(self, slot: int, body) -> None:
-        """Read one FixRequest dict, or raise ``_Reject`` leaving the columns untouched."""
-        if type(body) is not dict or not body.keys() <= _REQUEST_KEYS:
-            raise _Reject
-        frame = body.get("frame", "wgs84")
-        if frame != "wgs84" and frame != "local":
-            raise _Reject
-        geodetic = frame == "wgs84"
-        if body.get("method", "auto") not in _ML_METHODS:
-            raise _Reject
-        origin = body.get("origin")
-        origin = _NAN3 if origin is None else _position(origin, True)
-        options, guess, guess_geodetic = self._options(body.get("options", _ABSENT), geodetic, origin)
-        constraints = body.get("constraints")
-        altitude = None
-        if constraints is not None:
-            if type(constraints) is not dict or not constraints.keys() <= _CONSTRAINT_KEYS:
-                raise _Reject
-            altitude = _optional_number(constraints, "altitude_m")
-        formats = body.get("formats", ())
-        if type(formats) is not list and formats != ():
-            raise _Reject
-        if len(formats) > 2 or any(type(f) is not str or f not in _FORMATS for f in formats):
-            raise _Reject
-
-        stations = body["stations"]
-        if type(stations) is not list or not 0 < len(stations) <= 256:
-            raise _Reject
-        ids: dict[str, int] = {}
-        coordinates = []
-        for station in stations:
-            if type(station) is not dict or station.keys() != _STATION_KEYS:
-                raise _Reject
-            sid = _station_id(station["id"])
-            if sid in ids:
-                raise _Reject
-            ids[sid] = len(ids)
-            coordinates.append(_position(station["position"], geodetic))
-
-        measurements = body["measurements"]
-        if type(measurements) is not list or not 0 < len(measurements) <= 4096:
-            raise _Reject
-        kinds, index, values, sigmas, bearing, source = [], [], [], [], [], []
-        toa_values = []
-        n_bearings = 0
-        for i, m in enumerate(measurements):
-            if type(m) is not dict:
-                raise _Reject
-            kind = m.get("type")
-            station = ids.get(m.get("station_id"))
-            if station is None:
-                raise _Reject
-            if kind == "bearing":
-                if not m.keys() <= _BEARING_KEYS:
-                    raise _Reject
-                azimuth = _number(m["azimuth_deg"], _AZIMUTH)
-                sigma_azimuth = _number(m["sigma_azimuth_deg"], _SIGMA_AZIMUTH)
-                kinds.append(Kind.AZIMUTH.value)
-                index.append(station)
-                values.append(math.radians(azimuth))
-                sigmas.append(math.radians(sigma_azimuth))
-                bearing.append(n_bearings)
-                source.append(i)
-                elevation = _optional_number(m, "elevation_deg", _ELEVATION)
-                sigma_elevation = _optional_number(m, "sigma_elevation_deg", _SIGMA_ELEVATION)
-                if elevation is not None:
-                    if sigma_elevation is None:
-                        raise _Reject
-                    kinds.append(Kind.ELEVATION.value)
-                    index.append(station)
-                    values.append(math.radians(elevation))
-                    sigmas.append(math.radians(sigma_elevation))
-                    bearing.append(n_bearings)
-                    source.append(i)
-                n_bearings += 1
-            elif kind == "range":
-                if m.keys() != _RANGE_KEYS:
-                    raise _Reject
-                kinds.append(Kind.RANGE.value)
-                index.append(station)
-                values.append(_number(m["range_m"], _RANGE))
-                sigmas.append(_number(m["sigma_m"], _SIGMA_RANGE))
-                bearing.append(-1)
-                source.append(i)
-            elif kind == "toa":
-                if m.keys() != _TOA_KEYS:
-                    raise _Reject
-                toa = _number(m["toa_s"])
-                kinds.append(Kind.TOA.value)
-                index.append(station)
-                values.append(toa)
-                toa_values.append(toa)
-                sigmas.append(_number(m["sigma_s"], _SIGMA_TOA))
-                bearing.append(-1)
-                source.append(i)
-            else:
-                raise _Reject
-        self.slots.append(slot)
-        self.station_counts.append(len(coordinates))
-        self.station_ids.append(tuple(ids))
-        self.coordinates.extend(coordinates)
-        self.geodetic.append(geodetic)
-        self.origin.append(origin)
-        self.measurement_counts.append(len(kinds))
-        self.kinds.extend(kinds)
-        self.station_index.extend(index)
-        self.values.extend(values)
-        self.sigmas.extend(sigmas)
-        self.bearing_index.extend(bearing)
-        self.source_index.extend(source)
-        self.altitude.append(math.nan if altitude is None else altitude)
-        self.guess.append(guess)
-        self.guess_geodetic.append(guess_geodetic)
-        self.options.append(options)
-        self.formats.append(tuple(formats))
-
-    @staticmethod
-    def _options(options, geodetic_frame: bool, origin) -> tuple[tuple[int, float], tuple, bool]:
-        if options is _ABSENT:
-            return (_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m), _NAN3, False
+def _problem_settings(body: dict) -> tuple:
+    """Frame, origin, options, guess, altitude and formats of one FixRequest dict (``_Reject`` if unusual)."""
+    frame = body.get("frame", "wgs84")
+    if frame != "wgs84" and frame != "local":
+        raise _Reject
+    geodetic = frame == "wgs84"
+    if body.get("method", "auto") not in _ML_METHODS:
+        raise _Reject
+    origin = body.get("origin")
+    origin = _NAN3 if origin is None else _position(origin, True)
+    options = body.get("options", _ABSENT)
+    key, guess, guess_geodetic = (_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m), _NAN3, False
+    if options is not _ABSENT:
         if type(options) is not dict or not options.keys() <= _OPTION_KEYS:
             raise _Reject
         iterations = options.get("max_iterations", _DEFAULT_OPTIONS.max_iterations)
         if type(iterations) is not int or not 1 <= iterations <= 1000:
             raise _Reject
-        tolerance = _number(options.get("tolerance_m", _DEFAULT_OPTIONS.tolerance_m), _TOLERANCE)
+        key = (iterations, _number(options.get("tolerance_m", _DEFAULT_OPTIONS.tolerance_m), _TOLERANCE))
         variant = options.get("variant")
         if variant is not None and (type(variant) is not str or len(variant) > 32):
             raise _Reject
-        guess, guess_geodetic = _NAN3, False
-        if options.get("initial_guess") is not None:
-            raw = options["initial_guess"]
+        raw = options.get("initial_guess")
+        if raw is not None:
             guess_geodetic = type(raw) is dict and ("lat_deg" in raw or "lon_deg" in raw)
-            if guess_geodetic and not geodetic_frame and math.isnan(origin[0]):
+            if guess_geodetic and not geodetic and math.isnan(origin[0]):
                 raise _Reject
             guess = _position(raw, guess_geodetic)
-        return (iterations, tolerance), guess, guess_geodetic
+    constraints = body.get("constraints")
+    altitude = math.nan
+    if constraints is not None:
+        if type(constraints) is not dict or not constraints.keys() <= _CONSTRAINT_KEYS:
+            raise _Reject
+        value = _optional_number(constraints, "altitude_m")
+        altitude = math.nan if value is None else value
+    formats = body.get("formats", ())
+    if formats != ():
+        if type(formats) is not list or len(formats) > 2 or any(type(f) is not str or f not in _FORMATS
+                                                                 for f in formats):
+            raise _Reject
+        formats = tuple(formats)
+    return geodetic, origin, key, guess, guess_geodetic, altitude, formats
+
+
+def _read(bodies: list):
+    """Structure checks and raw columns of the problems that look plainly valid (numbers are checked later, in bulk).
+
+    Returns
+    -------
+    accepted : list of int
+    settings : list of tuple (see :func:`_problem_settings`)
+    station_counts, measurement_counts : list of int
+    station_ids : list of tuple of str
+    coordinates : list of (float, float, float)
+        Raw station position values, API units.
+    scalars : list of (kind, station, value, sigma, bearing, source)
+        Raw scalar measurements, API units.
+    rest : list of int
+    """
+    accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
+    coordinates, scalars, rest = [], [], []
+    add_coordinates, add_scalar = coordinates.append, scalars.append
+    geodetic_keys, local_keys, station_keys = _GEODETIC_KEYS, _LOCAL_KEYS, _STATION_KEYS
+    bearing_keys, range_keys, toa_keys, id_max = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX
+    for slot, body in enumerate(bodies):
+        n_coordinates, n_scalars = len(coordinates), len(scalars)
+        try:
+            if type(body) is not dict or not body.keys() <= _REQUEST_KEYS:
+                raise _Reject
+            setting = _problem_settings(body)
+            geodetic = setting[0]
+            stations = body["stations"]
+            if type(stations) is not list or not 0 < len(stations) <= 256:
+                raise _Reject
+            ids: dict[str, int] = {}
+            for station in stations:
+                if type(station) is not dict or station.keys() != station_keys:
+                    raise _Reject
+                sid, position = station["id"], station["position"]
+                if type(sid) is not str or not 0 < len(sid) <= id_max or sid in ids or type(position) is not dict:
+                    raise _Reject
+                ids[sid] = len(ids)
+                if geodetic:
+                    if not position.keys() <= geodetic_keys:
+                        raise _Reject
+                    add_coordinates((position["lat_deg"], position["lon_deg"], position.get("alt_m", 0.0)))
+                else:
+                    if not position.keys() <= local_keys or "lat_deg" in position or "lon_deg" in position:
+                        raise _Reject
+                    add_coordinates((position["east_m"], position["north_m"], position.get("up_m", 0.0)))
+            measurements = body["measurements"]
+            if type(measurements) is not list or not 0 < len(measurements) <= 4096:
+                raise _Reject
+            n_bearings = 0
+            for i, m in enumerate(measurements):
+                if type(m) is not dict:
+                    raise _Reject
+                kind = m.get("type")
+                station = ids.get(m.get("station_id"))
+                if station is None:
+                    raise _Reject
+                if kind == "bearing":
+                    if not m.keys() <= bearing_keys:
+                        raise _Reject
+                    add_scalar((_AZ, station, m["azimuth_deg"], m["sigma_azimuth_deg"], n_bearings, i))
+                    elevation, sigma_elevation = m.get("elevation_deg"), m.get("sigma_elevation_deg")
+                    if elevation is not None:
+                        if sigma_elevation is None:
+                            raise _Reject
+                        add_scalar((_EL, station, elevation, sigma_elevation, n_bearings, i))
+                    elif sigma_elevation is not None:
+                        raise _Reject
+                    n_bearings += 1
+                elif kind == "range":
+                    if m.keys() != range_keys:
+                        raise _Reject
+                    add_scalar((_RG, station, m["range_m"], m["sigma_m"], -1, i))
+                elif kind == "toa":
+                    if m.keys() != toa_keys:
+                        raise _Reject
+                    add_scalar((_TOA, station, m["toa_s"], m["sigma_s"], -1, i))
+                else:
+                    raise _Reject
+        except (_Reject, KeyError, TypeError):
+            del coordinates[n_coordinates:], scalars[n_scalars:]
+            rest.append(slot)
+            continue
+        accepted.append(slot)
+        settings.append(setting)
+        station_counts.append(len(ids))
+        station_ids.append(tuple(ids))
+        measurement_counts.append(len(scalars) - n_scalars)
+    return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, rest
+
+
+def _numeric(rows: list, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of raw JSON numbers as floats ``(R, width)``, and which rows hold only numbers.
+
+    JSON numbers (and booleans, which the schema's lax floats also take) convert as pydantic converts
+    them; a row with anything else (a string, null, a huge integer) is marked for the full path.
+    """
+    table = np.array(rows) if rows else np.zeros((0, width))
+    if table.dtype.kind in "fiub" and table.ndim == 2:
+        return table.astype(float, copy=False), np.ones(len(rows), dtype=bool)
+    good = np.array([all(type(v) in (float, int, bool) and abs(v) < 1e300 for v in row) for row in rows], dtype=bool)
+    table = np.array([row if ok else (0.0,) * width for row, ok in zip(rows, good)], dtype=float).reshape(-1, width)
+    return table, good
+
+
+def _within(values, bounds) -> np.ndarray:
+    low, high, low_in, high_in = bounds
+    above = values >= low if low_in else values > low
+    below = values <= high if high_in else values < high
+    return above & below
 
 
 def to_problem_batch(bodies: list) -> tuple[list[int], list[tuple[int, float]], list[tuple[str, ...]],
                                             ProblemBatch | None, list[int]]:
     """Read FixRequest dicts straight into one core batch, for the ML problems the lean reader vouches for.
 
-    A problem is taken when it is plainly valid (the exact types, bounds and
-    fields of :class:`schemas.FixRequest`, known station ids, unique ids),
+    A problem is taken when it is plainly valid (the exact fields, the types
+    and bounds of :class:`schemas.FixRequest`, known and unique station ids),
     asks for ``ml`` or for ``auto`` with every sigma given (which resolves to
     ML), and builds exactly as :func:`to_problem` would build it. Anything
     else is left to the full path (``FixRequest.model_validate``,
     :func:`to_problem`, :func:`core.estimators.solve_many`), which decides
-    and words its errors.
+    and words its errors. Structure is checked problem by problem; numbers
+    are converted and range-checked for the whole batch at once.
 
     Parameters
     ----------
@@ -478,35 +480,67 @@ def to_problem_batch(bodies: list) -> tuple[list[int], list[tuple[int, float]], 
     batch : ProblemBatch or None
         None when no problem was taken.
     rest : list of int
-        Request indices for the full path.
+        Request indices for the full path, in request order.
     """
-    columns = _Columns()
-    rest = []
-    for slot, body in enumerate(bodies):
-        try:
-            columns.add(slot, body)
-        except (_Reject, KeyError, TypeError):
-            rest.append(slot)
-    if not columns.slots:
+    accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, rest = _read(bodies)
+    if not accepted:
         return [], [], [], None, rest
+    station_counts = np.array(station_counts)
+    measurement_counts = np.array(measurement_counts)
+    station_owner = np.repeat(np.arange(len(accepted)), station_counts)
+    scalar_owner = np.repeat(np.arange(len(accepted)), measurement_counts)
+    geodetic = np.array([s[0] for s in settings], dtype=bool)
+
+    coords, coords_ok = _numeric(coordinates, 3)
+    table, scalars_ok = _numeric(scalars, 6)
+    kinds = table[:, 0].astype(np.int8)
+    values, sigmas = table[:, 2], table[:, 3]
+    on_earth = geodetic[station_owner]
+    coords_ok &= np.all(np.isfinite(coords), axis=-1)
+    coords_ok &= ~on_earth | (_within(coords[:, 0], _LAT) & _within(coords[:, 1], _LON) & _within(coords[:, 2], _ALT))
+    is_az, is_el, is_range, is_toa = kinds == _AZ, kinds == _EL, kinds == _RG, kinds == _TOA
+    scalars_ok &= np.isfinite(values) & np.isfinite(sigmas)
+    scalars_ok &= ~is_az | (_within(values, _AZIMUTH) & _within(sigmas, _SIGMA_AZIMUTH))
+    scalars_ok &= ~is_el | (_within(values, _ELEVATION) & _within(sigmas, _SIGMA_ELEVATION))
+    scalars_ok &= ~is_range | (_within(values, _RANGE) & _within(sigmas, _SIGMA_RANGE))
+    scalars_ok &= ~is_toa | _within(sigmas, _SIGMA_TOA)
+    bad = np.zeros(len(accepted), dtype=bool)
+    bad[station_owner[~coords_ok]] = True
+    bad[scalar_owner[~scalars_ok]] = True
+    if np.any(bad):
+        rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
+        keep = np.flatnonzero(~bad)
+        if keep.size == 0:
+            return [], [], [], None, rest
+        station_keep, scalar_keep = ~bad[station_owner], ~bad[scalar_owner]
+        accepted = [accepted[i] for i in keep]
+        settings = [settings[i] for i in keep]
+        station_ids = [station_ids[i] for i in keep]
+        station_counts, measurement_counts, geodetic = station_counts[keep], measurement_counts[keep], geodetic[keep]
+        coords, on_earth = coords[station_keep], on_earth[station_keep]
+        table, kinds, is_az, is_el = table[scalar_keep], kinds[scalar_keep], is_az[scalar_keep], is_el[scalar_keep]
+        values, sigmas = table[:, 2], table[:, 3]
+
+    coords = np.where(on_earth[:, None], np.concatenate([np.radians(coords[:, :2]), coords[:, 2:]], axis=-1), coords)
+    angle = is_az | is_el
     batch = build_problem_batch(
-        station_counts=np.array(columns.station_counts),
-        station_ids=columns.station_ids,
-        station_coordinates=np.array(columns.coordinates, dtype=float),
-        geodetic_stations=np.array(columns.geodetic),
-        origin=np.array(columns.origin, dtype=float),
-        measurement_counts=np.array(columns.measurement_counts),
-        kinds=np.array(columns.kinds, dtype=np.int8),
-        station_index=np.array(columns.station_index),
-        values=np.array(columns.values, dtype=float),
-        sigmas=np.array(columns.sigmas, dtype=float),
-        bearing_index=np.array(columns.bearing_index),
-        source_index=np.array(columns.source_index),
-        altitude_m=np.array(columns.altitude, dtype=float),
-        initial_guess=np.array(columns.guess, dtype=float),
-        geodetic_guess=np.array(columns.guess_geodetic),
+        station_counts=station_counts,
+        station_ids=station_ids,
+        station_coordinates=coords,
+        geodetic_stations=geodetic,
+        origin=np.array([s[1] for s in settings], dtype=float),
+        measurement_counts=measurement_counts,
+        kinds=kinds,
+        station_index=table[:, 1].astype(np.intp),
+        values=np.where(angle, np.radians(values), values),
+        sigmas=np.where(angle, np.radians(sigmas), sigmas),
+        bearing_index=table[:, 4].astype(np.intp),
+        source_index=table[:, 5].astype(np.intp),
+        altitude_m=np.array([s[5] for s in settings], dtype=float),
+        initial_guess=np.array([s[3] for s in settings], dtype=float),
+        geodetic_guess=np.array([s[4] for s in settings], dtype=bool),
     )
-    return columns.slots, columns.options, columns.formats, batch, rest
+    return accepted, [s[2] for s in settings], [s[6] for s in settings], batch, rest
 
 
 def fix_batch_to_dicts(fixes, formats) -> list[dict | None]:
@@ -605,5 +639,3 @@ def fix_batch_to_dicts(fixes, formats) -> list[dict | None]:
         out.append(body)
     return out
 
-
-_COMPONENT_NAMES = {int(k): name for k, name in _COMPONENT.items()}
