@@ -1,0 +1,189 @@
+"""Batched ML: every problem of a mixed batch gets what it gets alone (B = 1), and the batch's pieces
+(problem padding, the weighted-EOVE start, the finish) agree with their one-problem counterparts."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from core.batch import ProblemBatch, build_problem_batch, size_groups
+from core.errors import LocalizationError
+from core.estimators import SolveOptions
+from core.estimators.base import finish_fix
+from core.estimators.ml import solve_ml_batch, solve_ml_problem_batch
+from core.estimators.orthogonal_vector import solve_orthogonal
+from core.estimators.start import weighted_eove_batch
+from core.measurements import SPEED_OF_LIGHT_MPS, Kind
+from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
+from core.simulation.measurements import measure
+
+d2r = np.deg2rad
+SIGMA = d2r(0.5)
+REL = 1e-9  # relative agreement asked of batch and single fixes
+GEODETIC = {"a": (34.0, 108.5, 300.0), "b": (34.4, 108.9, 500.0), "c": (33.8, 109.1, 100.0),
+            "d": (34.1, 109.4, 800.0), "e": (33.6, 108.7, 50.0)}
+
+
+def _geodetic(ids):
+    return [(k, GeodeticPoint(d2r(GEODETIC[k][0]), d2r(GEODETIC[k][1]), GEODETIC[k][2])) for k in ids]
+
+
+def _local(ids):
+    return [(k, LocalPoint(*(np.array(GEODETIC[k]) - [34.0, 108.5, 0.0]) * [90e3, 90e3, 1.0])) for k in ids]
+
+
+def _bearings(ids, elevation=True, sigma=SIGMA):
+    return [Bearing(k, 0.0, 0.0 if elevation else None, sigma, sigma if elevation else None) for k in ids]
+
+
+def _noisy(problem, target, seed):
+    return measure(problem, np.asarray(target, dtype=float), np.random.default_rng(seed))
+
+
+def mixed_problems():
+    """Different station counts, measurement mixes, constraints and frames; a few unsolvable."""
+    target = np.array([20e3, 30e3, 6e3])
+    out = []
+    for seed, ids in enumerate(("abcd", "abc", "abcde", "ab")):
+        out.append(_noisy(build_problem(_geodetic(ids), _bearings(ids)), target, seed))
+    out.append(_noisy(build_problem(_local("abcd"), _bearings("abcd")), target, 10))
+    origin = GeodeticPoint(d2r(34.0), d2r(108.5), 0.0)
+    out.append(_noisy(build_problem(_local("abc"), _bearings("abc"), origin=origin), target, 11))
+    ranges = [Range(k, 0.0, 50.0) for k in "ab"]
+    out.append(_noisy(build_problem(_geodetic("ab"), _bearings("ab") + ranges), target, 12))
+    toas = [TimeOfArrival(k, 0.0, 30.0 / SPEED_OF_LIGHT_MPS) for k in "abcde"]
+    out.append(_noisy(build_problem(_geodetic("abcde"), toas), target, 13))
+    out.append(_noisy(build_problem(_geodetic("abc"), _bearings("abc") + toas[:3]), target, 14))
+    out.append(_noisy(build_problem(_geodetic("abcd"), [Range(k, 0.0, 40.0) for k in "abcd"]), target, 15))
+    surface = build_problem(_geodetic("abc"), _bearings("abc", elevation=False), altitude_m=6000.0)
+    out.append(_noisy(surface, surface.frame.onto_altitude(target, 6000.0), 16))
+    flat = build_problem(_local("abcd"), _bearings("abcd", elevation=False), altitude_m=6000.0)
+    out.append(_noisy(flat, target, 17))
+    guessed = build_problem(_geodetic("abcd"), _bearings("abcd"), initial_guess=LocalPoint(1e4, 1e4, 0.0))
+    out.append(_noisy(guessed, target, 18))
+    bad = _noisy(build_problem(_geodetic("abcd"), _bearings("abcd")), target, 19)
+    out.append(bad.with_values(bad.values + np.r_[0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    out.append(build_problem(_geodetic("a"), _bearings("a")))
+    out.append(build_problem(_geodetic("ab"), [Range("a", 1e4, 10.0), Range("b", 1e4, 10.0)]))
+    return out
+
+
+def assert_same_fix(a, b):
+    assert type(a) is type(b)
+    if isinstance(a, LocalizationError):
+        assert (a.code, a.message, a.loc) == (b.code, b.message, b.loc)
+        return
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(x, np.ndarray) or isinstance(x, float):
+            np.testing.assert_allclose(x, y, rtol=REL, atol=1e-12, err_msg=f.name)
+        else:
+            assert x == y, f.name
+
+
+def test_batch_equals_each_problem_alone():
+    problems = mixed_problems()
+    together = solve_ml_batch(problems, SolveOptions())
+    assert sum(isinstance(r, LocalizationError) for r in together) == 2
+    assert any(r.warnings for r in together if not isinstance(r, LocalizationError))
+    for problem, batched in zip(problems, together):
+        assert_same_fix(batched, solve_ml_batch([problem], SolveOptions())[0])
+
+
+def test_chunking_does_not_change_results(monkeypatch):
+    import core.estimators.ml as ml
+
+    problems = [p for p in mixed_problems() if p.n_measurements == 8] * 20
+    batch = ProblemBatch.from_problems(problems)
+    whole = solve_ml_problem_batch(batch, SolveOptions())
+    monkeypatch.setattr(ml, "CHUNK_ENTRIES", 8)
+    monkeypatch.setattr(ml, "CHUNK_MIN_PROBLEMS", 7)
+    chunked = solve_ml_problem_batch(batch, SolveOptions())
+    for b in range(batch.size):
+        assert_same_fix(whole.fix(b), chunked.fix(b))
+
+
+def test_finish_agrees_with_finish_fix():
+    """The batched finish gives what base.finish_fix gives for the same solution."""
+    for problem, fix in zip(mixed_problems(), solve_ml_batch(mixed_problems(), SolveOptions())):
+        if isinstance(fix, LocalizationError):
+            continue
+        given = tuple(w for w in fix.warnings if w.code == "not_converged")
+        reference = finish_fix(problem, "ml", fix.position_enu_m, fix.covariance_enu_m2,
+                               covariance_source="information", converged=fix.converged, iterations=fix.iterations,
+                               warnings=given, details=fix.details)
+        for name in ("residuals", "normalized_residuals", "chi2", "crlb_enu_m2", "covariance_enu_m2"):
+            np.testing.assert_allclose(getattr(fix, name), getattr(reference, name), rtol=1e-7, atol=1e-12,
+                                       err_msg=name)
+        assert fix.dof == reference.dof
+        for name in ("p_value", "sigma_scale"):
+            assert (getattr(fix, name) is None) == (getattr(reference, name) is None)
+        assert [w.code for w in fix.warnings] == [w.code for w in reference.warnings]
+
+
+def test_warning_messages_match_finish_fix():
+    problems = mixed_problems()
+    for problem, fix in zip(problems, solve_ml_batch(problems, SolveOptions())):
+        if isinstance(fix, LocalizationError) or not fix.warnings:
+            continue
+        reference = finish_fix(problem, "ml", fix.position_enu_m, fix.covariance_enu_m2,
+                               covariance_source="information", converged=fix.converged, iterations=fix.iterations,
+                               warnings=tuple(w for w in fix.warnings if w.code == "not_converged"))
+        assert fix.warnings == reference.warnings
+
+
+def test_weighted_eove_batch_matches_the_one_problem_solver():
+    problems = [p for p in mixed_problems() if p.count(Kind.AZIMUTH) >= 2 and p.initial_guess_enu_m is None]
+    positions, solved = weighted_eove_batch(ProblemBatch.from_problems(problems))
+    assert solved.all()
+    for problem, position in zip(problems, positions):
+        expected, _ = solve_orthogonal(problem, True, True, True, "weighted_eove")
+        np.testing.assert_allclose(position, expected, rtol=1e-9, atol=1e-6)  # 1 micrometre
+
+
+def test_problem_batch_round_trip():
+    problems = mixed_problems()
+    batch = ProblemBatch.from_problems(problems)
+    for b, problem in enumerate(problems):
+        again = batch.problem(b)
+        for f in dataclasses.fields(problem):
+            x, y = getattr(problem, f.name), getattr(again, f.name)
+            if isinstance(x, np.ndarray):
+                np.testing.assert_array_equal(x, y, err_msg=f.name)
+            else:
+                assert x == y, f.name
+
+
+@pytest.mark.parametrize("frame", ["wgs84", "local", "local+origin"])
+def test_build_problem_batch_equals_build_problem(frame):
+    origin = GeodeticPoint(d2r(34.0), d2r(108.5), 10.0) if frame == "local+origin" else None
+    stations = _geodetic("abcd") if frame == "wgs84" else _local("abcd")
+    measurements = [Bearing("a", 0.3, 0.05, SIGMA, SIGMA), TimeOfArrival("b", 12.5, 1e-7), Range("c", 3e4, 20.0),
+                    Bearing("d", 5.9, None, SIGMA, None), TimeOfArrival("c", 12.49, 1e-7)]
+    expected = build_problem(stations, measurements, origin=origin, altitude_m=500.0)
+    geodetic = frame == "wgs84"
+    coordinates = [(p.lat_rad, p.lon_rad, p.alt_m) if geodetic else (p.east_m, p.north_m, p.up_m)
+                   for _, p in stations]
+    rows = [(Kind.AZIMUTH, 0, 0.3, SIGMA, 0, 0), (Kind.ELEVATION, 0, 0.05, SIGMA, 0, 0), (Kind.TOA, 1, 12.5, 1e-7, -1, 1),
+            (Kind.RANGE, 2, 3e4, 20.0, -1, 2), (Kind.AZIMUTH, 3, 5.9, SIGMA, 1, 3), (Kind.TOA, 2, 12.49, 1e-7, -1, 4)]
+    kinds, index, values, sigmas, bearing, source = (np.array(c) for c in zip(*rows))
+    origin_row = [origin.lat_rad, origin.lon_rad, origin.alt_m] if origin else [np.nan] * 3
+    built = build_problem_batch([4], [tuple("abcd")], coordinates, [geodetic], [origin_row], [6], kinds, index,
+                                values, sigmas, bearing, source, [500.0], [[np.nan] * 3], [False])
+    reference = ProblemBatch.from_problems([expected])
+    for f in dataclasses.fields(ProblemBatch):
+        x, y = getattr(built, f.name), getattr(reference, f.name)
+        if isinstance(x, np.ndarray):
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-9, err_msg=f.name)  # 1 nanometre
+        else:
+            assert x == y, f.name
+
+
+def test_size_groups_bound_padding():
+    sizes = np.array([1, 2, 3, 8, 9, 4096, 100, 5])
+    groups = size_groups(sizes)
+    assert sorted(np.concatenate(groups).tolist()) == list(range(sizes.size))
+    for group in groups:
+        assert sizes[group].max() <= 2 * max(sizes[group].min(), 1)

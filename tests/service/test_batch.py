@@ -1,0 +1,253 @@
+"""POST /v1/fixes/batch: each slot equals what POST /v1/fixes gives for that problem; errors stay in their slot."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import orjson
+import pytest
+
+from core import geodesy
+from core.estimators import REGISTRY
+from service import schemas
+from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request, look_angles_deg
+
+REL = 1e-9  # batch and single fixes agree to this relative precision
+C = 299_792_458.0
+
+
+def _noisy(request: dict, seed: int, sigma_deg: float = 0.3) -> dict:
+    rng = np.random.default_rng(seed)
+    out = copy.deepcopy(request)
+    for m in out["measurements"]:
+        if m["type"] == "bearing":
+            m["azimuth_deg"] = (m["azimuth_deg"] + sigma_deg * rng.standard_normal()) % 360.0
+            if m.get("elevation_deg") is not None:
+                m["elevation_deg"] += sigma_deg * rng.standard_normal()
+        elif m["type"] == "range":
+            m["range_m"] += m["sigma_m"] * rng.standard_normal()
+        else:
+            m["toa_s"] += m["sigma_s"] * rng.standard_normal()
+    return out
+
+
+def _subset(ids) -> dict:
+    return {k: STATIONS_300KM[k] for k in ids}
+
+
+def _with_ranges(ids, seed) -> dict:
+    request = bearing_request(_subset(ids), TARGET)
+    for sid in ids:
+        request["measurements"].append({"type": "range", "station_id": sid, "sigma_m": 300.0,
+                                        "range_m": look_angles_deg(STATIONS_300KM[sid], TARGET)[2]})
+    return _noisy(request, seed)
+
+
+def _toa_only(seed) -> dict:
+    stations = _subset(["rx-1", "rx-2", "rx-3", "rx-4"])
+    measurements = [{"type": "toa", "station_id": sid, "sigma_s": 1e-7,
+                     "toa_s": 1000.0 + look_angles_deg(pos, TARGET)[2] / C} for sid, pos in stations.items()]
+    request = {"frame": "wgs84", "stations": [{"id": k, "position": v} for k, v in stations.items()],
+               "measurements": measurements, "method": "ml"}
+    return _noisy(request, seed)
+
+
+def _azimuth_only(ids, seed, sigma=True, **extra) -> dict:
+    request = bearing_request(_subset(ids), TARGET, **extra)
+    for m in request["measurements"]:
+        del m["elevation_deg"], m["sigma_elevation_deg"]
+        if not sigma:
+            del m["sigma_azimuth_deg"]
+    return _noisy(request, seed)
+
+
+def _local(request: dict, with_origin: bool) -> dict:
+    """The same scene in a local ENU frame at rx-1 (with or without the origin that places it on earth)."""
+    origin = STATIONS_300KM["rx-1"]
+    o = (math.radians(origin["lat_deg"]), math.radians(origin["lon_deg"]), origin["alt_m"])
+    out = copy.deepcopy(request)
+    out["frame"] = "local"
+    for station in out["stations"]:
+        p = station["position"]
+        e, n, u = geodesy.geodetic_to_enu(math.radians(p["lat_deg"]), math.radians(p["lon_deg"]), p["alt_m"], *o)
+        station["position"] = {"east_m": float(e), "north_m": float(n), "up_m": float(u)}
+    if with_origin:
+        out["origin"] = dict(origin)
+    return out
+
+
+def mixed_batch() -> list:
+    """Problems of every kind the batch must keep apart, and some that must fail in their slot."""
+    four = ["rx-1", "rx-2", "rx-3", "rx-4"]
+    good = [
+        _noisy(bearing_request(_subset(four), TARGET, method="ml"), 1),
+        _noisy(bearing_request(_subset(four[:3]), TARGET), 2),
+        _noisy(bearing_request(_subset(four[:2]), TARGET, formats=["geojson", "cot"]), 3),
+        _with_ranges(four[:2], 4),
+        _with_ranges(four, 5) | {"method": "ml", "options": {"max_iterations": 30, "tolerance_m": 0.01}},
+        _toa_only(6),
+        _azimuth_only(four[:3], 7, constraints={"altitude_m": TARGET["alt_m"]}),
+        _local(_noisy(bearing_request(_subset(four), TARGET), 8), with_origin=False),
+        _local(_noisy(bearing_request(_subset(four), TARGET), 9), with_origin=True),
+        _noisy(bearing_request(_subset(four), TARGET, options={"initial_guess": dict(TARGET)}), 10),
+        _azimuth_only(four, 11, sigma=False),
+    ]
+    for k, method in enumerate(sorted(REGISTRY)):
+        good.append(_noisy(bearing_request(_subset(four), TARGET, method=method), 100 + k))
+        good.append(_with_ranges(four, 200 + k) | {"method": method})
+        good.append(_azimuth_only(four, 300 + k, method=method, constraints={"altitude_m": TARGET["alt_m"]}))
+    negative_sigma = copy.deepcopy(good[0])
+    negative_sigma["measurements"][1]["sigma_azimuth_deg"] = -1.0
+    unknown_station = copy.deepcopy(good[0])
+    unknown_station["measurements"][2]["station_id"] = "nobody"
+    duplicate = copy.deepcopy(good[1])
+    duplicate["stations"][1]["id"] = duplicate["stations"][0]["id"]
+    too_few = bearing_request(_subset(four[:1]), TARGET, method="ml")
+    extra_field = copy.deepcopy(good[2]) | {"colour": "red"}
+    text_number = copy.deepcopy(good[0])
+    text_number["measurements"][0]["azimuth_deg"] = "12.5"
+    bad = [negative_sigma, unknown_station, duplicate, too_few, extra_field, text_number]
+    mixed = []
+    for i in range(max(len(good), len(bad))):
+        mixed.extend(([good[i]] if i < len(good) else []) + ([bad[i]] if i < len(bad) else []))
+    return mixed
+
+
+#: Absolute floors for values that are zero up to round-off (an exactly determined fix has zero
+#: residuals): 1e-9 of a sigma for residuals, and the matching chi-square.
+FLOORS = {"normalized": 1e-9, "chi2": 1e-9, "sigma_scale": 1e-9}
+
+
+def assert_close(a, b, path="fix", floor=1e-12):
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), f"{path}: {sorted(a.keys() ^ b.keys())}"
+        sigma = abs(a["residual"] / a["normalized"]) if a.get("normalized") else 1.0
+        for key in a:
+            key_floor = 1e-9 * sigma if key == "residual" else FLOORS.get(key, floor)
+            assert_close(a[key], b[key], f"{path}.{key}", key_floor)
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_close(x, y, f"{path}[{i}]", floor)
+    elif isinstance(a, float) and isinstance(b, float):
+        assert math.isclose(a, b, rel_tol=REL, abs_tol=floor), f"{path}: {a} != {b}"
+    else:
+        assert a == b, f"{path}: {a!r} != {b!r}"
+
+
+@pytest.fixture(scope="module")
+def mixed_results(tmp_path_factory):
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    problems = mixed_batch() + [7, "not a problem"]
+    with TestClient(create_app(Settings(store=f"sqlite:///{tmp_path_factory.mktemp('b')}/s.db"))) as client:
+        response = client.post("/v1/fixes/batch", json={"problems": problems})
+        singles = [client.post("/v1/fixes", json=p) for p in problems if isinstance(p, dict)]
+    return problems, response, singles
+
+
+def test_batch_slots_equal_single_fixes(mixed_results):
+    problems, response, singles = mixed_results
+    assert response.status_code == 200
+    results = response.json()["results"]
+    assert [r["index"] for r in results] == list(range(len(problems)))
+    assert sum(r["ok"] for r in results) >= len(problems) // 2
+    for result, single in zip(results, singles):
+        if single.status_code == 200:
+            assert result["ok"], (result["index"], result.get("error"))
+            assert_close(result["fix"], single.json(), f"slot {result['index']}")
+        else:
+            assert not result["ok"], result["index"]
+            error, expected = result["error"], single.json()
+            assert (error["status"], error["code"]) == (expected["status"], expected["code"])
+            assert [e["loc"] for e in error["errors"]] == [e["loc"] for e in expected["errors"]]
+            assert [e["msg"] for e in error["errors"]] == [e["msg"] for e in expected["errors"]]
+
+
+def test_every_method_and_mix_is_exercised(mixed_results):
+    problems, response, _ = mixed_results
+    results = response.json()["results"]
+    methods = {r["fix"]["method"] for r in results if r["ok"]}
+    assert {"ml", "eove", "weighted_eove"} <= methods
+    components = {res["component"] for r in results if r["ok"] for res in r["fix"]["residuals"]}
+    assert components == {"azimuth", "elevation", "range", "toa"}
+    assert any("geojson" in r["fix"] and "cot" in r["fix"] for r in results if r["ok"])
+    assert any("position" not in r["fix"] for r in results if r["ok"])  # the flat local frame
+
+
+def test_ok_slots_validate_against_the_schemas(mixed_results):
+    _, response, _ = mixed_results
+    body = response.json()
+    schemas.BatchResponse.model_validate(body)
+    for result in body["results"]:
+        if result["ok"]:
+            schemas.FixResponse.model_validate(result["fix"])
+            assert "error" not in result
+        else:
+            schemas.Problem.model_validate(result["error"])
+            assert result["error"]["type"].endswith(result["error"]["code"])
+            assert "fix" not in result
+
+
+def test_a_malformed_problem_fails_only_its_slot(client):
+    good = _noisy(bearing_request(STATIONS_300KM, TARGET), 42)
+    bad = copy.deepcopy(good)
+    bad["measurements"][3]["elevation_deg"] = 123.0
+    response = client.post("/v1/fixes/batch", json={"problems": [good, good, bad, good]})
+    assert response.status_code == 200
+    results = response.json()["results"]
+    assert [r["ok"] for r in results] == [True, True, False, True]
+    error = results[2]["error"]
+    assert error["status"] == 422 and error["code"] == "invalid_input"
+    assert error["errors"][0]["loc"] == ["measurements", 3, "elevation_deg"]
+    single = client.post("/v1/fixes", json=good).json()
+    for k in (0, 1, 3):
+        assert_close(results[k]["fix"], single)
+
+
+def test_unsolvable_and_unknown_station_are_reported_in_their_slots(client):
+    good = _noisy(bearing_request(STATIONS_300KM, TARGET), 43)
+    unknown = copy.deepcopy(good)
+    unknown["measurements"][0]["station_id"] = "rx-9"
+    lonely = bearing_request(_subset(["rx-1"]), TARGET, method="ml")
+    results = client.post("/v1/fixes/batch", json={"problems": [unknown, good, lonely]}).json()["results"]
+    assert [r["ok"] for r in results] == [False, True, False]
+    assert results[0]["error"]["errors"][0]["loc"] == ["measurements", 0, "station_id"]
+    assert results[2]["error"]["status"] == 422
+
+
+@pytest.mark.parametrize("body, status", [
+    (b"{not json", 400),
+    (b"[]", 422),
+    (b'{"problems": []}', 422),
+    (b'{"problems": {}}', 422),
+    (b'{"problem": [{}]}', 422),
+    (b'{"problems": [{}], "extra": 1}', 422),
+])
+def test_a_body_that_is_not_a_batch_fails_whole(client, body, status):
+    response = client.post("/v1/fixes/batch", content=body, headers={"content-type": "application/json"})
+    assert response.status_code == status
+    assert response.headers["content-type"].startswith("application/problem+json")
+
+
+def test_more_than_ten_thousand_problems_is_refused(client):
+    response = client.post("/v1/fixes/batch", content=orjson.dumps({"problems": [{}] * 10_001}),
+                           headers={"content-type": "application/json"})
+    assert response.status_code == 422
+    assert response.json()["errors"][0]["loc"] == ["problems"]
+
+
+def test_route_is_documented():
+    from service.app import create_app
+    from service.settings import Settings
+
+    spec = create_app(Settings(store="sqlite:///:memory:")).openapi()
+    operation = spec["paths"]["/v1/fixes/batch"]["post"]
+    assert operation["operationId"] == "fixes-batch"
+    items = operation["requestBody"]["content"]["application/json"]["schema"]["properties"]["problems"]["items"]
+    assert items == {"$ref": "#/components/schemas/FixRequest"}
