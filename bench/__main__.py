@@ -1,0 +1,157 @@
+"""``python -m bench``: the performance table of issue 6, printed and written to ``bench/results.md``.
+
+Every row measures its subject next to its yardstick in the same run (the
+machine is shared and noisy: only same-run ratios mean anything). HTTP rows
+run one uvicorn worker on loopback; the load generator is wrk (installed
+with apt-get when missing and we are root) or, failing that, a Python
+asyncio client, and the table says which.
+
+Usage: ``python -m bench [--quick] [--rows 1,2,3] [--duration S] [--batch N]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import subprocess
+import sys
+import traceback
+from pathlib import Path
+
+import numpy as np
+
+from bench import rows as bench_rows
+from bench.load import LoadGenerator
+from bench.server import serve
+
+RESULTS = Path(__file__).resolve().parent / "results.md"
+
+
+def environment() -> list[str]:
+    """What the numbers were measured on."""
+    lines = [f"python {platform.python_version()}, numpy {np.__version__}, {os.cpu_count()} CPUs, "
+             f"{platform.machine()}"]
+    blas = {k: os.environ[k] for k in ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE") if k in os.environ}
+    try:
+        from threadpoolctl import threadpool_info
+
+        kernels = ", ".join(f"{i.get('internal_api')} {i.get('architecture')}" for i in threadpool_info())
+    except ImportError:
+        kernels = "threadpoolctl not installed"
+    lines.append(f"BLAS: {kernels}; environment {blas or 'none'} (the ML path uses no BLAS-sized matrices: "
+                 "3x3/4x4 batches and element-wise planes)")
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=bench_rows.ROOT, capture_output=True,
+                                text=True, check=False).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=bench_rows.ROOT,
+                               capture_output=True, text=True, check=False).stdout.strip()
+        lines.append(f"commit {commit}{' (work tree has uncommitted changes)' if dirty else ''}")
+    except OSError:
+        pass
+    return lines
+
+
+def table(rows: list[bench_rows.Row]) -> str:
+    header = ["#", "what", "measured", "yardstick (same run)", "ratio", "target", "verdict"]
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    for r in rows:
+        cells = [str(r.number), r.what, r.measured, r.reference, r.ratio, r.target, r.verdict]
+        lines.append("| " + " | ".join(c.replace("|", "/") for c in cells) + " |")
+    return "\n".join(lines)
+
+
+def _guarded(number: int, what: str, target: str, run) -> bench_rows.Row | list:
+    try:
+        return run()
+    except Exception as error:  # a broken row must not hide the others; it is reported, with its traceback
+        traceback.print_exc()
+        return bench_rows.Row(number, what, "failed", "-", "-", target, f"error: {type(error).__name__}: {error}")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="short runs (2 s, 2,000 problems): a smoke test")
+    parser.add_argument("--rows", default="1,2,3,4,5,6", help="which rows to run (comma-separated)")
+    parser.add_argument("--duration", type=float, default=None, help="seconds per load run (default 10)")
+    parser.add_argument("--batch", type=int, default=None, help="problems in the batch row (default 10,000)")
+    parser.add_argument("--output", type=Path, default=RESULTS)
+    args = parser.parse_args(argv)
+    wanted = {int(x) for x in args.rows.split(",") if x.strip()}
+    duration = args.duration or (2.0 if args.quick else 10.0)
+    size = args.batch or (2_000 if args.quick else 10_000)
+
+    load = LoadGenerator() if wanted & {1, 4} else None
+    if load is not None:
+        print(f"load generator: {load.description}", flush=True)
+    results: list[bench_rows.Row] = []
+    core_s, problems = None, None
+    if wanted & {1, 2, 3}:
+        with serve() as url:
+            if 1 in wanted:
+                print("row 1: single fix over HTTP ...", flush=True)
+                results.append(_guarded(1, "single ML fix over HTTP", ">= 0.60x echo, p99 <= 10 ms",
+                                        lambda: bench_rows.single_fix_row(url, load, duration)))
+            if wanted & {2, 3}:
+                print(f"row 2: batch of {size:,} over HTTP ...", flush=True)
+                out = _guarded(2, f"batch of {size:,} fixes over HTTP", ">= 20,000 fixes/s",
+                               lambda: bench_rows.batch_row(url, size))
+                if isinstance(out, tuple):
+                    row, core_s, problems = out
+                else:
+                    row = out
+                if 2 in wanted:
+                    results.append(row)
+    if 3 in wanted:
+        print("row 3: scipy.optimize.least_squares one by one ...", flush=True)
+        if core_s is None:
+            results.append(bench_rows.unavailable(3, "scipy one by one", ">= 100x", "row 2 did not run"))
+        else:
+            results.append(_guarded(3, "scipy one by one", ">= 100x",
+                                    lambda: bench_rows.scipy_row(problems, core_s)))
+    if 4 in wanted:
+        print("row 4: session epochs over HTTP ...", flush=True)
+        results.extend(_guarded(4, "session epochs/s over HTTP", "-",
+                                lambda: bench_rows.session_rows(load, duration)) or [])
+    if 5 in wanted:
+        print("row 5: one filter step, core vs filterpy ...", flush=True)
+        results.append(_guarded(5, "one session filter step in core", "<= 1/5 of filterpy",
+                                bench_rows.filter_step_row))
+    if 6 in wanted:
+        print("row 6: paper 002 grid ...", flush=True)
+        results.append(_guarded(6, "paper 002 grid", "<= 10 s", bench_rows.paper_002_row))
+    results = [r for item in results for r in (item if isinstance(item, list) else [item])]
+    results.sort(key=lambda r: r.number)
+
+    rendered = table(results)
+    print()
+    print(rendered)
+    notes = [f"- row {r.number}: {note}" for r in results for note in r.notes]
+    stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    text = "\n".join([
+        "# Benchmark results (issue 6)",
+        "",
+        f"`make bench` (`python -m bench{' ' + ' '.join(argv or sys.argv[1:]) if (argv or sys.argv[1:]) else ''}`)"
+        f", {stamp}.",
+        "",
+        *[f"- {line}" for line in environment()],
+        f"- load generator: {load.description if load else 'not used'}",
+        "",
+        rendered,
+        "",
+        "## Notes",
+        "",
+        *notes,
+        "",
+    ])
+    args.output.write_text(text + EXTRA_NOTES)
+    print(f"\nwrote {args.output}")
+    return 0
+
+
+#: Analysis kept next to the table: where the time goes and what would close the gaps.
+EXTRA_NOTES = ""
+
+if __name__ == "__main__":
+    sys.exit(main())
