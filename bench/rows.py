@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gc
 import http.client
+import math
 import subprocess
 import time
 from dataclasses import dataclass, field
@@ -14,6 +15,7 @@ import numpy as np
 import orjson
 
 from bench.load import LoadGenerator
+from bench.server import serve
 from bench.scenarios import four_station_requests
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -243,19 +245,213 @@ def paper_002_row() -> Row:
                 f"intersection + CRLB per point; median MSE/trace(CRLB) {np.median(ratios):.3f}"])
 
 
-def session_rows(load: LoadGenerator, duration_s: float) -> list[Row]:
-    """Row 4: session epochs/s over HTTP (SQLite with 1 and 10 epochs per request, Redis)."""
-    what = "session epochs/s over HTTP (SQLite: 1 and 10 epochs/request; Redis)"
-    if not committed("service/routes/sessions.py", "core/tracking/session.py"):
-        return [unavailable(4, what, "-", "the sessions routes (service/routes/sessions.py) and the filters "
-                                          "(core/tracking) have not landed in git yet")]
-    return [unavailable(4, what, "-", "sessions landed after this benchmark was written")]
+def _session_bodies(epochs_per_post: int):
+    """The create body and the measurement posts of one paper-001 run (seq from 1, degrees)."""
+    from core.simulation.emitter import paper_001_scenario, simulate_emitter
+
+    scenario = paper_001_scenario()
+    track = simulate_emitter(scenario, np.random.default_rng(4))
+    create = orjson.dumps({
+        "frame": "local", "observer": {"position": {"east_m": 0.0, "north_m": 0.0, "up_m": 0.0}},
+        "model": "velocity_kinematic",
+        "pulse": {"period_s": scenario.period_s, "period_known": False,
+                  "pulses_per_observation": scenario.pulses_per_observation},
+        "noise": {"sigma_azimuth_deg": math.degrees(scenario.sigma_azimuth_rad),
+                  "sigma_elevation_deg": math.degrees(scenario.sigma_elevation_rad),
+                  "sigma_azimuth_rate_deg_s": math.degrees(scenario.sigma_azimuth_rate_rad_s),
+                  "sigma_toa_s": scenario.sigma_toa_s},
+        "ttl_s": 600.0})
+    epochs = [{"seq": k + 1, "time_s": e.time_s, "azimuth_deg": math.degrees(e.azimuth_rad),
+               "elevation_deg": math.degrees(e.elevation_rad),
+               "azimuth_rate_deg_s": math.degrees(e.azimuth_rate_rad_s),
+               "toa_s": e.toa_s} for k, e in enumerate(track.epochs)]
+    posts = [orjson.dumps({"measurements": epochs[i:i + epochs_per_post]})
+             for i in range(0, len(epochs), epochs_per_post)]
+    return create, posts
 
 
-def filter_step_row() -> Row:
+def _session_load(url: str, epochs_per_post: int, duration_s: float, clients: int = 8) -> dict:
+    """Clients each feed one session after another, post by post, for ``duration_s``."""
+    import threading
+
+    create, posts = _session_bodies(epochs_per_post)
+    latencies: list[float] = []
+    counts = {"epochs": 0, "failures": 0}
+    lock = threading.Lock()
+    deadline = time.perf_counter() + duration_s
+
+    def client():
+        connection = _connection(url, timeout=60)
+        mine, applied, failed = [], 0, 0
+        while time.perf_counter() < deadline:
+            status, data = _post(connection, "/v1/sessions", create)
+            if status != 201:
+                failed += 1
+                continue
+            session = orjson.loads(data)["id"]
+            for body in posts:
+                if time.perf_counter() >= deadline:
+                    break
+                t = time.perf_counter()
+                status, data = _post(connection, f"/v1/sessions/{session}/measurements", body)
+                mine.append(time.perf_counter() - t)
+                if status == 200:
+                    applied += orjson.loads(data)["applied"]
+                else:
+                    failed += 1
+        connection.close()
+        with lock:
+            latencies.extend(mine)
+            counts["epochs"] += applied
+            counts["failures"] += failed
+
+    threads = [threading.Thread(target=client) for _ in range(clients)]
+    started = time.perf_counter()
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    elapsed = time.perf_counter() - started
+    ms = np.array(latencies) * 1e3
+    return {"epochs_per_s": counts["epochs"] / elapsed, "posts_per_s": len(latencies) / elapsed,
+            "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
+            "failures": counts["failures"]}
+
+
+def session_rows(load: LoadGenerator, duration_s: float, redis_url: str = "redis://127.0.0.1:6379/14") -> list[Row]:
+    """Row 4: session epochs/s over HTTP: SQLite with 1 and 10 epochs per post, and Redis."""
+    what = "session epochs/s over HTTP"
+    if not committed("service/routes/sessions.py", "core/tracking/session.py", "core/simulation/emitter.py"):
+        return [unavailable(4, what + " (SQLite: 1 and 10 epochs/post; Redis)", "-",
+                            "the sessions routes (service/routes/sessions.py) have not landed in git yet")]
+    measured = {}
+    with serve() as url:
+        for per_post in (1, 10):
+            measured[("SQLite", per_post)] = _session_load(url, per_post, duration_s)
+    try:
+        import redis
+
+        redis.Redis.from_url(redis_url, socket_timeout=2).ping()
+        with serve(store=redis_url) as url:
+            for per_post in (1, 10):
+                measured[("Redis", per_post)] = _session_load(url, per_post, duration_s)
+    except Exception as error:  # no Redis here: the row says so instead of failing the table
+        measured[("Redis", 0)] = {"unavailable": f"{type(error).__name__}: {error}"}
+    base = measured[("SQLite", 1)]["epochs_per_s"]
+    rows = []
+    for (store, per_post), m in measured.items():
+        if "unavailable" in m:
+            rows.append(unavailable(4, f"{what}, {store}", "-", f"Redis at {redis_url}: {m['unavailable']}"))
+            continue
+        rows.append(Row(4, f"{what}, {store} store, {per_post} epoch(s) per post (8 clients, {duration_s:g} s)",
+                        f"{m['epochs_per_s']:,.0f} epochs/s ({m['posts_per_s']:,.0f} posts/s, p50 {m['p50_ms']:.1f} ms,"
+                        f" p99 {m['p99_ms']:.1f} ms)", "SQLite, 1 epoch per post (first line)",
+                        f"{m['epochs_per_s'] / base:.2f}x", "-", "measured",
+                        [f"{store}, {per_post}/post: failed posts {m['failures']}; paper-001 epochs, velocity_kinematic,"
+                         " each client feeds one session after another"]))
+    return rows
+
+
+def _filterpy_joint_ukf(config, track, start: int):
+    """filterpy's UnscentedKalmanFilter set up as the joint UKF of paper 001 (the same step, the same numbers).
+
+    State ``[x, y, z, vx, vy, vz, c * period_error]``, constant velocity; measurement
+    ``(B, E, c (dTOA - N Tr), Bdot)`` with the previous range taken from the state, as in
+    ``core.tracking.joint_ukf``; Merwe sigma points (alpha 1e-3, beta 2, kappa 0).
+    """
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    c = 299_792_458.0
+    n_pulses = config.pulses_per_observation
+    interval = n_pulses * config.period_s
+
+    def fx(x, dt):
+        out = x.copy()
+        out[:3] += dt * x[3:6]
+        return out
+
+    def hx(x):
+        p, v = x[:3], x[3:6]
+        rho2 = p[0] ** 2 + p[1] ** 2
+        previous = np.linalg.norm(p - v * interval)
+        return np.array([np.arctan2(p[0], p[1]), np.arctan2(p[2], np.sqrt(rho2)),
+                         np.linalg.norm(p) - previous + n_pulses * x[6], (p[1] * v[0] - p[0] * v[1]) / rho2])
+
+    def residual(a, b):
+        d = a - b
+        d[0] = (d[0] + np.pi) % (2 * np.pi) - np.pi
+        return d
+
+    points = MerweScaledSigmaPoints(7, alpha=1e-3, beta=2.0, kappa=0.0)
+    ukf = UnscentedKalmanFilter(dim_x=7, dim_z=4, dt=interval, hx=hx, fx=fx, points=points, residual_z=residual)
+    truth = track.states_enu[start]
+    ukf.x = np.r_[truth, 0.0]
+    ukf.P = np.diag([1e6, 1e6, 1e6, 1e2, 1e2, 1e2, 1e-2])
+    q = config.accel_sigma_mps2**2
+    block = np.array([[interval**3 / 3, interval**2 / 2], [interval**2 / 2, interval]]) * q
+    ukf.Q = np.zeros((7, 7))
+    for i in range(3):
+        ukf.Q[np.ix_([i, i + 3], [i, i + 3])] = block
+    ukf.R = np.diag([config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2, 2 * (c * config.sigma_toa_s) ** 2,
+                     config.sigma_azimuth_rate_rad_s**2])
+    measurements = []
+    for k in range(start + 1, len(track.epochs)):
+        e, previous = track.epochs[k], track.epochs[k - 1]
+        dtoa = c * (e.toa_s - previous.toa_s - n_pulses * config.period_s)
+        measurements.append(np.array([e.azimuth_rad, e.elevation_rad, dtoa, e.azimuth_rate_rad_s]))
+    return ukf, measurements
+
+
+def filter_step_row(repeats: int = 5) -> Row:
     """Row 5: one filter step of the session model in core next to filterpy's UKF doing the same step."""
     what = "one session filter step in core vs filterpy UnscentedKalmanFilter"
-    if not committed("core/tracking/session.py"):
-        return unavailable(5, what, "<= 1/5 of filterpy", "core/tracking (the session filters) has not landed "
-                                                          "in git yet")
-    return unavailable(5, what, "<= 1/5 of filterpy", "core/tracking landed after this benchmark was written")
+    target = "<= 1/5 of filterpy"
+    if not committed("core/tracking/session.py", "core/simulation/emitter.py"):
+        return unavailable(5, what, target, "core/tracking (the session filters) has not landed in git yet")
+    from core.simulation.emitter import paper_001_scenario, simulate_emitter
+    from core.tracking import TrackerConfig, new_state, step
+
+    scenario = paper_001_scenario()
+    track = simulate_emitter(scenario, np.random.default_rng(1))
+    warm = 50
+    timings = {}
+    for model in ("velocity_kinematic", "joint_ukf"):
+        config = TrackerConfig(model=model, period_s=scenario.period_s, period_known=False,
+                               pulses_per_observation=scenario.pulses_per_observation,
+                               sigma_azimuth_rad=scenario.sigma_azimuth_rad,
+                               sigma_elevation_rad=scenario.sigma_elevation_rad,
+                               sigma_azimuth_rate_rad_s=scenario.sigma_azimuth_rate_rad_s,
+                               sigma_toa_s=scenario.sigma_toa_s)
+        state = new_state(config)
+        for epoch in track.epochs[:warm]:
+            state = step(state, epoch, config)
+        rest = track.epochs[warm:]
+        best = np.inf
+        for _ in range(repeats):
+            s = state
+            t = time.perf_counter()
+            for epoch in rest:
+                s = step(s, epoch, config)
+            best = min(best, (time.perf_counter() - t) / len(rest))
+        timings[model] = best
+    ukf, measurements = _filterpy_joint_ukf(config, track, warm - 1)
+    x0, p0 = ukf.x.copy(), ukf.P.copy()
+    best = np.inf
+    for _ in range(repeats):
+        ukf.x, ukf.P = x0.copy(), p0.copy()
+        t = time.perf_counter()
+        for z in measurements:
+            ukf.predict()
+            ukf.update(z)
+        best = min(best, (time.perf_counter() - t) / len(measurements))
+    ratio = timings["velocity_kinematic"] / best
+    verdict = "met" if ratio <= 0.2 else f"missed: {ratio:.2f}x is {ratio / 0.2:.1f}x the 1/5 allowed"
+    return Row(5, what + " (paper-001 scenario, steady state)",
+               f"velocity_kinematic {timings['velocity_kinematic'] * 1e6:,.0f} us per step; "
+               f"joint_ukf {timings['joint_ukf'] * 1e6:,.0f} us",
+               f"filterpy UKF predict+update {best * 1e6:,.0f} us per step",
+               f"{ratio:.2f}x filterpy (joint_ukf {timings['joint_ukf'] / best:.2f}x)", target, verdict,
+               [f"core.tracking.step on {len(track.epochs) - warm} epochs after {warm} warm-up epochs, best of "
+                f"{repeats}; filterpy: 7-state joint UKF (position, velocity, period error) with the raw "
+                "(B, E, dTOA, Bdot), Merwe points, the same epochs; the step includes core's input validation "
+                "and immutable state."])
