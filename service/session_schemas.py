@@ -132,5 +132,5 @@ class MeasurementResult(SessionState):
 
 
 class SessionList(BaseModel):
-    sessions: list[SessionState] = Field(description="in creation order")
+    sessions: list[SessionState] = Field(description="oldest first (ids begin with the creation time in ms)")
     next_cursor: str | None = Field(description="pass as cursor for the next page; null on the last page")

@@ -1,0 +1,280 @@
+"""Sessions: the schema <-> core translation and the session logic.
+
+A route validates the request (``service.session_schemas``) and calls one
+function here, which translates to core types (radians, SI), loads the record
+from the store, runs the pure core filter step and saves what comes back.
+Everything that decides a post's outcome (If-Match, duplicates, time order,
+the filter steps) runs inside the store's atomic read-modify-write, so it is
+decided against the latest record and concurrent posts cannot interleave.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import math
+import re
+import secrets
+from dataclasses import dataclass, replace
+from datetime import datetime, timezone
+
+import numpy as np
+
+from core import geodesy
+from core.errors import LocalizationError
+from core.tracking import Epoch as TrackerEpoch
+from core.tracking import TrackerConfig, TrackState, new_state, step_many
+from service import session_schemas as schemas
+from service.problems import ApiError
+from service.stores import SessionRecord, SessionStore
+
+_SESSION_ID = re.compile(r"[0-9a-f]{32}")
+
+#: Core config field -> request path, for errors the core raises on a session's settings.
+_CONFIG_LOC = {
+    "model": ("model",),
+    "period_s": ("pulse", "period_s"),
+    "period_known": ("pulse", "period_known"),
+    "pulses_per_observation": ("pulse", "pulses_per_observation"),
+    "sigma_azimuth_rad": ("noise", "sigma_azimuth_deg"),
+    "sigma_elevation_rad": ("noise", "sigma_elevation_deg"),
+    "sigma_azimuth_rate_rad_s": ("noise", "sigma_azimuth_rate_deg_s"),
+    "sigma_toa_s": ("noise", "sigma_toa_s"),
+    "accel_sigma_mps2": ("process_noise", "accel_sigma_mps2"),
+}
+
+#: Core epoch field -> request field.
+_EPOCH_FIELD = {
+    "time_s": "time_s",
+    "azimuth_rad": "azimuth_deg",
+    "elevation_rad": "elevation_deg",
+    "azimuth_rate_rad_s": "azimuth_rate_deg_s",
+    "toa_s": "toa_s",
+}
+
+
+def _problem(status: int, code: str, detail: str, loc: tuple | list | None = None, **kwargs) -> ApiError:
+    errors = [{"loc": list(loc), "msg": detail}] if loc is not None else []
+    return ApiError(status, code, detail, errors, **kwargs)
+
+
+def not_found(session_id: str) -> ApiError:
+    return _problem(404, "not_found", f"no session {session_id}")
+
+
+# -- translation ------------------------------------------------------------------------------------------------
+
+def tracker_config(request: schemas.SessionCreate) -> TrackerConfig:
+    """The core filter settings of a create request (degrees -> radians)."""
+    try:
+        return TrackerConfig(
+            model=request.model,
+            period_s=request.pulse.period_s,
+            period_known=request.pulse.period_known,
+            pulses_per_observation=request.pulse.pulses_per_observation,
+            sigma_azimuth_rad=math.radians(request.noise.sigma_azimuth_deg),
+            sigma_elevation_rad=math.radians(request.noise.sigma_elevation_deg),
+            sigma_azimuth_rate_rad_s=math.radians(request.noise.sigma_azimuth_rate_deg_s),
+            sigma_toa_s=request.noise.sigma_toa_s,
+            accel_sigma_mps2=request.process_noise.accel_sigma_mps2,
+        )
+    except LocalizationError as error:
+        field = error.loc[0] if error.loc else None
+        raise _problem(422, error.code, error.message, _CONFIG_LOC.get(field)) from error
+
+
+def tracker_epoch(epoch: schemas.Epoch) -> TrackerEpoch:
+    return TrackerEpoch(
+        time_s=epoch.time_s,
+        azimuth_rad=math.radians(epoch.azimuth_deg),
+        elevation_rad=math.radians(epoch.elevation_deg),
+        azimuth_rate_rad_s=math.radians(epoch.azimuth_rate_deg_s),
+        toa_s=epoch.toa_s,
+    )
+
+
+def _timestamp(unix_s: float) -> str:
+    return datetime.fromtimestamp(unix_s, timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def _observer(record: SessionRecord) -> dict:
+    return record.config["request"]["observer"]["position"]
+
+
+def state_body(record: SessionRecord) -> dict:
+    """The response body of a session (``SessionState``)."""
+    request = record.config["request"]
+    state = TrackState.from_dict(record.state)
+    observer = _observer(record)
+    body = {
+        "id": record.id,
+        "version": record.version,
+        "model": request["model"],
+        "frame": request["frame"],
+        "observer": {"position": observer},
+        "last_seq": record.last_seq,
+        "last_time_s": record.last_time_s,
+        "updates": record.updates,
+        "initialized": state.initialized,
+        "position": None,
+        "position_local": None,
+        "velocity_enu_mps": None,
+        "range_m": None,
+        "range_sigma_m": None,
+        "pulse_period_s": state.pulse_period_s,
+        "covariance_enu": None,
+        "warnings": [{"code": code, "message": message} for code, message in state.warnings],
+        "created_at": _timestamp(record.created_at),
+        "updated_at": _timestamp(record.updated_at),
+        "expires_at": _timestamp(record.expires_at),
+        "ttl_s": record.ttl_s,
+    }
+    if state.initialized:
+        enu = state.position_enu_m
+        if request["frame"] == "wgs84":
+            lat, lon, alt = geodesy.enu_to_geodetic(enu, math.radians(observer["lat_deg"]),
+                                                    math.radians(observer["lon_deg"]), observer["alt_m"])
+            body["position"] = {"lat_deg": math.degrees(lat), "lon_deg": math.degrees(lon), "alt_m": float(alt)}
+            local = enu
+        else:
+            local = enu + np.array([observer["east_m"], observer["north_m"], observer["up_m"]])
+        body["position_local"] = {"east_m": float(local[0]), "north_m": float(local[1]), "up_m": float(local[2])}
+        body["velocity_enu_mps"] = state.velocity_enu_mps.tolist()
+        body["range_m"] = state.range_m
+        body["range_sigma_m"] = state.range_sigma_m
+        body["covariance_enu"] = state.covariance_enu.tolist()
+    return body
+
+
+def etag(record: SessionRecord) -> str:
+    return f'"{record.version}"'
+
+
+def if_match_accepts(header: str, version: int) -> bool:
+    """Whether an ``If-Match`` value names this version (``*`` names any; weak tags never match)."""
+    for tag in header.split(","):
+        tag = tag.strip()
+        if tag == "*" or tag == f'"{version}"' or tag == str(version):
+            return True
+    return False
+
+
+def encode_cursor(session_id: str) -> str:
+    return base64.urlsafe_b64encode(session_id.encode()).decode().rstrip("=")
+
+
+def decode_cursor(cursor: str) -> str:
+    try:
+        session_id = base64.urlsafe_b64decode(cursor + "=" * (-len(cursor) % 4)).decode()
+    except (binascii.Error, UnicodeDecodeError, ValueError):
+        session_id = ""
+    if not _SESSION_ID.fullmatch(session_id):
+        raise _problem(422, "invalid_input", "cursor is not one this service gave", ("query", "cursor"))
+    return session_id
+
+
+# -- operations -------------------------------------------------------------------------------------------------
+
+def create(store: SessionStore, owner: str, request: schemas.SessionCreate) -> SessionRecord:
+    config = tracker_config(request)
+    state = new_state(config)
+    now = store.now()
+    record = SessionRecord(
+        id=f"{int(now * 1000):012x}{secrets.token_hex(10)}",
+        owner=owner,
+        config={"request": request.model_dump(mode="json"), "tracker": config.to_dict()},
+        state=state.to_dict(),
+        version=1,
+        last_seq=None,
+        last_time_s=None,
+        updates=0,
+        created_at=now,
+        updated_at=now,
+        expires_at=now + request.ttl_s,
+        ttl_s=request.ttl_s,
+    )
+    store.create(record)
+    return record
+
+
+def get(store: SessionStore, owner: str, session_id: str) -> SessionRecord:
+    record = store.get(owner, session_id) if _SESSION_ID.fullmatch(session_id) else None
+    if record is None:
+        raise not_found(session_id)
+    return record
+
+
+def delete(store: SessionStore, owner: str, session_id: str) -> None:
+    if not (_SESSION_ID.fullmatch(session_id) and store.delete(owner, session_id)):
+        raise not_found(session_id)
+
+
+def page(store: SessionStore, owner: str, limit: int, cursor: str | None) -> tuple[list[SessionRecord], str | None]:
+    after = None if cursor is None else decode_cursor(cursor)
+    records, more = store.page(owner, limit, after)
+    return records, (encode_cursor(records[-1].id) if more and records else None)
+
+
+@dataclass(frozen=True)
+class PostOutcome:
+    record: SessionRecord
+    applied: int
+    duplicates: int
+
+
+def post_measurements(store: SessionStore, owner: str, session_id: str, batch: schemas.MeasurementBatch,
+                      if_match: str | None = None) -> PostOutcome:
+    """Apply a batch of epochs: all of its new ones, or (on any error) none.
+
+    Raises
+    ------
+    ApiError
+        404 unknown session; 412 stale ``If-Match``; 409 a new epoch's
+        ``time_s`` not after the previous one's; 422 an epoch the filter refuses.
+    """
+    counts = {}
+
+    def change(record: SessionRecord) -> SessionRecord | None:
+        if if_match is not None and not if_match_accepts(if_match, record.version):
+            raise _problem(412, "precondition_failed",
+                           f"If-Match {if_match} is stale: the session is at version {etag(record)}")
+        first_new = 0
+        if record.last_seq is not None:
+            while first_new < len(batch.measurements) and batch.measurements[first_new].seq <= record.last_seq:
+                first_new += 1
+        fresh = batch.measurements[first_new:]
+        counts.update(applied=len(fresh), duplicates=first_new)
+        previous_time, previous_seq = record.last_time_s, record.last_seq
+        for i, epoch in enumerate(fresh, start=first_new):
+            if previous_time is not None and not epoch.time_s > previous_time:
+                raise _problem(409, "time_not_increasing",
+                               f"measurements[{i}] (seq {epoch.seq}) has time_s {epoch.time_s!r}, not after "
+                               f"{previous_time!r} of seq {previous_seq}; nothing of this post was applied",
+                               ("measurements", i, "time_s"))
+            previous_time, previous_seq = epoch.time_s, epoch.seq
+        if not fresh:
+            return None
+        config = TrackerConfig.from_dict(record.config["tracker"])
+        current = [first_new]
+
+        def epochs():
+            for i, epoch in enumerate(fresh, start=first_new):
+                current[0] = i
+                yield tracker_epoch(epoch)
+
+        try:
+            state = step_many(TrackState.from_dict(record.state), epochs(), config)
+        except LocalizationError as error:
+            i = current[0]
+            field = _EPOCH_FIELD.get(error.loc[0]) if error.loc else None
+            loc = ("measurements", i) if field is None else ("measurements", i, field)
+            raise _problem(422, error.code, f"measurements[{i}] (seq {batch.measurements[i].seq}): {error.message}; "
+                                            "nothing of this post was applied", loc) from error
+        now = store.now()
+        return replace(record, state=state.to_dict(), last_seq=fresh[-1].seq, last_time_s=fresh[-1].time_s,
+                       updates=record.updates + len(fresh), updated_at=now, expires_at=now + record.ttl_s)
+
+    record = store.update(owner, session_id, change) if _SESSION_ID.fullmatch(session_id) else None
+    if record is None:
+        raise not_found(session_id)
+    return PostOutcome(record, counts["applied"], counts["duplicates"])
