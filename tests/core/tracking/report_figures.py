@@ -1,0 +1,123 @@
+"""Print the figures quoted for the session filters: ``python -m tests.core.tracking.report_figures [runs]``.
+
+Not a test module: it measures, it asserts nothing. The tests in this package
+assert bounds on the same quantities.
+"""
+
+from __future__ import annotations
+
+import sys
+import timeit
+
+import numpy as np
+from scipy.stats import chi2
+
+from core.simulation.emitter import paper_001_scenario, simulate_emitter
+from core.tracking import new_state, step
+from tests.core.tracking.scenarios import PAPER_ACCEL_SIGMA_MPS2, paper_config, run_monte_carlo
+
+TIMES_S = (10, 25, 50, 100, 150, 200)
+CONVERGENCE_PERCENT = 5.0
+
+
+def accuracy(runs: int) -> None:
+    scenario = paper_001_scenario()
+    print(f"Paper-001 scenario, {runs} runs x 200 s, truth at constant velocity, filter accel_sigma "
+          f"{PAPER_ACCEL_SIGMA_MPS2} m/s^2. Position RMSE over runs, % of the true range ('-': not all initialised)")
+    header = "model                         period   " + " ".join(f"t={t:>3d}s" for t in TIMES_S)
+    print(header + "  last 50 s  converged(<=5%)")
+    for model, extra, label in (("velocity_kinematic", {}, "velocity_kinematic"),
+                                ("velocity_kinematic", {"pseudo_range_errors": "independent"},
+                                 "velocity_kinematic indep."),
+                                ("joint_ukf", {}, "joint_ukf")):
+        for known in (True, False):
+            mc = run_monte_carlo(paper_config(model, known, **extra), scenario, runs, seed=1000)
+            rmse = mc.rmse_percent()
+            cells = " ".join(f"{rmse[t]:6.2f}" if np.isfinite(rmse[t]) else "     -" for t in TIMES_S)
+            tail = np.sqrt(np.mean(mc.position_errors_m[:, -51:] ** 2)) / mc.ranges_m[:, -51:].mean() * 100
+            print(f"{label:29s} {'known  ' if known else 'unknown'}  {cells}   {tail:6.2f}    "
+                  f"{mc.convergence_time_s(CONVERGENCE_PERCENT):5.0f} s")
+
+
+def consistency(runs: int) -> None:
+    scenario = paper_001_scenario(accel_sigma_mps2=PAPER_ACCEL_SIGMA_MPS2)
+    low, high = chi2.ppf([0.005, 0.995], 6 * runs) / runs
+    print(f"\nNEES (6 dof) over the last 100 s, {runs} runs, truth with the filter's acceleration noise; "
+          f"99 % interval of the run-mean: [{low:.2f}, {high:.2f}]")
+    for model, extra, label in (("velocity_kinematic", {}, "velocity_kinematic"),
+                                ("velocity_kinematic", {"pseudo_range_errors": "independent"},
+                                 "velocity_kinematic indep."),
+                                ("joint_ukf", {}, "joint_ukf")):
+        for known in (True, False):
+            mc = run_monte_carlo(paper_config(model, known, **extra), scenario, runs, seed=5000)
+            mean_nees = mc.nees[:, -100:].mean(axis=0)
+            inside = np.mean((mean_nees >= low) & (mean_nees <= high))
+            print(f"{label:29s} {'known  ' if known else 'unknown'}  mean {mean_nees.mean():6.2f}  "
+                  f"min {mean_nees.min():6.2f}  max {mean_nees.max():6.2f}  inside {inside:5.0%}")
+
+
+def speed(repeats: int = 7) -> None:
+    from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+    track = simulate_emitter(paper_001_scenario(), np.random.default_rng(3))
+
+    def fx(x, dt):
+        y = x.copy()
+        y[:3] += dt * x[3:6]
+        return y
+
+    def polar(x):
+        rho = np.hypot(x[0], x[1])
+        return np.array([np.linalg.norm(x[:3]), np.arctan2(x[0], x[1]), np.arctan2(x[2], rho)])
+
+    def raw(x):
+        p, v = x[:3], x[3:6]
+        rho2 = p[0] ** 2 + p[1] ** 2
+        return np.array([np.arctan2(p[0], p[1]), np.arctan2(p[2], np.sqrt(rho2)),
+                         np.linalg.norm(p) - np.linalg.norm(p - v) + 1000.0 * x[6] - x[7],
+                         (p[1] * v[0] - p[0] * v[1]) / rho2])
+
+    def filterpy_step(dim, dim_z, hx, x, p_diag, r_diag):
+        ukf = UnscentedKalmanFilter(dim, dim_z, 1.0, hx, fx, MerweScaledSigmaPoints(dim, 1.0, 0.0, 0.0))
+        ukf.x, ukf.P, ukf.R, ukf.Q = np.array(x), np.diag(p_diag), np.diag(r_diag), np.eye(dim) * 1e-3
+        z = hx(ukf.x)
+
+        def one():
+            ukf.predict()
+            ukf.update(z)
+        return one
+
+    six = filterpy_step(6, 3, polar, [120e3, 100e3, 8e3, -300, 100, 2], [1e6] * 3 + [10] * 3, [1e6, 2.5e-5, 2.5e-5])
+    eight = filterpy_step(8, 4, raw, [120e3, 100e3, 8e3, -300, 100, 2, 0, 0], [1e6] * 3 + [10] * 3 + [1, 9],
+                          [2.5e-5, 2.5e-5, 9.0, 4e-8])
+    subjects = {"filterpy UKF 6 states / 3 measurements": six, "filterpy UKF 8 states / 4 measurements": eight}
+    for model in ("velocity_kinematic", "joint_ukf"):
+        for known in (True, False):
+            config = paper_config(model, known)
+            state = new_state(config)
+            for epoch in track.epochs[:150]:
+                state = step(state, epoch, config)
+            epoch = track.epochs[150]
+            subjects[f"core {model}, period {'known' if known else 'unknown'}"] = (
+                lambda s=state, e=epoch, c=config: step(s, e, c))
+    best = {name: float("inf") for name in subjects}
+    for _ in range(repeats):
+        for name, call in subjects.items():
+            best[name] = min(best[name], timeit.timeit(call, number=400) / 400)
+    print("\nOne filter step (best of interleaved repeats, same process):")
+    for name, seconds in best.items():
+        print(f"  {name:45s} {seconds * 1e6:7.1f} us")
+    six_s = best["filterpy UKF 6 states / 3 measurements"]
+    eight_s = best["filterpy UKF 8 states / 4 measurements"]
+    for name, seconds in best.items():
+        if name.startswith("core velocity"):
+            print(f"  ratio {name} / filterpy 6x3: {seconds / six_s:.3f}")
+        elif name.startswith("core joint"):
+            print(f"  ratio {name} / filterpy 8x4: {seconds / eight_s:.3f}  (/ 6x3: {seconds / six_s:.3f})")
+
+
+if __name__ == "__main__":
+    n_runs = int(sys.argv[1]) if len(sys.argv) > 1 else 100
+    accuracy(n_runs)
+    consistency(n_runs)
+    speed()
