@@ -190,13 +190,13 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
         perpendicular2 = max(vx * vx + vy * vy + vz * vz - radial * radial, 0.0)
         z += interval_s * interval_s * perpendicular2 / (2.0 * range_m)
     z -= interval_s * (ux * vx + uy * vy + uz * vz) - state[-1]
-    h = np.zeros(n + 1)
-    h[offset:offset + 3] = (interval_s * ux, interval_s * uy, interval_s * uz)
+    row = [0.0] * offset
+    row += (interval_s * ux, interval_s * uy, interval_s * uz)
     if len(state) == 5:
-        h[offset + 3] = n_pulses
+        row.append(float(n_pulses))
         z -= n_pulses * state[3]
-    h[n - 1] = -1.0
-    h[n] = 1.0
+    row += (-1.0, 1.0)
+    h = np.array(row)
 
     (p00, p01, p02), (_, p11, p12), (_, _, p22) = cov[offset:offset + 3, offset:offset + 3].tolist()
     ax, ay = d_az[0], d_az[1]
@@ -228,7 +228,7 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
     new_mean = mean.copy()
     new_mean[n - 1] = 0.0
     new_mean += z * kept_gain
-    cross = kept_gain[offset:, None] * np.array((-gb * var_b, -ge * var_e))
+    cross = np.multiply.outer(kept_gain[offset:], (-gb * var_b, -ge * var_e))
     if len(state) == 5:
         period_s = period_s + float(new_mean[offset + 3]) / C
         new_mean[offset + 3] = 0.0

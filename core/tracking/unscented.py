@@ -269,23 +269,23 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
         ranges.append(sqrt(rho * rho + z * z) - r0)
         azimuths.append(remainder(atan2(x, y) - azimuth0, TWO_PI))
         elevations.append(atan2(z, rho) - elevation0)
-    m0 = sum(ranges) * weight
-    m1 = sum(azimuths) * weight
-    m2 = sum(elevations) * weight
-    c0 = [d - m0 for d in ranges]
-    c1 = [d - m1 for d in azimuths]
-    c2 = [d - m2 for d in elevations]
-    s00 = (sum([a * a for a in c0]) + 6.0 * m0 * m0) * weight
-    s01 = (sum([a * b for a, b in zip(c0, c1)]) + 6.0 * m0 * m1) * weight
-    s02 = (sum([a * b for a, b in zip(c0, c2)]) + 6.0 * m0 * m2) * weight
-    s11 = (sum([a * a for a in c1]) + 6.0 * m1 * m1) * weight + var_azimuth
-    s12 = (sum([a * b for a, b in zip(c1, c2)]) + 6.0 * m1 * m2) * weight
-    s22 = (sum([a * a for a in c2]) + 6.0 * m2 * m2) * weight + var_elevation
+    r0_, r1_, r2_, r3_, r4_, r5_ = ranges
+    b0_, b1_, b2_, b3_, b4_, b5_ = azimuths
+    e0_, e1_, e2_, e3_, e4_, e5_ = elevations
+    m0 = (r0_ + r1_ + r2_ + r3_ + r4_ + r5_) * weight
+    m1 = (b0_ + b1_ + b2_ + b3_ + b4_ + b5_) * weight
+    m2 = (e0_ + e1_ + e2_ + e3_ + e4_ + e5_) * weight
+    # second moments about the mean deviation; the six points that leave p unmoved sit at -m
+    s00 = (r0_ * r0_ + r1_ * r1_ + r2_ * r2_ + r3_ * r3_ + r4_ * r4_ + r5_ * r5_) * weight - m0 * m0
+    s01 = (r0_ * b0_ + r1_ * b1_ + r2_ * b2_ + r3_ * b3_ + r4_ * b4_ + r5_ * b5_) * weight - m0 * m1
+    s02 = (r0_ * e0_ + r1_ * e1_ + r2_ * e2_ + r3_ * e3_ + r4_ * e4_ + r5_ * e5_) * weight - m0 * m2
+    s11 = (b0_ * b0_ + b1_ * b1_ + b2_ * b2_ + b3_ * b3_ + b4_ * b4_ + b5_ * b5_) * weight - m1 * m1 + var_azimuth
+    s12 = (b0_ * e0_ + b1_ * e1_ + b2_ * e2_ + b3_ * e3_ + b4_ * e4_ + b5_ * e5_) * weight - m1 * m2
+    s22 = (e0_ * e0_ + e1_ * e1_ + e2_ * e2_ + e3_ * e3_ + e4_ * e4_ + e5_ * e5_) * weight - m2 * m2 + var_elevation
     f = spread * weight
-    d00, d01, d02 = f * (ranges[0] - ranges[3]), f * (ranges[1] - ranges[4]), f * (ranges[2] - ranges[5])
-    d10, d11, d12 = f * (azimuths[0] - azimuths[3]), f * (azimuths[1] - azimuths[4]), f * (azimuths[2] - azimuths[5])
-    d20, d21, d22 = (f * (elevations[0] - elevations[3]), f * (elevations[1] - elevations[4]),
-                     f * (elevations[2] - elevations[5]))
+    d00, d01, d02 = f * (r0_ - r3_), f * (r1_ - r4_), f * (r2_ - r5_)
+    d10, d11, d12 = f * (b0_ - b3_), f * (b1_ - b4_), f * (b2_ - b5_)
+    d20, d21, d22 = f * (e0_ - e3_), f * (e1_ - e4_), f * (e2_ - e5_)
     w00 = i00 * d00 + i10 * d01 + i20 * d02
     w01 = i00 * d10 + i10 * d11 + i20 * d12
     w02 = i00 * d20 + i10 * d21 + i20 * d22
@@ -326,8 +326,15 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
             raise np.linalg.LinAlgError("innovation covariance is not positive definite")
         inverse = ((s22 / determinant, -s12 / determinant), (-s12 / determinant, s11 / determinant))
 
-    dof = len(innovation)
-    nis = sum(innovation[i] * sum(inverse[i][j] * innovation[j] for j in range(dof)) for i in range(dof))
+    if pseudo is not None:
+        n0, n1, n2 = innovation
+        (q00, q01, q02), (_, q11, q12), (_, _, q22) = inverse
+        nis = (n0 * n0 * q00 + n1 * n1 * q11 + n2 * n2 * q22
+               + 2.0 * (n0 * n1 * q01 + n0 * n2 * q02 + n1 * n2 * q12))
+    else:
+        n1, n2 = innovation
+        (q11, q12), (_, q22) = inverse
+        nis = n1 * n1 * q11 + n2 * n2 * q22 + 2.0 * n1 * n2 * q12
     gain = gain_source[:6] @ inverse
     new_mean = mean.copy()
     new_mean[:6] += gain @ innovation
