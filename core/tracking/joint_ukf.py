@@ -28,7 +28,8 @@ import numpy as np
 from core.tracking.config import SPEED_OF_LIGHT_MPS as C
 from core.tracking.config import TrackerConfig
 from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRACTION, RangePseudoMeasurement,
-                                     count_pulses, initial_position_state, kinematic_epoch, range_pseudo_measurement)
+                                     count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
+                                     range_pseudo_measurement)
 from core.tracking.state import TrackState, freeze
 from core.tracking.unscented import NIS_LIMIT, TWO_PI, cholesky_repaired, constant_velocity_predict
 
@@ -101,7 +102,7 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
             mean[6] = 0.0
     else:
         warnings.append(("numerical_failure", "the update was not finite and was skipped"))
-        mean, cov = _fresh_toa_noise(mean, cov, config)
+        mean, cov = fresh_toa_reference(mean, cov, config)
     return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s, freeze(mean),
                       freeze(cov), None, tuple(warnings))
 
@@ -202,7 +203,7 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
         gain = cross_cov @ inverse
         x = mean + gain @ innovation
         p = cov - gain @ cross_cov.T
-        x, p = _fresh_toa_noise(x, p, config)
+        x, p = fresh_toa_reference(x, p, config)
     p += p.T
     p *= 0.5
     return x, p, nis
@@ -222,13 +223,3 @@ def _measurement_model(points, n_pulses: int, interval_s: float, has_period_erro
         out[2] += n_pulses * points[6]
     out[3] = (position[1] * points[3] - position[0] * points[4]) / rho2
     return out
-
-
-def _fresh_toa_noise(mean, cov, config: TrackerConfig):
-    mean = mean.copy()
-    cov = cov.copy()
-    mean[-1] = 0.0
-    cov[-1, :] = 0.0
-    cov[:, -1] = 0.0
-    cov[-1, -1] = (C * config.sigma_toa_s) ** 2
-    return mean, cov

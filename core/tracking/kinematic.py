@@ -40,6 +40,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from core.angles import line_of_sight_enu
 from core.tracking.config import SPEED_OF_LIGHT_MPS, TrackerConfig
 
 C = SPEED_OF_LIGHT_MPS
@@ -64,7 +65,8 @@ def kinematic_prior(config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def line_of_sight_derivatives(azimuth_rad: float, elevation_rad: float):
-    """Line of sight ``u`` and its derivatives by azimuth and elevation, as 3-tuples of floats."""
+    """Line of sight ``u`` (as :func:`core.angles.line_of_sight_enu`) and its derivatives by azimuth and
+    elevation, as 3-tuples of floats (scalar arithmetic: this runs every epoch)."""
     sb, cb = math.sin(azimuth_rad), math.cos(azimuth_rad)
     se, ce = math.sin(elevation_rad), math.cos(elevation_rad)
     return (ce * sb, ce * cb, se), (ce * cb, -ce * sb, 0.0), (-se * sb, -se * cb, ce)
@@ -325,13 +327,14 @@ def range_pseudo_measurement(mean, cov, offset: int, cross, azimuth_rad: float, 
     geometry) to second order.
 
     The error's Jacobian is evaluated at the predicted range when there is
-    one (the azimuth rate it implies, ``V_H / (r_pred cos E)``, replaces the
-    measured one, and must itself clear the near-radial threshold: a measured
-    rate that clears it by noise alone would otherwise feed a meaningless range). Evaluated at the measurement, the stated standard deviation
+    one: the azimuth rate it implies, ``V_H / (r_pred cos E)``, replaces the
+    measured one. Evaluated at the measurement, the stated standard deviation
     (about ``r sigma_Bdot / Bdot``) shrinks exactly when the noise makes the
     range small, and a filter weighting by it drifts low by about twice the
     squared relative error (some 3 % at the paper's geometry); this is the
-    usual remedy for converted polar measurements.
+    usual remedy for converted polar measurements. The implied rate must
+    itself clear the near-radial threshold: a measured rate that clears it by
+    noise alone would otherwise feed a meaningless range.
 
     Parameters
     ----------
@@ -438,7 +441,8 @@ def initial_position_state(pseudo: RangePseudoMeasurement, mean, cov, cross, azi
     errors[k + 1, k + 1] = config.sigma_elevation_rad**2
     errors[k + 2, k + 2] = config.sigma_azimuth_rate_rad_s**2
 
-    los, d_az, d_el = line_of_sight_derivatives(azimuth_rad, elevation_rad)
+    _, d_az, d_el = line_of_sight_derivatives(azimuth_rad, elevation_rad)
+    los = line_of_sight_enu(azimuth_rad, elevation_rad)
     r = pseudo.range_m
     range_row = np.zeros(k + 3)
     range_row[:2] = (pseudo.d_vx, pseudo.d_vy)
@@ -449,9 +453,9 @@ def initial_position_state(pseudo: RangePseudoMeasurement, mean, cov, cross, azi
     carried = np.eye(k, k + 3)
     if keep_velocity_filter:
         g = np.vstack((position_rows, carried[:3], carried))
-        x = np.concatenate((r * np.array(los), mean[:3], mean))
+        x = np.concatenate((r * los, mean[:3], mean))
     else:
         g = np.vstack((position_rows, carried))
-        x = np.concatenate((r * np.array(los), mean))
+        x = np.concatenate((r * los, mean))
     p = g @ errors @ g.T
     return x, 0.5 * (p + p.T)

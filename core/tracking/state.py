@@ -42,8 +42,9 @@ STAGES = ("velocity", "tracking")
 #: Warning codes a state may carry, with what each means.
 WARNING_CODES = {
     "range_unobservable": "the azimuth rate is too small for its noise (near-radial motion), or the "
-                          "range pseudo-measurement has the wrong sign or is too uncertain: no range "
-                          "is fed this epoch (the position is predicted and updated with the angles only)",
+                          "range pseudo-measurement has the wrong sign or is too uncertain: velocity_kinematic "
+                          "feeds no range this epoch (the position is predicted only); joint_ukf keeps "
+                          "updating with the raw measurements",
     "covariance_repaired": "a covariance lost positive definiteness numerically; its eigenvalues were floored",
     "pulse_count_ambiguous": "the TOA difference is not close to a whole number of pulse periods; "
                              "the TOA was not used and becomes the new reference",

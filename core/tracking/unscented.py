@@ -168,11 +168,6 @@ def _repair(cov):
     raise FloatingPointError("covariance could not be repaired")
 
 
-def wrap_angles(angle_rad):
-    """Wrap angle differences to [-pi, pi) (the hot-path twin of ``core.angles.wrap_to_pi``)."""
-    return (angle_rad + math.pi) % TWO_PI - math.pi
-
-
 def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elevation_rad: float,
                  var_azimuth: float, var_elevation: float):
     """Unscented update of ``[p, v]`` with the pseudo-measurement ``(r_hat, B, E)`` (or ``(B, E)``).
@@ -275,7 +270,6 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
     m0 = (r0_ + r1_ + r2_ + r3_ + r4_ + r5_) * weight
     m1 = (b0_ + b1_ + b2_ + b3_ + b4_ + b5_) * weight
     m2 = (e0_ + e1_ + e2_ + e3_ + e4_ + e5_) * weight
-    # second moments about the mean deviation; the six points that leave p unmoved sit at -m
     s00 = (r0_ * r0_ + r1_ * r1_ + r2_ * r2_ + r3_ * r3_ + r4_ * r4_ + r5_ * r5_) * weight - m0 * m0
     s01 = (r0_ * b0_ + r1_ * b1_ + r2_ * b2_ + r3_ * b3_ + r4_ * b4_ + r5_ * b5_) * weight - m0 * m1
     s02 = (r0_ * e0_ + r1_ * e1_ + r2_ * e2_ + r3_ * e3_ + r4_ * e4_ + r5_ * e5_) * weight - m0 * m2

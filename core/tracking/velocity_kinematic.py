@@ -39,7 +39,6 @@ from core.tracking.state import TrackState, freeze
 from core.tracking.unscented import NIS_LIMIT, constant_velocity_predict, polar_update, repaired_block
 
 
-
 def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
     """Apply one validated epoch ``(time_s, azimuth_rad, elevation_rad, azimuth_rate_rad_s, toa_s)``."""
     time_s, azimuth, elevation, rate, toa_s = values
@@ -51,7 +50,6 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
     q = config.accel_sigma_mps2**2
     warnings: list = []
     tracking = state.stage == "tracking"
-    k = state.mean.shape[0] - 6 if tracking else state.mean.shape[0]
     if tracking:
         if correlated:
             mean, cov = constant_velocity_predict(state.mean, state.covariance, dt_s, q, (3, 6), True)
@@ -99,9 +97,6 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
             new_cov[6:, :6] = 0.0
         if _finite(new_mean, new_cov, warnings):
             mean, cov = new_mean, _position_checked(new_cov, warnings)
-    elif not correlated:
-        cov[:6, 6:] = 0.0
-        cov[6:, :6] = 0.0
 
     return TrackState(config.model, stage, state.updates + 1, time_s, toa_s, period_s, freeze(mean), freeze(cov),
                       None if pseudo is None else pseudo.range_m, tuple(warnings))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
 
-from core.angles import wrap_to_pi
+from core.angles import line_of_sight_enu, wrap_to_pi
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import new_state, step
 from core.tracking.config import SPEED_OF_LIGHT_MPS
@@ -247,3 +247,14 @@ def test_prediction_over_a_gap_equals_the_steps_it_skips():
     phi, noise = transition(10, (3, 6), True, 5.0, 0.04)
     assert not noise.flags.writeable and not phi.flags.writeable
     assert np.linalg.eigvalsh(noise).min() > -1e-12
+
+
+@pytest.mark.parametrize("azimuth, elevation", [(0.0, 0.0), (0.87, 0.05), (-2.9, -0.4), (3.1, 1.2)])
+def test_line_of_sight_derivatives_agree_with_the_angles_module(azimuth, elevation):
+    los, d_az, d_el = line_of_sight_derivatives(azimuth, elevation)
+    np.testing.assert_allclose(los, line_of_sight_enu(azimuth, elevation), rtol=0, atol=1e-15)
+    h = 1e-6
+    numeric_az = (line_of_sight_enu(azimuth + h, elevation) - line_of_sight_enu(azimuth - h, elevation)) / (2 * h)
+    numeric_el = (line_of_sight_enu(azimuth, elevation + h) - line_of_sight_enu(azimuth, elevation - h)) / (2 * h)
+    np.testing.assert_allclose(d_az, numeric_az, atol=1e-9)
+    np.testing.assert_allclose(d_el, numeric_el, atol=1e-9)
