@@ -29,15 +29,23 @@ PAPER_NOISE = {
 OBSERVER_WGS84 = {"lat_deg": 34.25, "lon_deg": 108.95, "alt_m": 420.0}
 
 
+#: The "unknown" period's initial estimate is this far off the truth (as in tests/core/tracking).
+UNKNOWN_PERIOD_OFFSET_S = 20e-9
+
+
 def create_body(model: str = "velocity_kinematic", period_known: bool = False, frame: str = "local",
-                ttl_s: float = 3600.0, accel_sigma_mps2: float = 0.05, observer: dict | None = None) -> dict:
+                ttl_s: float = 3600.0, accel_sigma_mps2: float = 0.05, observer: dict | None = None,
+                period_s: float | None = None) -> dict:
+    """A create request for the paper-001 sensor (Tr = 1 ms, N = 1000); an unknown period starts 20 ns off."""
+    if period_s is None:
+        period_s = 1e-3 if period_known else 1e-3 + UNKNOWN_PERIOD_OFFSET_S
     if observer is None:
         observer = OBSERVER_WGS84 if frame == "wgs84" else {"east_m": 0.0, "north_m": 0.0, "up_m": 0.0}
     return {
         "frame": frame,
         "observer": {"position": observer},
         "model": model,
-        "pulse": {"period_s": 1e-3, "period_known": period_known, "pulses_per_observation": 1000},
+        "pulse": {"period_s": period_s, "period_known": period_known, "pulses_per_observation": 1000},
         "noise": dict(PAPER_NOISE),
         "process_noise": {"accel_sigma_mps2": accel_sigma_mps2},
         "ttl_s": ttl_s,

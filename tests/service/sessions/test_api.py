@@ -60,7 +60,7 @@ def test_create_answers_201_with_location_etag_and_a_fresh_state(client):
     assert body["initialized"] is False and body["position"] is None and body["covariance_enu"] is None
     assert body["model"] == "velocity_kinematic" and body["frame"] == "wgs84"
     assert body["observer"] == {"position": OBSERVER_WGS84}
-    assert body["pulse_period_s"] == 1e-3
+    assert body["pulse_period_s"] == create_body()["pulse"]["period_s"]  # the initial estimate, as given
     assert body["ttl_s"] == 3600.0
     assert client.get(response.headers["location"]).json() == body
 
