@@ -59,7 +59,11 @@ class TrackerConfig:
         model: a continuous white noise of power spectral density
         ``accel_sigma_mps2**2 * 1 s`` (m^2/s^3), so the velocity random walk
         grows by ``accel_sigma_mps2`` m/s per square-root second, whatever the
-        report interval (a gap of k intervals equals k steps).
+        report interval (a gap of k intervals equals k steps). The default,
+        1 m/s^2 (the API's example), suits manoeuvring targets but leaves the
+        tangential velocity, hence the range, poorly determined: at the
+        paper's geometry 0.05-0.2 m/s^2 gives a few percent of range within
+        a minute or two, 1 m/s^2 some 20 % after 200 s.
     velocity_prior_sigma_mps : float
         Prior standard deviation of each velocity component (m/s).
     period_prior_sigma_s : float or None
