@@ -105,11 +105,10 @@ def main(argv=None) -> int:
                     results.append(row)
     if 3 in wanted:
         print("row 3: scipy.optimize.least_squares one by one ...", flush=True)
-        if core_s is None:
+        if problems is None:
             results.append(bench_rows.unavailable(3, "scipy one by one", ">= 100x", "row 2 did not run"))
         else:
-            results.append(_guarded(3, "scipy one by one", ">= 100x",
-                                    lambda: bench_rows.scipy_row(problems, core_s)))
+            results.append(_guarded(3, "scipy one by one", ">= 100x", lambda: bench_rows.scipy_row(problems)))
     if 4 in wanted:
         print("row 4: session epochs over HTTP ...", flush=True)
         results.extend(_guarded(4, "session epochs/s over HTTP", "-",
