@@ -34,6 +34,7 @@ _TITLES = {
     422: "Unprocessable request",
     429: "Too many requests",
     500: "Internal server error",
+    503: "Service unavailable",
 }
 
 #: Tokens pydantic inserts in error locations that are not field names.
