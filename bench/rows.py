@@ -67,6 +67,36 @@ def _combined(runs) -> tuple[float, float, float, int]:
             max(r.p99_ms for r in runs), sum(r.failures for r in runs))
 
 
+def _single_phase_times(count: int = 300) -> dict[str, float]:
+    """Where one fix's server time goes (us), phase by phase, in this process: the route's own steps."""
+    from core.accuracy import error_summary
+    from core.estimators import solve
+    from service import schemas
+    from service.responses import JsonResponse
+    from service.translate import fix_to_dict, to_options, to_problem
+
+    bodies = [orjson.dumps(b) for b in four_station_requests(count, np.random.default_rng(12))]
+    totals = dict.fromkeys(("validate (pydantic)", "to_problem", "solve (start + LM + finish)",
+                            "error_summary", "fix_to_dict without summary", "serialise (orjson)"), 0.0)
+    for body in bodies:
+        t0 = time.perf_counter()
+        request = schemas.FixRequest.model_validate_json(body)
+        t1 = time.perf_counter()
+        problem = to_problem(request)
+        t2 = time.perf_counter()
+        fix = solve(problem, request.method, to_options(request))
+        t3 = time.perf_counter()
+        summary = error_summary(fix.covariance_enu_m2)
+        t4 = time.perf_counter()
+        out = fix_to_dict(problem, fix, request.formats, summary, 0)
+        t5 = time.perf_counter()
+        JsonResponse(out)
+        t6 = time.perf_counter()
+        for key, dt in zip(totals, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5)):
+            totals[key] += dt
+    return {k: v / count * 1e6 for k, v in totals.items()}
+
+
 def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections: int = 16, rounds: int = 5) -> Row:
     """Row 1: /v1/fixes against /bench/echo (same body) and /healthz, interleaved in rounds on one server.
 
@@ -105,7 +135,9 @@ def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections
         f"{ratio:.2f}x echo", ">= 0.60x echo, p99 <= 10 ms", verdict,
         [f"body {len(body)} bytes; load generator {runs['fix'][0].generator}; non-2xx or socket errors: "
          f"{fix_fail + echo_fail + health_fail}; fix/echo per round: " + ", ".join(f"{r:.2f}" for r in per_round)
-         + "; p50 is the median of the rounds' p50, p99 the worst round's p99"])
+         + "; p50 is the median of the rounds' p50, p99 the worst round's p99",
+         "one fix's server-side work in this process (us): "
+         + "; ".join(f"{k} {v:.0f}" for k, v in _single_phase_times().items())])
 
 
 def _phase_times(problems: list) -> dict[str, float]:
