@@ -561,6 +561,13 @@ def to_problem_batch(bodies: list) -> tuple[list[int], list[tuple[int, float]], 
 _SUMMARY_CHUNK = 256
 
 
+def batch_error_summary(fixes):
+    """Error summaries of a FixBatch's covariances (failed rows get a zero covariance's)."""
+    ok = np.ones(fixes.problems.size, dtype=bool)
+    ok[list(fixes.errors)] = False
+    return _error_summaries(np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0))
+
+
 def _error_summaries(covariance_enu_m2):
     """:func:`core.accuracy.error_summary` of ``(B, 3, 3)`` covariances, in cache-sized chunks."""
     parts = [error_summary(covariance_enu_m2[i:i + _SUMMARY_CHUNK])
@@ -571,7 +578,7 @@ def _error_summaries(covariance_enu_m2):
                             for f in parts[0].__dataclass_fields__))
 
 
-def fix_batch_to_dicts(fixes, formats) -> list[dict | None]:
+def fix_batch_to_dicts(fixes, formats, summary=None) -> list[dict | None]:
     """Response bodies of a :class:`core.estimators.ml.FixBatch`, as :func:`fix_to_dict` gives them one by one.
 
     Conversions (error summaries, geodetic positions, ECEF covariances,
@@ -584,6 +591,8 @@ def fix_batch_to_dicts(fixes, formats) -> list[dict | None]:
     ----------
     fixes : FixBatch
     formats : sequence of tuple of str, length B
+    summary : core.accuracy.ErrorSummary, optional
+        Of ``fixes.covariance_enu_m2`` (see :func:`batch_error_summary`), when already computed.
 
     Returns
     -------
@@ -596,7 +605,8 @@ def fix_batch_to_dicts(fixes, formats) -> list[dict | None]:
     ok[list(fixes.errors)] = False
     position = np.where(ok[:, None], fixes.position_enu_m, 0.0)
     covariance = np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0)
-    summary = _error_summaries(covariance)
+    if summary is None:
+        summary = batch_error_summary(fixes)
     geodetic = batch.geodetic
     o = batch.origin
     ecef = geodesy.enu_to_ecef(position, o[:, 0], o[:, 1], o[:, 2])

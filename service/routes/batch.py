@@ -9,14 +9,18 @@ decides and words its errors. Either way a problem's error stays in its slot.
 The body is parsed here with orjson, not by the framework, and the cyclic
 garbage collector is paused while the request's million small objects are
 made and dropped (it would otherwise rescan them over and over: about five
-times the work of the parse itself).
+times the work of the parse itself). A large batch is solved in parts on up
+to two worker threads (the numeric work runs outside the GIL) while this
+thread turns finished parts into response bodies.
 """
 
 from __future__ import annotations
 
 import gc
+import os
 import threading
-from contextlib import contextmanager
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager, nullcontext
 from typing import Annotated
 
 import numpy as np
@@ -34,9 +38,15 @@ from service import schemas
 from service.deps import OwnerDep
 from service.problems import localization_problem, problem_body, validation_errors
 from service.responses import JsonResponse
-from service.translate import fix_batch_to_dicts, fix_to_dict, to_options, to_problem, to_problem_batch
+from service.translate import (batch_error_summary, fix_batch_to_dicts, fix_to_dict, to_options, to_problem,
+                               to_problem_batch)
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
+
+#: The lean problems are solved in parts of this many; with more than one part, worker threads solve
+#: the next parts (numpy releases the GIL in its loops) while this thread builds the bodies of the last.
+PART_PROBLEMS = 2048
+MAX_WORKERS = min(2, os.cpu_count() or 1)
 
 MAX_PROBLEMS = next(rule.max_length for rule in schemas.BatchRequest.model_fields["problems"].metadata
                     if getattr(rule, "max_length", None) is not None)
@@ -123,15 +133,25 @@ def solve_batch(problems: list, request_id: str | None = None) -> list[dict]:
 
     slots, options, formats, batch, rest = to_problem_batch(problems)
     if batch is not None:
+        parts = []
         keys: dict[tuple, list[int]] = {}
         for row, key in enumerate(options):
             keys.setdefault(key, []).append(row)
         for key, rows in keys.items():
             rows = np.asarray(rows)
             for group in size_groups(batch.n_measurements[rows], batch.n_stations[rows]):
-                chosen = rows[group]
-                fixes = solve_ml_problem_batch(batch.take(chosen), SolveOptions(*key))
-                bodies = fix_batch_to_dicts(fixes, [formats[r] for r in chosen])
+                parts.extend((key, rows[group[i:i + PART_PROBLEMS]]) for i in range(0, group.size, PART_PROBLEMS))
+        workers = min(MAX_WORKERS, len(parts))
+
+        def solve_part(part):
+            key, chosen = part
+            fixes = solve_ml_problem_batch(batch.take(chosen), SolveOptions(*key))
+            return chosen, fixes, batch_error_summary(fixes)
+
+        with ThreadPoolExecutor(workers) if workers > 1 else nullcontext() as pool:
+            solved = pool.map(solve_part, parts) if pool is not None else map(solve_part, parts)
+            for chosen, fixes, summary in solved:
+                bodies = fix_batch_to_dicts(fixes, [formats[r] for r in chosen], summary)
                 for j, (row, body) in enumerate(zip(chosen.tolist(), bodies)):
                     if body is None:
                         put(slots[row], error=_slot_error(localization_problem(fixes.errors[j]), request_id))
