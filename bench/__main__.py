@@ -174,7 +174,10 @@ reader in front of it; (b) a compiled per-problem kernel for the LM and the
 error summary (numba or C; outside the core's numpy-only rule); (c) more
 workers, which the row's setup rules out.
 
-**Row 2, batch over HTTP.** No phase dominates (see the phase breakdown):
+**Row 2, batch over HTTP.** The route already overlaps the numeric work of
+later parts (core and summaries, on a second thread: numpy runs outside the
+GIL) with building the bodies of earlier ones. No phase dominates (see the
+single-thread phase breakdown):
 reading the problems (~10 us each, structure checks in Python, numbers
 checked in bulk), the core (~10-20 us), the response bodies (~20 us: about
 13 of them the CEP/SEP quadrature, 192 directions x ~6 Newton steps with erf

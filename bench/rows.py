@@ -214,7 +214,8 @@ def batch_row(url: str, size: int, repeats: int = 5) -> tuple[Row, float, list]:
     verdict = "met" if rate >= 20_000 else f"missed: {rate:,.0f}/s is {20_000 / rate:.1f}x short of 20,000/s"
     notes = [f"request {len(body) / 1e6:.1f} MB, response {len(data) / 1e6:.1f} MB; {ok}/{size} ok; "
              f"HTTP times (s) of {repeats} posts: " + ", ".join(f"{e:.3f}" for e in elapsed),
-             "server-side phases of the same batch in this process (s): "
+             "server-side phases of the same batch in this process, on one thread (the route overlaps the core "
+             "and the summaries of later parts with the bodies of earlier ones on two threads) (s): "
              + "; ".join(f"{k} {v:.3f}" for k, v in phases.items())]
     row = Row(2, f"batch of {size:,} four-station ML fixes over HTTP (one POST)",
               f"{rate:,.0f} fixes/s end to end ({http_s:.3f} s per POST)",
