@@ -27,6 +27,8 @@ from core.problem import CommonFrame, GeodeticPoint, Problem, local_axes
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).
 PAD_KIND = Kind.RANGE
+#: Kind codes as plain ints: comparing an array with an IntEnum member goes through the enum machinery.
+AZIMUTH, ELEVATION, RANGE, TOA = (int(k) for k in (Kind.AZIMUTH, Kind.ELEVATION, Kind.RANGE, Kind.TOA))
 
 
 @dataclass(frozen=True)
@@ -94,11 +96,11 @@ class ProblemBatch:
     @property
     def has_toa(self) -> np.ndarray:
         """``(B,)``: some measurement is a TOA (so the emission offset is a free parameter)."""
-        return np.any(self.kinds == Kind.TOA, axis=-1)
+        return np.any(self.kinds == TOA, axis=-1)
 
     def unit_scale(self) -> np.ndarray:
         """``(B, M)`` factor from problem units to model units (TOA seconds -> metres)."""
-        return np.where(self.kinds == Kind.TOA, SPEED_OF_LIGHT_MPS, 1.0)
+        return np.where(self.kinds == TOA, SPEED_OF_LIGHT_MPS, 1.0)
 
     def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
         """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement (computed once)."""
@@ -125,10 +127,10 @@ class ProblemBatch:
     @cached_property
     def _lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         valid = self.valid
-        is_line = valid & (self.kinds == Kind.AZIMUTH)
+        is_line = valid & (self.kinds == AZIMUTH)
         elevation = np.full(self.values.shape, np.nan)
         sigma = np.full(self.values.shape, np.nan)
-        b, m = np.nonzero(valid & (self.kinds == Kind.ELEVATION))
+        b, m = np.nonzero(valid & (self.kinds == ELEVATION))
         if b.size:
             width = int(self.bearing_index.max()) + 1
             azimuth_row = np.zeros((self.size, width), dtype=np.intp)

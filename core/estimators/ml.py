@@ -25,7 +25,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from core.angles import line_of_sight_enu
-from core.batch import ProblemBatch, size_groups
+from core.batch import AZIMUTH, ELEVATION, TOA, ProblemBatch, size_groups
 from core.crlb import Information, invert_information
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.base import (
@@ -42,6 +42,7 @@ from core.estimators.start import initial_positions
 from core.measurements import MIN_HORIZONTAL_DISTANCE_M, Kind
 from core.problem import Problem, local_axes, onto_altitude
 
+_EYE4 = np.eye(4)
 _LAMBDA_START = 1e-3
 _LAMBDA_MIN = 1e-12
 _LAMBDA_MAX = 1e12
@@ -119,7 +120,7 @@ class ProblemStack:
 
     def optimal_bias(self, positions_enu_m):
         """Weighted-mean TOA offset ``(B,)`` given positions; 0 without TOA."""
-        is_toa = (self.kinds == Kind.TOA) & (self.weights > 0)
+        is_toa = (self.kinds == TOA) & (self.weights > 0)
         ranges = np.linalg.norm(positions_enu_m[:, None, :] - self.stations_enu_m, axis=-1)
         w = self.weights * is_toa
         total = w.sum(axis=-1)
@@ -169,10 +170,11 @@ class _Model:
         self.rotations = np.ascontiguousarray(np.moveaxis(stack.rotations, (-2, -1), (0, 1)))
         self.values = stack.values
         self.weights = stack.weights
-        self.is_az = stack.kinds == Kind.AZIMUTH
-        self.is_el = stack.kinds == Kind.ELEVATION
-        self.is_toa = (stack.kinds == Kind.TOA).astype(float)
+        self.is_az = stack.kinds == AZIMUTH
+        self.is_el = stack.kinds == ELEVATION
+        self.is_toa = (stack.kinds == TOA).astype(float)
         self.used = stack.weights > 0
+        self.ranged = bool(np.any(self.used & ~self.is_az & ~self.is_el))
         self.constrained = stack.constrained
         self.any_constrained = bool(np.any(self.constrained))
         self.altitude_m = np.nan_to_num(stack.altitude_m)
@@ -188,6 +190,7 @@ class _Model:
         out["stations"] = self.stations[:, rows]
         out["rotations"] = self.rotations[:, :, rows]
         out["any_constrained"] = bool(np.any(out["constrained"]))
+        out["ranged"] = bool(np.any(out["used"] & ~out["is_az"] & ~out["is_el"]))
         return _Model(**out)
 
     def project(self, positions_enu_m):
@@ -227,17 +230,25 @@ class _Model:
         r2 = rho2 + u * u
         r = np.sqrt(r2)
         is_az, is_el = self.is_az, self.is_el
-        predicted = np.where(is_az, np.arctan2(e, n), np.where(is_el, np.arctan2(u, rho), r + bias_m[:, None] * self.is_toa))
+        elevation = np.arctan2(u, rho)
+        elevation_factor = u / (r2 * rho)
+        if self.ranged:
+            inv_r = 1.0 / r
+            far = np.where(is_el, elevation, r + bias_m[:, None] * self.is_toa)
+            ge_far = np.where(is_el, -e * elevation_factor, e * inv_r)
+            gn_far = np.where(is_el, -n * elevation_factor, n * inv_r)
+            gu_far = np.where(is_el, rho / r2, u * inv_r)
+        else:
+            far, ge_far, gn_far, gu_far = elevation, -e * elevation_factor, -n * elevation_factor, rho / r2
+        predicted = np.where(is_az, np.arctan2(e, n), far)
         raw = self.values - predicted
         wrapped = np.mod(raw + np.pi, 2.0 * np.pi) - np.pi
         wrapped[wrapped == -np.pi] = np.pi
-        residual = np.where(is_az | is_el, wrapped, raw) * self.used
+        residual = (np.where(is_az | is_el, wrapped, raw) if self.ranged else wrapped) * self.used
         cost = np.einsum("bm,bm->b", self.weights, residual * residual)
-        inv_r = 1.0 / r
-        elevation_factor = u / (r2 * rho)
-        ge = np.where(is_az, n / rho2, np.where(is_el, -e * elevation_factor, e * inv_r))
-        gn = np.where(is_az, -e / rho2, np.where(is_el, -n * elevation_factor, n * inv_r))
-        gu = np.where(is_az, 0.0, np.where(is_el, rho / r2, u * inv_r))
+        ge = np.where(is_az, n / rho2, ge_far)
+        gn = np.where(is_az, -e / rho2, gn_far)
+        gu = np.where(is_az, 0.0, gu_far)
         jacobian = np.empty((e.shape[0], 4, e.shape[1]))
         jacobian[:, 0] = ge * rot[0, 0] + gn * rot[1, 0] + gu * rot[2, 0]
         jacobian[:, 1] = ge * rot[0, 1] + gn * rot[1, 1] + gu * rot[2, 1]
@@ -254,7 +265,7 @@ class _Model:
         local = local * free[:, :, None]
         weighted = local * self.weights[:, None, :]
         information = weighted @ np.swapaxes(local, -1, -2)
-        information += np.eye(4) * ~free[:, None, :]
+        information += _EYE4 * ~free[:, None, :]
         gradient = np.einsum("bim,bm->bi", weighted, residual)
         return information, gradient, local
 
@@ -296,7 +307,7 @@ def levenberg_marquardt(stack: ProblemStack, start_enu_m, max_iterations=50, tol
         converged_all[work], iterations_all[work] = converged, iterations
         r_all[work], jacobian_all[work] = r, jacobian
 
-    eye = np.eye(4)
+    eye = _EYE4
     for _ in range(max_iterations):
         n_active = np.count_nonzero(active)
         if n_active == 0:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.batch import ProblemBatch
+from core.batch import AZIMUTH, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.orthogonal_vector import ALTITUDE_ROW_WEIGHT, solve_orthogonal
 from core.measurements import Kind
@@ -318,7 +318,7 @@ def initial_positions(batch: ProblemBatch):
     positions[guessed] = batch.initial_guess_enu_m[guessed]
     for b in np.flatnonzero(guessed):
         names[b] = "initial_guess"
-    with_bearings = ~guessed & np.any(batch.valid & (batch.kinds == Kind.AZIMUTH), axis=-1)
+    with_bearings = ~guessed & np.any(batch.valid & (batch.kinds == AZIMUTH), axis=-1)
     pending = set(np.flatnonzero(~guessed & ~with_bearings).tolist())
     if np.any(with_bearings):
         subset = np.flatnonzero(with_bearings)
