@@ -83,11 +83,16 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
         warnings.append(("pulse_count_mismatch",
                          f"{n_pulses} pulses of {period_s:.9g} s between TOAs, but time_s advanced {dt_s:.6g} s"))
 
-    chol, cov, repaired = cholesky_repaired(cov)
-    if repaired:
-        warnings.append(("covariance_repaired", "predicted covariance was not positive definite"))
     measured = (azimuth, elevation, C * (dtoa_s - n_pulses * period_s) if use_toa else 0.0, rate)
-    new_mean, new_cov, nis = joint_update(mean, cov, chol, measured, n_pulses, period_s, use_toa, config)
+    try:
+        chol, cov, repaired = cholesky_repaired(cov)
+        if repaired:
+            warnings.append(("covariance_repaired", "predicted covariance was not positive definite"))
+        new_mean, new_cov, nis = joint_update(mean, cov, chol, measured, n_pulses, period_s, use_toa, config)
+    except (np.linalg.LinAlgError, ArithmeticError, ValueError) as error:
+        new_mean = new_cov = np.full(1, math.nan)
+        nis = 0.0
+        warnings.append(("numerical_failure", f"the update failed ({error})"))
     dof = 4 if use_toa else 3
     if nis > NIS_LIMIT[dof]:
         warnings.append(("innovation_outlier", f"normalised innovation squared {nis:.1f} on {dof} degrees of "
@@ -101,7 +106,8 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
             period_s = period_s + float(mean[6]) / C
             mean[6] = 0.0
     else:
-        warnings.append(("numerical_failure", "the update was not finite and was skipped"))
+        if not any(code == "numerical_failure" for code, _ in warnings):
+            warnings.append(("numerical_failure", "the update was not finite and was skipped"))
         mean, cov = fresh_toa_reference(mean, cov, config)
     return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s, freeze(mean),
                       freeze(cov), None, tuple(warnings))

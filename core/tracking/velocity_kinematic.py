@@ -82,24 +82,36 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
                 mean, cov, stage = new_mean, new_cov, "tracking"
                 cov = _position_checked(cov, warnings)
     elif pseudo is not None:
-        try:
-            new_mean, new_cov, nis = polar_update(mean, cov, offset, cross, pseudo, azimuth, elevation,
-                                                  config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2)
-        except np.linalg.LinAlgError:
-            cov = _position_checked(cov, warnings)
-            new_mean, new_cov, nis = polar_update(mean, cov, offset, cross, pseudo, azimuth, elevation,
-                                                  config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2)
-        if nis > NIS_LIMIT[3]:
-            warnings.append(("innovation_outlier", f"normalised innovation squared {nis:.1f} on 3 degrees of "
-                                                   "freedom: a manoeuvre or a bad measurement"))
-        if not correlated:
-            new_cov[:6, 6:] = 0.0
-            new_cov[6:, :6] = 0.0
-        if _finite(new_mean, new_cov, warnings):
-            mean, cov = new_mean, _position_checked(new_cov, warnings)
+        updated = _position_update(mean, cov, cross, pseudo, azimuth, elevation, config, warnings)
+        if updated is not None:
+            new_mean, new_cov, nis = updated
+            if nis > NIS_LIMIT[3]:
+                warnings.append(("innovation_outlier", f"normalised innovation squared {nis:.1f} on 3 degrees "
+                                                       "of freedom: a manoeuvre or a bad measurement"))
+            if not correlated:
+                new_cov[:6, 6:] = 0.0
+                new_cov[6:, :6] = 0.0
+            if _finite(new_mean, new_cov, warnings):
+                mean, cov = new_mean, _position_checked(new_cov, warnings)
 
     return TrackState(config.model, stage, state.updates + 1, time_s, toa_s, period_s, freeze(mean), freeze(cov),
                       None if pseudo is None else pseudo.range_m, tuple(warnings))
+
+
+def _position_update(mean, cov, cross, pseudo, azimuth, elevation, config, warnings):
+    """Step 3's update; on a covariance that is not positive definite, repair and retry once, then give up
+    (the caller keeps the prediction) rather than fail."""
+    variances = (config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2)
+    try:
+        return polar_update(mean, cov, 6, cross, pseudo, azimuth, elevation, *variances)
+    except np.linalg.LinAlgError:
+        pass
+    try:
+        cov = _position_checked(cov, warnings)
+        return polar_update(mean, cov, 6, cross, pseudo, azimuth, elevation, *variances)
+    except (np.linalg.LinAlgError, ArithmeticError, ValueError) as error:
+        warnings.append(("numerical_failure", f"the position update failed ({error}) and was skipped"))
+        return None
 
 
 def _finite(mean, cov, warnings) -> bool:

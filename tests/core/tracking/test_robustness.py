@@ -169,3 +169,27 @@ def test_a_repaired_covariance_is_reported_not_fatal():
             assert "covariance_repaired" in {code for code, _ in state.warnings}
         assert np.isfinite(state.mean).all()
         np.linalg.cholesky(state.covariance_enu)
+
+
+@pytest.mark.parametrize("model, target", [("velocity_kinematic", "core.tracking.velocity_kinematic.polar_update"),
+                                           ("joint_ukf", "core.tracking.joint_ukf.joint_update")])
+def test_an_update_that_fails_outright_is_skipped_and_reported(monkeypatch, model, target):
+    config = paper_config(model, True)
+    track = simulate_emitter(paper_001_scenario(epochs=60), np.random.default_rng(7))
+    state = new_state(config)
+    for epoch in track.epochs[:50]:
+        state = step(state, epoch, config)
+    assert state.initialized
+
+    def fail(*args, **kwargs):
+        raise np.linalg.LinAlgError("matrix is singular")
+
+    monkeypatch.setattr(target, fail)
+    held = step(state, track.epochs[50], config)
+    assert "numerical_failure" in {code for code, _ in held.warnings}
+    assert np.isfinite(held.mean).all() and held.updates == state.updates + 1
+    np.linalg.cholesky(held.covariance_enu)
+    monkeypatch.undo()
+    for epoch in track.epochs[51:]:
+        held = step(held, epoch, config)
+        assert_healthy(held)
