@@ -70,7 +70,12 @@ _gc_was_enabled = True
 
 @contextmanager
 def gc_paused():
-    """Pause the cyclic garbage collector (process-wide) while any batch is in flight."""
+    """Pause the cyclic garbage collector (process-wide) while any batch is in flight.
+
+    Drop the request's objects before leaving: the first allocation after the
+    collector is back runs a collection over everything allocated meanwhile
+    that is still alive (35 ms for a live 10,000-problem request).
+    """
     global _gc_holders, _gc_was_enabled
     with _gc_lock:
         if _gc_holders == 0:
@@ -194,4 +199,6 @@ def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonRespons
         problems = _problems(raw)
         results = solve_batch(problems, request_id)
         request.app.state.metrics.count("batch_problems_total", len(problems))
-        return JsonResponse({"results": results})
+        response = JsonResponse({"results": results})
+        del problems, results
+    return response
