@@ -351,15 +351,16 @@ def _read(bodies: list):
     settings : list of tuple (see :func:`_problem_settings`)
     station_counts, measurement_counts : list of int
     station_ids : list of tuple of str
-    coordinates : list of (float, float, float)
-        Raw station position values, API units.
-    scalars : list of (kind, station, value, sigma, bearing, source)
-        Raw scalar measurements, API units.
+    coordinates : list
+        Raw station position values, API units, three per station, flattened.
+    scalars : list
+        Raw scalar measurements, API units, six per measurement (kind, station, value, sigma,
+        bearing, source), flattened.
     rest : list of int
     """
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
     coordinates, scalars, rest = [], [], []
-    add_coordinates, add_scalar = coordinates.append, scalars.append
+    add_coordinates, add_scalar = coordinates.extend, scalars.extend
     geodetic_keys, local_keys, station_keys = _GEODETIC_KEYS, _LOCAL_KEYS, _STATION_KEYS
     bearing_keys, range_keys, toa_keys, id_max = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX
     plain = {"wgs84": (True, _NAN3, _DEFAULT_KEY, _NAN3, False, math.nan, ()),
@@ -439,21 +440,22 @@ def _read(bodies: list):
         settings.append(setting)
         station_counts.append(len(ids))
         station_ids.append(tuple(ids))
-        measurement_counts.append(len(scalars) - n_scalars)
+        measurement_counts.append((len(scalars) - n_scalars) // 6)
     return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, rest
 
 
-def _numeric(rows: list, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of raw JSON numbers as floats ``(R, width)``, and which rows hold only numbers.
+def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of raw JSON numbers (flattened) as floats ``(R, width)``, and which rows hold only numbers.
 
     JSON numbers (and booleans, which the schema's lax floats also take) convert as pydantic converts
     them; a row with anything else (a string, null, a huge integer) is marked for the full path.
     """
-    table = np.array(rows) if rows else np.zeros((0, width))
-    if table.dtype.kind in "fiub" and table.ndim == 2:
-        return table.astype(float, copy=False), np.ones(len(rows), dtype=bool)
+    table = np.array(flat) if flat else np.zeros(0)
+    if table.dtype.kind in "fiub":
+        return table.astype(float, copy=False).reshape(-1, width), np.ones(len(flat) // width, dtype=bool)
+    rows = [flat[i:i + width] for i in range(0, len(flat), width)]
     good = np.array([all(type(v) in (float, int, bool) and abs(v) < 1e300 for v in row) for row in rows], dtype=bool)
-    table = np.array([row if ok else (0.0,) * width for row, ok in zip(rows, good)], dtype=float).reshape(-1, width)
+    table = np.array([row if ok else [0.0] * width for row, ok in zip(rows, good)], dtype=float).reshape(-1, width)
     return table, good
 
 
