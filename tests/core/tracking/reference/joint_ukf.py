@@ -1,0 +1,233 @@
+"""The baseline of paper 001: one UKF on the full state with the raw measurements.
+
+State ``[x, y, z (m), vx, vy, vz (m/s), period_error_m, toa_noise_m]``
+(``period_error_m``, ``c`` times the period error, only when the period is
+unknown; ``toa_noise_m``, ``c`` times the reference TOA's noise, so the shared
+TOA of successive differences is modelled exactly, as in step 1 of the
+velocity method). Measurements per epoch, with ``T = n Tr_hat``:
+
+- ``B = atan2(x, y)``, ``E = atan2(z, rho)``,
+- ``c (dTOA - n Tr_hat) = |p| - |p - v T| + n period_error_m + a_k - toa_noise_m``
+  (the previous range from the current state, exact for constant velocity),
+- ``Bdot = (y vx - x vy) / rho^2``.
+
+Initialisation: the filter needs a first range, which the raw measurements
+alone give only slowly and through a strongly nonlinear map. It is
+bootstrapped exactly like the velocity method (steps 1-2 until the first
+usable pseudo-range), so both models start from the same estimate at the same
+epoch and the comparison is of the filters, not of an arbitrary range prior.
+From then on only this UKF runs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from core.tracking.config import SPEED_OF_LIGHT_MPS as C
+from core.tracking.config import TrackerConfig
+from tests.core.tracking.reference.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRACTION,
+                                                     RangePseudoMeasurement, count_pulses, fresh_toa_reference,
+                                                     initial_position_state, kinematic_epoch,
+                                                     range_pseudo_measurement)
+from core.tracking.state import TrackState, freeze
+from tests.core.tracking.reference.unscented import (NIS_LIMIT, TWO_PI, cholesky_repaired,
+                                                     constant_velocity_predict)
+
+_WITHOUT_TOA = np.array([0, 1, 3])
+
+
+def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
+    """Apply one validated epoch ``(time_s, azimuth_rad, elevation_rad, azimuth_rate_rad_s, toa_s)``."""
+    time_s, azimuth, elevation, rate, toa_s = values
+    if state.time_s is None:
+        return TrackState(config.model, state.stage, state.updates + 1, time_s, toa_s, state.pulse_period_s,
+                          state.mean, state.covariance)
+    dt_s = time_s - state.time_s
+    dtoa_s = toa_s - state.toa_s
+    q = config.accel_sigma_mps2**2
+    warnings: list = []
+    if abs(rate) < config.min_azimuth_rate_snr * config.sigma_azimuth_rate_rad_s:
+        warnings.append(("range_unobservable",
+                         f"|azimuth rate| {abs(rate):.3g} rad/s is below {config.min_azimuth_rate_snr:g} sigma "
+                         f"({config.sigma_azimuth_rate_rad_s:.3g} rad/s): near-radial motion"))
+
+    if state.stage == "velocity":
+        mean, cov = constant_velocity_predict(state.mean, state.covariance, dt_s, q, (0,), False)
+        mean, cov, period_s, cross = kinematic_epoch(mean, cov, 0, state.pulse_period_s, dt_s, dtoa_s,
+                                                     azimuth, elevation, None, config, warnings)
+        pseudo = range_pseudo_measurement(mean, cov, 0, cross, azimuth, elevation, rate, config)
+        stage = "velocity"
+        if isinstance(pseudo, RangePseudoMeasurement):
+            if pseudo.relative_sigma <= config.max_initial_range_fraction:
+                new_mean, new_cov = initial_position_state(pseudo, mean, cov, cross, azimuth, elevation, config,
+                                                           False)
+                _, new_cov, repaired = cholesky_repaired(new_cov)
+                if repaired:
+                    warnings.append(("covariance_repaired", "initial covariance was not positive definite"))
+                if math.isfinite(float(new_mean.sum()) + float(new_cov.sum())):
+                    mean, cov, stage = new_mean, new_cov, "tracking"
+        return TrackState(config.model, stage, state.updates + 1, time_s, toa_s, period_s, freeze(mean),
+                          freeze(cov), None, tuple(warnings))
+
+    k = state.mean.shape[0] - 3
+    mean, cov = constant_velocity_predict(state.mean, state.covariance, dt_s, q, (3,), True)
+    period_s = state.pulse_period_s
+    x, y, z, vx, vy, vz = mean[:6].tolist()
+    r = math.sqrt(x * x + y * y + z * z)
+    n_pulses, fraction = count_pulses(dtoa_s, period_s, dt_s * (x * vx + y * vy + z * vz) / r)
+    use_toa = n_pulses >= 1 and abs(fraction) <= MAX_PULSE_COUNT_FRACTION
+    if not use_toa:
+        warnings.append(("pulse_count_ambiguous",
+                         f"TOA difference {dtoa_s:.9g} s is {n_pulses + fraction:.3f} periods; TOA not used"))
+    elif abs(n_pulses * period_s - dt_s) > MAX_INTERVAL_MISMATCH * dt_s:
+        warnings.append(("pulse_count_mismatch",
+                         f"{n_pulses} pulses of {period_s:.9g} s between TOAs, but time_s advanced {dt_s:.6g} s"))
+
+    measured = (azimuth, elevation, C * (dtoa_s - n_pulses * period_s) if use_toa else 0.0, rate)
+    try:
+        chol, cov, repaired = cholesky_repaired(cov)
+        if repaired:
+            warnings.append(("covariance_repaired", "predicted covariance was not positive definite"))
+        new_mean, new_cov, nis = joint_update(mean, cov, chol, measured, n_pulses, period_s, use_toa, config)
+    except (np.linalg.LinAlgError, ArithmeticError, ValueError) as error:
+        new_mean = new_cov = np.full(1, math.nan)
+        nis = 0.0
+        warnings.append(("numerical_failure", f"the update failed ({error})"))
+    dof = 4 if use_toa else 3
+    if nis > NIS_LIMIT[dof]:
+        warnings.append(("innovation_outlier", f"normalised innovation squared {nis:.1f} on {dof} degrees of "
+                                               "freedom: a manoeuvre or a bad measurement"))
+    if math.isfinite(float(new_mean.sum()) + float(new_cov.sum())):
+        _, new_cov, repaired = cholesky_repaired(new_cov)
+        if repaired:
+            warnings.append(("covariance_repaired", "updated covariance was not positive definite"))
+        mean, cov = new_mean, new_cov
+        if k == 5:
+            period_s = period_s + float(mean[6]) / C
+            mean[6] = 0.0
+    else:
+        if not any(code == "numerical_failure" for code, _ in warnings):
+            warnings.append(("numerical_failure", "the update was not finite and was skipped"))
+        mean, cov = fresh_toa_reference(mean, cov, config)
+    return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s, freeze(mean),
+                      freeze(cov), None, tuple(warnings))
+
+
+def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_toa: bool,
+                 config: TrackerConfig):
+    """Unscented update with ``(B, E, c (dTOA - n Tr_hat), Bdot)``.
+
+    The new TOA's noise enters the TOA row additively and is also the next
+    reference's noise: it is appended to the state for the update (prior
+    ``N(0, (c sigma_toa)^2)``, so its posterior is correlated with the rest)
+    and replaces the old ``toa_noise_m`` afterwards. Without a usable TOA the
+    TOA row is left out and ``toa_noise_m`` becomes a fresh, independent noise.
+
+    Parameters
+    ----------
+    mean : ndarray, shape (F,)
+    cov : ndarray, shape (F, F)
+    chol : ndarray, shape (F, F)
+        Cholesky factor of ``cov``.
+    measured : tuple of 4 floats
+        Azimuth (rad), elevation (rad), TOA difference less ``n Tr_hat`` in
+        metres, azimuth rate (rad/s).
+    n_pulses : int
+    period_s : float
+    use_toa : bool
+    config : TrackerConfig
+
+    Returns
+    -------
+    mean, cov : ndarray, shapes (F,), (F, F)
+        Updated state; the last component is now the new TOA's noise.
+    nis : float
+        Normalised innovation squared (chi-square with 4, or 3 without the
+        TOA, degrees of freedom when the model holds).
+    """
+    f = mean.shape[0]
+    spread = math.sqrt(f)
+    weight = 1.0 / (2 * f)
+    interval_s = n_pulses * period_s
+    offsets = spread * chol
+    points = np.empty((f, 2 * f))
+    points[:, :f] = offsets
+    points[:, f:] = -offsets
+    points += mean[:, None]
+    predicted = _measurement_model(points, n_pulses, interval_s, f == 8)
+
+    state = mean.tolist()
+    x, y, z, vx, vy, vz = state[:6]
+    rho2 = x * x + y * y
+    qx, qy, qz = x - interval_s * vx, y - interval_s * vy, z - interval_s * vz
+    change = math.sqrt(rho2 + z * z) - math.sqrt(qx * qx + qy * qy + qz * qz) - state[-1]
+    if f == 8:
+        change += n_pulses * state[6]
+    centre = (math.atan2(x, y), math.atan2(z, math.sqrt(rho2)), change, (y * vx - x * vy) / rho2)
+
+    deviation = predicted - np.array(centre)[:, None]
+    deviation[0] += math.pi
+    deviation[0] %= TWO_PI
+    deviation[0] -= math.pi
+    var_toa = (C * config.sigma_toa_s) ** 2
+    if use_toa:
+        innovation = [math.remainder(measured[0] - centre[0], TWO_PI), measured[1] - centre[1],
+                      measured[2] - centre[2], measured[3] - centre[3]]
+        noise = (config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2, var_toa,
+                 config.sigma_azimuth_rate_rad_s**2)
+    else:
+        deviation = deviation[_WITHOUT_TOA]
+        innovation = [math.remainder(measured[0] - centre[0], TWO_PI), measured[1] - centre[1],
+                      measured[3] - centre[3]]
+        noise = (config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2, config.sigma_azimuth_rate_rad_s**2)
+    m = len(innovation)
+    mean_deviation = deviation.sum(axis=1) * weight
+    centred = deviation - mean_deviation[:, None]
+    innovation_cov = centred @ centred.T
+    innovation_cov *= weight
+    innovation_cov.reshape(-1)[::m + 1] += noise
+    cross_cov = chol @ (deviation[:, :f] - deviation[:, f:]).T
+    cross_cov *= spread * weight
+    innovation = np.array(innovation) - mean_deviation
+    inverse = np.linalg.inv(innovation_cov)
+    nis = float(innovation @ inverse @ innovation)
+
+    if use_toa:
+        gain = cross_cov @ inverse
+        gain_new = var_toa * inverse[2]
+        x = mean + gain @ innovation
+        x[f - 1] = float(gain_new @ innovation)
+        source = cross_cov.copy()
+        source[f - 1] = (0.0, 0.0, var_toa, 0.0)
+        gain[f - 1] = gain_new
+        p = cov.copy()
+        p[f - 1] = 0.0
+        p[:, f - 1] = 0.0
+        p[f - 1, f - 1] = var_toa
+        p -= gain @ source.T
+    else:
+        gain = cross_cov @ inverse
+        x = mean + gain @ innovation
+        p = cov - gain @ cross_cov.T
+        x, p = fresh_toa_reference(x, p, config)
+    p += p.T
+    p *= 0.5
+    return x, p, nis
+
+
+def _measurement_model(points, n_pulses: int, interval_s: float, has_period_error: bool):
+    """``(B, E, c dS, Bdot)`` of the state columns ``points`` ``(F, m)``, shape ``(4, m)``."""
+    position = points[:3]
+    squares = position * position
+    rho2 = squares[0] + squares[1]
+    previous = position - interval_s * points[3:6]
+    out = np.empty((4, points.shape[1]))
+    out[0] = np.arctan2(position[0], position[1])
+    out[1] = np.arctan2(position[2], np.sqrt(rho2))
+    out[2] = np.sqrt(rho2 + squares[2]) - np.sqrt((previous * previous).sum(axis=0)) - points[-1]
+    if has_period_error:
+        out[2] += n_pulses * points[6]
+    out[3] = (position[1] * points[3] - position[0] * points[4]) / rho2
+    return out
