@@ -45,9 +45,10 @@ Covariance (``covariance_source``):
 
 - ``tls``: ``"propagated"``, first-order perturbation of the smallest
   singular vector, ``dv = -(S - lambda I)^+ dS v`` with ``S = M^T M``.
-- ``ctls`` newton: ``"propagated"``, the M-estimator sandwich
-  ``(F^T W F)^-1 F^T W G^2 F (F^T W F)^-1`` with ``F = d f / d q``,
-  ``f_i = e_i / rho_i`` and ``G_i = d f_i / d az_i = -(1 + f_i^2)``.
+- ``ctls`` newton: ``"propagated"``, by the implicit-function theorem at the
+  minimum: ``dq / d az_i = H^-1 2 w_i (1 + 3 f_i^2) grad f_i`` with ``H`` the
+  Hessian of ``J``, ``f_i = e_i / rho_i`` (``d f_i / d az_i = -(1 + f_i^2)``
+  and ``d grad f_i / d az_i = -2 f_i grad f_i``).
 - ``ctls`` projected: ``"propagated"`` as well, by central differences of the
   projection passes in the final plane, with the pass count frozen at the one
   the data needed (all perturbed azimuth sets run as one batch).
@@ -205,10 +206,10 @@ def newton_ctls_position(problem: Problem, options: SolveOptions):
         return q, (iterations, converged)
 
     position, plane, equations, plane_m, (iterations, converged) = _plane_passes(problem, name, solve_in_plane)
-    _, _, _, _, f, grad_f = _ctls_terms(equations, plane_m, weights)
-    bread = np.linalg.inv((grad_f * weights[:, None]).T @ grad_f)
-    meat = (grad_f * (weights * (1.0 + f * f) ** 2)[:, None]).T @ grad_f
-    covariance_plane = bread @ meat @ bread
+    _, _, hessian, _, f, grad_f = _ctls_terms(equations, plane_m, weights)
+    inverse = np.linalg.inv(hessian)
+    gain = 2.0 * (weights * (1.0 + 3.0 * f * f))[:, None] * grad_f @ inverse
+    covariance_plane = (gain * los.sigma_azimuth_rad[:, None] ** 2).T @ gain
     return position, plane.axes_enu.T @ covariance_plane @ plane.axes_enu, converged, iterations
 
 
