@@ -265,3 +265,14 @@ def test_parts_on_worker_threads_give_the_same_bodies(client, monkeypatch):
     parts = client.post("/v1/fixes/batch", json={"problems": problems}, headers=same_id).json()
     assert_close(parts, whole, "batch")
     assert [r["ok"] for r in parts["results"]] == [True] * 3 + [False] + [True] * 4
+
+
+def test_the_lean_reader_knows_every_validator_of_the_request_schema():
+    """translate's lean reader re-implements these checks; a new one must be taught to it (or it must reject)."""
+    models = (schemas.FixRequest, schemas.Station, schemas.GeodeticPosition, schemas.LocalPosition,
+              schemas.BearingMeasurement, schemas.RangeMeasurement, schemas.ToaMeasurement, schemas.Options,
+              schemas.Constraints)
+    known = {("FixRequest", "_stations_match_frame"), ("BearingMeasurement", "_elevation_sigma")}
+    found = {(m.__name__, name) for m in models for kind in ("model_validators", "field_validators")
+             for name in getattr(m.__pydantic_decorators__, kind)}
+    assert found == known
