@@ -153,8 +153,11 @@ def _fix(problem: Problem, weighted: bool):
             f"{name} takes the height from elevations: give an elevation on at least one line of sight, "
             "or the target altitude (constraints.altitude_m)", ("measurements",))
     position = pseudolinear_positions(problem, weighted)[0]
+    details = {"passes": PASSES}
+    if problem.altitude_m is not None and np.any(los.has_elevation):
+        details["unused_measurements"] = "elevations: the known altitude gives the height"
     return finish_fix(problem, name, position, _covariance(problem, weighted), covariance_source="propagated",
-                      details={"passes": PASSES})
+                      details=details)
 
 
 @register("ple3d", "3D pseudolinear estimator: horizontal Stansfield from azimuths, then mean height from "

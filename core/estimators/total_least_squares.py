@@ -62,7 +62,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.errors import UnobservableGeometry
+from core.errors import InvalidInput, UnobservableGeometry
 from core.estimators.azimuth_lines import (
     AzimuthEquations,
     azimuth_equations,
@@ -73,6 +73,7 @@ from core.estimators.azimuth_lines import (
 )
 from core.estimators.base import FixWarning, SolveOptions, finish_fix, register
 from core.estimators.orthogonal_vector import solve_orthogonal
+from core.measurements import Kind
 from core.problem import LinesOfSight, Problem
 
 #: Re-takes of the tangent plane at the solution (exact on the ellipsoid after two).
@@ -86,11 +87,10 @@ MAX_HALVINGS = 30
 CTLS_VARIANTS = ("newton", "projected")
 
 
-def _plane_passes(problem: Problem, name: str, solve_in_plane, check: bool = True):
+def _plane_passes(problem: Problem, name: str, solve_in_plane):
     """Solve in the tangent plane at the current point, move onto the surface, repeat."""
     los = azimuth_only_lines(problem, name)
-    if check:
-        require_crossing(los, name)
+    require_crossing(los, name)
     position, _ = solve_orthogonal(problem, False, True, False, name)
     state = None
     for _ in range(PLANE_PASSES):
@@ -101,8 +101,8 @@ def _plane_passes(problem: Problem, name: str, solve_in_plane, check: bool = Tru
     return position, plane, equations, plane_m, state
 
 
-def _scaled_matrix(equations: AzimuthEquations, plane_centre_spread_m: float):
-    return np.column_stack([equations.rows, equations.rhs / plane_centre_spread_m])
+def _scaled_matrix(equations: AzimuthEquations, spread_m: float):
+    return np.column_stack([equations.rows, equations.rhs / spread_m])
 
 
 def _spread_m(los: LinesOfSight, plane) -> float:
@@ -305,16 +305,13 @@ def projected_ctls_position(problem: Problem, options: SolveOptions):
 def tls(problem: Problem, options: SolveOptions):
     """TLS baseline of paper 004; see the module docstring."""
     position, covariance = tls_position(problem)
-    return finish_fix(problem, "tls", position, covariance, covariance_source="propagated",
-                      details={"bearing_errors": "conventional: the azimuth residuals at the fix"})
+    return finish_fix(problem, "tls", position, covariance, covariance_source="propagated", details=_details(problem))
 
 
 @register("ctls", "constrained total least squares on the azimuth equations (azimuth-only, known altitude); "
                   "variant newton (default) or projected")
 def ctls(problem: Problem, options: SolveOptions):
     """CTLS baselines of paper 004; ``options.variant`` in {"newton", "projected"}, default newton."""
-    from core.errors import InvalidInput
-
     variant = options.variant or "newton"
     if variant not in CTLS_VARIANTS:
         raise InvalidInput(f"ctls variant must be one of {', '.join(CTLS_VARIANTS)}; got {variant!r}",
@@ -330,4 +327,11 @@ def ctls(problem: Problem, options: SolveOptions):
                                  f"after {iterations} passes; the last pass is returned"))
     return finish_fix(problem, "ctls", position, covariance, covariance_source="propagated", converged=converged,
                       iterations=iterations, warnings=warnings,
-                      details={"variant": variant, "bearing_errors": "conventional: the azimuth residuals at the fix"})
+                      details={"variant": variant, **_details(problem)})
+
+
+def _details(problem: Problem) -> dict:
+    details = {"bearing_errors": "conventional: the azimuth residuals at the fix"}
+    if problem.count(Kind.ELEVATION):
+        details["unused_measurements"] = "elevations: an azimuth-only method with the altitude known"
+    return details
