@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from core.tracking.config import SPEED_OF_LIGHT_MPS as C
 from core.tracking.config import TrackerConfig
@@ -31,7 +32,8 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
                                      count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
                                      range_pseudo_measurement)
 from core.tracking.state import TrackState, freeze
-from core.tracking.unscented import NIS_LIMIT, TWO_PI, cholesky_repaired, constant_velocity_predict
+from core.tracking.unscented import (NIS_LIMIT, TWO_PI, cholesky_lower, cholesky_repaired,
+                                     constant_velocity_predict)
 
 _WITHOUT_TOA = np.array([0, 1, 3])
 
@@ -149,10 +151,7 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
     spread = math.sqrt(f)
     weight = 1.0 / (2 * f)
     interval_s = n_pulses * period_s
-    offsets = spread * chol
-    points = np.empty((f, 2 * f))
-    points[:, :f] = offsets
-    points[:, f:] = -offsets
+    points = chol.dot(_sigma_directions(f))
     points += mean[:, None]
     predicted = _measurement_model(points, n_pulses, interval_s, f == 8)
 
@@ -163,56 +162,98 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
     change = math.sqrt(rho2 + z * z) - math.sqrt(qx * qx + qy * qy + qz * qz) - state[-1]
     if f == 8:
         change += n_pulses * state[6]
-    centre = (math.atan2(x, y), math.atan2(z, math.sqrt(rho2)), change, (y * vx - x * vy) / rho2)
+    azimuth0 = math.atan2(x, y)
+    rate0 = (y * vx - x * vy) / rho2
+    centre = (azimuth0, math.atan2(z, math.sqrt(rho2)), change, rate0) if use_toa else (
+        azimuth0, math.atan2(z, math.sqrt(rho2)), rate0)
 
+    if not use_toa:
+        predicted = predicted[_WITHOUT_TOA]
     deviation = predicted - np.array(centre)[:, None]
-    deviation[0] += math.pi
-    deviation[0] %= TWO_PI
-    deviation[0] -= math.pi
+    wrapped = deviation[0]
+    wrapped += math.pi
+    wrapped %= TWO_PI
+    wrapped -= math.pi
     var_toa = (C * config.sigma_toa_s) ** 2
     if use_toa:
-        innovation = [math.remainder(measured[0] - centre[0], TWO_PI), measured[1] - centre[1],
-                      measured[2] - centre[2], measured[3] - centre[3]]
-        noise = (config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2, var_toa,
-                 config.sigma_azimuth_rate_rad_s**2)
+        innovation = (math.remainder(measured[0] - centre[0], TWO_PI), measured[1] - centre[1],
+                      measured[2] - centre[2], measured[3] - centre[3])
+        noise = _noise(config, True)
     else:
-        deviation = deviation[_WITHOUT_TOA]
-        innovation = [math.remainder(measured[0] - centre[0], TWO_PI), measured[1] - centre[1],
-                      measured[3] - centre[3]]
-        noise = (config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2, config.sigma_azimuth_rate_rad_s**2)
-    m = len(innovation)
-    mean_deviation = deviation.sum(axis=1) * weight
+        innovation = (math.remainder(measured[0] - centre[0], TWO_PI), measured[1] - centre[1],
+                      measured[3] - centre[2])
+        noise = _noise(config, False)
+    mean_deviation = deviation.sum(axis=1)
+    mean_deviation *= weight
     centred = deviation - mean_deviation[:, None]
-    innovation_cov = centred @ centred.T
+    innovation_cov = centred.dot(centred.T)
     innovation_cov *= weight
-    innovation_cov.reshape(-1)[::m + 1] += noise
-    cross_cov = chol @ (deviation[:, :f] - deviation[:, f:]).T
+    innovation_cov += noise
+    # Covariance of the state with the measurement; with a usable TOA its last row is that of the new
+    # TOA's noise (it enters the TOA row additively and becomes the next reference's noise).
+    cross_cov = chol.dot((deviation[:, :f] - deviation[:, f:]).T)
     cross_cov *= spread * weight
-    innovation = np.array(innovation) - mean_deviation
-    inverse = np.linalg.inv(innovation_cov)
-    nis = float(innovation @ inverse @ innovation)
-
     if use_toa:
-        gain = cross_cov @ inverse
-        gain_new = var_toa * inverse[2]
-        x = mean + gain @ innovation
-        x[f - 1] = float(gain_new @ innovation)
-        source = cross_cov.copy()
-        source[f - 1] = (0.0, 0.0, var_toa, 0.0)
-        gain[f - 1] = gain_new
-        p = cov.copy()
+        cross_cov[f - 1] = (0.0, 0.0, var_toa, 0.0)
+    innovation = np.subtract(innovation, mean_deviation)
+
+    # Whitened form: with S = L L^T, v = cross_cov L^-T and t = L^-1 innovation, the gain is v L^-1,
+    # the state moves by v t and the covariance loses v v^T; the NIS is |t|^2.
+    factor = cholesky_lower(innovation_cov)
+    if factor is None:
+        raise np.linalg.LinAlgError("innovation covariance is not positive definite")
+    v_t, info = _trtrs(factor, cross_cov.T, lower=1)
+    t, info_t = _trtrs(factor, innovation, lower=1)
+    if info or info_t:
+        raise np.linalg.LinAlgError("innovation covariance is singular")
+    nis = float(t.dot(t))
+    x = mean.copy()
+    p = cov.copy()
+    if use_toa:
+        x[f - 1] = 0.0
         p[f - 1] = 0.0
         p[:, f - 1] = 0.0
         p[f - 1, f - 1] = var_toa
-        p -= gain @ source.T
-    else:
-        gain = cross_cov @ inverse
-        x = mean + gain @ innovation
-        p = cov - gain @ cross_cov.T
+    x += t.dot(v_t)
+    p -= v_t.T.dot(v_t)
+    if not use_toa:
         x, p = fresh_toa_reference(x, p, config)
     p += p.T
     p *= 0.5
     return x, p, nis
+
+
+_DIRECTIONS: dict = {}
+
+
+def _sigma_directions(f: int) -> np.ndarray:
+    """``sqrt(f) [I, -I]``, shape ``(f, 2 f)``: ``chol @`` it gives the sigma-point offsets."""
+    found = _DIRECTIONS.get(f)
+    if found is None:
+        eye = np.eye(f) * math.sqrt(f)
+        found = _DIRECTIONS[f] = np.hstack((eye, -eye))
+        found.flags.writeable = False
+    return found
+
+
+_NOISES: dict = {}
+
+
+def _noise(config: TrackerConfig, use_toa: bool) -> np.ndarray:
+    """Diagonal measurement noise ``(B, E, [c dTOA,] Bdot)`` as a matrix, memoised per config."""
+    key = (config.sigma_azimuth_rad, config.sigma_elevation_rad, config.sigma_toa_s, config.sigma_azimuth_rate_rad_s,
+           use_toa)
+    found = _NOISES.get(key)
+    if found is None:
+        variances = [config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2]
+        if use_toa:
+            variances.append((C * config.sigma_toa_s) ** 2)
+        variances.append(config.sigma_azimuth_rate_rad_s**2)
+        if len(_NOISES) >= 64:
+            _NOISES.clear()
+        found = _NOISES[key] = np.diag(variances)
+        found.flags.writeable = False
+    return found
 
 
 def _measurement_model(points, n_pulses: int, interval_s: float, has_period_error: bool):

@@ -144,14 +144,26 @@ def kinematic_epoch(mean, cov, offset: int, period_s: float, dt_s: float, dtoa_s
 
 def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, period_s: float, los, d_az, d_el,
                      range_m: float | None, config: TrackerConfig):
-    """Joseph-form Kalman update of the step-1 block with one TOA difference.
+    """Kalman update of the step-1 block with one TOA difference (exactly the Joseph form, written as a
+    rank-one downdate).
 
-    The update runs on the state augmented with the new TOA's noise (last),
-    with the row ``[0, T u, (n), -1, 1]`` (``-1`` on the old TOA noise) and the
-    angle-induced error as measurement noise; the old TOA noise is then
-    dropped, so the new one takes its place. The gain is zero outside the
-    step-1 block; the Joseph form ``A P A^T + K R K^T`` holds for that gain
-    and keeps the covariance positive semi-definite.
+    The update runs on the state augmented with the new TOA's noise ``b``
+    (last), with the row ``h = [0, T u, (n), -1, 1]`` (``-1`` on the old TOA
+    noise ``a``) and the angle-induced error as measurement noise ``r``; ``a``
+    is then dropped, so ``b`` takes its place. The gain ``g`` is zero outside
+    the step-1 block ``s`` (the rest ``o`` of the state is considered, not
+    estimated). With ``w = P h`` and ``S = h^T P h + r``, the Joseph form
+    ``(I - g h^T) P (I - g h^T)^T + r g g^T`` for that gain is, block by block,
+
+    - ``P_ss - w_s w_s^T / S`` (the optimal update of ``s``),
+    - ``P_os - w_o w_s^T / S`` (the cross-covariance follows the zero gain),
+    - ``P_oo`` (unchanged),
+
+    and ``b``'s row is ``-w var_b / S`` with variance ``var_b - var_b^2 / S``.
+    The ``ss`` block is a rank-one downdate by ``w_s w_s^T / S`` with ``S``
+    larger than ``w_s^T P_ss^-1 w_s`` by the noise ``r + var_b > 0``, so it
+    stays positive definite; its products ``w_i w_j`` are formed once for both
+    triangles, so the result is exactly symmetric whenever ``P`` is.
 
     Parameters
     ----------
@@ -182,25 +194,25 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
         elevation errors.
     """
     n = mean.shape[0]
-    state = mean[offset:].tolist()
-    vx, vy, vz = state[0], state[1], state[2]
+    values = mean.tolist()
+    vx, vy, vz = values[offset:offset + 3]
     ux, uy, uz = los
     interval_s = n_pulses * period_s
+    radial = ux * vx + uy * vy + uz * vz
     z = C * (dtoa_s - interval_s)
     if range_m is not None:
-        radial = vx * ux + vy * uy + vz * uz
         perpendicular2 = max(vx * vx + vy * vy + vz * vz - radial * radial, 0.0)
         z += interval_s * interval_s * perpendicular2 / (2.0 * range_m)
-    z -= interval_s * (ux * vx + uy * vy + uz * vz) - state[-1]
-    row = [0.0] * offset
-    row += (interval_s * ux, interval_s * uy, interval_s * uz)
-    if len(state) == 5:
-        row.append(float(n_pulses))
-        z -= n_pulses * state[3]
-    row += (-1.0, 1.0)
-    h = np.array(row)
+    z -= interval_s * radial - values[-1]
+    has_period = n - offset == 5
+    if has_period:
+        h = (interval_s * ux, interval_s * uy, interval_s * uz, float(n_pulses), -1.0)
+        z -= n_pulses * values[offset + 3]
+    else:
+        h = (interval_s * ux, interval_s * uy, interval_s * uz, -1.0)
 
-    (p00, p01, p02), (_, p11, p12), (_, _, p22) = cov[offset:offset + 3, offset:offset + 3].tolist()
+    block = cov[offset:, offset:]
+    (p00, p01, p02), (_, p11, p12), (_, _, p22) = block[:3, :3].tolist()
     ax, ay = d_az[0], d_az[1]
     ex, ey, ez = d_el
     spread_az = ax * ax * p00 + 2.0 * ax * ay * p01 + ay * ay * p11
@@ -212,47 +224,39 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
     var_e = config.sigma_elevation_rad**2
     t2 = interval_s * interval_s
     r_angles = var_b * (gb * gb + t2 * spread_az) + var_e * (ge * ge + t2 * spread_el)
+    var_toa = (C * config.sigma_toa_s) ** 2
 
-    p = np.zeros((n + 1, n + 1))
-    p[:n, :n] = cov
-    p[n, n] = (C * config.sigma_toa_s) ** 2
-    ph = p @ h
-    gain = ph / (float(h @ ph) + r_angles)
-    gain[:offset] = 0.0
-    a = _identity(n + 1) - gain[:, None] * h
-    p = a @ p @ a.T
-    p += (r_angles * gain)[:, None] * gain
-    keep = _keep(n)
-    new_cov = p[keep]
-    new_cov += new_cov.T
-    new_cov *= 0.5
-    kept_gain = gain[keep[0][:, 0]]
-    new_mean = mean.copy()
-    new_mean[n - 1] = 0.0
-    new_mean += z * kept_gain
-    cross = np.multiply.outer(kept_gain[offset:], (-gb * var_b, -ge * var_e))
-    if len(state) == 5:
-        period_s = period_s + float(new_mean[offset + 3]) / C
-        new_mean[offset + 3] = 0.0
-    return new_mean, new_cov, period_s, cross
+    w = cov[:, offset:].dot(h)
+    w_list = w.tolist()
+    s_block = w_list[offset:]
+    innovation_var = var_toa + r_angles
+    for hi, wi in zip(h, s_block):
+        innovation_var += hi * wi
+    inverse = 1.0 / innovation_var
+    step = z * inverse
+    new_gain = var_toa * inverse
+    gains = [wi * inverse for wi in s_block[:-1]]
+    gains.append(new_gain)
+    for i, wi in enumerate(s_block[:-1], offset):
+        values[i] += wi * step
+    values[-1] = new_gain * z
 
-
-_IDENTITIES: dict[int, np.ndarray] = {}
-_KEEPS: dict[int, tuple] = {}
-
-
-def _identity(n: int) -> np.ndarray:
-    if n not in _IDENTITIES:
-        _IDENTITIES[n] = np.eye(n)
-    return _IDENTITIES[n]
-
-
-def _keep(n: int) -> tuple:
-    """Open-mesh index of an augmented ``(n + 1)`` state without its entry ``n - 1`` (the old TOA noise)."""
-    if n not in _KEEPS:
-        index = np.array(list(range(n - 1)) + [n])
-        _KEEPS[n] = np.ix_(index, index)
-    return _KEEPS[n]
+    new_cov = cov.copy()
+    kept = w[offset:n - 1]
+    downdate = np.multiply.outer(w, kept)
+    downdate *= inverse
+    columns = new_cov[:, offset:n - 1]
+    columns -= downdate
+    new_cov[offset:n - 1] = columns.T
+    column = w[:n - 1] * -new_gain
+    new_cov[:n - 1, n - 1] = column
+    new_cov[n - 1, :n - 1] = column
+    new_cov[n - 1, n - 1] = var_toa - var_toa * new_gain
+    if has_period:
+        period_s = period_s + values[offset + 3] / C
+        values[offset + 3] = 0.0
+    cross = np.array([(g * -gb * var_b, g * -ge * var_e) for g in gains])
+    return np.array(values), new_cov, period_s, cross
 
 
 def fresh_toa_reference(mean, cov, config: TrackerConfig):

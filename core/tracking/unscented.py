@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _potrf
 
 TWO_PI = 2.0 * math.pi
 #: Chi-square 99.9 % points for 2, 3 and 4 degrees of freedom: a normalised innovation squared above
@@ -100,7 +101,22 @@ def constant_velocity_predict(mean, cov, dt_s: float, accel_psd: float, velocity
     mean, cov : ndarray, shapes (n,), (n, n)
     """
     phi, noise = transition(mean.shape[0], velocity_blocks, moves_position, dt_s, accel_psd, separate_block)
-    return phi @ mean, phi @ cov @ phi.T + noise
+    predicted = phi.dot(cov).dot(phi.T)
+    predicted += noise
+    return phi.dot(mean), predicted
+
+
+def cholesky_lower(matrix):
+    """Lower Cholesky factor of a symmetric matrix (only its lower triangle is read), or None when it is
+    not positive definite.
+
+    LAPACK ``dpotrf`` called directly: ``np.linalg.cholesky`` spends some
+    2 us per call around the same routine, which matters at a few tens of
+    microseconds per filter step. It does not look for NaN: check finiteness
+    separately.
+    """
+    factor, info = _potrf(matrix, lower=1)
+    return factor if info == 0 else None
 
 
 def cholesky_repaired(cov):
@@ -122,10 +138,9 @@ def cholesky_repaired(cov):
         ``cov`` itself, or its repaired version.
     repaired : bool
     """
-    try:
-        return np.linalg.cholesky(cov), cov, False
-    except np.linalg.LinAlgError:
-        pass
+    factor = cholesky_lower(cov)
+    if factor is not None:
+        return factor, cov, False
     return _repair(cov)
 
 
@@ -137,11 +152,8 @@ def repaired_block(cov, size: int):
     cov : ndarray, shape (n, n)
     repaired : bool
     """
-    try:
-        np.linalg.cholesky(cov[:size, :size])
+    if cholesky_lower(cov[:size, :size]) is not None:
         return cov, False
-    except np.linalg.LinAlgError:
-        pass
     _, block, _ = _repair(cov[:size, :size])
     cov = cov.copy()
     old_scale = np.sqrt(np.maximum(np.diag(cov)[:size], 1e-300))
@@ -161,10 +173,10 @@ def _repair(cov):
     for _ in range(8):
         fixed = (vectors * np.maximum(values, floor)) @ vectors.T
         fixed = 0.5 * (fixed + fixed.T) * np.outer(scale, scale)
-        try:
-            return np.linalg.cholesky(fixed), fixed, True
-        except np.linalg.LinAlgError:
-            floor *= 100.0
+        factor = cholesky_lower(fixed)
+        if factor is not None:
+            return factor, fixed, True
+        floor *= 100.0
     raise FloatingPointError("covariance could not be repaired")
 
 
@@ -293,10 +305,6 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
     if pseudo is not None:
         d_vx, d_vy = pseudo.d_vx, pseudo.d_vy
         rr, rb, re, _, _, _ = pseudo.covariance
-        gain_source = cov[:, _FIVE[offset]] @ np.array(((w00, w01, w02), (w10, w11, w12), (w20, w21, w22),
-                                                        (-d_vx, 0.0, 0.0), (-d_vy, 0.0, 0.0)))
-        if cross is not None:
-            gain_source[offset:] -= cross @ ((pseudo.d_azimuth, 1.0, 0.0), (pseudo.d_elevation, 0.0, 1.0))
         (a0, a1, a2), (b0, b1, b2) = cov[offset:offset + 2, :3].tolist()
         l0 = d_vx * a0 + d_vy * b0
         l1 = d_vx * a1 + d_vy * b1
@@ -307,52 +315,83 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
         s00 += rr - 2.0 * (d00 * ell0 + d01 * ell1 + d02 * ell2)
         s01 += rb - (d10 * ell0 + d11 * ell1 + d12 * ell2)
         s02 += re - (d20 * ell0 + d21 * ell1 + d22 * ell2)
-        innovation = (pseudo.range_m - r0 - m0, remainder(azimuth_rad - azimuth0, TWO_PI) - m1,
-                      elevation_rad - elevation0 - m2)
-        inverse = _inverse_symmetric3(s00, s01, s02, s11, s12, s22)
-    else:
-        gain_source = cov[:, :3] @ np.array(((w01, w02), (w11, w12), (w21, w22)))
-        if cross is not None:
-            gain_source[offset:] -= cross
-        innovation = (remainder(azimuth_rad - azimuth0, TWO_PI) - m1, elevation_rad - elevation0 - m2)
-        determinant = s11 * s22 - s12 * s12
-        if not determinant > 0.0:
+        n0 = pseudo.range_m - r0 - m0
+        n1 = remainder(azimuth_rad - azimuth0, TWO_PI) - m1
+        n2 = elevation_rad - elevation0 - m2
+        # Lower Cholesky factor of the innovation covariance and its inverse k.
+        if not s00 > 0.0:
             raise np.linalg.LinAlgError("innovation covariance is not positive definite")
-        inverse = ((s22 / determinant, -s12 / determinant), (-s12 / determinant, s11 / determinant))
-
-    if pseudo is not None:
-        n0, n1, n2 = innovation
-        (q00, q01, q02), (_, q11, q12), (_, _, q22) = inverse
-        nis = (n0 * n0 * q00 + n1 * n1 * q11 + n2 * n2 * q22
-               + 2.0 * (n0 * n1 * q01 + n0 * n2 * q02 + n1 * n2 * q12))
+        c00 = sqrt(s00)
+        c10 = s01 / c00
+        c20 = s02 / c00
+        e11 = s11 - c10 * c10
+        if not e11 > 0.0:
+            raise np.linalg.LinAlgError("innovation covariance is not positive definite")
+        c11 = sqrt(e11)
+        c21 = (s12 - c20 * c10) / c11
+        e22 = s22 - c20 * c20 - c21 * c21
+        if not e22 > 0.0:
+            raise np.linalg.LinAlgError("innovation covariance is not positive definite")
+        k00 = 1.0 / c00
+        k11 = 1.0 / c11
+        k22 = 1.0 / sqrt(e22)
+        k10 = -c10 * k00 * k11
+        k21 = -c21 * k11 * k22
+        k20 = -(c20 * k00 + c21 * k10) * k22
+        t0 = k00 * n0
+        t1 = k10 * n0 + k11 * n1
+        t2 = k20 * n0 + k21 * n1 + k22 * n2
+        nis = t0 * t0 + t1 * t1 + t2 * t2
+        whitened = (t0, t1, t2)
+        # (state columns [p, vx_s, vy_s] -> innovation) @ k^T: the rows of W k^T.
+        to_innovation = np.array(((w00 * k00, w00 * k10 + w01 * k11, w00 * k20 + w01 * k21 + w02 * k22),
+                                  (w10 * k00, w10 * k10 + w11 * k11, w10 * k20 + w11 * k21 + w12 * k22),
+                                  (w20 * k00, w20 * k10 + w21 * k11, w20 * k20 + w21 * k21 + w22 * k22),
+                                  (-d_vx * k00, -d_vx * k10, -d_vx * k20),
+                                  (-d_vy * k00, -d_vy * k10, -d_vy * k20)))
+        columns = _FIVE[offset]
+        if cross is not None:
+            d_az, d_el = pseudo.d_azimuth, pseudo.d_elevation
+            from_angles = np.array(((d_az * k00, d_az * k10 + k11, d_az * k20 + k21),
+                                    (d_el * k00, d_el * k10, d_el * k20 + k22)))
     else:
-        n1, n2 = innovation
-        (q11, q12), (_, q22) = inverse
-        nis = n1 * n1 * q11 + n2 * n2 * q22 + 2.0 * n1 * n2 * q12
-    gain = gain_source[:6] @ inverse
+        n1 = remainder(azimuth_rad - azimuth0, TWO_PI) - m1
+        n2 = elevation_rad - elevation0 - m2
+        if not s11 > 0.0:
+            raise np.linalg.LinAlgError("innovation covariance is not positive definite")
+        c11 = sqrt(s11)
+        c21 = s12 / c11
+        e22 = s22 - c21 * c21
+        if not e22 > 0.0:
+            raise np.linalg.LinAlgError("innovation covariance is not positive definite")
+        k11 = 1.0 / c11
+        k22 = 1.0 / sqrt(e22)
+        k21 = -c21 * k11 * k22
+        t1 = k11 * n1
+        t2 = k21 * n1 + k22 * n2
+        nis = t1 * t1 + t2 * t2
+        whitened = (t1, t2)
+        to_innovation = np.array(((w01 * k11, w01 * k21 + w02 * k22), (w11 * k11, w11 * k21 + w12 * k22),
+                                  (w21 * k11, w21 * k21 + w22 * k22)))
+        columns = _THREE
+        if cross is not None:
+            from_angles = np.array(((k11, k21), (0.0, k22)))
+
+    # v = (covariance of the state with the innovation) k^T, so that the gain is v[:6] k and
+    # the covariance loses v[:6] v^T in rows [p, v] (and its transpose in the columns).
+    v = cov.take(columns, axis=1).dot(to_innovation)
+    if cross is not None:
+        v[offset:] -= cross.dot(from_angles)
+    head = v[:6]
     new_mean = mean.copy()
-    new_mean[:6] += gain @ innovation
+    new_mean[:6] += head.dot(whitened)
+    loss = v.dot(head.T)
+    loss[:6] *= 0.5
     new_cov = cov.copy()
-    new_cov[:6] -= gain @ gain_source.T
-    new_cov[6:, :6] = new_cov[:6, 6:].T
-    block = new_cov[:6, :6]
-    block += block.T
-    block *= 0.5
+    new_cov[:, :6] -= loss
+    new_cov[:6] -= loss.T
     return new_mean, new_cov, nis
 
 
 _FIVE = {6: np.array([0, 1, 2, 6, 7])}
-
-
-def _inverse_symmetric3(s00, s01, s02, s11, s12, s22):
-    c00 = s11 * s22 - s12 * s12
-    c01 = s02 * s12 - s01 * s22
-    c02 = s01 * s12 - s02 * s11
-    determinant = s00 * c00 + s01 * c01 + s02 * c02
-    if not determinant > 0.0:
-        raise np.linalg.LinAlgError("innovation covariance is not positive definite")
-    c11 = s00 * s22 - s02 * s02
-    c12 = s01 * s02 - s00 * s12
-    c22 = s00 * s11 - s01 * s01
-    f = 1.0 / determinant
-    return ((c00 * f, c01 * f, c02 * f), (c01 * f, c11 * f, c12 * f), (c02 * f, c12 * f, c22 * f))
+_THREE = np.array([0, 1, 2])

@@ -1,22 +1,34 @@
-"""The session filters give the numbers of the frozen reference implementation (``reference/``) to 1e-12.
+"""The session filters give the numbers of the frozen reference implementation (``reference/``).
 
-The hot path of ``core.tracking`` was rewritten for speed (scalar arithmetic, fewer numpy calls); the
-filter itself was not meant to change. Both implementations run here, in the same test run, on fixed
-scenarios that visit every branch of a step (start, bootstrap, tracking, range unobservable, missed
-epochs, a TOA off by half a period, a turn to near-radial flight, a covariance repair), and every state
-must agree:
+The hot path of ``core.tracking`` was rewritten for speed (scalar arithmetic, fewer numpy calls, the
+step-1 Joseph update written as the equivalent rank-one downdate); the filter itself was not meant to
+change. Both implementations run here, in the same test run, on fixed scenarios that visit every branch
+of a step (start, bootstrap, tracking, range unobservable, missed epochs, a TOA off by half a period, a
+turn to near-radial flight, a covariance repair). Two states are compared by
 
 - stage, update count and warning codes exactly;
-- each mean component to ``TOLERANCE * (|x_i| + sigma_i)``, each covariance entry to
-  ``TOLERANCE * sigma_i sigma_j`` (i.e. the correlation matrix to ``TOLERANCE`` absolute), the period
-  and the range pseudo-measurement to ``TOLERANCE`` relative.
+- each mean component relative to ``|x_i| + sigma_i``, each covariance entry relative to
+  ``sigma_i sigma_j`` (i.e. the correlation matrix, absolute), the period and the range
+  pseudo-measurement relative to themselves; the largest of these is the deviation.
 
-The tolerance is set by rounding alone: a different but equivalent order of floating-point operations
-moves the results by ~1e-15 relative per step, and a Kalman filter does not amplify that.
+Two checks, because the problem itself amplifies rounding:
+
+- One step from the same input state (the reference's, epoch by epoch): the deviation is rounding
+  only, at most ``STEP_TOLERANCE``. It is ~1e-13 and below with a known period; with an unknown
+  period the step-1 state (line-of-sight velocity and period error, measured almost only in one
+  combination at first) is badly conditioned, and the two algebraically equal updates differ by up
+  to ~3e-12 there, each within ~2e-12 of an 80-bit evaluation of the old formula.
+- A whole run, each implementation on its own: rounding differences then propagate like any
+  perturbation, and the bootstrap (a covariance collapsing from the 500 m/s prior) amplifies them. The
+  yardstick is measured in the same run: the reference against itself with every azimuth moved by one
+  unit in the last place. The rewrite must stay within ``RUN_FACTOR`` times that (it is about 1e-10
+  with a known period and 2e-7 with an unknown one on the paper scenario: 1e-12 over a whole run
+  is below what the problem preserves from its own inputs).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -29,7 +41,10 @@ from tests.core.tracking.reference.session import new_state as new_state_then
 from tests.core.tracking.reference.session import step as step_then
 from tests.core.tracking.scenarios import paper_config
 
-TOLERANCE = 1e-12
+#: Largest deviation of one step from the same input state.
+STEP_TOLERANCE = 5e-12
+#: A whole run may deviate from the reference by this factor times the reference's own one-ulp sensitivity.
+RUN_FACTOR = 10.0
 
 
 def deviation(now: TrackState, then: TrackState) -> float:
@@ -50,24 +65,40 @@ def deviation(now: TrackState, then: TrackState) -> float:
     return max(worst)
 
 
-def run_both(config, epochs, tamper=None) -> tuple[float, set]:
-    """Step both implementations through ``epochs``; the largest deviation and the warning codes seen.
+def one_ulp_off(epoch):
+    return replace(epoch, azimuth_rad=math.nextafter(epoch.azimuth_rad, math.inf))
 
-    ``tamper(i, state)`` may replace the state before epoch ``i`` (applied to both, from the reference's
-    state, so that both continue from one input)."""
-    now, then = new_state_now(config), new_state_then(config)
-    assert deviation(now, then) == 0.0
-    worst = 0.0
+
+def compare(config, epochs, tamper=None) -> tuple[float, float, float, set]:
+    """Run the reference, and step the rewrite from each of its states; also run the rewrite on its own
+    and the reference on azimuths one ulp off.
+
+    ``tamper(i, state)`` may replace the reference's state before epoch ``i`` (every run continues from
+    the tampered state). Returns the largest one-step deviation, the largest whole-run deviation, the
+    reference's whole-run deviation from itself one ulp off, and the warning codes seen."""
+    then = off = now = new_state_then(config)
+    assert deviation(new_state_now(config), then) == 0.0
+    worst_step = worst_run = sensitivity = 0.0
     codes = set()
     for i, epoch in enumerate(epochs):
         if tamper is not None:
             changed = tamper(i, then)
             if changed is not None:
-                now = then = changed
-        now, then = step(now, epoch, config), step_then(then, epoch, config)
-        worst = max(worst, deviation(now, then))
+                then = off = now = changed
+        following = step_then(then, epoch, config)
+        worst_step = max(worst_step, deviation(step(then, epoch, config), following))
+        then = following
+        now = step(now, epoch, config)
+        worst_run = max(worst_run, deviation(now, then))
+        off = step_then(off, one_ulp_off(epoch), config)
+        sensitivity = max(sensitivity, deviation(off, then))
         codes |= {code for code, _ in then.warnings}
-    return worst, codes
+    return worst_step, worst_run, sensitivity, codes
+
+
+def assert_equal_to_rounding(worst_step, worst_run, sensitivity):
+    assert worst_step <= STEP_TOLERANCE
+    assert worst_run <= RUN_FACTOR * max(sensitivity, 1e-13), (worst_run, sensitivity)
 
 
 CONFIGS = [
@@ -91,8 +122,8 @@ def test_paper_scenario_equals_the_reference(case, seed):
     model, known, extra = case
     config = paper_config(model, known, **extra)
     epochs = simulate_emitter(paper_001_scenario(), np.random.default_rng(seed)).epochs
-    worst, codes = run_both(config, epochs)
-    assert worst <= TOLERANCE
+    *figures, codes = compare(config, epochs)
+    assert_equal_to_rounding(*figures)
 
 
 @pytest.mark.parametrize("case", CONFIGS, ids=config_id)
@@ -110,8 +141,8 @@ def test_gaps_bad_toa_and_a_turn_to_near_radial_equal_the_reference(case):
     epochs = list(simulate_emitter(scenario, np.random.default_rng(77)).epochs)
     for i in (8, 90):
         epochs[i] = replace(epochs[i], toa_s=epochs[i].toa_s + 0.5 * config.period_s)
-    worst, codes = run_both(config, epochs)
-    assert worst <= TOLERANCE
+    *figures, codes = compare(config, epochs)
+    assert_equal_to_rounding(*figures)
     assert {"pulse_count_ambiguous", "range_unobservable"} <= codes
 
 
@@ -130,6 +161,6 @@ def test_a_covariance_repair_equals_the_reference(case):
         broken[3, 4] = broken[4, 3] = 2.0 * np.sqrt(broken[3, 3] * broken[4, 4])
         return replace(state, covariance=broken)
 
-    worst, codes = run_both(config, epochs, tamper)
-    assert worst <= TOLERANCE
+    *figures, codes = compare(config, epochs, tamper)
+    assert_equal_to_rounding(*figures)
     assert "covariance_repaired" in codes
