@@ -440,6 +440,27 @@ def _collinear_spread(seen, is_line):
     return np.arccos(smallest)
 
 
+def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue: float) -> str:
+    """Why the information is singular at an ML iterate, as specifically as can be told."""
+    n = int(batch.n_stations[b])
+    local = np.einsum("nij,nj->ni", batch.station_rotations[b, :n], position_enu_m - batch.stations_enu_m[b, :n])
+    horizontal = np.hypot(local[:, 0], local[:, 1])
+    at_zenith = horizontal < 1e-6 * np.maximum(np.linalg.norm(local, axis=-1), 1.0)
+    if np.any(at_zenith):
+        ids = ", ".join(batch.station_ids[b][i] for i in np.flatnonzero(at_zenith))
+        return ("the bearings contradict each other: the iteration ran onto the vertical of station "
+                f"{ids}, where azimuth is undefined (typically the lines of sight meet only behind a station); "
+                "check the bearings, or use eove to see where the lines meet")
+    stations = batch.stations_enu_m[b, :n]
+    spread_m = float(np.max(np.linalg.norm(stations - stations.mean(axis=0), axis=-1))) + 1e3
+    if np.linalg.norm(position_enu_m - stations.mean(axis=0)) > 1e4 * spread_m:
+        return ("the bearings have no common point in front of the stations: the fit runs off to infinity "
+                "(lines of sight diverge, or meet only behind a station); check the bearings, or use eove "
+                "to see where the lines meet")
+    return ("the measurements do not determine the position: the information matrix is singular "
+            f"(min scaled eigenvalue {min_eigenvalue:.1e}); add stations, elevations or an altitude constraint")
+
+
 def finish_batch(batch: ProblemBatch, solution: BatchSolution, starts, method: str = "ml",
                  stack: ProblemStack | None = None) -> FixBatch:
     """Everything a fix reports, for a whole batch of ML solutions.
@@ -470,9 +491,7 @@ def finish_batch(batch: ProblemBatch, solution: BatchSolution, starts, method: s
     position = solution.positions_enu_m
     errors: dict[int, LocalizationError] = {}
     for b in np.flatnonzero(~info.observable):
-        errors[int(b)] = UnobservableGeometry(
-            "the measurements do not determine the position: the information matrix is singular "
-            f"(min scaled eigenvalue {info.min_eigenvalue[b]:.1e}); add stations, elevations or an altitude constraint")
+        errors[int(b)] = UnobservableGeometry(_singular_reason(batch, int(b), position[b], info.min_eigenvalue[b]))
     for b in np.flatnonzero(info.observable & ~np.all(np.isfinite(position), axis=-1)):
         errors[int(b)] = LocalizationError(f"{method} produced no finite position for this geometry")
 

@@ -338,3 +338,23 @@ def test_gross_outlier_is_flagged():
     assert {"outlier_suspected", "sigma_mismatch"} <= codes(fix)
     assert "measurement 2 " in next(w.message for w in fix.warnings if w.code == "outlier_suspected")
     assert fix.p_value < 1e-3
+
+
+def test_bearings_meeting_only_behind_a_station_say_so():
+    """Contradictory bearings are a 422 that names the cause, not 'add stations'."""
+    from core.errors import UnobservableGeometry
+    from core.estimators import solve
+    from core.problem import Bearing, LocalPoint, build_problem
+
+    target = np.array([500.0, -3000.0, 300.0])
+    one_degree = np.deg2rad(1.0)
+    to_a, to_b = target, target - np.array([1000.0, 0.0, 0.0])
+    reversed_azimuth_a = np.arctan2(to_a[0], to_a[1]) + np.pi
+    problem = build_problem(
+        [("a", LocalPoint(0, 0, 0)), ("b", LocalPoint(1000, 0, 0))],
+        [Bearing("a", reversed_azimuth_a, None, one_degree),
+         Bearing("b", np.arctan2(to_b[0], to_b[1]), np.arctan2(to_b[2], np.hypot(to_b[0], to_b[1])),
+                 one_degree, one_degree)])
+    with pytest.raises(UnobservableGeometry, match="behind a station"):
+        solve(problem, "ml")
+    assert "behind_station" in {w.code for w in solve(problem, "eove").warnings}
