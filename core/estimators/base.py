@@ -27,12 +27,15 @@ OUTLIER_SIGMAS = 4.0
 SIGMA_MISMATCH_P = 1e-3
 #: Lines of sight closer than this to parallel (rad) make a fix collinear.
 COLLINEAR_SPREAD_RAD = np.deg2rad(2.0)
+#: Ratio of a closed form's covariance trace to the CRLB's above which the method is flagged as inefficient.
+INEFFICIENCY_RATIO = 10.0
 #: Minimum unit-diagonal information eigenvalue below which a fix is ill-conditioned.
 ILL_CONDITIONED_EIGENVALUE = 1e-6
 
 #: Warning codes a fix may carry, with what each means.
 WARNING_CODES = {
     "ill_conditioned": "the geometry barely determines the position in some direction",
+    "inefficient_method": "this method's own covariance is far above the CRLB here: use ml or weighted_eove",
     "collinear_geometry": "lines of sight or stations are nearly collinear with the target",
     "behind_station": "the fix lies behind a station's measured line of sight",
     "not_converged": "the iteration stopped before converging; the last good iterate is returned",
@@ -234,6 +237,12 @@ def finish_fix(
     if crlb.min_eigenvalue[0] < ILL_CONDITIONED_EIGENVALUE:
         found.append(FixWarning("ill_conditioned",
                                 f"information matrix nearly singular (min scaled eigenvalue {crlb.min_eigenvalue[0]:.1e})"))
+    bound_trace = float(np.trace(crlb.covariance_enu_m2[0]))
+    if covariance_source == "propagated" and np.trace(covariance) > INEFFICIENCY_RATIO * bound_trace > 0:
+        found.append(FixWarning(
+            "inefficient_method",
+            f"{method}'s covariance is {np.trace(covariance) / bound_trace:.0f} x the CRLB in this geometry "
+            "(its equations are nearly degenerate here); ml or weighted_eove reach the bound"))
     found.extend(geometry_warnings(problem, position))
     worst = int(np.argmax(np.abs(studentized))) if studentized.size else 0
     if dof > 0 and abs(studentized[worst]) > OUTLIER_SIGMAS:
