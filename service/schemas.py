@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
 from core.estimators import REGISTRY
+from core.estimators.base import WARNING_CODES
 
 
 class Strict(BaseModel):
@@ -152,7 +153,8 @@ class Fit(BaseModel):
 
 
 class Warning(BaseModel):
-    code: str
+    code: str = Field(description="open set; those in use: " + "; ".join(
+        f"`{code}`: {meaning}" for code, meaning in sorted(WARNING_CODES.items())))
     message: str
 
 
