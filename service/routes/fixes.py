@@ -1,16 +1,22 @@
-"""Fixes and planning bounds."""
+"""Fixes and planning bounds.
+
+``POST /v1/fixes`` runs on the event loop: it validates and translates its
+request, then awaits the app's :class:`~service.coalesce.Coalescer`, which
+solves every fix queued at that moment in one batched call on a worker
+thread (an idle service solves a lone request at once, alone).
+"""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Depends, Request
 from service.responses import JsonResponse
 
 from core.accuracy import error_summary
 from core.crlb import information_at
 from core.errors import UnobservableGeometry
-from core.estimators import solve
 from service import schemas
-from service.deps import OwnerDep
+from service.coalesce import Coalescer
+from service.deps import OwnerDep, get_owner
 from service.translate import crlb_problem, error_dict, fix_to_dict, to_options, to_problem
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
@@ -18,12 +24,26 @@ router = APIRouter(prefix="/v1", tags=["fixes"])
 _ERRORS = {422: {"model": schemas.Problem, "description": "invalid input or unobservable geometry"}}
 
 
+async def _owner_on_loop(request: Request) -> str:
+    """:func:`service.deps.get_owner` run on the event loop (a plain ``def`` dependency costs a thread hop)."""
+    return get_owner(request)
+
+
+def coalescer(app) -> Coalescer:
+    """The app's coalescer of single fixes, made on first use (no module-level state)."""
+    found = getattr(app.state, "fix_coalescer", None)
+    if found is None:
+        found = app.state.fix_coalescer = Coalescer()
+    return found
+
+
 @router.post("/fixes", operation_id="fixes-create", summary="Locate an emitter from one set of measurements",
              response_model=schemas.FixResponse, responses=_ERRORS)
-def create_fix(request: schemas.FixRequest, owner: OwnerDep) -> JsonResponse:
+async def create_fix(request: schemas.FixRequest, http: Request,
+                     owner: str = Depends(_owner_on_loop)) -> JsonResponse:
     problem = to_problem(request)
-    fix = solve(problem, request.method, to_options(request))
-    return JsonResponse(fix_to_dict(problem, fix, request.formats))
+    solved = await coalescer(http.app).solve(problem, request.method, to_options(request))
+    return JsonResponse(fix_to_dict(problem, solved.fix, request.formats, solved.summary, solved.index))
 
 
 @router.post("/crlb", operation_id="fixes-crlb", summary="The Cramer-Rao bound of a geometry (planning)",

@@ -1,0 +1,199 @@
+"""Concurrent POST /v1/fixes share one batched solve and answer exactly as each would alone."""
+
+from __future__ import annotations
+
+import asyncio
+import copy
+import threading
+
+import pytest
+
+from core.errors import LocalizationError
+from core.estimators import SolveOptions, solve
+from service import coalesce
+from service.coalesce import Coalescer
+from service.schemas import FixRequest
+from service.translate import to_options, to_problem
+from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
+from tests.service.test_batch import _noisy, _subset, assert_close, mixed_batch
+
+
+def _requests() -> list[dict]:
+    """Every method, frame and mix of the batch tests, the malformed and unsolvable ones among them."""
+    problems = mixed_batch()
+    problems.append(bearing_request(_subset(["rx-1"]), TARGET, method="ml"))  # one station: unsolvable
+    return problems
+
+
+def _post_concurrently(client, bodies: list[dict]) -> list:
+    barrier = threading.Barrier(len(bodies))
+    out: list = [None] * len(bodies)
+
+    def post(i):
+        barrier.wait()
+        out[i] = client.post("/v1/fixes", json=bodies[i])
+
+    threads = [threading.Thread(target=post, args=(i,)) for i in range(len(bodies))]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return out
+
+
+def _without_request_id(body: dict) -> dict:
+    return {k: v for k, v in body.items() if k != "request_id"}
+
+
+def test_concurrent_fixes_equal_lone_fixes(make_client):
+    bodies = _requests()
+    shared = make_client()
+    together = _post_concurrently(shared, bodies)
+    lone_client = make_client()
+    alone = [lone_client.post("/v1/fixes", json=b) for b in bodies]
+
+    coalescer = shared.app.state.fix_coalescer
+    assert coalescer.drains < coalescer.solved  # some requests did share a solve
+    assert lone_client.app.state.fix_coalescer.drains == lone_client.app.state.fix_coalescer.solved
+    statuses = [r.status_code for r in alone]
+    assert statuses.count(200) >= len(bodies) // 2 and 422 in statuses
+    for i, (got, expected) in enumerate(zip(together, alone)):
+        assert got.status_code == expected.status_code, (i, got.text, expected.text)
+        assert got.headers["content-type"] == expected.headers["content-type"]
+        if expected.status_code == 200:
+            assert_close(got.json(), expected.json(), f"request {i}")
+        else:
+            assert _without_request_id(got.json()) == _without_request_id(expected.json())
+
+
+def _core_items():
+    items = []
+    for body in _requests():
+        try:
+            request = FixRequest.model_validate(body)
+            items.append((to_problem(request), request.method, to_options(request)))
+        except Exception:
+            continue
+    return items
+
+
+def test_one_drain_takes_everything_queued_and_matches_solve():
+    items = _core_items()
+
+    async def run():
+        coalescer = Coalescer()
+        results = await asyncio.gather(*(coalescer.solve(*item) for item in items), return_exceptions=True)
+        return coalescer, results
+
+    coalescer, results = asyncio.run(run())
+    assert (coalescer.drains, coalescer.solved) == (1, len(items))
+    failures = 0
+    for (problem, method, options), result in zip(items, results):
+        try:
+            expected = solve(problem, method, options)
+        except LocalizationError as error:
+            failures += 1
+            assert isinstance(result, LocalizationError) and type(result) is type(error)
+            assert (result.message, result.loc) == (error.message, error.loc)
+            continue
+        fix = result.fix
+        assert fix.method == expected.method
+        for name in ("position_enu_m", "covariance_enu_m2", "crlb_enu_m2", "residuals"):
+            a, b = getattr(fix, name), getattr(expected, name)
+            scale = max(float(abs(b).max()), 1e-300) if b.size else 1.0
+            assert abs(a - b).max() <= 1e-9 * scale, name
+        from core.accuracy import error_summary
+
+        alone = error_summary(expected.covariance_enu_m2)
+        assert result.summary.cep50_m[result.index] == pytest.approx(alone.cep50_m[0], rel=1e-9)
+        assert result.summary.sep50_m[result.index] == pytest.approx(alone.sep50_m[0], rel=1e-9)
+    assert failures >= 1
+
+
+def test_an_idle_service_solves_a_lone_request_at_once():
+    (item,) = _core_items()[:1]
+
+    async def run():
+        coalescer = Coalescer()
+        first = await coalescer.solve(*item)
+        second = await coalescer.solve(*item)
+        return coalescer, first, second
+
+    coalescer, first, second = asyncio.run(run())
+    assert (coalescer.drains, coalescer.solved) == (2, 2)
+    assert (first.fix.position_enu_m == second.fix.position_enu_m).all()
+
+
+def test_a_bug_in_one_problem_fails_only_its_request(make_client, monkeypatch, tmp_path):
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from service.settings import Settings
+
+    good = _noisy(bearing_request(STATIONS_300KM, TARGET), 5)
+    poisoned = copy.deepcopy(good)
+    poisoned["options"] = {"max_iterations": 17}
+    real_solve_many, real_solve = coalesce.solve_many, coalesce.solve
+
+    def is_poisoned(options):
+        return options.max_iterations == 17
+
+    def buggy_solve_many(problems, methods, options):
+        if any(is_poisoned(o) for o in options):
+            raise ZeroDivisionError("a bug")
+        return real_solve_many(problems, methods, options)
+
+    def buggy_solve(problem, method="auto", options=None):
+        if options is not None and is_poisoned(options):
+            raise ZeroDivisionError("a bug")
+        return real_solve(problem, method, options)
+
+    monkeypatch.setattr(coalesce, "solve_many", buggy_solve_many)
+    monkeypatch.setattr(coalesce, "solve", buggy_solve)
+    app = create_app(Settings(store=f"sqlite:///{tmp_path}/bug.db"))
+    with TestClient(app, raise_server_exceptions=False) as client:
+        responses = _post_concurrently(client, [good, poisoned, good, good])
+    assert [r.status_code for r in responses] == [200, 500, 200, 200]
+    assert responses[1].headers["content-type"].startswith("application/problem+json")
+    expected = make_client().post("/v1/fixes", json=good).json()
+    for k in (0, 2, 3):
+        assert_close(responses[k].json(), expected)
+
+
+def test_results_go_to_cancelled_waiters_without_harm():
+    items = _core_items()[:3]
+
+    async def run():
+        coalescer = Coalescer()
+        tasks = [asyncio.ensure_future(coalescer.solve(*item)) for item in items]
+        await asyncio.sleep(0)
+        tasks[1].cancel()
+        done = await asyncio.gather(*tasks, return_exceptions=True)
+        again = await coalescer.solve(*items[0])
+        return done, again
+
+    done, again = asyncio.run(run())
+    assert isinstance(done[1], asyncio.CancelledError)
+    assert (done[0].fix.position_enu_m == again.fix.position_enu_m).all()
+
+
+def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch):
+    items = [item for item in _core_items() if item[1] in ("ml", "auto")][:3]
+    poisoned = items[1][2]
+    real_solve = coalesce.solve
+
+    def buggy_solve_many(problems, methods, options):
+        raise ZeroDivisionError("a bug in the shared call")
+
+    def buggy_solve(problem, method="auto", options=None):
+        if options is poisoned:
+            raise ZeroDivisionError("a bug in this problem")
+        return real_solve(problem, method, options)
+
+    monkeypatch.setattr(coalesce, "solve_many", buggy_solve_many)
+    monkeypatch.setattr(coalesce, "solve", buggy_solve)
+    results = coalesce.solve_together(items)
+    assert isinstance(results[1], ZeroDivisionError)
+    for k in (0, 2):
+        expected = real_solve(*items[k])
+        assert (results[k].fix.position_enu_m == expected.position_enu_m).all()
