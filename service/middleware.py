@@ -6,6 +6,7 @@ the body can be counted while it streams.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import time
 import uuid
@@ -34,6 +35,8 @@ class ServiceMiddleware:
     """Request id (echoed or made), body limit (413), rate limit (429), metrics, and the 500 of last resort."""
 
     def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None):
+        self._id_prefix = uuid.uuid4().hex[:16]
+        self._id_counter = itertools.count(1)
         self.app = app
         self.max_body_bytes = max_body_bytes
         self.metrics = metrics
@@ -44,7 +47,7 @@ class ServiceMiddleware:
             await self.app(scope, receive, send)
             return
         headers = dict(scope.get("headers") or [])
-        request_id = headers.get(b"x-request-id", b"").decode("latin-1")[:128] or uuid.uuid4().hex
+        request_id = headers.get(b"x-request-id", b"").decode("latin-1")[:128] or self._next_request_id()
         scope.setdefault("state", {})["request_id"] = request_id
         started = time.perf_counter()
         status_holder = {"status": 500, "started": False}
@@ -95,6 +98,10 @@ class ServiceMiddleware:
             path = getattr(route, "path", None) or "unmatched"
             self.metrics.observe(scope.get("method", "?"), path, status_holder["status"],
                                  time.perf_counter() - started)
+
+    def _next_request_id(self) -> str:
+        """Unique per process start and request; one urandom call per process, not per request."""
+        return f"{self._id_prefix}{next(self._id_counter):016x}"
 
     async def _too_large(self, send, request_id):
         body = orjson.dumps(problem_body(413, "body_too_large",
