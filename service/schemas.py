@@ -80,7 +80,9 @@ class RangeMeasurement(Strict):
 class ToaMeasurement(Strict):
     type: Literal["toa"]
     station_id: StationId
-    toa_s: float = Field(description="time of arrival, synchronised clocks; emission time unknown")
+    toa_s: float = Field(description=(
+        "time of arrival, synchronised clocks; emission time unknown. JSON numbers are float64: send seconds "
+        "since a recent epoch (float64 resolves ~2e-7 s at Unix time, ~2e-15 s at 10 s)"))
     sigma_s: float = Field(gt=0.0)
 
 
