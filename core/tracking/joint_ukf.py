@@ -31,7 +31,7 @@ from core.tracking.config import TrackerConfig
 from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRACTION, RangePseudoMeasurement,
                                      count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
                                      range_pseudo_measurement)
-from core.tracking.state import TrackState, freeze
+from core.tracking.state import TrackState, freeze, symmetric
 from core.tracking.unscented import (NIS_LIMIT, TWO_PI, cholesky_lower, cholesky_repaired,
                                      constant_velocity_predict)
 
@@ -54,7 +54,7 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
                          f"({config.sigma_azimuth_rate_rad_s:.3g} rad/s): near-radial motion"))
 
     if state.stage == "velocity":
-        mean, cov = constant_velocity_predict(state.mean, state.covariance, dt_s, q, (0,), False)
+        mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt_s, q, (0,), False)
         mean, cov, period_s, cross = kinematic_epoch(mean, cov, 0, state.pulse_period_s, dt_s, dtoa_s,
                                                      azimuth, elevation, None, config, warnings)
         pseudo = range_pseudo_measurement(mean, cov, 0, cross, azimuth, elevation, rate, config)
@@ -66,15 +66,15 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
                 _, new_cov, repaired = cholesky_repaired(new_cov)
                 if repaired:
                     warnings.append(("covariance_repaired", "initial covariance was not positive definite"))
-                if math.isfinite(float(new_mean.sum()) + float(new_cov.sum())):
+                if math.isfinite(sum(new_mean) + float(new_cov.sum())):
                     mean, cov, stage = new_mean, new_cov, "tracking"
-        return TrackState(config.model, stage, state.updates + 1, time_s, toa_s, period_s, freeze(mean),
-                          freeze(cov), None, tuple(warnings))
+        return TrackState(config.model, stage, state.updates + 1, time_s, toa_s, period_s, freeze(np.array(mean)),
+                          symmetric(cov), None, tuple(warnings))
 
     k = state.mean.shape[0] - 3
-    mean, cov = constant_velocity_predict(state.mean, state.covariance, dt_s, q, (3,), True)
+    mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt_s, q, (3,), True)
     period_s = state.pulse_period_s
-    x, y, z, vx, vy, vz = mean[:6].tolist()
+    x, y, z, vx, vy, vz = mean[:6]
     r = math.sqrt(x * x + y * y + z * z)
     n_pulses, fraction = count_pulses(dtoa_s, period_s, dt_s * (x * vx + y * vy + z * vz) / r)
     use_toa = n_pulses >= 1 and abs(fraction) <= MAX_PULSE_COUNT_FRACTION
@@ -92,27 +92,27 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
             warnings.append(("covariance_repaired", "predicted covariance was not positive definite"))
         new_mean, new_cov, nis = joint_update(mean, cov, chol, measured, n_pulses, period_s, use_toa, config)
     except (np.linalg.LinAlgError, ArithmeticError, ValueError) as error:
-        new_mean = new_cov = np.full(1, math.nan)
+        new_mean, new_cov = [math.nan], np.full(1, math.nan)
         nis = 0.0
         warnings.append(("numerical_failure", f"the update failed ({error})"))
     dof = 4 if use_toa else 3
     if nis > NIS_LIMIT[dof]:
         warnings.append(("innovation_outlier", f"normalised innovation squared {nis:.1f} on {dof} degrees of "
                                                "freedom: a manoeuvre or a bad measurement"))
-    if math.isfinite(float(new_mean.sum()) + float(new_cov.sum())):
+    if math.isfinite(sum(new_mean) + float(np.add.reduce(new_cov, None))):
         _, new_cov, repaired = cholesky_repaired(new_cov)
         if repaired:
             warnings.append(("covariance_repaired", "updated covariance was not positive definite"))
         mean, cov = new_mean, new_cov
         if k == 5:
-            period_s = period_s + float(mean[6]) / C
+            period_s = period_s + mean[6] / C
             mean[6] = 0.0
     else:
         if not any(code == "numerical_failure" for code, _ in warnings):
             warnings.append(("numerical_failure", "the update was not finite and was skipped"))
         mean, cov = fresh_toa_reference(mean, cov, config)
-    return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s, freeze(mean),
-                      freeze(cov), None, tuple(warnings))
+    return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s, freeze(np.array(mean)),
+                      symmetric(cov), None, tuple(warnings))
 
 
 def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_toa: bool,
@@ -127,7 +127,7 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
 
     Parameters
     ----------
-    mean : ndarray, shape (F,)
+    mean : list of F floats
     cov : ndarray, shape (F, F)
     chol : ndarray, shape (F, F)
         Cholesky factor of ``cov``.
@@ -141,21 +141,22 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
 
     Returns
     -------
-    mean, cov : ndarray, shapes (F,), (F, F)
-        Updated state; the last component is now the new TOA's noise.
+    mean : list of F floats
+    cov : ndarray, shape (F, F)
+        Updated state (covariance symmetric to rounding); the last component is now the new TOA's noise.
     nis : float
         Normalised innovation squared (chi-square with 4, or 3 without the
         TOA, degrees of freedom when the model holds).
     """
-    f = mean.shape[0]
+    f = len(mean)
     spread = math.sqrt(f)
     weight = 1.0 / (2 * f)
     interval_s = n_pulses * period_s
     points = chol.dot(_sigma_directions(f))
-    points += mean[:, None]
+    points += np.array(mean)[:, None]
     predicted = _measurement_model(points, n_pulses, interval_s, f == 8)
 
-    state = mean.tolist()
+    state = mean
     x, y, z, vx, vy, vz = state[:6]
     rho2 = x * x + y * y
     qx, qy, qz = x - interval_s * vx, y - interval_s * vy, z - interval_s * vz
@@ -207,19 +208,18 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
     if info or info_t:
         raise np.linalg.LinAlgError("innovation covariance is singular")
     nis = float(t.dot(t))
-    x = mean.copy()
+    x = list(mean)
     p = cov.copy()
     if use_toa:
         x[f - 1] = 0.0
         p[f - 1] = 0.0
         p[:, f - 1] = 0.0
         p[f - 1, f - 1] = var_toa
-    x += t.dot(v_t)
+    for i, change in enumerate(t.dot(v_t).tolist()):
+        x[i] += change
     p -= v_t.T.dot(v_t)
     if not use_toa:
         x, p = fresh_toa_reference(x, p, config)
-    p += p.T
-    p *= 0.5
     return x, p, nis
 
 

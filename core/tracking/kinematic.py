@@ -101,7 +101,7 @@ def kinematic_epoch(mean, cov, offset: int, period_s: float, dt_s: float, dtoa_s
 
     Parameters
     ----------
-    mean : ndarray, shape (n,)
+    mean : list of n floats
     cov : ndarray, shape (n, n)
         Predicted state and covariance; the step-1 block is ``[offset:]``.
     offset : int
@@ -121,25 +121,35 @@ def kinematic_epoch(mean, cov, offset: int, period_s: float, dt_s: float, dtoa_s
 
     Returns
     -------
-    mean : ndarray, shape (n,)
+    mean : list of n floats
     cov : ndarray, shape (n, n)
+        New arrays (the inputs are not changed).
     period_s : float
     cross : ndarray, shape (K, 2) or None
         Covariance of the step-1 error with this epoch's azimuth and elevation
         errors (None when the TOA was not used).
     """
     los, d_az, d_el = line_of_sight_derivatives(azimuth_rad, elevation_rad)
-    vx, vy, vz = mean[offset:offset + 3].tolist()
+    n_pulses = usable_pulse_count(mean, offset, period_s, dt_s, dtoa_s, los, warnings)
+    if n_pulses is not None:
+        return kinematic_update(mean, cov, offset, n_pulses, dtoa_s, period_s, los, d_az, d_el, range_m, config)
+    mean, cov = fresh_toa_reference(mean, cov, config)
+    return mean, cov, period_s, None
+
+
+def usable_pulse_count(mean, offset: int, period_s: float, dt_s: float, dtoa_s: float, los, warnings: list):
+    """The pulse count between the reference TOA and this one, or None when it is ambiguous (the TOA is
+    then not used); ``pulse_count_ambiguous`` and ``pulse_count_mismatch`` are appended to ``warnings``."""
+    vx, vy, vz = mean[offset:offset + 3]
     n_pulses, fraction = count_pulses(dtoa_s, period_s, dt_s * (vx * los[0] + vy * los[1] + vz * los[2]))
     if n_pulses >= 1 and abs(fraction) <= MAX_PULSE_COUNT_FRACTION:
         if abs(n_pulses * period_s - dt_s) > MAX_INTERVAL_MISMATCH * dt_s:
             warnings.append(("pulse_count_mismatch",
                              f"{n_pulses} pulses of {period_s:.9g} s between TOAs, but time_s advanced {dt_s:.6g} s"))
-        return kinematic_update(mean, cov, offset, n_pulses, dtoa_s, period_s, los, d_az, d_el, range_m, config)
+        return n_pulses
     warnings.append(("pulse_count_ambiguous",
                      f"TOA difference {dtoa_s:.9g} s is {n_pulses + fraction:.3f} periods; TOA not used"))
-    mean, cov = fresh_toa_reference(mean, cov, config)
-    return mean, cov, period_s, None
+    return None
 
 
 def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, period_s: float, los, d_az, d_el,
@@ -167,7 +177,7 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
 
     Parameters
     ----------
-    mean : ndarray, shape (n,)
+    mean : list of n floats
     cov : ndarray, shape (n, n)
         Predicted state and covariance.
     offset : int
@@ -185,16 +195,92 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
 
     Returns
     -------
-    mean : ndarray, shape (n,)
+    mean : list of n floats
         Updated state, any period error folded into the returned period.
     cov : ndarray, shape (n, n)
+        A new array; symmetric to rounding (the caller symmetrises once per step).
     period_s : float
     cross : ndarray, shape (K, 2)
         Covariance of the updated step-1 error with this epoch's azimuth and
         elevation errors.
     """
-    n = mean.shape[0]
-    values = mean.tolist()
+    update = toa_update(mean, cov, offset, n_pulses, dtoa_s, period_s, los, d_az, d_el, range_m, config)
+    return update.mean, update.covariance(cov), update.period_s, update.angle_cross()
+
+
+class ToaUpdate(NamedTuple):
+    """Step 1's update with one TOA difference, with the covariance change in factored form.
+
+    The new covariance is ``P' - (w u^T + u w^T - u u^T) / S`` where ``P'`` is
+    the predicted covariance with its last row and column replaced by the new
+    TOA noise's prior (zero, ``var_toa``), ``w`` is ``P h`` (its last entry
+    then ``var_toa``) and ``u`` is ``w`` on the kept step-1 components and
+    the new TOA noise, zero elsewhere (see :func:`kinematic_update`). Kept
+    factored so that step 3 can fold it into its own update.
+
+    Attributes
+    ----------
+    mean : list of n floats
+        Updated state, the period error folded into ``period_s``.
+    period_s : float
+    w, u : list of n floats
+    toa_var : float
+        ``(c sigma_toa)^2``.
+    inverse : float
+        ``1 / S``, S the innovation variance.
+    angle_sensitivity : tuple of 2 floats
+        ``(-d z/d B var_B, -d z/d E var_E)``: the covariance of the updated
+        step-1 error with this epoch's azimuth and elevation errors is
+        ``(u[offset:] / S) x angle_sensitivity``.
+    offset : int
+    """
+
+    mean: list
+    period_s: float
+    w: list
+    u: list
+    toa_var: float
+    inverse: float
+    angle_sensitivity: tuple
+    offset: int
+
+    def factors(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(F, G)``, each ``(2, n)``, with the covariance change ``F^T G``: ``F = [w; u]``,
+        ``G = [u; w - u] / S`` (``w - u`` is exactly ``w`` or zero)."""
+        first = np.array((self.w, self.u))
+        second = first[::-1] * self.inverse
+        second[1] -= second[0]
+        return first, second
+
+    def covariance(self, cov: np.ndarray) -> np.ndarray:
+        """The updated covariance ``(n, n)`` (a new array) from the predicted one."""
+        new_cov = self.base(cov.copy())
+        first, second = self.factors()
+        new_cov -= first.T.dot(second)
+        return new_cov
+
+    def base(self, cov: np.ndarray) -> np.ndarray:
+        """``P'``: ``cov`` (changed in place and returned) with the old TOA noise replaced by the new one's prior."""
+        cov[-1] = 0.0
+        cov[:, -1] = 0.0
+        cov[-1, -1] = self.toa_var
+        return cov
+
+    def angle_cross(self) -> np.ndarray:
+        """Covariance ``(K, 2)`` of the updated step-1 error with this epoch's azimuth and elevation errors."""
+        gains = np.array(self.u[self.offset:]) * self.inverse
+        return np.multiply.outer(gains, self.angle_sensitivity)
+
+
+def toa_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, period_s: float, los, d_az, d_el,
+               range_m: float | None, config: TrackerConfig, velocity_block=None) -> ToaUpdate:
+    """:func:`kinematic_update` without forming the new covariance (see :class:`ToaUpdate`).
+
+    ``velocity_block``, if given, is ``(p00, p01, p02, p11, p12, p22)`` of the
+    predicted step-1 velocity covariance (read from ``cov`` otherwise).
+    """
+    n = len(mean)
+    values = list(mean)
     vx, vy, vz = values[offset:offset + 3]
     ux, uy, uz = los
     interval_s = n_pulses * period_s
@@ -211,8 +297,10 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
     else:
         h = (interval_s * ux, interval_s * uy, interval_s * uz, -1.0)
 
-    block = cov[offset:, offset:]
-    (p00, p01, p02), (_, p11, p12), (_, _, p22) = block[:3, :3].tolist()
+    if velocity_block is None:
+        (p00, p01, p02), (_, p11, p12), (_, _, p22) = cov[offset:offset + 3, offset:offset + 3].tolist()
+    else:
+        p00, p01, p02, p11, p12, p22 = velocity_block
     ax, ay = d_az[0], d_az[1]
     ex, ey, ez = d_el
     spread_az = ax * ax * p00 + 2.0 * ax * ay * p01 + ay * ay * p11
@@ -220,48 +308,37 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
                  + 2.0 * (ex * ey * p01 + ex * ez * p02 + ey * ez * p12))
     gb = interval_s * (ax * vx + ay * vy)
     ge = interval_s * (ex * vx + ey * vy + ez * vz)
-    var_b = config.sigma_azimuth_rad**2
-    var_e = config.sigma_elevation_rad**2
+    var_b = config.sigma_azimuth_rad * config.sigma_azimuth_rad
+    var_e = config.sigma_elevation_rad * config.sigma_elevation_rad
     t2 = interval_s * interval_s
     r_angles = var_b * (gb * gb + t2 * spread_az) + var_e * (ge * ge + t2 * spread_el)
     var_toa = (C * config.sigma_toa_s) ** 2
 
-    w = cov[:, offset:].dot(h)
-    w_list = w.tolist()
-    s_block = w_list[offset:]
+    # w = P h over the predicted state (h is zero outside the step-1 block); then, in the layout after the
+    # update (the new TOA noise b in the old one's place), w_b = var_toa, u = w on the kept step-1
+    # components and b, zero elsewhere: the new covariance is P' - (w u^T + u w^T - u u^T) / S.
+    w = cov[:, offset:].dot(h).tolist()
     innovation_var = var_toa + r_angles
-    for hi, wi in zip(h, s_block):
+    for hi, wi in zip(h, w[offset:]):
         innovation_var += hi * wi
     inverse = 1.0 / innovation_var
+    w[-1] = var_toa
+    u = [0.0] * offset + w[offset:]
     step = z * inverse
-    new_gain = var_toa * inverse
-    gains = [wi * inverse for wi in s_block[:-1]]
-    gains.append(new_gain)
-    for i, wi in enumerate(s_block[:-1], offset):
-        values[i] += wi * step
-    values[-1] = new_gain * z
-
-    new_cov = cov.copy()
-    kept = w[offset:n - 1]
-    downdate = np.multiply.outer(w, kept)
-    downdate *= inverse
-    columns = new_cov[:, offset:n - 1]
-    columns -= downdate
-    new_cov[offset:n - 1] = columns.T
-    column = w[:n - 1] * -new_gain
-    new_cov[:n - 1, n - 1] = column
-    new_cov[n - 1, :n - 1] = column
-    new_cov[n - 1, n - 1] = var_toa - var_toa * new_gain
+    for i in range(offset, n - 1):
+        values[i] += w[i] * step
+    values[-1] = var_toa * step
     if has_period:
         period_s = period_s + values[offset + 3] / C
         values[offset + 3] = 0.0
-    cross = np.array([(g * -gb * var_b, g * -ge * var_e) for g in gains])
-    return np.array(values), new_cov, period_s, cross
+    return ToaUpdate(values, period_s, w, u, var_toa, inverse, (-gb * var_b, -ge * var_e), offset)
 
 
 def fresh_toa_reference(mean, cov, config: TrackerConfig):
-    """Make the last component a new, independent TOA noise (the reference TOA changed unused)."""
-    mean = mean.copy()
+    """Make the last component a new, independent TOA noise (the reference TOA changed unused).
+
+    ``mean`` is a list (returned as a new list), ``cov`` an array (returned as a new array)."""
+    mean = list(mean)
     cov = cov.copy()
     mean[-1] = 0.0
     cov[-1, :] = 0.0
@@ -342,7 +419,7 @@ def range_pseudo_measurement(mean, cov, offset: int, cross, azimuth_rad: float, 
 
     Parameters
     ----------
-    mean : ndarray, shape (n,)
+    mean : list of n floats
     cov : ndarray, shape (n, n)
         State after this epoch's step-1 update; the step-1 block is ``[offset:]``.
     offset : int
@@ -358,6 +435,34 @@ def range_pseudo_measurement(mean, cov, offset: int, cross, azimuth_rad: float, 
     -------
     RangePseudoMeasurement or NoRange
     """
+    (pxx, pxy), (_, pyy) = cov[offset:offset + 2, offset:offset + 2].tolist()
+    angle_cross = None if cross is None else tuple(cross[:2].ravel().tolist())
+    return range_from_velocity(mean[offset], mean[offset + 1], (pxx, pxy, pyy), angle_cross, azimuth_rad,
+                               elevation_rad, azimuth_rate_rad_s, config, predicted_range_m)
+
+
+def range_from_velocity(vx: float, vy: float, velocity_cov: tuple, angle_cross: tuple | None, azimuth_rad: float,
+                        elevation_rad: float, azimuth_rate_rad_s: float, config: TrackerConfig,
+                        predicted_range_m: float | None = None):
+    """:func:`range_pseudo_measurement` from scalars.
+
+    Parameters
+    ----------
+    vx, vy : float
+        Step-1 horizontal velocity (m/s).
+    velocity_cov : tuple of 3 floats
+        Its covariance ``(xx, xy, yy)``.
+    angle_cross : tuple of 4 floats or None
+        Covariance of ``(vx, vy)`` errors with this epoch's ``(B, E)`` errors:
+        ``(vx B, vx E, vy B, vy E)``.
+    azimuth_rad, elevation_rad, azimuth_rate_rad_s : float
+    config : TrackerConfig
+    predicted_range_m : float, optional
+
+    Returns
+    -------
+    RangePseudoMeasurement or NoRange
+    """
     sigma_rate = config.sigma_azimuth_rate_rad_s
     rate = azimuth_rate_rad_s
     if abs(rate) < config.min_azimuth_rate_snr * sigma_rate:
@@ -365,7 +470,6 @@ def range_pseudo_measurement(mean, cov, offset: int, cross, azimuth_rad: float, 
                        f"({sigma_rate:.3g} rad/s): near-radial motion", True)
     sb, cb = math.sin(azimuth_rad), math.cos(azimuth_rad)
     ce = math.cos(elevation_rad)
-    vx, vy = mean[offset:offset + 2].tolist()
     horizontal_tangential = vx * cb - vy * sb
     variance_rate = sigma_rate * sigma_rate
     range_m = horizontal_tangential * rate / ((rate * rate + variance_rate) * ce)
@@ -387,13 +491,13 @@ def range_pseudo_measurement(mean, cov, offset: int, cross, azimuth_rad: float, 
     d_elevation = at_range * math.tan(elevation_rad)
     d_rate = horizontal_tangential * (variance_rate - rate * rate) / (rate2 * rate2 * ce)
 
-    (pxx, pxy), (_, pyy) = cov[offset:offset + 2, offset:offset + 2].tolist()
+    pxx, pxy, pyy = velocity_cov
     var_b = config.sigma_azimuth_rad**2
     var_e = config.sigma_elevation_rad**2
-    if cross is None:
+    if angle_cross is None:
         velocity_b = velocity_e = 0.0
     else:
-        (cxb, cxe), (cyb, cye) = cross[:2].tolist()
+        cxb, cxe, cyb, cye = angle_cross
         velocity_b = d_vx * cxb + d_vy * cyb
         velocity_e = d_vx * cxe + d_vy * cye
     covariance_rb = velocity_b + d_azimuth * var_b
@@ -416,7 +520,7 @@ def initial_position_state(pseudo: RangePseudoMeasurement, mean, cov, cross, azi
     Parameters
     ----------
     pseudo : RangePseudoMeasurement
-    mean : ndarray, shape (K,)
+    mean : list of K floats
     cov : ndarray, shape (K, K)
         Step-1 state and covariance (stage ``"velocity"``).
     cross : ndarray, shape (K, 2) or None
@@ -432,10 +536,10 @@ def initial_position_state(pseudo: RangePseudoMeasurement, mean, cov, cross, azi
 
     Returns
     -------
-    mean : ndarray, shape (6 + K,) or (3 + K,)
+    mean : list of 6 + K or 3 + K floats
     cov : ndarray, shape matching
     """
-    k = mean.shape[0]
+    k = len(mean)
     errors = np.zeros((k + 3, k + 3))
     errors[:k, :k] = cov
     if cross is not None:
@@ -455,11 +559,12 @@ def initial_position_state(pseudo: RangePseudoMeasurement, mean, cov, cross, azi
     position_rows[:, k] += r * np.array(d_az)
     position_rows[:, k + 1] += r * np.array(d_el)
     carried = np.eye(k, k + 3)
+    position = (r * los).tolist()
     if keep_velocity_filter:
         g = np.vstack((position_rows, carried[:3], carried))
-        x = np.concatenate((r * los, mean[:3], mean))
+        x = position + mean[:3] + mean
     else:
         g = np.vstack((position_rows, carried))
-        x = np.concatenate((r * los, mean))
+        x = position + list(mean)
     p = g @ errors @ g.T
     return x, 0.5 * (p + p.T)

@@ -217,6 +217,15 @@ def freeze(array: np.ndarray) -> np.ndarray:
     return array
 
 
+def symmetric(cov: np.ndarray) -> np.ndarray:
+    """``(cov + cov^T) / 2`` as a new read-only array: exactly symmetric (the filters' updates are symmetric
+    only to rounding; this is done once per step)."""
+    out = np.add(cov, cov.T, order="C")
+    out *= 0.5
+    out.flags.writeable = False
+    return out
+
+
 def _real(data: dict, key: str) -> float | None:
     value = data.get(key)
     if value is None:

@@ -14,10 +14,12 @@ unscented transform of a linear map is exactly that.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _potrf
 
+PI = math.pi
 TWO_PI = 2.0 * math.pi
 #: Chi-square 99.9 % points for 2, 3 and 4 degrees of freedom: a normalised innovation squared above
 #: them raises ``innovation_outlier``.
@@ -89,7 +91,7 @@ def constant_velocity_predict(mean, cov, dt_s: float, accel_psd: float, velocity
 
     Parameters
     ----------
-    mean : ndarray, shape (n,)
+    mean : list of n floats
     cov : ndarray, shape (n, n)
     dt_s, accel_psd : float
     velocity_blocks : tuple of int
@@ -98,12 +100,19 @@ def constant_velocity_predict(mean, cov, dt_s: float, accel_psd: float, velocity
 
     Returns
     -------
-    mean, cov : ndarray, shapes (n,), (n, n)
+    mean : list of n floats
+    cov : ndarray, shape (n, n)
+        New; symmetric to rounding.
     """
-    phi, noise = transition(mean.shape[0], velocity_blocks, moves_position, dt_s, accel_psd, separate_block)
+    phi, noise = transition(len(mean), velocity_blocks, moves_position, dt_s, accel_psd, separate_block)
     predicted = phi.dot(cov).dot(phi.T)
     predicted += noise
-    return phi.dot(mean), predicted
+    mean = list(mean)
+    if moves_position:
+        mean[0] += dt_s * mean[3]
+        mean[1] += dt_s * mean[4]
+        mean[2] += dt_s * mean[5]
+    return mean, predicted
 
 
 def cholesky_lower(matrix):
@@ -200,11 +209,15 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
     with the state carried along the sigma points and the rest added in
     closed form, so every linear part is exact. Only the six sigma points that
     move ``p`` are evaluated (the others map to ``h(mean)``), in scalar
-    arithmetic.
+    arithmetic. The update itself is in whitened form: with the innovation
+    covariance ``S = L L^T``, ``v = cov_xz L^-T`` and ``t = L^-1 innovation``,
+    ``[p, v]`` moves by ``v[:6] t``, the covariance loses ``v[:6] v^T`` in the
+    rows of ``[p, v]`` and its transpose in their columns
+    (:func:`consider_downdate`), and the NIS is ``|t|^2``.
 
     Parameters
     ----------
-    mean : ndarray, shape (6 + K,)
+    mean : list of 6 + K floats
     cov : ndarray, shape (6 + K, 6 + K)
         Predicted joint state and covariance.
     offset : int
@@ -220,8 +233,9 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
 
     Returns
     -------
-    mean : ndarray, shape (6 + K,)
+    mean : list of 6 + K floats
     cov : ndarray, shape (6 + K, 6 + K)
+        New; exactly symmetric.
     nis : float
         Normalised innovation squared (chi-square with 3 or 2 degrees of
         freedom when the model holds).
@@ -231,9 +245,97 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
     numpy.linalg.LinAlgError
         When the position block of ``cov`` is not positive definite.
     """
+    (a00, a01, a02), (_, a11, a12), (_, _, a22) = cov[:3, :3].tolist()
+    step1_position = None if pseudo is None else tuple(cov[offset:offset + 2, :3].ravel().tolist())
+    transform = polar_transform(mean, (a00, a01, a02, a11, a12, a22), step1_position, pseudo, azimuth_rad,
+                                elevation_rad, var_azimuth, var_elevation)
+    # v = (covariance of the state with the innovation) L^-T, here as its transpose (m, n).
+    columns = _FIVE[offset] if pseudo is not None else _THREE
+    v_t = np.array(transform.to_innovation).dot(cov.take(columns, axis=0))
+    if cross is not None:
+        v_t[:, offset:] -= np.array(transform.from_angles).dot(cross.T)
+    new_mean = list(mean)
+    for i, change in enumerate(np.dot(transform.whitened, v_t[:, :6]).tolist()):
+        new_mean[i] += change
+    return new_mean, consider_downdate(cov, v_t), transform.nis
+
+
+def consider_downdate(cov, v_t):
+    """``cov`` less the Schmidt update of its first six components: ``v_pv v^T`` in their rows, the transpose
+    in their columns (``v = v_t^T``, ``v_pv`` its first six rows, the rest ``v_s``). A new, exactly
+    symmetric array.
+
+    That is ``v_pv v_pv^T + v_pv v_s^T + v_s v_pv^T``, the symmetric part of ``(v_pv + 2 v_s) v_pv^T`` (each
+    padded with zeros): one product, then one symmetrisation, which is needed anyway because ``cov`` is
+    symmetric only to rounding.
+    """
+    n = cov.shape[0]
+    masks = _MASKS.get(n)
+    if masks is None:
+        masks = _MASKS[n] = (np.array([1.0] * 6 + [2.0] * (n - 6)), np.array([1.0] * 6 + [0.0] * (n - 6)))
+    doubled, head = masks
+    new_cov = cov - (v_t * doubled).T.dot(v_t * head)
+    return symmetrized(new_cov)
+
+
+def symmetrized(cov):
+    """``(cov + cov^T) / 2``, a new C-ordered array."""
+    out = np.add(cov, cov.T, order="C")
+    out *= 0.5
+    return out
+
+
+_MASKS: dict = {}
+
+
+class PolarTransform(NamedTuple):
+    """The scalar part of :func:`polar_update` (``m = 3`` with a range, 2 without).
+
+    Attributes
+    ----------
+    to_innovation : tuple of m rows
+        ``(m, 5)`` with a range (columns: the state components ``x, y, z,
+        vx_s, vy_s``), ``(m, 3)`` without (``x, y, z``): pre-multiplying
+        those rows of the (symmetric) covariance gives ``L^-1`` times the
+        innovation-state covariance.
+    from_angles : tuple of m rows
+        ``(m, 2)``: the same for the covariance of this epoch's ``(B, E)``
+        errors with the step-1 errors (subtracted).
+    whitened : tuple of m floats
+        ``L^-1 innovation``.
+    nis : float
+    """
+
+    to_innovation: tuple
+    from_angles: tuple
+    whitened: tuple
+    nis: float
+
+
+def polar_transform(mean, position_cov: tuple, step1_position: tuple | None, pseudo, azimuth_rad: float,
+                    elevation_rad: float, var_azimuth: float, var_elevation: float) -> PolarTransform:
+    """Sigma points, innovation and its whitening for :func:`polar_update`, in scalar arithmetic.
+
+    Parameters
+    ----------
+    mean : list of floats
+        Predicted state (``[:3]`` is the position).
+    position_cov : tuple of 6 floats
+        ``(xx, xy, xz, yy, yz, zz)`` of the position covariance.
+    step1_position : tuple of 6 floats or None
+        Covariance of the step-1 ``(vx, vy)`` with the position, row-major
+        ``(vx x, vx y, vx z, vy x, vy y, vy z)``; None without a range.
+    pseudo, azimuth_rad, elevation_rad, var_azimuth, var_elevation
+        As :func:`polar_update`.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError
+        When the position or the innovation covariance is not positive definite.
+    """
     spread = math.sqrt(6.0)
     weight = 1.0 / 12.0
-    (a00, a01, a02), (_, a11, a12), (_, _, a22) = cov[:3, :3].tolist()
+    a00, a01, a02, a11, a12, a22 = position_cov
     if not a00 > 0.0:
         raise np.linalg.LinAlgError("position covariance is not positive definite")
     l00 = math.sqrt(a00)
@@ -255,7 +357,7 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
     i21 = -l21 * i11 * i22
     i20 = -(l20 * i00 + l21 * i10) * i22
 
-    x0, y0, z0 = mean[:3].tolist()
+    x0, y0, z0 = mean[0], mean[1], mean[2]
     rho0 = math.sqrt(x0 * x0 + y0 * y0)
     r0 = math.sqrt(rho0 * rho0 + z0 * z0)
     azimuth0 = math.atan2(x0, y0)
@@ -263,49 +365,69 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
     sqrt = math.sqrt
     atan2 = math.atan2
     remainder = math.remainder
-    ranges = []
-    azimuths = []
-    elevations = []
-    for cx, cy, cz in ((spread * l00, spread * l10, spread * l20), (0.0, spread * l11, spread * l21),
-                       (0.0, 0.0, spread * l22), (-spread * l00, -spread * l10, -spread * l20),
-                       (0.0, -spread * l11, -spread * l21), (0.0, 0.0, -spread * l22)):
-        x = x0 + cx
-        y = y0 + cy
-        z = z0 + cz
-        rho = sqrt(x * x + y * y)
-        ranges.append(sqrt(rho * rho + z * z) - r0)
-        azimuths.append(remainder(atan2(x, y) - azimuth0, TWO_PI))
-        elevations.append(atan2(z, rho) - elevation0)
-    r0_, r1_, r2_, r3_, r4_, r5_ = ranges
-    b0_, b1_, b2_, b3_, b4_, b5_ = azimuths
-    e0_, e1_, e2_, e3_, e4_, e5_ = elevations
+    # The six sigma points, unrolled: +-(spread L[:, j]). Those along L[:, 2] (z only) keep x0, y0, so
+    # their horizontal range is rho0 and their azimuth deviation is zero. An azimuth deviation lies in
+    # [-2 pi, 2 pi]; the wrap below equals remainder(., 2 pi) there (both are exact).
+    cx, cy, cz = spread * l00, spread * l10, spread * l20
+    x, y, z = x0 + cx, y0 + cy, z0 + cz
+    rho = sqrt(x * x + y * y)
+    r0_ = sqrt(rho * rho + z * z) - r0
+    b0_ = atan2(x, y) - azimuth0
+    e0_ = atan2(z, rho) - elevation0
+    x, y, z = x0 - cx, y0 - cy, z0 - cz
+    rho = sqrt(x * x + y * y)
+    r3_ = sqrt(rho * rho + z * z) - r0
+    b3_ = atan2(x, y) - azimuth0
+    e3_ = atan2(z, rho) - elevation0
+    xx0 = x0 * x0
+    cy, cz = spread * l11, spread * l21
+    y, z = y0 + cy, z0 + cz
+    rho = sqrt(xx0 + y * y)
+    r1_ = sqrt(rho * rho + z * z) - r0
+    b1_ = atan2(x0, y) - azimuth0
+    e1_ = atan2(z, rho) - elevation0
+    y, z = y0 - cy, z0 - cz
+    rho = sqrt(xx0 + y * y)
+    r4_ = sqrt(rho * rho + z * z) - r0
+    b4_ = atan2(x0, y) - azimuth0
+    e4_ = atan2(z, rho) - elevation0
+    cz = spread * l22
+    rho2 = rho0 * rho0
+    z = z0 + cz
+    r2_ = sqrt(rho2 + z * z) - r0
+    e2_ = atan2(z, rho0) - elevation0
+    z = z0 - cz
+    r5_ = sqrt(rho2 + z * z) - r0
+    e5_ = atan2(z, rho0) - elevation0
+    if not (-PI <= b0_ <= PI and -PI <= b3_ <= PI and -PI <= b1_ <= PI and -PI <= b4_ <= PI):
+        b0_, b1_, b3_, b4_ = (remainder(b, TWO_PI) for b in (b0_, b1_, b3_, b4_))
+    # The azimuth deviations of points 2 and 5 are zero: their terms are left out below.
     m0 = (r0_ + r1_ + r2_ + r3_ + r4_ + r5_) * weight
-    m1 = (b0_ + b1_ + b2_ + b3_ + b4_ + b5_) * weight
+    m1 = (b0_ + b1_ + b3_ + b4_) * weight
     m2 = (e0_ + e1_ + e2_ + e3_ + e4_ + e5_) * weight
     s00 = (r0_ * r0_ + r1_ * r1_ + r2_ * r2_ + r3_ * r3_ + r4_ * r4_ + r5_ * r5_) * weight - m0 * m0
-    s01 = (r0_ * b0_ + r1_ * b1_ + r2_ * b2_ + r3_ * b3_ + r4_ * b4_ + r5_ * b5_) * weight - m0 * m1
+    s01 = (r0_ * b0_ + r1_ * b1_ + r3_ * b3_ + r4_ * b4_) * weight - m0 * m1
     s02 = (r0_ * e0_ + r1_ * e1_ + r2_ * e2_ + r3_ * e3_ + r4_ * e4_ + r5_ * e5_) * weight - m0 * m2
-    s11 = (b0_ * b0_ + b1_ * b1_ + b2_ * b2_ + b3_ * b3_ + b4_ * b4_ + b5_ * b5_) * weight - m1 * m1 + var_azimuth
-    s12 = (b0_ * e0_ + b1_ * e1_ + b2_ * e2_ + b3_ * e3_ + b4_ * e4_ + b5_ * e5_) * weight - m1 * m2
+    s11 = (b0_ * b0_ + b1_ * b1_ + b3_ * b3_ + b4_ * b4_) * weight - m1 * m1 + var_azimuth
+    s12 = (b0_ * e0_ + b1_ * e1_ + b3_ * e3_ + b4_ * e4_) * weight - m1 * m2
     s22 = (e0_ * e0_ + e1_ * e1_ + e2_ * e2_ + e3_ * e3_ + e4_ * e4_ + e5_ * e5_) * weight - m2 * m2 + var_elevation
     f = spread * weight
     d00, d01, d02 = f * (r0_ - r3_), f * (r1_ - r4_), f * (r2_ - r5_)
-    d10, d11, d12 = f * (b0_ - b3_), f * (b1_ - b4_), f * (b2_ - b5_)
+    d10, d11 = f * (b0_ - b3_), f * (b1_ - b4_)
     d20, d21, d22 = f * (e0_ - e3_), f * (e1_ - e4_), f * (e2_ - e5_)
     w00 = i00 * d00 + i10 * d01 + i20 * d02
-    w01 = i00 * d10 + i10 * d11 + i20 * d12
+    w01 = i00 * d10 + i10 * d11
     w02 = i00 * d20 + i10 * d21 + i20 * d22
     w10 = i11 * d01 + i21 * d02
-    w11 = i11 * d11 + i21 * d12
+    w11 = i11 * d11
     w12 = i11 * d21 + i21 * d22
     w20 = i22 * d02
-    w21 = i22 * d12
+    w21 = 0.0
     w22 = i22 * d22
 
     if pseudo is not None:
-        d_vx, d_vy = pseudo.d_vx, pseudo.d_vy
-        rr, rb, re, _, _, _ = pseudo.covariance
-        (a0, a1, a2), (b0, b1, b2) = cov[offset:offset + 2, :3].tolist()
+        range_m, d_vx, d_vy, d_az, d_el, _, (rr, rb, re, _, _, _), _ = pseudo
+        a0, a1, a2, b0, b1, b2 = step1_position
         l0 = d_vx * a0 + d_vy * b0
         l1 = d_vx * a1 + d_vy * b1
         l2 = d_vx * a2 + d_vy * b2
@@ -313,9 +435,9 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
         ell1 = l0 * i10 + l1 * i11
         ell2 = l0 * i20 + l1 * i21 + l2 * i22
         s00 += rr - 2.0 * (d00 * ell0 + d01 * ell1 + d02 * ell2)
-        s01 += rb - (d10 * ell0 + d11 * ell1 + d12 * ell2)
+        s01 += rb - (d10 * ell0 + d11 * ell1)
         s02 += re - (d20 * ell0 + d21 * ell1 + d22 * ell2)
-        n0 = pseudo.range_m - r0 - m0
+        n0 = range_m - r0 - m0
         n1 = remainder(azimuth_rad - azimuth0, TWO_PI) - m1
         n2 = elevation_rad - elevation0 - m2
         # Lower Cholesky factor of the innovation covariance and its inverse k.
@@ -344,16 +466,12 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
         nis = t0 * t0 + t1 * t1 + t2 * t2
         whitened = (t0, t1, t2)
         # (state columns [p, vx_s, vy_s] -> innovation) @ k^T: the rows of W k^T.
-        to_innovation = np.array(((w00 * k00, w00 * k10 + w01 * k11, w00 * k20 + w01 * k21 + w02 * k22),
-                                  (w10 * k00, w10 * k10 + w11 * k11, w10 * k20 + w11 * k21 + w12 * k22),
-                                  (w20 * k00, w20 * k10 + w21 * k11, w20 * k20 + w21 * k21 + w22 * k22),
-                                  (-d_vx * k00, -d_vx * k10, -d_vx * k20),
-                                  (-d_vy * k00, -d_vy * k10, -d_vy * k20)))
-        columns = _FIVE[offset]
-        if cross is not None:
-            d_az, d_el = pseudo.d_azimuth, pseudo.d_elevation
-            from_angles = np.array(((d_az * k00, d_az * k10 + k11, d_az * k20 + k21),
-                                    (d_el * k00, d_el * k10, d_el * k20 + k22)))
+        to_innovation = ((w00 * k00, w10 * k00, w20 * k00, -d_vx * k00, -d_vy * k00),
+                         (w00 * k10 + w01 * k11, w10 * k10 + w11 * k11, w20 * k10 + w21 * k11, -d_vx * k10,
+                          -d_vy * k10),
+                         (w00 * k20 + w01 * k21 + w02 * k22, w10 * k20 + w11 * k21 + w12 * k22,
+                          w20 * k20 + w21 * k21 + w22 * k22, -d_vx * k20, -d_vy * k20))
+        from_angles = ((d_az * k00, d_el * k00), (d_az * k10 + k11, d_el * k10), (d_az * k20 + k21, d_el * k20 + k22))
     else:
         n1 = remainder(azimuth_rad - azimuth0, TWO_PI) - m1
         n2 = elevation_rad - elevation0 - m2
@@ -371,26 +489,11 @@ def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elev
         t2 = k21 * n1 + k22 * n2
         nis = t1 * t1 + t2 * t2
         whitened = (t1, t2)
-        to_innovation = np.array(((w01 * k11, w01 * k21 + w02 * k22), (w11 * k11, w11 * k21 + w12 * k22),
-                                  (w21 * k11, w21 * k21 + w22 * k22)))
-        columns = _THREE
-        if cross is not None:
-            from_angles = np.array(((k11, k21), (0.0, k22)))
+        to_innovation = ((w01 * k11, w11 * k11, w21 * k11),
+                         (w01 * k21 + w02 * k22, w11 * k21 + w12 * k22, w21 * k21 + w22 * k22))
+        from_angles = ((k11, 0.0), (k21, k22))
 
-    # v = (covariance of the state with the innovation) k^T, so that the gain is v[:6] k and
-    # the covariance loses v[:6] v^T in rows [p, v] (and its transpose in the columns).
-    v = cov.take(columns, axis=1).dot(to_innovation)
-    if cross is not None:
-        v[offset:] -= cross.dot(from_angles)
-    head = v[:6]
-    new_mean = mean.copy()
-    new_mean[:6] += head.dot(whitened)
-    loss = v.dot(head.T)
-    loss[:6] *= 0.5
-    new_cov = cov.copy()
-    new_cov[:, :6] -= loss
-    new_cov[:6] -= loss.T
-    return new_mean, new_cov, nis
+    return PolarTransform(to_innovation, from_angles, whitened, nis)
 
 
 _FIVE = {6: np.array([0, 1, 2, 6, 7])}

@@ -106,7 +106,7 @@ def test_consider_update_equals_the_brute_force_transform(period_known, with_ran
         pseudo = pseudo._replace(covariance=(rr, rb, re, errors[k, k], 0.0, errors[k + 1, k + 1]))
     measured = (pseudo.range_m if pseudo else 0.0, epoch.azimuth_rad, epoch.elevation_rad)
     rows = slice(0, 3) if with_range else slice(1, 3)
-    got_mean, got_cov, _ = polar_update(state.mean, state.covariance, 6, cross, pseudo, epoch.azimuth_rad,
+    got_mean, got_cov, _ = polar_update(state.mean.tolist(), state.covariance, 6, cross, pseudo, epoch.azimuth_rad,
                                         epoch.elevation_rad, errors[k, k], errors[k + 1, k + 1])
     want_mean, want_cov = reference_consider_update(state.mean, state.covariance, 6, errors, error_map, measured,
                                                     rows)
@@ -121,7 +121,7 @@ def test_uncorrelated_update_equals_filterpy_unscented_transform():
     assert not state.covariance[:6, 6:].any()
     pseudo = RangePseudoMeasurement(float(np.linalg.norm(state.mean[:3])) * 0.97, 0.0, 0.0, 0.0, 0.0, 0.0,
                                     (4e6, 0.3, -0.02, 2.5e-5, 0.0, 2.5e-5), 0.01)
-    got_mean, got_cov, _ = polar_update(state.mean, state.covariance, 6, None, pseudo, epoch.azimuth_rad,
+    got_mean, got_cov, _ = polar_update(state.mean.tolist(), state.covariance, 6, None, pseudo, epoch.azimuth_rad,
                                         epoch.elevation_rad, 2.5e-5, 2.5e-5)
     noise = np.array([[4e6, 0.3, -0.02], [0.3, 2.5e-5, 0.0], [-0.02, 0.0, 2.5e-5]])
     mean, cov = state.mean[:6], state.covariance[:6, :6]
@@ -135,6 +135,7 @@ def test_uncorrelated_update_equals_filterpy_unscented_transform():
     gain = cross @ np.linalg.inv(s)
     innovation = np.array([pseudo.range_m, epoch.azimuth_rad, epoch.elevation_rad]) - z_mean
     innovation[1] = wrap_to_pi(innovation[1])
+    assert np.all(got_cov == got_cov.T)
     np.testing.assert_allclose(got_mean[:6], mean + gain @ innovation, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(got_cov[:6, :6], cov - gain @ s @ gain.T, rtol=1e-9, atol=1e-12)
     np.testing.assert_array_equal(got_mean[6:], state.mean[6:])
@@ -176,7 +177,7 @@ def test_toa_update_equals_the_augmented_textbook_filter(period_known):
     dtoa = epoch.toa_s - state.toa_s
     n_pulses = round(dtoa / state.pulse_period_s)
     los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
-    mean, cov, period_s, _ = kinematic_update(state.mean, state.covariance, offset, n_pulses, dtoa,
+    mean, cov, period_s, _ = kinematic_update(state.mean.tolist(), state.covariance, offset, n_pulses, dtoa,
                                               state.pulse_period_s, los, d_az, d_el, None, config)
     want_mean, want_cov = reference_toa_update(state.mean, state.covariance, offset, n_pulses, dtoa,
                                                state.pulse_period_s, epoch.azimuth_rad, epoch.elevation_rad, config)
@@ -188,6 +189,40 @@ def test_toa_update_equals_the_augmented_textbook_filter(period_known):
     np.testing.assert_allclose(cov / np.outer(scale, scale), want_cov / np.outer(scale, scale), rtol=0, atol=1e-12)
     np.testing.assert_array_equal(mean[:offset], state.mean[:offset])
     np.testing.assert_array_equal(cov[:offset, :offset], state.covariance[:offset, :offset])
+
+
+@pytest.mark.parametrize("period_known", [True, False])
+@pytest.mark.parametrize("pseudo_range_errors", ["correlated", "independent"])
+def test_the_fused_tracking_step_equals_steps_1_2_3_one_after_another(period_known, pseudo_range_errors):
+    """velocity_kinematic's tracking step folds step 1's covariance change into step 3's; doing the steps
+    with the general functions, each forming its covariance, gives the same state to rounding."""
+    config, state, epoch = tracking_state(period_known, pseudo_range_errors=pseudo_range_errors)
+    fused = step(state, epoch, config)
+    correlated = pseudo_range_errors == "correlated"
+    dt = epoch.time_s - state.time_s
+    q = config.accel_sigma_mps2**2
+    blocks = ((3, 6), True) if correlated else ((3,), True, 6)
+    mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt, q, *blocks)
+    range_m = float(np.linalg.norm(mean[:3]))
+    dtoa = epoch.toa_s - state.toa_s
+    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
+    mean, cov, period_s, cross = kinematic_update(mean, cov, 6, round(dtoa / state.pulse_period_s), dtoa,
+                                                  state.pulse_period_s, los, d_az, d_el, range_m, config)
+    pseudo = range_pseudo_measurement(mean, cov, 6, cross, epoch.azimuth_rad, epoch.elevation_rad,
+                                      epoch.azimuth_rate_rad_s, config, range_m)
+    assert isinstance(pseudo, RangePseudoMeasurement)
+    mean, cov, _ = polar_update(mean, cov, 6, cross, pseudo, epoch.azimuth_rad, epoch.elevation_rad,
+                                config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2)
+    if not correlated:
+        cov[:6, 6:] = 0.0
+        cov[6:, :6] = 0.0
+    scale = np.sqrt(np.diag(cov))
+    assert fused.pulse_period_s == pytest.approx(period_s, rel=1e-15)
+    assert fused.last_range_measurement_m == pytest.approx(pseudo.range_m, rel=1e-13)
+    np.testing.assert_allclose(fused.mean, mean, rtol=0, atol=1e-12 * (np.abs(mean).max()))
+    np.testing.assert_allclose(fused.covariance / np.outer(scale, scale), cov / np.outer(scale, scale), rtol=0,
+                               atol=1e-12)
+    assert np.all(fused.covariance == fused.covariance.T)
 
 
 def test_range_jacobian_matches_finite_differences():
@@ -235,7 +270,7 @@ def test_debiased_range_is_unbiased_to_second_order_where_the_plain_one_is_not()
 
 
 def test_prediction_over_a_gap_equals_the_steps_it_skips():
-    mean = np.array([1e5, 8e4, 5e3, -300.0, 100.0, 2.0, -299.0, 99.0, 2.5, 0.0])
+    mean = [1e5, 8e4, 5e3, -300.0, 100.0, 2.0, -299.0, 99.0, 2.5, 0.0]
     base = np.diag([1e6, 1e6, 1e6, 25.0, 25.0, 25.0, 30.0, 30.0, 30.0, 9.0])
     base[3, 6] = base[6, 3] = 20.0
     once = constant_velocity_predict(mean, base, 5.0, 0.04, (3, 6), True)

@@ -17,7 +17,8 @@ Two checks, because the problem itself amplifies rounding:
   only, at most ``STEP_TOLERANCE``. It is ~1e-13 and below with a known period; with an unknown
   period the step-1 state (line-of-sight velocity and period error, measured almost only in one
   combination at first) is badly conditioned, and the two algebraically equal updates differ by up
-  to ~3e-12 there, each within ~2e-12 of an 80-bit evaluation of the old formula.
+  to ~3.4e-12 there, each within ~2e-12 of an 80-bit evaluation of the old formula (measured on the
+  step-1 update alone).
 - A whole run, each implementation on its own: rounding differences then propagate like any
   perturbation, and the bootstrap (a covariance collapsing from the 500 m/s prior) amplifies them. The
   yardstick is measured in the same run: the reference against itself with every azimuth moved by one
@@ -41,8 +42,8 @@ from tests.core.tracking.reference.session import new_state as new_state_then
 from tests.core.tracking.reference.session import step as step_then
 from tests.core.tracking.scenarios import paper_config
 
-#: Largest deviation of one step from the same input state.
-STEP_TOLERANCE = 5e-12
+#: Largest deviation of one step from the same input state (3.4e-12 is the largest seen, see above).
+STEP_TOLERANCE = 1e-11
 #: A whole run may deviate from the reference by this factor times the reference's own one-ulp sensitivity.
 RUN_FACTOR = 10.0
 

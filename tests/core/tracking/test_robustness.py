@@ -171,9 +171,14 @@ def test_a_repaired_covariance_is_reported_not_fatal():
         np.linalg.cholesky(state.covariance_enu)
 
 
-@pytest.mark.parametrize("model, target", [("velocity_kinematic", "core.tracking.velocity_kinematic.polar_update"),
-                                           ("joint_ukf", "core.tracking.joint_ukf.joint_update")])
-def test_an_update_that_fails_outright_is_skipped_and_reported(monkeypatch, model, target):
+@pytest.mark.parametrize("model, targets", [
+    ("velocity_kinematic",
+     ("core.tracking.velocity_kinematic.polar_transform", "core.tracking.unscented.polar_transform")),
+    ("joint_ukf", ("core.tracking.joint_ukf.joint_update",)),
+])
+def test_an_update_that_fails_outright_is_skipped_and_reported(monkeypatch, model, targets):
+    """The step-3 transform (both the fused tracking path's and the general one it falls back to) or the
+    joint update raises: the epoch is applied without it and ``numerical_failure`` says so."""
     config = paper_config(model, True)
     track = simulate_emitter(paper_001_scenario(epochs=60), np.random.default_rng(7))
     state = new_state(config)
@@ -184,7 +189,8 @@ def test_an_update_that_fails_outright_is_skipped_and_reported(monkeypatch, mode
     def fail(*args, **kwargs):
         raise np.linalg.LinAlgError("matrix is singular")
 
-    monkeypatch.setattr(target, fail)
+    for target in targets:
+        monkeypatch.setattr(target, fail)
     held = step(state, track.epochs[50], config)
     assert "numerical_failure" in {code for code, _ in held.warnings}
     assert np.isfinite(held.mean).all() and held.updates == state.updates + 1
