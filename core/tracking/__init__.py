@@ -12,11 +12,12 @@ Public API::
     state = TrackState.from_dict(stored)
 """
 
-from core.tracking.config import MODELS, Epoch, TimeNotIncreasing, TrackerConfig
+from core.tracking.config import JOINT_INITIAL_RANGES, MODELS, Epoch, TimeNotIncreasing, TrackerConfig
 from core.tracking.session import new_state, step, step_many
 from core.tracking.state import WARNING_CODES, TrackState
 
 __all__ = [
+    "JOINT_INITIAL_RANGES",
     "MODELS",
     "WARNING_CODES",
     "Epoch",

@@ -23,6 +23,14 @@ MODELS = {
 #: How ``velocity_kinematic`` treats the errors of successive range pseudo-measurements.
 PSEUDO_RANGE_ERRORS = ("correlated", "independent")
 
+#: Where ``joint_ukf`` gets its first range (see :class:`TrackerConfig`).
+JOINT_INITIAL_RANGES = ("kinematic", "prior")
+
+#: Default range prior of ``joint_initial_range="prior"`` (m): the middle of a 0-300 km detection range.
+DEFAULT_RANGE_PRIOR_M = 150e3
+#: Its default standard deviation (m): a third of the mean (see :class:`TrackerConfig`).
+DEFAULT_RANGE_PRIOR_SIGMA_M = 50e3
+
 #: Default prior standard deviation of the period, as a fraction of ``period_s``, when the period is unknown.
 DEFAULT_PERIOD_PRIOR_FRACTION = 1e-4
 
@@ -82,6 +90,34 @@ class TrackerConfig:
         update). ``"independent"``: each pseudo-measurement is treated as
         independent, as the paper writes it; the covariance is then
         optimistic (see the tests for the figures).
+    joint_initial_range : str
+        ``joint_ukf`` only: where its first range comes from.
+        ``"kinematic"`` (default): from the first range that
+        ``velocity_kinematic``'s steps 1-2 give (the state is ``velocity``
+        until then); the joint UKF borrows the paper's method to start, then
+        runs on the raw measurements alone. ``"prior"``: the paper's baseline
+        as it stands, the direct joint UKF on the raw measurements only. It
+        starts at the first epoch from the measured angles, a range of
+        ``range_prior_m`` +- ``range_prior_sigma_m`` along them, zero velocity
+        +- ``velocity_prior_sigma_mps`` and the period prior, and learns the
+        range itself. How well depends on where the prior lies: close to the
+        truth or beyond it, it ends ahead of ``velocity_kinematic``; short of
+        it by two sigma, it converges three times slower and is overconfident
+        for minutes (``tests/core/tracking/test_monte_carlo.py`` has the
+        figures). The default is ``"kinematic"`` because a session created
+        through the service cannot set the range prior, and a fixed one would
+        make every such session's accuracy and consistency hinge on one
+        assumed range; the kinematic start needs none (tried from 39 to 313 km).
+    range_prior_m, range_prior_sigma_m : float
+        ``joint_initial_range="prior"`` only: mean and standard deviation of the
+        initial range (m). The defaults, 150 km +- 50 km, stand for an emitter
+        somewhere inside a passive sensor's detection range of the order of
+        300 km (the middle of it, and a third of the mean as the spread: a
+        Gaussian range prior in Cartesian coordinates should keep its mass,
+        and the unscented transform's sigma points at ``sqrt(n)`` ~ 2.8
+        standard deviations, in front of the observer). Halving or doubling
+        the sigma changes the paper scenario's figures little; where the mean
+        lies matters (see ``tests/core/tracking/test_monte_carlo.py``).
 
     Raises
     ------
@@ -103,6 +139,9 @@ class TrackerConfig:
     min_azimuth_rate_snr: float = 4.0
     max_initial_range_fraction: float = 0.3
     pseudo_range_errors: str = "correlated"
+    joint_initial_range: str = "kinematic"
+    range_prior_m: float = DEFAULT_RANGE_PRIOR_M
+    range_prior_sigma_m: float = DEFAULT_RANGE_PRIOR_SIGMA_M
 
     def __post_init__(self):
         if not isinstance(self.model, str) or self.model not in MODELS:
@@ -110,13 +149,17 @@ class TrackerConfig:
         if self.pseudo_range_errors not in PSEUDO_RANGE_ERRORS:
             raise InvalidInput(f"pseudo_range_errors must be one of {', '.join(PSEUDO_RANGE_ERRORS)}",
                                ("pseudo_range_errors",))
+        if self.joint_initial_range not in JOINT_INITIAL_RANGES:
+            raise InvalidInput(f"joint_initial_range must be one of {', '.join(JOINT_INITIAL_RANGES)}",
+                               ("joint_initial_range",))
         if not isinstance(self.period_known, bool):
             raise InvalidInput("period_known must be a boolean", ("period_known",))
         n = self.pulses_per_observation
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise InvalidInput("pulses_per_observation must be an integer >= 1", ("pulses_per_observation",))
         positive = ("period_s", "sigma_azimuth_rad", "sigma_elevation_rad", "sigma_azimuth_rate_rad_s",
-                    "sigma_toa_s", "velocity_prior_sigma_mps", "max_initial_range_fraction")
+                    "sigma_toa_s", "velocity_prior_sigma_mps", "max_initial_range_fraction", "range_prior_m",
+                    "range_prior_sigma_m")
         for name in positive:
             _check_real(name, getattr(self, name), minimum=0.0, strict=True)
         _check_real("accel_sigma_mps2", self.accel_sigma_mps2, minimum=0.0, strict=False)
@@ -146,13 +189,21 @@ class TrackerConfig:
 
     @classmethod
     def from_dict(cls, data: dict) -> "TrackerConfig":
-        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidInput`."""
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`InvalidInput`.
+
+        A mapping without ``joint_initial_range`` was stored before that field
+        existed, when ``joint_ukf`` always started from the kinematic range: it
+        gets ``"kinematic"`` whatever the default is then, so a stored session
+        goes on as it began.
+        """
         if not isinstance(data, dict):
             raise InvalidInput("tracker config must be a mapping")
         known = {f.name for f in fields(cls)}
         extra = sorted(set(data) - known)
         if extra:
             raise InvalidInput(f"unknown tracker config fields: {', '.join(extra)}", (extra[0],))
+        if "joint_initial_range" not in data:
+            data = {**data, "joint_initial_range": "kinematic"}
         try:
             return cls(**data)
         except TypeError as error:

@@ -11,11 +11,19 @@ velocity method). Measurements per epoch, with ``T = n Tr_hat``:
   (the previous range from the current state, exact for constant velocity),
 - ``Bdot = (y vx - x vy) / rho^2``.
 
-Initialisation: the filter needs a first range, which the raw measurements
-alone give only slowly and through a strongly nonlinear map. It is
-bootstrapped exactly like the velocity method (steps 1-2 until the first
-usable pseudo-range), so both models start from the same estimate at the same
-epoch and the comparison is of the filters, not of an arbitrary range prior.
+Initialisation (``TrackerConfig.joint_initial_range``): the filter needs a
+first range, which the raw measurements give only slowly and through a
+strongly nonlinear map.
+
+- ``"prior"`` (the paper's baseline, which has nothing else): at the first
+  epoch, the measured angles and a wide range prior (:func:`range_prior_state`);
+  the filter then learns the range from the azimuth rate and the TOA
+  differences through its velocity.
+- ``"kinematic"`` (the default): bootstrapped like the velocity method (steps 1-2
+  until the first usable pseudo-range), so both models start from the same
+  estimate at the same epoch and the comparison is of the filters after it.
+  The joint UKF then borrows the velocity method's range to start with.
+
 From then on only this UKF runs.
 """
 
@@ -30,7 +38,7 @@ from core.tracking.config import SPEED_OF_LIGHT_MPS as C
 from core.tracking.config import TrackerConfig
 from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRACTION, RangePseudoMeasurement,
                                      count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
-                                     range_pseudo_measurement)
+                                     line_of_sight_derivatives, range_pseudo_measurement)
 from core.tracking.state import TrackState, freeze, symmetric
 from core.tracking.unscented import (NIS_LIMIT, TWO_PI, cholesky_lower, cholesky_repaired,
                                      constant_velocity_predict)
@@ -42,6 +50,10 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
     """Apply one validated epoch ``(time_s, azimuth_rad, elevation_rad, azimuth_rate_rad_s, toa_s)``."""
     time_s, azimuth, elevation, rate, toa_s = values
     if state.time_s is None:
+        if config.joint_initial_range == "prior" and state.stage == "velocity":
+            mean, cov = range_prior_state(state.mean.tolist(), state.covariance, azimuth, elevation, config)
+            return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, state.pulse_period_s,
+                              freeze(np.array(mean)), symmetric(cov))
         return TrackState(config.model, state.stage, state.updates + 1, time_s, toa_s, state.pulse_period_s,
                           state.mean, state.covariance)
     dt_s = time_s - state.time_s
@@ -113,6 +125,41 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
         mean, cov = fresh_toa_reference(mean, cov, config)
     return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s, freeze(np.array(mean)),
                       symmetric(cov), None, tuple(warnings))
+
+
+def range_prior_state(mean, cov, azimuth_rad: float, elevation_rad: float, config: TrackerConfig):
+    """The direct joint UKF's first state: a range prior along the measured angles (``joint_initial_range="prior"``).
+
+    Position ``r0 u(B, E)`` with covariance ``sigma_r^2 u u^T + r0^2 (sigma_B^2
+    u_B u_B^T + sigma_E^2 u_E u_E^T)`` (``u_B``, ``u_E`` the derivatives of the
+    line of sight: the angle errors across it), followed by the step-1 prior
+    ``[v, (period_error_m), toa_noise_m]`` (zero velocity +- the velocity prior;
+    independent of the position). This epoch's azimuth rate is not used (there
+    is no TOA difference yet either); its angles are, once, here.
+
+    Parameters
+    ----------
+    mean : list of K floats
+    cov : ndarray, shape (K, K)
+        The step-1 prior (:func:`core.tracking.kinematic.kinematic_prior`).
+    azimuth_rad, elevation_rad : float
+    config : TrackerConfig
+
+    Returns
+    -------
+    mean : list of 3 + K floats
+    cov : ndarray, shape (3 + K, 3 + K)
+    """
+    los, d_az, d_el = line_of_sight_derivatives(azimuth_rad, elevation_rad)
+    r = config.range_prior_m
+    u, a, e = np.array(los), np.array(d_az), np.array(d_el)
+    k = len(mean)
+    new_cov = np.zeros((3 + k, 3 + k))
+    new_cov[:3, :3] = (config.range_prior_sigma_m**2 * np.outer(u, u)
+                       + r * r * (config.sigma_azimuth_rad**2 * np.outer(a, a)
+                                  + config.sigma_elevation_rad**2 * np.outer(e, e)))
+    new_cov[3:, 3:] = cov
+    return [r * c for c in los] + list(mean), new_cov
 
 
 def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_toa: bool,

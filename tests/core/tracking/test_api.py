@@ -14,8 +14,10 @@ from hypothesis import strategies as st
 
 from core.errors import InvalidInput
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
+from core.angles import line_of_sight_enu
 from core.tracking import (MODELS, WARNING_CODES, Epoch, TimeNotIncreasing, TrackerConfig, TrackState, new_state,
                            step, step_many)
+from core.tracking.config import DEFAULT_RANGE_PRIOR_M, DEFAULT_RANGE_PRIOR_SIGMA_M
 from tests.core.tracking.scenarios import paper_config
 
 
@@ -58,6 +60,10 @@ def test_unknown_model_raises_invalid_input_naming_the_field():
     ("max_initial_range_fraction", 1.5),
     ("pseudo_range_errors", "sometimes"),
     ("sigma_azimuth_rad", 1.0),
+    ("joint_initial_range", "guess"),
+    ("range_prior_m", 0.0),
+    ("range_prior_sigma_m", -1.0),
+    ("range_prior_sigma_m", math.inf),
 ])
 def test_bad_config_values_raise_invalid_input_naming_the_field(field, value):
     fields = {**paper_config("velocity_kinematic", True).to_dict(), field: value}
@@ -139,9 +145,14 @@ def test_from_dict_refuses_a_state_with_a_bad_field():
             TrackState.from_dict({**good, key: value})
 
 
-@pytest.mark.parametrize("model", sorted(MODELS))
-def test_state_round_trips_through_json_exactly_at_every_stage(model):
-    config = paper_config(model, False)
+@pytest.mark.parametrize("model, changes, stages", [
+    ("velocity_kinematic", {}, {"velocity", "tracking"}),
+    ("joint_ukf", {"joint_initial_range": "kinematic"}, {"velocity", "tracking"}),
+    ("joint_ukf", {"joint_initial_range": "prior"}, {"tracking"}),
+])
+def test_state_round_trips_through_json_exactly_at_every_stage(model, changes, stages):
+    """The prior-seeded joint UKF tracks from its first epoch: it has no velocity stage after new_state."""
+    config = paper_config(model, False, **changes)
     track = simulate_emitter(paper_001_scenario(epochs=60), np.random.default_rng(4))
     state = new_state(config)
     seen_stages = set()
@@ -153,7 +164,37 @@ def test_state_round_trips_through_json_exactly_at_every_stage(model):
         assert again == state
         assert again.to_dict() == data
         seen_stages.add(state.stage)
-    assert seen_stages == {"velocity", "tracking"}
+    assert seen_stages == stages
+
+
+def test_the_direct_joint_ukf_starts_from_the_range_prior():
+    """joint_initial_range="prior" (the paper's baseline, on the raw measurements alone): after the first
+    epoch the position is range_prior_m along the measured angles, with range_prior_sigma_m along the line of
+    sight and r sigma_angle across it; the velocity is zero with velocity_prior_sigma_mps. The default is the
+    kinematic start (see TrackerConfig)."""
+    assert paper_config("joint_ukf", True).joint_initial_range == "kinematic"
+    config = paper_config("joint_ukf", True, joint_initial_range="prior")
+    assert (config.range_prior_m, config.range_prior_sigma_m) == (DEFAULT_RANGE_PRIOR_M, DEFAULT_RANGE_PRIOR_SIGMA_M)
+    epoch = simulate_emitter(paper_001_scenario(epochs=1), np.random.default_rng(1)).epochs[0]
+    state = step(new_state(config), epoch, config)
+    assert state.initialized and state.updates == 1
+    los = line_of_sight_enu(epoch.azimuth_rad, epoch.elevation_rad)
+    np.testing.assert_allclose(state.position_enu_m, config.range_prior_m * los, rtol=1e-15)
+    np.testing.assert_array_equal(state.velocity_enu_mps, 0.0)
+    assert state.range_sigma_m == pytest.approx(config.range_prior_sigma_m, rel=1e-12)
+    position = state.covariance_enu[:3, :3]
+    across = np.linalg.eigvalsh(position)[:2]
+    np.testing.assert_allclose(np.sqrt(across), config.range_prior_m * config.sigma_azimuth_rad *
+                               np.array([np.cos(epoch.elevation_rad), 1.0]), rtol=1e-9)
+    np.testing.assert_allclose(np.diag(state.covariance_enu)[3:], config.velocity_prior_sigma_mps**2)
+
+
+def test_config_stored_before_joint_initial_range_existed_keeps_the_kinematic_start():
+    """A stored session's config without the field was made when joint_ukf always started from the kinematic
+    range: loading it must not switch a running session to the range prior."""
+    data = paper_config("joint_ukf", False, joint_initial_range="prior").to_dict()
+    del data["joint_initial_range"], data["range_prior_m"], data["range_prior_sigma_m"]
+    assert TrackerConfig.from_dict(data).joint_initial_range == "kinematic"
 
 
 @settings(max_examples=60, deadline=None)

@@ -107,8 +107,8 @@ CONFIGS = [
     ("velocity_kinematic", False, {}),
     ("velocity_kinematic", True, {"pseudo_range_errors": "independent"}),
     ("velocity_kinematic", False, {"pseudo_range_errors": "independent"}),
-    ("joint_ukf", True, {}),
-    ("joint_ukf", False, {}),
+    ("joint_ukf", True, {"joint_initial_range": "kinematic"}),
+    ("joint_ukf", False, {"joint_initial_range": "kinematic"}),
 ]
 
 
