@@ -14,10 +14,30 @@ from scipy.stats import chi2
 
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import new_state, step
-from tests.core.tracking.scenarios import PAPER_ACCEL_SIGMA_MPS2, paper_config, run_monte_carlo
+from core.tracking.config import DEFAULT_RANGE_PRIOR_SIGMA_M
+from tests.core.tracking.scenarios import PAPER_ACCEL_SIGMA_MPS2, PAPER_FIRST_RANGE_M, paper_config, run_monte_carlo
 
 TIMES_S = (10, 25, 50, 100, 150, 200)
 CONVERGENCE_PERCENT = 5.0
+
+#: The filters compared: label, model, config changes.
+FILTERS = (
+    ("velocity_kinematic", "velocity_kinematic", {}),
+    ("velocity_kinematic indep.", "velocity_kinematic", {"pseudo_range_errors": "independent"}),
+    ("joint_ukf prior 150+-50 km", "joint_ukf", {"joint_initial_range": "prior"}),
+    ("joint_ukf kinematic (dflt)", "joint_ukf", {"joint_initial_range": "kinematic"}),
+)
+
+#: Range priors of the direct joint UKF for the sensitivity table: label, config changes.
+PRIORS = (
+    ("150 km +- 50 km (default)", {}),
+    ("150 km +- 25 km (sigma / 2)", {"range_prior_sigma_m": 25e3}),
+    ("150 km +- 100 km (sigma x 2)", {"range_prior_sigma_m": 100e3}),
+    ("100 km +- 50 km", {"range_prior_m": 100e3}),
+    ("200 km +- 50 km", {"range_prior_m": 200e3}),
+)
+#: Prior means at the truth + k sigma (sigma 50 km) for the sweep.
+OFFSETS_SIGMA = (-2.5, -2.0, -1.5, -1.0, -0.5, 0.0, 0.5, 1.0, 1.5, 2.0, 2.5)
 
 
 def partial_rmse(mc, t: int) -> str:
@@ -31,6 +51,18 @@ def partial_rmse(mc, t: int) -> str:
     return f"{value:6.2f}{share:>7s}"
 
 
+def tail_rmse(mc) -> float:
+    """Position RMSE over runs and the last 50 s (% of the mean range there)."""
+    return 100.0 * float(np.sqrt(np.mean(mc.position_errors_m[:, -51:] ** 2)) / mc.ranges_m[:, -51:].mean())
+
+
+def nees_figures(mc, runs: int) -> str:
+    low, high = chi2.ppf([0.005, 0.995], 6 * runs) / runs
+    mean_nees = mc.nees[:, -100:].mean(axis=0)
+    inside = np.mean((mean_nees >= low) & (mean_nees <= high))
+    return f"mean {mean_nees.mean():6.2f}  min {mean_nees.min():6.2f}  max {mean_nees.max():6.2f}  inside {inside:5.0%}"
+
+
 def accuracy(runs: int) -> None:
     scenario = paper_001_scenario()
     print(f"Paper-001 scenario, {runs} runs x 200 s, truth at constant velocity, filter accel_sigma "
@@ -38,16 +70,12 @@ def accuracy(runs: int) -> None:
           "by then, with their share, when not all; '-': none yet)")
     header = "model                         period   " + " ".join(f"t={t:>3d}s       " for t in TIMES_S)
     print(header + "last 50 s  converged(<=5%)  first position (min/median/max)")
-    for model, extra, label in (("velocity_kinematic", {}, "velocity_kinematic"),
-                                ("velocity_kinematic", {"pseudo_range_errors": "independent"},
-                                 "velocity_kinematic indep."),
-                                ("joint_ukf", {}, "joint_ukf")):
+    for label, model, extra in FILTERS:
         for known in (True, False):
             mc = run_monte_carlo(paper_config(model, known, **extra), scenario, runs, seed=1000)
             cells = " ".join(partial_rmse(mc, t) for t in TIMES_S)
-            tail = np.sqrt(np.mean(mc.position_errors_m[:, -51:] ** 2)) / mc.ranges_m[:, -51:].mean() * 100
             first = mc.times_s[np.argmax(~np.isnan(mc.position_errors_m), axis=1)]
-            print(f"{label:29s} {'known  ' if known else 'unknown'}  {cells}   {tail:6.2f}    "
+            print(f"{label:29s} {'known  ' if known else 'unknown'}  {cells}   {tail_rmse(mc):6.2f}    "
                   f"{mc.convergence_time_s(CONVERGENCE_PERCENT):5.0f} s        "
                   f"{first.min():.0f} / {np.median(first):.0f} / {first.max():.0f} s")
 
@@ -57,16 +85,51 @@ def consistency(runs: int) -> None:
     low, high = chi2.ppf([0.005, 0.995], 6 * runs) / runs
     print(f"\nNEES (6 dof) over the last 100 s, {runs} runs, truth with the filter's acceleration noise; "
           f"99 % interval of the run-mean: [{low:.2f}, {high:.2f}]")
-    for model, extra, label in (("velocity_kinematic", {}, "velocity_kinematic"),
-                                ("velocity_kinematic", {"pseudo_range_errors": "independent"},
-                                 "velocity_kinematic indep."),
-                                ("joint_ukf", {}, "joint_ukf")):
+    for label, model, extra in FILTERS:
         for known in (True, False):
             mc = run_monte_carlo(paper_config(model, known, **extra), scenario, runs, seed=5000)
-            mean_nees = mc.nees[:, -100:].mean(axis=0)
-            inside = np.mean((mean_nees >= low) & (mean_nees <= high))
-            print(f"{label:29s} {'known  ' if known else 'unknown'}  mean {mean_nees.mean():6.2f}  "
-                  f"min {mean_nees.min():6.2f}  max {mean_nees.max():6.2f}  inside {inside:5.0%}")
+            print(f"{label:29s} {'known  ' if known else 'unknown'}  {nees_figures(mc, runs)}")
+
+
+def prior_sensitivity(runs: int) -> None:
+    """The direct joint UKF (joint_initial_range="prior") under other range priors; the emitter starts at
+    156.4 km. Accuracy on the constant-velocity truth (seeds 1000+), NEES on the truth with the filter's
+    acceleration noise (seeds 5000+)."""
+    scenario = paper_001_scenario()
+    noisy = paper_001_scenario(accel_sigma_mps2=PAPER_ACCEL_SIGMA_MPS2)
+    print(f"\nDirect joint UKF: sensitivity to the range prior (true first range {PAPER_FIRST_RANGE_M / 1e3:.1f} km), "
+          f"{runs} runs; RMSE % of range")
+    print("range prior                    period   " + " ".join(f"t={t:>3d}s       " for t in TIMES_S[1:4])
+          + "last 50 s  converged(<=5%)  NEES last 100 s")
+    for label, changes in PRIORS:
+        for known in (True, False):
+            config = paper_config("joint_ukf", known, joint_initial_range="prior", **changes)
+            mc = run_monte_carlo(config, scenario, runs, seed=1000)
+            consistent = run_monte_carlo(config, noisy, runs, seed=5000)
+            cells = " ".join(partial_rmse(mc, t) for t in TIMES_S[1:4])
+            print(f"{label:30s} {'known  ' if known else 'unknown'}  {cells}   {tail_rmse(mc):6.2f}    "
+                  f"{mc.convergence_time_s(CONVERGENCE_PERCENT):5.0f} s         {nees_figures(consistent, runs)}")
+
+    print("\nPrior mean at the truth + k sigma (sigma 50 km): the same filter started short or long; the last "
+          "line weights the mean squared error by the normal density of k (what a prior of that width gives "
+          "on average)")
+    print("k      prior (km)  period   " + " ".join(f"t={t:>3d}s       " for t in TIMES_S[1:4])
+          + "last 50 s  converged(<=5%)  mean NEES at 200 s")
+    for known in (True, False):
+        weights, squared, ranges = [], [], None
+        for k in OFFSETS_SIGMA:
+            prior = PAPER_FIRST_RANGE_M + k * DEFAULT_RANGE_PRIOR_SIGMA_M
+            config = paper_config("joint_ukf", known, joint_initial_range="prior", range_prior_m=prior)
+            mc = run_monte_carlo(config, scenario, runs, seed=1000)
+            weights.append(np.exp(-0.5 * k * k))
+            squared.append(np.mean(mc.position_errors_m[:, -51:] ** 2))
+            ranges = mc.ranges_m[:, -51:].mean()
+            cells = " ".join(partial_rmse(mc, t) for t in TIMES_S[1:4])
+            print(f"{k:+4.1f}   {prior / 1e3:8.1f}    {'known  ' if known else 'unknown'}  {cells}   "
+                  f"{tail_rmse(mc):6.2f}    {mc.convergence_time_s(CONVERGENCE_PERCENT):5.0f} s        "
+                  f"{np.mean(mc.nees[:, -1]):8.2f}")
+        expected = 100.0 * np.sqrt(np.dot(weights, squared) / np.sum(weights)) / ranges
+        print(f"normal-weighted over k       {'known  ' if known else 'unknown'}  last 50 s {expected:6.2f}")
 
 
 def speed(repeats: int = 7) -> None:
@@ -133,4 +196,5 @@ if __name__ == "__main__":
     n_runs = int(sys.argv[1]) if len(sys.argv) > 1 else 100
     accuracy(n_runs)
     consistency(n_runs)
+    prior_sensitivity(n_runs)
     speed()

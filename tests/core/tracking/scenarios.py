@@ -15,6 +15,10 @@ UNKNOWN_PERIOD_OFFSET_S = 20e-9
 PAPER_ACCEL_SIGMA_MPS2 = 0.05
 
 
+#: The paper emitter's first range (m): 156.4 km.
+PAPER_FIRST_RANGE_M = float(np.linalg.norm(paper_001_scenario().initial_position_enu_m))
+
+
 def paper_config(model: str, period_known: bool, **changes) -> TrackerConfig:
     """The paper-001 filter settings (sigmas of the scenario; period exact when known, 20 ns off when not)."""
     scenario = paper_001_scenario()
