@@ -1,5 +1,12 @@
 """Paper 001's scenario driven through the HTTP API: Monte Carlo convergence of both session models.
 
+The API's ``joint_ukf`` is the core's default joint model: the joint UKF on the raw measurements started
+from velocity_kinematic's first range (``TrackerConfig.joint_initial_range="kinematic"``). The paper's
+baseline proper, the direct joint UKF started from a range prior (``"prior"``), exists in the core but
+cannot be chosen through the API, whose create request has no range prior: with a fixed one every
+session's accuracy would hinge on one assumed range (see core/tracking/config.py). For the record, the
+paper's ranking check below also runs that direct filter in the core on the same tracks.
+
 Print the figures (RMSE against time for both models, known and unknown period)::
 
     .venv/bin/python -m tests.service.sessions.test_paper_scenario [runs]
@@ -8,12 +15,13 @@ Print the figures (RMSE against time for both models, known and unknown period):
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+from core.tracking import TrackerConfig, new_state, step
 from service.app import create_app
 from service.settings import Settings
 
@@ -131,14 +139,48 @@ def test_paper_001_through_the_api():
     check_no_run_diverges(mc)
     check_within_3_percent_over_the_last_50_s(mc)
     check_known_period_converges_at_least_as_fast(mc)
-    # Paper 001's claim that the velocity method beats the joint UKF. The core does not reproduce it (nor do
-    # tests/core/tracking/report_figures.py's figures); say so with the numbers instead of failing CI, and
-    # pass the day it holds.
+    # Paper 001's claim that the velocity method beats the joint UKF. Against the API's joint_ukf (started
+    # from the velocity method's own first range) it does not hold; say so with the numbers instead of
+    # failing CI, and pass the day it holds. The direct joint UKF (core, same tracks) is reported alongside:
+    # with the default range prior, 6 km short of this emitter, it wins as well; started 100 km (2 sigma)
+    # short, it loses (tests/core/tracking/test_monte_carlo.py asserts both and has the sweep).
     ranking = {period: (mc.last_window_rmse_m(f"velocity_kinematic/{period}"),
                         mc.last_window_rmse_m(f"joint_ukf/{period}")) for period in ("unknown", "known")}
     if not all(kinematic < joint for kinematic, joint in ranking.values()):
-        pytest.xfail("paper 001's ranking not reproduced: last-50-s position RMSE velocity_kinematic vs joint_ukf "
-                     + ", ".join(f"{period} period {k:.0f} m vs {j:.0f} m" for period, (k, j) in ranking.items()))
+        direct = direct_joint_ukf_last_window_rmse_m(mc.ranges_m.shape[0])
+        pytest.xfail("paper 001's ranking not reproduced against the API's joint_ukf (kinematic start): last-50-s "
+                     "position RMSE velocity_kinematic vs joint_ukf "
+                     + ", ".join(f"{period} period {k:.0f} m vs {j:.0f} m" for period, (k, j) in ranking.items())
+                     + "; the direct joint UKF (core, same tracks) "
+                     + ", ".join(f"{period} period {default:.0f} m from the default prior (150 +- 50 km), "
+                                 f"{short:.0f} m from a prior 100 km short"
+                                 for period, (default, short) in direct.items()))
+
+
+def direct_joint_ukf_last_window_rmse_m(runs: int) -> dict[str, tuple[float, float]]:
+    """Last-50-s position RMSE (m, at the same read-outs) of the core's direct joint UKF on the same tracks,
+    started from the default range prior and from one 100 km short of the emitter."""
+    read_out = np.arange(BATCH - 1, EPOCHS, BATCH)
+    last = set(read_out[read_out > read_out[-1] - 50.0].tolist())
+    out = {}
+    for period, known in (("unknown", False), ("known", True)):
+        body = create_body(model="joint_ukf", period_known=known)
+        config = TrackerConfig(model="joint_ukf", period_s=body["pulse"]["period_s"], period_known=known,
+                               pulses_per_observation=1000, sigma_azimuth_rad=5e-3, sigma_elevation_rad=5e-3,
+                               sigma_azimuth_rate_rad_s=2e-4, sigma_toa_s=1e-8,
+                               accel_sigma_mps2=body["process_noise"]["accel_sigma_mps2"], joint_initial_range="prior")
+        squared: dict[bool, list] = {False: [], True: []}
+        for run in range(runs):
+            track = paper_track(seed=1000 + run, epochs=EPOCHS)
+            for short in (False, True):
+                run_config = replace(config, range_prior_m=float(track.ranges_m[0]) - 100e3) if short else config
+                state = new_state(run_config)
+                for i, epoch in enumerate(track.epochs):
+                    state = step(state, epoch, run_config)
+                    if i in last:
+                        squared[short].append(float(np.sum((state.position_enu_m - track.states_enu[i, :3]) ** 2)))
+        out[period] = (float(np.sqrt(np.mean(squared[False]))), float(np.sqrt(np.mean(squared[True]))))
+    return out
 
 
 def main(runs: int = RUNS) -> None:
