@@ -32,7 +32,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg.lapack import dtrtrs as _trtrs
 
 from core.tracking.config import SPEED_OF_LIGHT_MPS as C
 from core.tracking.config import TrackerConfig
@@ -40,8 +39,8 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
                                      count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
                                      line_of_sight_derivatives, range_pseudo_measurement)
 from core.tracking.state import TrackState, freeze, symmetric
-from core.tracking.unscented import (NIS_LIMIT, TWO_PI, cholesky_lower, cholesky_repaired,
-                                     constant_velocity_predict)
+from core.tracking.unscented import (NIS_LIMIT, TWO_PI, cholesky_repaired, constant_velocity_predict,
+                                     inverse_cholesky)
 
 _WITHOUT_TOA = np.array([0, 1, 3])
 
@@ -247,13 +246,9 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
 
     # Whitened form: with S = L L^T, v = cross_cov L^-T and t = L^-1 innovation, the gain is v L^-1,
     # the state moves by v t and the covariance loses v v^T; the NIS is |t|^2.
-    factor = cholesky_lower(innovation_cov)
-    if factor is None:
-        raise np.linalg.LinAlgError("innovation covariance is not positive definite")
-    v_t, info = _trtrs(factor, cross_cov.T, lower=1)
-    t, info_t = _trtrs(factor, innovation, lower=1)
-    if info or info_t:
-        raise np.linalg.LinAlgError("innovation covariance is singular")
+    whitening = np.array(inverse_cholesky(innovation_cov.tolist()))
+    v_t = whitening.dot(cross_cov.T)
+    t = whitening.dot(innovation)
     nis = float(t.dot(t))
     x = list(mean)
     p = cov.copy()
