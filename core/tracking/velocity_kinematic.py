@@ -194,7 +194,7 @@ def _tracking_update(update: ToaUpdate, cov, top, azimuth, elevation, rate, rang
     new_cov = consider_downdate(base, v_t)
     if _finite(new_mean, new_cov, warnings):
         return new_mean, _position_checked(new_cov, warnings), pseudo, True
-    return mean, update.covariance(cov), pseudo, False
+    return mean, base, pseudo, False  # base is now P' - D1: step 1 applied, step 3 skipped
 
 
 def _outlier(nis, warnings):

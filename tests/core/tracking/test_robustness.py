@@ -4,6 +4,7 @@ definite and honest about what they cannot see."""
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -215,5 +216,46 @@ def test_an_update_that_fails_outright_is_skipped_and_reported(monkeypatch, mode
     np.linalg.cholesky(held.covariance_enu)
     monkeypatch.undo()
     for epoch in track.epochs[51:]:
+        held = step(held, epoch, config)
+        assert_healthy(held)
+
+
+def test_a_step_3_update_that_is_not_finite_leaves_step_1_applied(monkeypatch):
+    """velocity_kinematic's tracking step: when step 3's transform yields NaN, the epoch keeps step 1's update
+    (velocity, period, TOA reference) and the predicted position, says ``numerical_failure``, and the next
+    epochs go on normally."""
+    import core.tracking.velocity_kinematic as velocity_kinematic
+    from core.tracking.kinematic import kinematic_update, line_of_sight_derivatives
+    from core.tracking.unscented import constant_velocity_predict
+
+    config = paper_config("velocity_kinematic", False)
+    track = simulate_emitter(paper_001_scenario(epochs=80), np.random.default_rng(9))
+    state = new_state(config)
+    for epoch in track.epochs[:60]:
+        state = step(state, epoch, config)
+    assert state.initialized
+    real = velocity_kinematic.polar_transform
+
+    def poisoned(*args, **kwargs):
+        transform = real(*args, **kwargs)
+        return transform._replace(whitened=(math.nan,) * len(transform.whitened))
+
+    monkeypatch.setattr(velocity_kinematic, "polar_transform", poisoned)
+    epoch = track.epochs[60]
+    held = step(state, epoch, config)
+    monkeypatch.undo()
+    assert "numerical_failure" in {code for code, _ in held.warnings}
+    mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, epoch.time_s - state.time_s,
+                                          config.accel_sigma_mps2**2, (3, 6), True)
+    dtoa = epoch.toa_s - state.toa_s
+    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
+    mean, cov, period_s, _ = kinematic_update(mean, cov, 6, round(dtoa / state.pulse_period_s), dtoa,
+                                              state.pulse_period_s, los, d_az, d_el, float(np.linalg.norm(mean[:3])),
+                                              config)
+    scale = np.sqrt(np.diag(cov))
+    np.testing.assert_allclose(held.mean, mean, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(held.covariance / np.outer(scale, scale), cov / np.outer(scale, scale), atol=1e-12)
+    assert held.pulse_period_s == period_s
+    for epoch in track.epochs[61:]:
         held = step(held, epoch, config)
         assert_healthy(held)
