@@ -51,7 +51,9 @@ class SessionCreate(Strict):
     observer: Observer
     model: Model = Field("velocity_kinematic", description="velocity_kinematic: paper 001's method (velocity from "
                                                            "TOA differences, range from the azimuth rate, UKF on "
-                                                           "position); joint_ukf: the direct joint UKF baseline")
+                                                           "position); joint_ukf: the baseline UKF on the full state "
+                                                           "with the raw measurements, started from the first "
+                                                           "kinematic range")
     pulse: Pulse
     noise: Noise
     process_noise: ProcessNoise = Field(default_factory=ProcessNoise)
