@@ -23,12 +23,6 @@ def wrap_to_pi(angle_rad):
     return wrapped if np.ndim(wrapped) else float(wrapped)
 
 
-def wrap_to_2pi(angle_rad):
-    """Wrap angles to [0, 2 pi), the range of a compass azimuth."""
-    wrapped = np.mod(np.asarray(angle_rad, dtype=float), 2.0 * np.pi)
-    return wrapped if np.ndim(wrapped) else float(wrapped)
-
-
 def line_of_sight_enu(azimuth_rad, elevation_rad):
     """Unit line-of-sight vectors in a station's ENU frame.
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.measurements import Kind, predict
+from core.measurements import predict
 
 #: Smallest eigenvalue of the unit-diagonal information matrix below which a
 #: direction counts as unobserved (relative, so independent of units).
@@ -134,8 +134,3 @@ def information_at(problem, position_enu_m, sigmas=None) -> Information:
     axes, free = local_parameterisation(problem, p)
     information, _ = normal_matrix(jac, (1.0 / sig**2)[None], axes, free)
     return invert_information(information, axes, free)
-
-
-def has_toa(kinds) -> np.ndarray:
-    """Whether each problem of a batch ``(B, M)`` has a TOA (so a free bias)."""
-    return np.any(np.asarray(kinds) == Kind.TOA, axis=-1)

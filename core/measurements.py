@@ -35,8 +35,6 @@ class Kind(IntEnum):
     TOA = 3
 
 
-ANGLE_KINDS = (Kind.AZIMUTH, Kind.ELEVATION)
-
 
 def relative_position(position_enu_m, stations_enu_m, rotations):
     """Target position in each station's own ENU frame.
