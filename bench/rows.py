@@ -145,7 +145,7 @@ def _phase_times(problems: list) -> dict[str, float]:
     """Where a batch's server time goes, phase by phase, measured in this process (GC paused as the route does)."""
     from core.batch import size_groups
     from core.estimators import SolveOptions
-    from core.estimators.ml import solve_ml_problem_batch
+    from core.estimators.base import get_estimator
     from service.responses import JsonResponse
     from service.translate import fix_batch_to_dicts, to_problem_batch
 
@@ -161,7 +161,7 @@ def _phase_times(problems: list) -> dict[str, float]:
         slots, options, formats, batch, rest = to_problem_batch(parsed)
         times["read + build batch (lean reader, geodesy)"] = time.perf_counter() - t
         t = time.perf_counter()
-        solved = [(group, solve_ml_problem_batch(batch.take(group), SolveOptions()))
+        solved = [(group, get_estimator("ml").solve_batch(batch.take(group), SolveOptions()))
                   for group in size_groups(batch.n_measurements, batch.n_stations)]
         times["core: start + LM + finish"] = time.perf_counter() - t
         t = time.perf_counter()
@@ -181,7 +181,7 @@ def _phase_times(problems: list) -> dict[str, float]:
 def batch_row(url: str, size: int, repeats: int = 5) -> tuple[Row, float, list]:
     """Row 2: one POST of ``size`` four-station problems, end to end; and the core's own time per fix."""
     from core.estimators import SolveOptions
-    from core.estimators.ml import solve_ml_problem_batch
+    from core.estimators.base import get_estimator
     from service.translate import to_problem_batch
 
     problems = four_station_requests(size, np.random.default_rng(22))
@@ -206,7 +206,7 @@ def batch_row(url: str, size: int, repeats: int = 5) -> tuple[Row, float, list]:
     gc.freeze()
     for _ in range(repeats):
         t = time.perf_counter()
-        solve_ml_problem_batch(batch, SolveOptions())
+        get_estimator("ml").solve_batch(batch, SolveOptions())
         core_runs.append(time.perf_counter() - t)
     gc.unfreeze()
     core_s = float(np.median(core_runs))
@@ -234,7 +234,7 @@ def scipy_row(problems: list, rounds: int = 10) -> Row:
     from scipy.optimize import least_squares
 
     from core.estimators import SolveOptions
-    from core.estimators.ml import solve_ml_problem_batch
+    from core.estimators.base import get_estimator
     from core.estimators.start import initial_positions
     from core.measurements import Kind
     from service.translate import to_problem_batch
@@ -256,7 +256,7 @@ def scipy_row(problems: list, rounds: int = 10) -> Row:
     gc.freeze()  # the request dicts of row 2 would otherwise be rescanned by every full collection
     for part in np.array_split(np.arange(size), rounds):
         t = time.perf_counter()
-        ours = solve_ml_problem_batch(batch, SolveOptions()).position_enu_m
+        ours = get_estimator("ml").solve_batch(batch, SolveOptions()).position_enu_m
         core_s = time.perf_counter() - t
         t = time.perf_counter()
         for b in part:

@@ -102,6 +102,22 @@ class ProblemBatch:
         """``(B, M)`` factor from problem units to model units (TOA seconds -> metres)."""
         return np.where(self.kinds == TOA, SPEED_OF_LIGHT_MPS, 1.0)
 
+    def model_values(self) -> np.ndarray:
+        """Values ``(B, M)`` in model units (TOA as pseudo-range metres)."""
+        return self.values * self.unit_scale()
+
+    def weights(self, sigmas=None) -> np.ndarray:
+        """``1 / sigma^2`` ``(B, M)`` in model units; 0 on padding and where no sigma is known.
+
+        Parameters
+        ----------
+        sigmas : ndarray, shape (B, M), optional
+            Replacement sigmas in problem units (default ``self.sigmas``).
+        """
+        sigmas = self.sigmas if sigmas is None else sigmas
+        known = self.valid & np.isfinite(sigmas)
+        return np.where(known, 1.0 / (np.where(known, sigmas, 1.0) * self.unit_scale()) ** 2, 0.0)
+
     def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
         """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement (computed once)."""
         return self._measurement_stations

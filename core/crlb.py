@@ -13,7 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.measurements import predict
+from core.measurements import MeasurementModel
+from core.problem import local_axes
+
 
 #: Smallest eigenvalue of the unit-diagonal information matrix below which a
 #: direction counts as unobserved (relative, so independent of units).
@@ -42,16 +44,18 @@ class Information:
 
 
 def normal_matrix(jacobian, weights, axes, free):
-    """``J'^T W J'`` and the map to local parameters.
+    """``J'^T W J'`` over the local parameters, and the local Jacobian.
 
     Parameters
     ----------
-    jacobian : ndarray, shape (B, M, 4)
-        Derivatives w.r.t. (east, north, up, b) in the common frame.
+    jacobian : ndarray, shape (B, 4, M)
+        Derivatives w.r.t. (east, north, up, b) in the common frame
+        (component-first, as :meth:`core.measurements.MeasurementModel.predict` gives them).
     weights : ndarray, shape (B, M)
         ``1 / sigma^2``; zero for padding.
-    axes : ndarray, shape (B, 3, 3)
-        Rows: the local east/north/up unit vectors the position moves along.
+    axes : ndarray, shape (B, 3, 3), or None
+        Rows: the local east/north/up unit vectors the position moves along;
+        None for the common frame's own axes.
     free : ndarray of bool, shape (B, 4)
         Which local parameters are estimated.
 
@@ -59,55 +63,96 @@ def normal_matrix(jacobian, weights, axes, free):
     -------
     information : ndarray, shape (B, 4, 4)
         With frozen rows/columns replaced by the identity.
-    local_jacobian : ndarray, shape (B, M, 4)
+    local_jacobian : ndarray, shape (B, 4, M)
+        Zero rows for frozen parameters.
     """
-    local = np.concatenate([jacobian[..., :3] @ np.swapaxes(axes, -1, -2), jacobian[..., 3:]], axis=-1)
-    local = local * free[:, None, :]
-    information = np.einsum("bmi,bm,bmj->bij", local, weights, local)
-    information = information + np.eye(4) * (~free)[:, None, :]
+    local = jacobian
+    if axes is not None:
+        local = jacobian.copy()
+        local[:, :3] = axes @ jacobian[:, :3]
+    local = local * free[:, :, None]
+    information = (local * weights[:, None, :]) @ np.swapaxes(local, -1, -2)
+    information += np.eye(4) * ~free[:, None, :]
     return information, local
 
 
 def invert_information(information, axes, free) -> Information:
-    """Invert information matrices with Jacobi scaling and an observability test."""
+    """Invert information matrices with Jacobi scaling and an observability test.
+
+    ``axes`` as in :func:`normal_matrix` (None: the common frame's axes).
+    """
     diag = np.einsum("bii->bi", information)
     scale = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
     scaled = information * scale[:, :, None] * scale[:, None, :]
+    finite = np.all(np.isfinite(scaled), axis=(-2, -1))
+    scaled = np.where(finite[:, None, None], scaled, np.eye(4))
     eig = np.linalg.eigvalsh(scaled)
-    min_eig = np.where(np.all(diag > 0, axis=-1), eig[:, 0], 0.0)
+    min_eig = np.where(np.all(diag > 0, axis=-1) & finite, eig[:, 0], 0.0)
     observable = min_eig > OBSERVABILITY_THRESHOLD
     safe = np.where(observable[:, None, None], scaled, np.eye(4))
     inverse = np.linalg.inv(safe) * scale[:, :, None] * scale[:, None, :]
     inverse = inverse * (free[:, :, None] & free[:, None, :])
     inverse = 0.5 * (inverse + np.swapaxes(inverse, -1, -2))
-    position = np.swapaxes(axes, -1, -2) @ inverse[:, :3, :3] @ axes
+    block = inverse[:, :3, :3]
+    position = block if axes is None else np.swapaxes(axes, -1, -2) @ block @ axes
     return Information(position, inverse, observable, min_eig)
 
 
-def local_parameterisation(problem, positions_enu_m):
-    """Axes and free parameters of the ``(east, north, up, b)`` parameterisation.
+def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic):
+    """Axes and free parameters of the ``(east, north, up, b)`` parameterisation of B problems.
 
     With a known altitude the position moves along the local east and north
     at the current point and ``up`` is frozen; TOA adds the free bias ``b``.
 
     Parameters
     ----------
-    problem : core.problem.Problem
     positions_enu_m : ndarray, shape (B, 3)
+    altitude_m : ndarray, shape (B,)
+        NaN where unconstrained.
+    has_toa : ndarray of bool, shape (B,)
+    origin : ndarray, shape (B, 3)
+        Each frame's ``(lat_rad, lon_rad, alt_m)``.
+    geodetic : ndarray of bool, shape (B,)
 
     Returns
     -------
-    axes : ndarray, shape (B, 3, 3)
+    axes : ndarray, shape (B, 3, 3), or None
+        None when no problem is constrained (the common frame's axes).
     free : ndarray of bool, shape (B, 4)
     """
+    constrained = ~np.isnan(altitude_m)
+    free = np.empty((positions_enu_m.shape[0], 4), dtype=bool)
+    free[:, :2] = True
+    free[:, 2] = ~constrained
+    free[:, 3] = has_toa
+    if not np.any(constrained):
+        return None, free
+    axes = np.where(constrained[:, None, None], local_axes(positions_enu_m, origin, geodetic), np.eye(3))
+    return axes, free
+
+
+def batch_information(batch, positions_enu_m, sigmas=None) -> Information:
+    """Inverse Fisher information of every problem of a batch at a position each.
+
+    Parameters
+    ----------
+    batch : core.batch.ProblemBatch
+        Its kinds, stations and sigmas are used, not its values.
+    positions_enu_m : ndarray, shape (B, 3)
+    sigmas : ndarray, shape (B, M), optional
+        Replacement sigmas in problem units (NaN: no weight).
+
+    Returns
+    -------
+    Information
+    """
     positions_enu_m = np.asarray(positions_enu_m, dtype=float).reshape(-1, 3)
-    batch = positions_enu_m.shape[0]
-    free = np.ones((batch, 4), dtype=bool)
-    free[:, 3] = problem.has_toa
-    if problem.altitude_m is None:
-        return np.broadcast_to(np.eye(3), (batch, 3, 3)), free
-    free[:, 2] = False
-    return problem.frame.local_axes(positions_enu_m).reshape(batch, 3, 3), free
+    stations, rotations = batch.measurement_stations()
+    model = MeasurementModel(stations, rotations, batch.kinds)
+    _, jacobian = model.predict(positions_enu_m, np.zeros(batch.size))
+    axes, free = parameterisation(positions_enu_m, batch.altitude_m, batch.has_toa, batch.origin, batch.geodetic)
+    information, _ = normal_matrix(jacobian, batch.weights(sigmas), axes, free)
+    return invert_information(information, axes, free)
 
 
 def information_at(problem, position_enu_m, sigmas=None) -> Information:
@@ -126,11 +171,7 @@ def information_at(problem, position_enu_m, sigmas=None) -> Information:
     Information
         ``covariance_enu_m2[0]`` is the CRLB ``(3, 3)``.
     """
-    p = np.asarray(position_enu_m, dtype=float).reshape(1, 3)
-    s = problem.station_index
-    sig = problem.model_sigmas() if sigmas is None else sigmas * problem.unit_scale()
-    _, jac = predict(p, np.zeros(1), problem.stations_enu_m[s][None], problem.station_rotations[s][None],
-                     problem.kinds[None])
-    axes, free = local_parameterisation(problem, p)
-    information, _ = normal_matrix(jac, (1.0 / sig**2)[None], axes, free)
-    return invert_information(information, axes, free)
+    from core.batch import ProblemBatch
+
+    return batch_information(ProblemBatch.from_problems([problem]), np.reshape(position_enu_m, (1, 3)),
+                             None if sigmas is None else np.reshape(sigmas, (1, -1)))

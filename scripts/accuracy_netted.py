@@ -27,9 +27,8 @@ import numpy as np
 
 from core.crlb import information_at
 from core.estimators import SolveOptions
-from core.estimators.angle_range import solve_angle_range_batch
+from core.estimators import solve_batch
 from core.estimators.line_of_sight_intersection import intersect_lines_of_sight
-from core.estimators.ml import solve_ml_batch
 from core.measurements import Kind, predict
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, build_problem
 from core.simulation.measurements import draw_noise, true_values
@@ -121,7 +120,7 @@ def bound_row(label, problem, target_enu_m):
 def angle_range_errors(problem, target_enu_m, trials, seed, noise="gaussian"):
     draws = true_values(problem, target_enu_m) + draw_noise(np.random.default_rng(seed), problem.sigmas, noise,
                                                             size=trials)
-    fixes = solve_angle_range_batch([problem.with_values(v) for v in draws], SolveOptions())
+    fixes = solve_batch([problem.with_values(v) for v in draws], "angle_range")
     fixes = [f for f in fixes if not isinstance(f, Exception)]
     fine = np.array([f.position_enu_m for f in fixes]) - target_enu_m
     coarse = np.array([f.coarse_position_enu_m for f in fixes]) - target_enu_m
@@ -138,7 +137,7 @@ def report_paper_003(trials):
         started = time.perf_counter()
         fine, coarse, draws, forms, failures = angle_range_errors(problem, target, trials, seed, noise)
         angles = problem.kinds != Kind.RANGE
-        ml = solve_ml_batch([angles_only.with_values(v[angles]) for v in draws], SolveOptions())
+        ml = solve_batch([angles_only.with_values(v[angles]) for v in draws], "ml")
         angle_errors = np.array([f.position_enu_m for f in ml if not isinstance(f, Exception)]) - target
         elapsed = time.perf_counter() - started
         print(f" noise {noise} (coarse form: {dict(forms)}, failures {failures}, {elapsed:.1f} s)")

@@ -4,7 +4,7 @@
 hands ``(problem, method, options)`` to the app's :class:`Coalescer`. One
 drain at a time takes *everything queued at that moment* (there is no
 waiting window: a lone request on an idle service is solved at once, alone)
-and runs :func:`core.estimators.solve_many` on a worker thread, so ML
+and runs :func:`core.estimators.solve_batch` on a worker thread, so ML
 problems that arrived together share one batched Levenberg-Marquardt and
 one batched error summary; other methods run as they would alone. Requests
 that arrive while a solve is running queue up for the next drain.
@@ -30,7 +30,7 @@ from starlette.concurrency import run_in_threadpool
 
 from core.accuracy import ErrorSummary, error_summary
 from core.errors import LocalizationError
-from core.estimators import Fix, SolveOptions, solve, solve_many
+from core.estimators import Fix, SolveOptions, solve, solve_batch
 from core.problem import Problem
 
 
@@ -44,13 +44,13 @@ class Solved:
 
 
 def solve_together(items: list[tuple[Problem, str, SolveOptions]]) -> list[Solved | BaseException]:
-    """Solve problems as one :func:`solve_many` call; each gets its :class:`Solved` or its own exception.
+    """Solve problems as one :func:`solve_batch` call; each gets its :class:`Solved` or its own exception.
 
     A failure of the shared call that is not a :class:`LocalizationError`
     falls back to solving each problem alone, so one problem's bug fails only it.
     """
     try:
-        fixes: list = solve_many([p for p, _, _ in items], [m for _, m, _ in items], [o for _, _, o in items])
+        fixes: list = solve_batch([p for p, _, _ in items], [m for _, m, _ in items], [o for _, _, o in items])
     except Exception:
         fixes = []
         for problem, method, options in items:

@@ -12,7 +12,7 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
 from core.estimators import REGISTRY
-from core.estimators.base import WARNING_CODES
+from core.estimators.result import WARNING_CODES
 
 
 class Strict(BaseModel):

@@ -1,7 +1,11 @@
-"""Estimators behind one interface: ``solve(problem, method, options) -> Fix``.
+"""Estimators behind one interface, batch first.
 
-Importing this package registers every estimator module in
-:data:`core.estimators.base.REGISTRY`, which the API's ``method`` looks up.
+Every estimator is registered in :data:`core.estimators.base.REGISTRY` under
+its API name and consumes a :class:`~core.batch.ProblemBatch`
+(``spec.solve_batch(batch, options) -> FixBatch``). :func:`solve_many` runs
+many problems, each with its own method and options, grouped so that each
+group is one batched call; :func:`solve` is a batch of one, squeezed.
+Importing this package registers every estimator module.
 """
 
 from __future__ import annotations
@@ -11,10 +15,10 @@ import pkgutil
 
 import numpy as np
 
+from core.batch import AZIMUTH, ProblemBatch, size_groups
 from core.errors import InvalidInput, LocalizationError
-from core.estimators import ml as _ml
-from core.estimators.base import REGISTRY, Fix, FixWarning, SolveOptions, get_estimator
-from core.measurements import Kind
+from core.estimators.base import REGISTRY, SolveOptions, get_estimator
+from core.estimators.result import Fix, FixBatch, FixWarning
 from core.problem import Problem
 
 AUTO = "auto"
@@ -23,72 +27,116 @@ for _module in pkgutil.iter_modules(__path__):
     importlib.import_module(f"{__name__}.{_module.name}")
 
 
-def resolve_method(problem: Problem, method: str) -> str:
-    """The estimator ``auto`` stands for, given the measurement mix.
+def resolve_methods(batch: ProblemBatch, methods: list[str]) -> list[str]:
+    """The estimator each problem's method stands for (``auto`` depends on the measurement mix).
 
-    ML (started from the best closed form for the mix) whenever sigmas are
-    known; ``taylor_wls``, which estimates them, when azimuth-only bearings
-    come without sigmas.
+    ``auto`` is ML (started from the best closed form for the mix) whenever
+    sigmas are known; ``taylor_wls``, which estimates them, when azimuth-only
+    bearings come without sigmas.
     """
-    if method != AUTO:
-        return get_estimator(method).name
-    unknown_sigma = np.isnan(problem.sigmas) & (problem.kinds == Kind.AZIMUTH)
-    azimuth_only = problem.count(Kind.AZIMUTH) == problem.n_measurements
-    if np.any(unknown_sigma) and azimuth_only and "taylor_wls" in REGISTRY:
-        return "taylor_wls"
-    return "ml"
+    if AUTO not in methods:
+        return list(methods)
+    valid = batch.valid
+    unknown_sigma = np.any(valid & np.isnan(batch.sigmas) & (batch.kinds == AZIMUTH), axis=-1)
+    azimuth_only = np.all(~valid | (batch.kinds == AZIMUTH), axis=-1)
+    estimates_sigmas = (unknown_sigma & azimuth_only).tolist()
+    return [("taylor_wls" if estimates_sigmas[b] else "ml") if m == AUTO else m for b, m in enumerate(methods)]
+
+
+def solve_many(batch: ProblemBatch, methods, options) -> list[tuple[np.ndarray, FixBatch | LocalizationError]]:
+    """Fixes of every problem of a batch, each with its own method and options.
+
+    Problems with the same method and options are solved in one batched
+    call per size class (padding stays under 2x).
+
+    Parameters
+    ----------
+    batch : ProblemBatch
+    methods : str or sequence of str, length B
+        API method names (``auto`` allowed).
+    options : SolveOptions or sequence of SolveOptions, length B, optional
+
+    Returns
+    -------
+    list of (rows, FixBatch or LocalizationError)
+        ``rows`` indexes ``batch``; a LocalizationError stands for every
+        problem of its rows (an unknown method or variant, a missing sigma).
+    """
+    size = batch.size
+    methods = [methods] * size if isinstance(methods, str) else list(methods)
+    if options is None or isinstance(options, SolveOptions):
+        options = [options or SolveOptions()] * size
+    out: list[tuple[np.ndarray, FixBatch | LocalizationError]] = []
+    missing = batch.valid & np.isnan(batch.sigmas)
+    groups: dict[tuple, list[int]] = {}
+    for b, (name, opts) in enumerate(zip(resolve_methods(batch, methods), options)):
+        groups.setdefault((name, opts), []).append(b)
+    for (name, opts), rows in groups.items():
+        rows = np.asarray(rows, dtype=np.intp)
+        try:
+            spec = get_estimator(name)
+            _check_variant(spec, opts)
+        except LocalizationError as error:
+            out.append((rows, error))
+            continue
+        if spec.needs_sigmas:
+            lacking = np.any(missing[rows], axis=-1)
+            for b in rows[lacking].tolist():
+                m = int(np.flatnonzero(missing[b])[0])
+                out.append((np.array([b]), InvalidInput(
+                    f"method {name} needs sigma_azimuth_deg on every bearing",
+                    ("measurements", int(batch.source_index[b, m]), "sigma_azimuth_deg"))))
+            rows = rows[~lacking]
+        if rows.size == 0:
+            continue
+        for group in size_groups(batch.n_measurements[rows], batch.n_stations[rows]):
+            chosen = rows[group]
+            part = batch if chosen.size == size else batch.take(chosen)
+            out.append((chosen, spec.solve_batch(part, opts)))
+    return out
+
+
+def solve_batch(problems, method=AUTO, options=None) -> list[Fix | LocalizationError]:
+    """Every problem's fix (or the error that stopped it), in order.
+
+    Parameters
+    ----------
+    problems : ProblemBatch or sequence of Problem
+    method : str or sequence of str
+        One method for all, or one per problem.
+    options : SolveOptions or sequence of SolveOptions, optional
+    """
+    batch = problems if isinstance(problems, ProblemBatch) else ProblemBatch.from_problems(list(problems))
+    results: list[Fix | LocalizationError | None] = [None] * batch.size
+    for rows, fixes in solve_many(batch, method, options):
+        for j, b in enumerate(rows.tolist()):
+            results[b] = fixes if isinstance(fixes, LocalizationError) else fixes.fix(j)
+    return results
 
 
 def solve(problem: Problem, method: str = AUTO, options: SolveOptions | None = None) -> Fix:
-    """Run one estimator on one problem.
+    """Run one estimator on one problem (a batch of one).
 
     Raises
     ------
     LocalizationError
         When the method cannot give a fix for this problem.
     """
-    options = options or SolveOptions()
-    spec = get_estimator(resolve_method(problem, method))
-    _require_sigmas(problem, spec.name, spec.needs_sigmas)
-    return spec.solve(problem, options)
+    (result,) = solve_batch([problem], method, options)
+    if isinstance(result, LocalizationError):
+        raise result
+    return result
 
 
-def solve_many(problems: list[Problem], methods: list[str], options: list[SolveOptions]) -> list[Fix | LocalizationError]:
-    """Solve independent problems; ML problems share one batched iteration.
-
-    Returns
-    -------
-    list of Fix or LocalizationError, in input order.
-    """
-    results: list[Fix | LocalizationError | None] = [None] * len(problems)
-    batched: dict[tuple, list[int]] = {}
-    for i, (problem, method, opts) in enumerate(zip(problems, methods, options)):
-        try:
-            name = resolve_method(problem, method)
-            _require_sigmas(problem, name, get_estimator(name).needs_sigmas)
-        except LocalizationError as error:
-            results[i] = error
-            continue
-        if name == "ml":
-            batched.setdefault((opts.max_iterations, opts.tolerance_m), []).append(i)
-            continue
-        try:
-            results[i] = get_estimator(name).solve(problem, opts)
-        except LocalizationError as error:
-            results[i] = error
-    for key, indices in batched.items():
-        solved = _ml.solve_ml_batch([problems[i] for i in indices], SolveOptions(*key))
-        for i, result in zip(indices, solved):
-            results[i] = result
-    return results
+def _check_variant(spec, options: SolveOptions) -> None:
+    variant = options.variant
+    if variant is None or variant in spec.variants:
+        return
+    if spec.variants:
+        raise InvalidInput(f"{spec.name} variant must be one of {', '.join(spec.variants)}; got {variant!r}",
+                           ("options", "variant"))
+    raise InvalidInput(f"{spec.name} has no variants; got {variant!r}", ("options", "variant"))
 
 
-def _require_sigmas(problem: Problem, name: str, needs_sigmas: bool) -> None:
-    missing = np.flatnonzero(np.isnan(problem.sigmas))
-    if needs_sigmas and missing.size:
-        i = int(problem.source_index[missing[0]])
-        raise InvalidInput(f"method {name} needs sigma_azimuth_deg on every bearing",
-                           ("measurements", i, "sigma_azimuth_deg"))
-
-
-__all__ = ["AUTO", "REGISTRY", "Fix", "FixWarning", "SolveOptions", "resolve_method", "solve", "solve_many"]
+__all__ = ["AUTO", "REGISTRY", "Fix", "FixBatch", "FixWarning", "SolveOptions", "resolve_methods", "solve",
+           "solve_batch", "solve_many"]

@@ -33,8 +33,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from core.errors import LocalizationError, TooFewMeasurements
-from core.estimators.base import Fix, FixWarning, SolveOptions, register
-from core.estimators.ml import solve_ml_batch
+from core.batch import ProblemBatch
+from core.estimators.base import SolveOptions, register
+from core.estimators.result import Estimates, FixWarning
+from core.estimators.ml import estimate_from
 from core.estimators.orthogonal_vector import orthogonal_rows
 from core.estimators.start import fuse_points, initial_position, polar_points
 from core.measurements import Kind
@@ -243,47 +245,26 @@ def coarse_fix(problem: Problem) -> CoarseFix:
     return CoarseFix(np.asarray(position, dtype=float), name, (), sigmas)
 
 
-def solve_angle_range_batch(problems: list[Problem], options: SolveOptions) -> list[Fix | LocalizationError]:
-    """Coarse then fine fixes for many problems; the fine ML stage runs as one batch.
-
-    Returns
-    -------
-    list of Fix or LocalizationError
-        In input order; ``coarse_position_enu_m`` holds the coarse point and
-        ``details["coarse"]`` the coarse form used.
-    """
-    results: list[Fix | LocalizationError | None] = [None] * len(problems)
-    coarse: dict[int, CoarseFix] = {}
-    for i, problem in enumerate(problems):
-        try:
-            coarse[i] = coarse_fix(problem)
-        except LocalizationError as error:
-            results[i] = error
-    order = list(coarse)
-    started = [replace(problems[i], initial_guess_enu_m=coarse[i].position_enu_m) for i in order]
-    for i, fine in zip(order, solve_ml_batch(started, options, method="angle_range")):
-        if isinstance(fine, LocalizationError):
-            results[i] = fine
-            continue
-        c = coarse[i]
-        details = {"coarse": c.method, "coarse_height_sigma_m": c.height_sigma_m, "fine": "ml"}
-        results[i] = replace(fine, coarse_position_enu_m=c.position_enu_m, warnings=c.warnings + fine.warnings,
-                             details=details)
-    return results
-
-
 @register("angle_range", "bearings and ranges: analytic coarse fix, then ML from it (paper 003)")
-def angle_range(problem: Problem, options: SolveOptions) -> Fix:
-    """Coarse-then-fine fix from bearings and ranges (see the module docstring).
+def angle_range(batch: ProblemBatch, options: SolveOptions) -> Estimates:
+    """Coarse-then-fine fixes from bearings and ranges (see the module docstring).
 
-    Raises
-    ------
-    TooFewMeasurements
-        Without at least one bearing and one range.
-    LocalizationError
-        When the coarse stage has no form for the mix or the fine stage fails.
+    ``coarse_position_enu_m`` holds the coarse point and ``details["coarse"]``
+    the coarse form used. A problem without at least one bearing and one
+    range, or whose mix has no coarse form, carries a LocalizationError.
     """
-    (result,) = solve_angle_range_batch([problem], options)
-    if isinstance(result, LocalizationError):
-        raise result
-    return result
+    size = batch.size
+    starts = np.full((size, 3), np.nan)
+    failures: dict[int, LocalizationError] = {}
+    coarse: dict[int, CoarseFix] = {}
+    for b in range(size):
+        try:
+            coarse[b] = coarse_fix(batch.problem(b))
+            starts[b] = coarse[b].position_enu_m
+        except LocalizationError as error:
+            failures[b] = error
+    fine = estimate_from(batch, starts, options, [None] * size, failures)
+    warnings = [coarse[b].warnings if b in coarse else () for b in range(size)]
+    details = [{"coarse": coarse[b].method, "coarse_height_sigma_m": coarse[b].height_sigma_m, "fine": "ml"}
+               if b in coarse else {} for b in range(size)]
+    return replace(fine, coarse_position_enu_m=starts, warnings=warnings, details=details)

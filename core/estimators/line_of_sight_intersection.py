@@ -32,9 +32,10 @@ from itertools import combinations
 
 import numpy as np
 
-from core.crlb import invert_information, local_parameterisation, normal_matrix
+from core.crlb import invert_information, normal_matrix, parameterisation
 from core.errors import TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import FixWarning, SolveOptions, finish_fix, register
+from core.estimators.base import Estimate, SolveOptions, per_problem, register
+from core.estimators.result import FixWarning
 from core.measurements import Kind, predict, residuals
 from core.problem import Problem
 
@@ -313,14 +314,16 @@ def intersect_lines_of_sight(problem: Problem, values=None) -> IntersectionBatch
 
     predicted, jac = predict(reference, bias, stations, rotations, kinds)
     delta_z = residuals(measured, predicted, kinds)
-    axes, free = local_parameterisation(problem, reference)
-    free[:, 3] = False
+    altitude = np.full(trials, np.nan if problem.altitude_m is None else problem.altitude_m)
+    origin = np.broadcast_to(problem.frame.origin_array(), (trials, 3))
+    geodetic = np.full(trials, problem.frame.is_geodetic)
+    axes, free = parameterisation(reference, altitude, np.zeros(trials, dtype=bool), origin, geodetic)
     w = np.broadcast_to(1.0 / sigma**2, (trials, rows.size))
-    information, local_jacobian = normal_matrix(jac, w, axes, free)
+    information, local_jacobian = normal_matrix(np.swapaxes(jac, -1, -2), w, axes, free)
     inverse = invert_information(information, axes, free)
-    gradient = np.einsum("tmi,tm,tm->ti", local_jacobian, w, delta_z)
+    gradient = np.einsum("tim,tm,tm->ti", local_jacobian, w, delta_z)
     step = np.einsum("tij,tj->ti", inverse.covariance_params, gradient)
-    position = reference + np.einsum("ti,tij->tj", step[:, :3], axes)
+    position = reference + (step[:, :3] if axes is None else np.einsum("ti,tij->tj", step[:, :3], axes))
     if constrained:
         position = problem.frame.onto_altitude(position, problem.altitude_m)
 
@@ -340,9 +343,7 @@ def intersect_lines_of_sight(problem: Problem, values=None) -> IntersectionBatch
     )
 
 
-@register("los_intersection",
-          "common-perpendicular line-of-sight intersection, pairwise WLS fusion and an extended-WLS pass (paper 002)")
-def line_of_sight_intersection(problem: Problem, options: SolveOptions):
+def _line_of_sight_intersection(problem: Problem, options: SolveOptions) -> Estimate:
     """Fix by the common-perpendicular method (:func:`intersect_lines_of_sight` with ``T = 1``).
 
     The covariance is the extended-WLS ``(K^T R^-1 K)^-1`` at the
@@ -382,6 +383,10 @@ def line_of_sight_intersection(problem: Problem, options: SolveOptions):
         "reference_station": station if result.moved[0] else None,
         "ignored_measurements": int(np.count_nonzero((problem.kinds == Kind.RANGE) | (problem.kinds == Kind.TOA))),
     }
-    return finish_fix(problem, "los_intersection", result.position_enu_m[0], result.covariance_enu_m2[0],
-                      covariance_source="propagated", converged=True, iterations=1, warnings=warnings,
-                      coarse_position_enu_m=result.coarse_position_enu_m[0], details=details)
+    return Estimate(result.position_enu_m[0], result.covariance_enu_m2[0], iterations=1, warnings=tuple(warnings),
+                    coarse_position_enu_m=result.coarse_position_enu_m[0], details=details)
+
+
+register("los_intersection",
+         "common-perpendicular line-of-sight intersection, pairwise WLS fusion and an extended-WLS pass (paper 002)")(
+    per_problem(_line_of_sight_intersection, "propagated"))

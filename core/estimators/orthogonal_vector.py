@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.errors import TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import SolveOptions, finish_fix, register
+from core.estimators.base import Estimate, SolveOptions, per_problem, register
 from core.problem import LinesOfSight, Problem
 
 #: Relative singular value below which the stacked rows are rank-deficient.
@@ -155,28 +155,27 @@ def solve_orthogonal(problem: Problem, use_vertical: bool, use_horizontal: bool,
     return position, covariance
 
 
-def _fix(problem: Problem, name: str, use_vertical: bool, weighted: bool):
-    position, covariance = solve_orthogonal(problem, use_vertical, True, weighted, name)
-    return finish_fix(problem, name, position, covariance, covariance_source="propagated")
-
-
-@register("ove", "orthogonal vector estimator: elevation-plane normals only, needs >= 3 lines of sight")
-def ove(problem: Problem, options: SolveOptions):
+def _ove(problem: Problem, options: SolveOptions) -> Estimate:
     los = problem.lines_of_sight()
     with_elevation = int(np.count_nonzero(los.has_elevation))
     if with_elevation < 3:
         raise TooFewMeasurements(
             f"ove needs at least 3 lines of sight with elevation; got {with_elevation}", ("measurements",))
-    position, covariance = solve_orthogonal(problem, True, False, False, "ove")
-    return finish_fix(problem, "ove", position, covariance, covariance_source="propagated")
+    return Estimate(*solve_orthogonal(problem, True, False, False, "ove"))
 
 
-@register("eove", "extended orthogonal vector estimator: both normals per line of sight (paper 000)")
-def eove(problem: Problem, options: SolveOptions):
-    return _fix(problem, "eove", True, False)
+def _eove(problem: Problem, options: SolveOptions) -> Estimate:
+    return Estimate(*solve_orthogonal(problem, True, True, False, "eove"))
 
 
-@register("weighted_eove", "EOVE with rows weighted by their first-order noise: the small-noise BLUE")
-def weighted_eove(problem: Problem, options: SolveOptions):
-    return _fix(problem, "weighted_eove", True, True)
+def _weighted_eove(problem: Problem, options: SolveOptions) -> Estimate:
+    return Estimate(*solve_orthogonal(problem, True, True, True, "weighted_eove"))
+
+
+register("ove", "orthogonal vector estimator: elevation-plane normals only, needs >= 3 lines of sight")(
+    per_problem(_ove, "propagated"))
+register("eove", "extended orthogonal vector estimator: both normals per line of sight (paper 000)")(
+    per_problem(_eove, "propagated"))
+register("weighted_eove", "EOVE with rows weighted by their first-order noise: the small-noise BLUE")(
+    per_problem(_weighted_eove, "propagated"))
 

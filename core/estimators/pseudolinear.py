@@ -34,7 +34,7 @@ import numpy as np
 
 from core.errors import TooFewMeasurements
 from core.estimators.azimuth_lines import DIFFERENCE_STEP_RAD, require_crossing
-from core.estimators.base import SolveOptions, finish_fix, register
+from core.estimators.base import Estimate, SolveOptions, per_problem, register
 from core.problem import Problem
 
 #: Horizontal/height passes; fixed so that the estimator is one smooth map of the data.
@@ -156,19 +156,20 @@ def _fix(problem: Problem, weighted: bool):
     details = {"passes": PASSES}
     if problem.altitude_m is not None and np.any(los.has_elevation):
         details["unused_measurements"] = "elevations: the known altitude gives the height"
-    return finish_fix(problem, name, position, _covariance(problem, weighted), covariance_source="propagated",
-                      details=details)
+    return Estimate(position, _covariance(problem, weighted), details=details)
 
 
-@register("ple3d", "3D pseudolinear estimator: horizontal Stansfield from azimuths, then mean height from "
-                   "elevations; fails above a straight station track")
-def ple3d(problem: Problem, options: SolveOptions):
+def _ple3d(problem: Problem, options: SolveOptions) -> Estimate:
     """3D PLE (Dogancay & Ibal 2005); see the module docstring."""
     return _fix(problem, weighted=False)
 
 
-@register("ws3d", "weighted Stansfield in 3D: PLE with inverse-variance weights from a first pass; "
-                  "fails above a straight station track")
-def ws3d(problem: Problem, options: SolveOptions):
+def _ws3d(problem: Problem, options: SolveOptions) -> Estimate:
     """WS3D (Adib & Douglas 2018, as rendered in ALGORITHMS.md); see the module docstring."""
     return _fix(problem, weighted=True)
+
+
+register("ple3d", "3D pseudolinear estimator: horizontal Stansfield from azimuths, then mean height from "
+                  "elevations; fails above a straight station track")(per_problem(_ple3d, "propagated"))
+register("ws3d", "weighted Stansfield in 3D: PLE with inverse-variance weights from a first pass; "
+                 "fails above a straight station track")(per_problem(_ws3d, "propagated"))

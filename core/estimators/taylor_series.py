@@ -50,7 +50,8 @@ import numpy as np
 
 from core.crlb import OBSERVABILITY_THRESHOLD
 from core.errors import InvalidInput, TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import FixWarning, SolveOptions, finish_fix, register
+from core.estimators.base import Estimate, SolveOptions, per_problem, register
+from core.estimators.result import FixWarning
 from core.estimators.orthogonal_vector import solve_orthogonal
 from core.measurements import Kind, predict, residuals
 from core.problem import Problem
@@ -183,9 +184,7 @@ def _start(problem: Problem, name: str) -> tuple[np.ndarray, str]:
     return position, "eove" if has_elevation else "pseudolinear"
 
 
-@register("taylor_wls", "iterative Taylor-series WLS that estimates each bearing's error (paper 004); "
-                        "estimates an unknown bearing sigma", needs_sigmas=False)
-def taylor_wls(problem: Problem, options: SolveOptions):
+def _taylor_wls(problem: Problem, options: SolveOptions) -> Estimate:
     """Taylor-series WLS fix with estimated bearing errors; see the module docstring.
 
     Returns
@@ -265,7 +264,11 @@ def taylor_wls(problem: Problem, options: SolveOptions):
     details = {"start": start_name, "estimated_elevation_errors_rad": elevation_errors}
     if estimated_sigma is not None:
         details["estimated_sigma_azimuth_rad"] = estimated_sigma
-    return finish_fix(problem, name, position, covariance, covariance_source="information",
-                      converged=result["converged"], iterations=result["iterations"], warnings=warnings,
-                      estimated_bearing_errors_rad=azimuth_errors,
-                      sigmas=all_sigmas if estimated_sigma is not None else None, details=details)
+    return Estimate(position, covariance, converged=result["converged"], iterations=result["iterations"],
+                    warnings=tuple(warnings), estimated_bearing_errors_rad=azimuth_errors,
+                    sigmas=all_sigmas if estimated_sigma is not None else None, details=details)
+
+
+register("taylor_wls", "iterative Taylor-series WLS that estimates each bearing's error (paper 004); "
+                       "estimates an unknown bearing sigma", needs_sigmas=False)(
+    per_problem(_taylor_wls, "information"))

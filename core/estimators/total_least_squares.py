@@ -71,7 +71,8 @@ from core.estimators.azimuth_lines import (
     require_crossing,
     tangent_plane,
 )
-from core.estimators.base import FixWarning, SolveOptions, finish_fix, register
+from core.estimators.base import Estimate, SolveOptions, per_problem, register
+from core.estimators.result import FixWarning
 from core.estimators.orthogonal_vector import solve_orthogonal
 from core.measurements import Kind
 from core.problem import LinesOfSight, Problem
@@ -301,16 +302,13 @@ def projected_ctls_position(problem: Problem, options: SolveOptions):
     return position, plane.axes_enu.T @ covariance_plane @ plane.axes_enu, used, converged
 
 
-@register("tls", "total least squares on the azimuth pseudolinear equations (azimuth-only, known altitude)")
-def tls(problem: Problem, options: SolveOptions):
+def _tls(problem: Problem, options: SolveOptions) -> Estimate:
     """TLS baseline of paper 004; see the module docstring."""
     position, covariance = tls_position(problem)
-    return finish_fix(problem, "tls", position, covariance, covariance_source="propagated", details=_details(problem))
+    return Estimate(position, covariance, details=_details(problem))
 
 
-@register("ctls", "constrained total least squares on the azimuth equations (azimuth-only, known altitude); "
-                  "variant newton (default) or projected")
-def ctls(problem: Problem, options: SolveOptions):
+def _ctls(problem: Problem, options: SolveOptions) -> Estimate:
     """CTLS baselines of paper 004; ``options.variant`` in {"newton", "projected"}, default newton."""
     variant = options.variant or "newton"
     if variant not in CTLS_VARIANTS:
@@ -325,9 +323,14 @@ def ctls(problem: Problem, options: SolveOptions):
             warnings.append(FixWarning(
                 "not_converged", f"projected CTLS: normalised reduced-rank error still above {PROJECTED_THRESHOLD:g} "
                                  f"after {iterations} passes; the last pass is returned"))
-    return finish_fix(problem, "ctls", position, covariance, covariance_source="propagated", converged=converged,
-                      iterations=iterations, warnings=warnings,
-                      details={"variant": variant, **_details(problem)})
+    return Estimate(position, covariance, converged=converged, iterations=iterations, warnings=tuple(warnings),
+                    details={"variant": variant, **_details(problem)})
+
+
+register("tls", "total least squares on the azimuth pseudolinear equations (azimuth-only, known altitude)")(
+    per_problem(_tls, "propagated"))
+register("ctls", "constrained total least squares on the azimuth equations (azimuth-only, known altitude); "
+                 "variant newton (default) or projected", variants=CTLS_VARIANTS)(per_problem(_ctls, "propagated"))
 
 
 def _details(problem: Problem) -> dict:

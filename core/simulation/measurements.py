@@ -107,7 +107,7 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, rng: np.rando
     options : SolveOptions, optional
     """
     from core.crlb import information_at
-    from core.estimators import SolveOptions, solve_many
+    from core.estimators import SolveOptions, solve_batch
 
     options = options or SolveOptions()
     target = np.asarray(target_enu_m, dtype=float)
@@ -120,7 +120,7 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, rng: np.rando
     bound = information.covariance_enu_m2[0]
     out = {}
     for method in methods:
-        results = solve_many(noisy, [method] * trials, [options] * trials)
+        results = solve_batch(noisy, method, options)
         fixes = [r for r in results if not isinstance(r, LocalizationError)]
         errors = np.array([f.position_enu_m - target for f in fixes]).reshape(-1, 3)
         nees = [_nees(e, f.covariance_enu_m2) for e, f in zip(errors, fixes)]

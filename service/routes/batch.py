@@ -32,8 +32,8 @@ from pydantic import ValidationError
 from core.accuracy import error_summary
 from core.batch import size_groups
 from core.errors import LocalizationError
-from core.estimators import SolveOptions, solve_many
-from core.estimators.ml import solve_ml_problem_batch
+from core.estimators import SolveOptions, solve_batch
+from core.estimators.base import get_estimator
 from service import schemas
 from service.deps import OwnerDep
 from service.problems import localization_problem, problem_body, validation_errors
@@ -128,7 +128,7 @@ def _invalid(error: ValidationError, request_id: str | None) -> dict:
     return problem_body(422, "invalid_input", detail, errors, request_id)
 
 
-def solve_batch(problems: list, request_id: str | None = None) -> list[dict]:
+def batch_results(problems: list, request_id: str | None = None) -> list[dict]:
     """The ``results`` of a batch: one ``{"index", "ok", "fix" | "error"}`` per problem, in request order."""
     results: list[dict | None] = [None] * len(problems)
 
@@ -150,7 +150,7 @@ def solve_batch(problems: list, request_id: str | None = None) -> list[dict]:
 
         def solve_part(part):
             key, chosen = part
-            fixes = solve_ml_problem_batch(batch.take(chosen), SolveOptions(*key))
+            fixes = get_estimator("ml").solve_batch(batch.take(chosen), SolveOptions(*key))
             return chosen, fixes, batch_error_summary(fixes)
 
         with ThreadPoolExecutor(workers) if workers > 1 else nullcontext() as pool:
@@ -175,7 +175,7 @@ def solve_batch(problems: list, request_id: str | None = None) -> list[dict]:
         except LocalizationError as error:
             put(slot, error=_slot_error(localization_problem(error), request_id))
     if parsed:
-        solved = solve_many([p for _, _, p in parsed], [r.method for _, r, _ in parsed],
+        solved = solve_batch([p for _, _, p in parsed], [r.method for _, r, _ in parsed],
                             [to_options(r) for _, r, _ in parsed])
         fixed = [i for i, fix in enumerate(solved) if not isinstance(fix, LocalizationError)]
         summary = error_summary(np.array([solved[i].covariance_enu_m2 for i in fixed])) if fixed else None
@@ -197,7 +197,7 @@ def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonRespons
     request_id = request.scope.get("state", {}).get("request_id")
     with gc_paused():
         problems = _problems(raw)
-        results = solve_batch(problems, request_id)
+        results = batch_results(problems, request_id)
         request.app.state.metrics.count("batch_problems_total", len(problems))
         response = JsonResponse({"results": results})
         del problems, results

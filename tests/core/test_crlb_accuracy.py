@@ -16,7 +16,7 @@ from scipy.stats import chi2, norm
 
 from core.accuracy import error_summary
 from core.crlb import information_at
-from core.estimators import SolveOptions, solve_many
+from core.estimators import SolveOptions, solve_batch
 from core.measurements import SPEED_OF_LIGHT_MPS
 from core.problem import Bearing, GeodeticPoint, TimeOfArrival, build_problem
 from core.simulation.measurements import evaluate, measure
@@ -96,7 +96,7 @@ def monte_carlo(trials=TRIALS, seed=SEED):
     problem, target = scenario()
     rng = np.random.default_rng(seed)
     noisy = [measure(problem, target, rng) for _ in range(trials)]
-    fixes = solve_many(noisy, ["ml"] * trials, [SolveOptions()] * trials)
+    fixes = solve_batch(noisy, "ml")
     errors = np.array([f.position_enu_m - target for f in fixes])
     nees = np.array([e @ np.linalg.solve(f.covariance_enu_m2, e) for e, f in zip(errors, fixes)])
     crlb = information_at(problem, target).covariance_enu_m2[0]
@@ -153,7 +153,7 @@ def test_evaluate_reports_what_an_independent_loop_measures():
     rng = np.random.default_rng(99)
     clean = measure(problem, target).values
     draws = clean + rng.standard_normal((trials, clean.size)) * problem.sigmas
-    fixes = solve_many([problem.with_values(v) for v in draws], ["ml"] * trials, [SolveOptions()] * trials)
+    fixes = solve_batch([problem.with_values(v) for v in draws], "ml")
     errors = np.array([f.position_enu_m - target for f in fixes])
     nees = [e @ np.linalg.solve(f.covariance_enu_m2, e) for e, f in zip(errors, fixes)]
     assert report.failures == 0

@@ -12,7 +12,7 @@ import pymap3d
 import pytest
 
 from core.errors import LocalizationError, UnobservableGeometry
-from core.estimators import SolveOptions, solve, solve_many
+from core.estimators import SolveOptions, solve, solve_batch
 from core.geodesy import ecef_to_enu_rotation
 from core.measurements import SPEED_OF_LIGHT_MPS
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
@@ -160,7 +160,7 @@ def test_noisy_toa_from_ground_receivers_stays_above_ground():
     stations = [(str(i), GeodeticPoint(d2r(a), d2r(b), 0.0)) for i, (a, b) in enumerate(zip(lat, lon))]
     problem = build_problem(stations, [TimeOfArrival(str(i), 12.0, 1e-8) for i in range(5)])
     target = problem.frame.from_geodetic(d2r(34.02), d2r(108.03), 3000.0)
-    fixes = solve_many([measure(problem, target, rng) for _ in range(200)], ["ml"] * 200, [SolveOptions()] * 200)
+    fixes = solve_batch([measure(problem, target, rng) for _ in range(200)], "ml")
     altitudes = np.array([problem.frame.to_geodetic(f.position_enu_m)[2] for f in fixes])
     # sigma 3 m of range: the altitude error is tens of metres, the mirror is 6 km away.
     assert np.all(altitudes > 0.0)
@@ -257,7 +257,7 @@ def test_azimuth_only_without_altitude_is_unobservable():
         solve(problem, "ml")
     # The batch path reports the same error in place, without failing its neighbours.
     good = build_problem(geodetic_stations(ids), bearings(ids))
-    results = solve_many([good, problem, good], ["ml"] * 3, [SolveOptions()] * 3)
+    results = solve_batch([good, problem, good], "ml")
     assert isinstance(results[1], UnobservableGeometry)
     assert not isinstance(results[0], LocalizationError) and not isinstance(results[2], LocalizationError)
     assert geodetic_error_m(good, results[2]) < 1e-3  # 1 millimetre

@@ -1,5 +1,5 @@
-"""Batched ML: every problem of a mixed batch gets what it gets alone (B = 1), and the batch's pieces
-(problem padding, the weighted-EOVE start, the finish) agree with their one-problem counterparts."""
+"""One road: every problem of a mixed batch gets from every method what it gets alone (a batch of one),
+whatever else is in the batch and however it is chunked; problem padding round-trips."""
 
 from __future__ import annotations
 
@@ -10,9 +10,8 @@ import pytest
 
 from core.batch import ProblemBatch, build_problem_batch, size_groups
 from core.errors import LocalizationError
-from core.estimators import SolveOptions
-from core.estimators.base import finish_fix
-from core.estimators.ml import solve_ml_batch, solve_ml_problem_batch
+from core.estimators import REGISTRY, SolveOptions, solve_batch
+from core.estimators.base import get_estimator
 from core.estimators.orthogonal_vector import solve_orthogonal
 from core.estimators.start import weighted_eove_batch
 from core.measurements import SPEED_OF_LIGHT_MPS, Kind
@@ -79,17 +78,30 @@ def assert_same_fix(a, b):
         x, y = getattr(a, f.name), getattr(b, f.name)
         if isinstance(x, np.ndarray) or isinstance(x, float):
             np.testing.assert_allclose(x, y, rtol=REL, atol=1e-12, err_msg=f.name)
+        elif isinstance(x, dict):
+            assert x.keys() == y.keys(), f.name
+            for key in x:
+                np.testing.assert_equal(x[key], y[key], err_msg=f"{f.name}.{key}")
         else:
             assert x == y, f.name
 
 
 def test_batch_equals_each_problem_alone():
     problems = mixed_problems()
-    together = solve_ml_batch(problems, SolveOptions())
+    together = solve_batch(problems, "ml")
     assert sum(isinstance(r, LocalizationError) for r in together) == 2
     assert any(r.warnings for r in together if not isinstance(r, LocalizationError))
     for problem, batched in zip(problems, together):
-        assert_same_fix(batched, solve_ml_batch([problem], SolveOptions())[0])
+        assert_same_fix(batched, solve_batch([problem], "ml")[0])
+
+
+@pytest.mark.parametrize("method", sorted(set(REGISTRY) - {"ml"}))
+def test_every_method_gives_each_problem_what_it_gets_alone(method):
+    problems = mixed_problems()
+    together = solve_batch(problems, method)
+    assert any(not isinstance(r, LocalizationError) for r in together) or method in ("tls", "ctls", "taylor_wls")
+    for problem, batched in zip(problems, together):
+        assert_same_fix(batched, solve_batch([problem], method)[0])
 
 
 def test_chunking_does_not_change_results(monkeypatch):
@@ -97,41 +109,12 @@ def test_chunking_does_not_change_results(monkeypatch):
 
     problems = [p for p in mixed_problems() if p.n_measurements == 8] * 20
     batch = ProblemBatch.from_problems(problems)
-    whole = solve_ml_problem_batch(batch, SolveOptions())
+    whole = get_estimator("ml").solve_batch(batch, SolveOptions())
     monkeypatch.setattr(ml, "CHUNK_ENTRIES", 8)
     monkeypatch.setattr(ml, "CHUNK_MIN_PROBLEMS", 7)
-    chunked = solve_ml_problem_batch(batch, SolveOptions())
+    chunked = get_estimator("ml").solve_batch(batch, SolveOptions())
     for b in range(batch.size):
         assert_same_fix(whole.fix(b), chunked.fix(b))
-
-
-def test_finish_agrees_with_finish_fix():
-    """The batched finish gives what base.finish_fix gives for the same solution."""
-    for problem, fix in zip(mixed_problems(), solve_ml_batch(mixed_problems(), SolveOptions())):
-        if isinstance(fix, LocalizationError):
-            continue
-        given = tuple(w for w in fix.warnings if w.code == "not_converged")
-        reference = finish_fix(problem, "ml", fix.position_enu_m, fix.covariance_enu_m2,
-                               covariance_source="information", converged=fix.converged, iterations=fix.iterations,
-                               warnings=given, details=fix.details)
-        for name in ("residuals", "normalized_residuals", "chi2", "crlb_enu_m2", "covariance_enu_m2"):
-            np.testing.assert_allclose(getattr(fix, name), getattr(reference, name), rtol=1e-7, atol=1e-12,
-                                       err_msg=name)
-        assert fix.dof == reference.dof
-        for name in ("p_value", "sigma_scale"):
-            assert (getattr(fix, name) is None) == (getattr(reference, name) is None)
-        assert [w.code for w in fix.warnings] == [w.code for w in reference.warnings]
-
-
-def test_warning_messages_match_finish_fix():
-    problems = mixed_problems()
-    for problem, fix in zip(problems, solve_ml_batch(problems, SolveOptions())):
-        if isinstance(fix, LocalizationError) or not fix.warnings:
-            continue
-        reference = finish_fix(problem, "ml", fix.position_enu_m, fix.covariance_enu_m2,
-                               covariance_source="information", converged=fix.converged, iterations=fix.iterations,
-                               warnings=tuple(w for w in fix.warnings if w.code == "not_converged"))
-        assert fix.warnings == reference.warnings
 
 
 def test_weighted_eove_batch_matches_the_one_problem_solver():

@@ -133,22 +133,22 @@ def test_a_bug_in_one_problem_fails_only_its_request(make_client, monkeypatch, t
     good = _noisy(bearing_request(STATIONS_300KM, TARGET), 5)
     poisoned = copy.deepcopy(good)
     poisoned["options"] = {"max_iterations": 17}
-    real_solve_many, real_solve = coalesce.solve_many, coalesce.solve
+    real_solve_batch, real_solve = coalesce.solve_batch, coalesce.solve
 
     def is_poisoned(options):
         return options.max_iterations == 17
 
-    def buggy_solve_many(problems, methods, options):
+    def buggy_solve_batch(problems, methods, options):
         if any(is_poisoned(o) for o in options):
             raise ZeroDivisionError("a bug")
-        return real_solve_many(problems, methods, options)
+        return real_solve_batch(problems, methods, options)
 
     def buggy_solve(problem, method="auto", options=None):
         if options is not None and is_poisoned(options):
             raise ZeroDivisionError("a bug")
         return real_solve(problem, method, options)
 
-    monkeypatch.setattr(coalesce, "solve_many", buggy_solve_many)
+    monkeypatch.setattr(coalesce, "solve_batch", buggy_solve_batch)
     monkeypatch.setattr(coalesce, "solve", buggy_solve)
     app = create_app(Settings(store=f"sqlite:///{tmp_path}/bug.db"))
     with TestClient(app, raise_server_exceptions=False) as client:
@@ -182,7 +182,7 @@ def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch):
     poisoned = items[1][2]
     real_solve = coalesce.solve
 
-    def buggy_solve_many(problems, methods, options):
+    def buggy_solve_batch(problems, methods, options):
         raise ZeroDivisionError("a bug in the shared call")
 
     def buggy_solve(problem, method="auto", options=None):
@@ -190,7 +190,7 @@ def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch):
             raise ZeroDivisionError("a bug in this problem")
         return real_solve(problem, method, options)
 
-    monkeypatch.setattr(coalesce, "solve_many", buggy_solve_many)
+    monkeypatch.setattr(coalesce, "solve_batch", buggy_solve_batch)
     monkeypatch.setattr(coalesce, "solve", buggy_solve)
     results = coalesce.solve_together(items)
     assert isinstance(results[1], ZeroDivisionError)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.estimators import solve
-from core.estimators.base import INEFFICIENCY_RATIO
+from core.estimators.finish import INEFFICIENCY_RATIO
 from tests.core.estimators.scenarios import generic_3d, paper_000
 
 

@@ -54,7 +54,7 @@ def linear_gain(problem, target_enu_m):
 
 
 def test_registered_under_its_api_name():
-    assert REGISTRY["los_intersection"].solve.__name__ == "line_of_sight_intersection"
+    assert REGISTRY["los_intersection"].name == "los_intersection" and "paper 002" in REGISTRY["los_intersection"].summary
 
 
 @pytest.mark.parametrize("make, target", [

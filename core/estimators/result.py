@@ -1,0 +1,258 @@
+"""What an estimator hands the finisher, and the fixes that come back.
+
+An estimator computes :class:`Estimates` for a whole :class:`~core.batch.ProblemBatch`:
+positions, and where it has them its own covariances, iteration counts and
+method-specific facts. :func:`core.estimators.finish.finish` turns them into a
+:class:`FixBatch`, which adds what every fix reports. A single :class:`Fix` is
+row ``b`` of a batch, squeezed (:meth:`FixBatch.fix`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.batch import ProblemBatch
+from core.errors import LocalizationError
+
+#: Warning codes a fix may carry, with what each means.
+WARNING_CODES = {
+    "ill_conditioned": "the geometry barely determines the position in some direction",
+    "inefficient_method": "this method's own covariance is far above the CRLB here: use ml or weighted_eove",
+    "collinear_geometry": "lines of sight or stations are nearly collinear with the target",
+    "behind_station": "the fix lies behind a station's measured line of sight",
+    "not_converged": "the iteration stopped before converging; the last good iterate is returned",
+    "outlier_suspected": "a measurement's studentized residual exceeds 4 (named in the message)",
+    "sigma_mismatch": "chi-square says the stated sigmas are too small for the residuals",
+    "sigma_estimated": "sigmas were estimated from the residuals and scale the covariance",
+    "reference_point_moved": "the linearisation point was moved onto a station's line of sight",
+    "azimuth_undefined": "the target is nearly at a station's zenith, where azimuth is undefined",
+    "coarse_polar_fallback": "stations at one height: the coarse fix used per-station polar points",
+    "start_fallback": "the closed-form start failed; a fallback start was used",
+}
+
+#: Covariance sources: the inverse information at the estimate (ML-type methods), first-order
+#: propagation through a closed form, or the CRLB at the estimate where the method has none of its own.
+COVARIANCE_SOURCES = ("information", "propagated", "crlb")
+
+
+@dataclass(frozen=True)
+class FixWarning:
+    code: str
+    message: str
+
+
+@dataclass(frozen=True)
+class Estimates:
+    """An estimator's output for a batch of B problems (leading axis B).
+
+    Attributes
+    ----------
+    position_enu_m : ndarray, shape (B, 3)
+        Rows of problems in ``errors`` are ignored.
+    covariance_source : str
+        One of :data:`COVARIANCE_SOURCES`. With ``"information"`` the
+        covariance is the inverse information the finisher computes, and an
+        unobservable problem is an error; with ``"crlb"`` it is the bound.
+    covariance_enu_m2 : ndarray, shape (B, 3, 3), optional
+        The estimator's own covariance (required with ``"propagated"``).
+    errors : dict of int to LocalizationError
+        Problems the method could not solve.
+    converged : ndarray of bool, shape (B,), optional
+        Default all True.
+    iterations : ndarray of int, shape (B,), optional
+        Default all 0.
+    warnings : list of tuple of FixWarning, length B, optional
+        The method's own warnings, reported before the finisher's.
+    coarse_position_enu_m : ndarray, shape (B, 3), optional
+        NaN rows where a method with a coarse stage had none.
+    estimated_bearing_errors_rad : list of ndarray or None, length B, optional
+    sigmas : ndarray, shape (B, M), optional
+        Sigmas the method estimated (problem units); they replace the given
+        ones in the residual verdicts and the bound.
+    bias_m : ndarray, shape (B,), optional
+        TOA emission offset (metres); default the best one for each position.
+    details : list of dict, length B, optional
+    """
+
+    position_enu_m: np.ndarray
+    covariance_source: str
+    covariance_enu_m2: np.ndarray | None = None
+    errors: dict[int, LocalizationError] = field(default_factory=dict)
+    converged: np.ndarray | None = None
+    iterations: np.ndarray | None = None
+    warnings: list | None = None
+    coarse_position_enu_m: np.ndarray | None = None
+    estimated_bearing_errors_rad: list | None = None
+    sigmas: np.ndarray | None = None
+    bias_m: np.ndarray | None = None
+    details: list | None = None
+
+
+@dataclass(frozen=True)
+class Fix:
+    """The result of one estimator on one problem (common ENU frame).
+
+    Attributes
+    ----------
+    method : str
+    position_enu_m : ndarray, shape (3,)
+    covariance_enu_m2 : ndarray, shape (3, 3)
+    covariance_source : str
+        See :data:`COVARIANCE_SOURCES`.
+    crlb_enu_m2 : ndarray, shape (3, 3)
+    residuals : ndarray, shape (M,)
+        Measured minus predicted, in the problem's units (rad, m, s).
+    normalized_residuals : ndarray, shape (M,)
+    chi2 : float
+    dof : int
+    p_value : float or None
+        None when ``dof`` is 0.
+    sigma_scale : float or None
+        ``sqrt(chi2 / dof)``.
+    converged : bool
+    iterations : int
+    warnings : tuple of FixWarning
+    coarse_position_enu_m : ndarray, shape (3,), or None
+    estimated_bearing_errors_rad : ndarray, shape (K,), or None
+    details : dict
+        Method-specific facts (e.g. which start or coarse stage ran).
+    """
+
+    method: str
+    position_enu_m: np.ndarray
+    covariance_enu_m2: np.ndarray
+    covariance_source: str
+    crlb_enu_m2: np.ndarray
+    residuals: np.ndarray
+    normalized_residuals: np.ndarray
+    chi2: float
+    dof: int
+    p_value: float | None
+    sigma_scale: float | None
+    converged: bool
+    iterations: int
+    warnings: tuple[FixWarning, ...] = ()
+    coarse_position_enu_m: np.ndarray | None = None
+    estimated_bearing_errors_rad: np.ndarray | None = None
+    details: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class FixBatch:
+    """Fixes of a batch of problems as arrays (leading axis B).
+
+    Rows of problems in ``errors`` hold NaN or zeros. :meth:`fix` gives one
+    :class:`Fix` (or its error); the service builds responses straight from
+    the arrays.
+
+    Attributes
+    ----------
+    method : str
+    problems : ProblemBatch
+    errors : dict of int to LocalizationError
+    position_enu_m : ndarray, shape (B, 3)
+    covariance_enu_m2, crlb_enu_m2 : ndarray, shape (B, 3, 3)
+    covariance_source : str
+    residuals, normalized_residuals : ndarray, shape (B, M)
+        Problem units; zero on padding.
+    chi2 : ndarray, shape (B,)
+    dof : ndarray of int, shape (B,)
+    p_value, sigma_scale : ndarray, shape (B,)
+        NaN where ``dof`` is 0 (None in a :class:`Fix`).
+    converged : ndarray of bool, shape (B,)
+    iterations : ndarray of int, shape (B,)
+    warnings : list of tuple of FixWarning, length B
+    coarse_position_enu_m : ndarray, shape (B, 3)
+        NaN rows where the method has no coarse stage.
+    estimated_bearing_errors_rad : list of ndarray or None, length B
+    details : list of dict, length B
+    """
+
+    method: str
+    problems: ProblemBatch
+    errors: dict[int, LocalizationError]
+    position_enu_m: np.ndarray
+    covariance_enu_m2: np.ndarray
+    covariance_source: str
+    crlb_enu_m2: np.ndarray
+    residuals: np.ndarray
+    normalized_residuals: np.ndarray
+    chi2: np.ndarray
+    dof: np.ndarray
+    p_value: np.ndarray
+    sigma_scale: np.ndarray
+    converged: np.ndarray
+    iterations: np.ndarray
+    warnings: list
+    coarse_position_enu_m: np.ndarray
+    estimated_bearing_errors_rad: list
+    details: list
+
+    @property
+    def size(self) -> int:
+        return self.problems.size
+
+    @property
+    def ok(self) -> np.ndarray:
+        """``(B,)``: True where the problem has a fix."""
+        ok = np.ones(self.size, dtype=bool)
+        ok[list(self.errors)] = False
+        return ok
+
+    def fix(self, b: int) -> Fix | LocalizationError:
+        """Problem ``b``'s fix, or the error that stopped it."""
+        if b in self.errors:
+            return self.errors[b]
+        m = int(self.problems.n_measurements[b])
+        p_value, sigma_scale = float(self.p_value[b]), float(self.sigma_scale[b])
+        coarse = self.coarse_position_enu_m[b]
+        return Fix(
+            method=self.method,
+            position_enu_m=self.position_enu_m[b].copy(),
+            covariance_enu_m2=self.covariance_enu_m2[b].copy(),
+            covariance_source=self.covariance_source,
+            crlb_enu_m2=self.crlb_enu_m2[b].copy(),
+            residuals=self.residuals[b, :m].copy(),
+            normalized_residuals=self.normalized_residuals[b, :m].copy(),
+            chi2=float(self.chi2[b]),
+            dof=int(self.dof[b]),
+            p_value=None if np.isnan(p_value) else p_value,
+            sigma_scale=None if np.isnan(sigma_scale) else sigma_scale,
+            converged=bool(self.converged[b]),
+            iterations=int(self.iterations[b]),
+            warnings=self.warnings[b],
+            coarse_position_enu_m=None if np.isnan(coarse[0]) else coarse.copy(),
+            estimated_bearing_errors_rad=self.estimated_bearing_errors_rad[b],
+            details=dict(self.details[b]),
+        )
+
+    def fixes(self) -> list[Fix | LocalizationError]:
+        """Every problem's :meth:`fix`, in order."""
+        return [self.fix(b) for b in range(self.size)]
+
+    @classmethod
+    def concatenate(cls, problems: ProblemBatch, parts: list["FixBatch"]) -> "FixBatch":
+        """One batch from consecutive parts of ``problems`` solved by the same method."""
+        if len(parts) == 1:
+            return parts[0]
+        width = problems.kinds.shape[1]
+
+        def joined(name):
+            arrays = [getattr(p, name) for p in parts]
+            if name in ("residuals", "normalized_residuals"):
+                arrays = [np.pad(a, ((0, 0), (0, width - a.shape[1]))) for a in arrays]
+            return np.concatenate(arrays)
+
+        errors, offset = {}, 0
+        for part in parts:
+            errors.update({offset + b: e for b, e in part.errors.items()})
+            offset += part.size
+        arrays = {name: joined(name) for name in (
+            "position_enu_m", "covariance_enu_m2", "crlb_enu_m2", "residuals", "normalized_residuals", "chi2",
+            "dof", "p_value", "sigma_scale", "converged", "iterations", "coarse_position_enu_m")}
+        lists = {name: [x for p in parts for x in getattr(p, name)]
+                 for name in ("warnings", "estimated_bearing_errors_rad", "details")}
+        return cls(method=parts[0].method, problems=problems, errors=errors,
+                   covariance_source=parts[0].covariance_source, **arrays, **lists)
