@@ -403,25 +403,8 @@ def build_problem(
         if isinstance(p, GeodeticPoint) and abs(p.lat_rad) > np.pi / 2:
             raise InvalidInput("latitude must be within [-90, 90] deg", ("stations", i, "position", "lat_deg"))
 
-    if all(geodetic):
-        if origin is None:
-            lat = np.array([p.lat_rad for _, p in stations])
-            lon = np.array([p.lon_rad for _, p in stations])
-            origin = GeodeticPoint(*geodesy.centroid_on_ellipsoid(lat, lon), 0.0)
-        frame = CommonFrame(origin)
-        lat = np.array([p.lat_rad for _, p in stations])
-        lon = np.array([p.lon_rad for _, p in stations])
-        alt = np.array([p.alt_m for _, p in stations])
-        stations_enu = frame.from_geodetic(lat, lon, alt)
-        rotations = geodesy.enu_to_enu_rotation(origin.lat_rad, origin.lon_rad, lat, lon)
-    else:
-        frame = CommonFrame(origin)
-        stations_enu = np.array([[p.east_m, p.north_m, p.up_m] for _, p in stations], dtype=float)
-        rotations = frame.local_axes(stations_enu).copy()
-
+    geodetic_frame = all(geodetic)
     kinds, station_index, values, sigmas, bearing_index, source_index = [], [], [], [], [], []
-    toa_values = [m.toa_s for m in measurements if isinstance(m, TimeOfArrival)]
-    toa_reference_s = float(min(toa_values)) if toa_values and all(np.isfinite(toa_values)) else 0.0
     n_bearings = 0
 
     def add(kind, station, value, sigma, bearing, source):
@@ -457,36 +440,39 @@ def build_problem(
         elif isinstance(m, TimeOfArrival):
             _check_finite(m.toa_s, loc + ("toa_s",))
             _check_sigma(m.sigma_s, loc + ("sigma_s",))
-            add(Kind.TOA, s, m.toa_s - toa_reference_s, m.sigma_s, -1, i)
+            add(Kind.TOA, s, m.toa_s, m.sigma_s, -1, i)
         else:
             raise InvalidInput(f"unsupported measurement {type(m).__name__}", loc)
 
-    guess = None
+    guess, geodetic_guess = (np.nan, np.nan, np.nan), False
     if initial_guess is not None:
         for name, value in vars(initial_guess).items():
             _check_finite(value, ("options", "initial_guess", _API_FIELD.get(name, name)))
-        if isinstance(initial_guess, GeodeticPoint):
-            if not frame.is_geodetic:
-                raise InvalidInput("a geodetic initial guess needs a geodetic frame or an origin",
-                                   ("options", "initial_guess"))
-            guess = frame.from_geodetic(initial_guess.lat_rad, initial_guess.lon_rad, initial_guess.alt_m)
-        else:
-            guess = np.array([initial_guess.east_m, initial_guess.north_m, initial_guess.up_m])
+        geodetic_guess = isinstance(initial_guess, GeodeticPoint)
+        if geodetic_guess and not geodetic_frame and origin is None:
+            raise InvalidInput("a geodetic initial guess needs a geodetic frame or an origin",
+                               ("options", "initial_guess"))
+        guess = tuple(vars(initial_guess).values())
     if altitude_m is not None:
         _check_finite(altitude_m, ("constraints", "altitude_m"))
 
-    return Problem(
-        frame=frame,
-        station_ids=tuple(ids),
-        stations_enu_m=np.asarray(stations_enu, dtype=float).reshape(-1, 3),
-        station_rotations=np.asarray(rotations, dtype=float).reshape(-1, 3, 3),
-        kinds=np.array(kinds, dtype=np.int8),
-        station_index=np.array(station_index, dtype=np.intp),
-        values=np.array(values, dtype=float),
-        sigmas=np.array(sigmas, dtype=float),
-        bearing_index=np.array(bearing_index, dtype=np.intp),
-        source_index=np.array(source_index, dtype=np.intp),
-        toa_reference_s=toa_reference_s,
-        altitude_m=None if altitude_m is None else float(altitude_m),
-        initial_guess_enu_m=guess,
+    from core.batch import build_problem_batch
+
+    batch = build_problem_batch(
+        station_counts=[len(stations)],
+        station_ids=[tuple(ids)],
+        station_coordinates=[tuple(vars(p).values()) for _, p in stations],
+        geodetic_stations=[geodetic_frame],
+        origin=[(np.nan,) * 3 if origin is None else (origin.lat_rad, origin.lon_rad, origin.alt_m)],
+        measurement_counts=[len(kinds)],
+        kinds=kinds,
+        station_index=station_index,
+        values=values,
+        sigmas=sigmas,
+        bearing_index=bearing_index,
+        source_index=source_index,
+        altitude_m=[np.nan if altitude_m is None else altitude_m],
+        initial_guess=[guess],
+        geodetic_guess=[geodetic_guess],
     )
+    return batch.problem(0)
