@@ -70,30 +70,28 @@ def _combined(runs) -> tuple[float, float, float, int]:
 def _single_phase_times(count: int = 300) -> dict[str, float]:
     """Where one fix's server time goes (us), phase by phase, in this process: the route's own steps."""
     from core.accuracy import error_summary
-    from core.estimators import solve
-    from service import schemas
+    from core.estimators import solve_many
+    from service.deps import parse_json
     from service.responses import JsonResponse
-    from service.translate import fix_to_dict, to_options, to_problem
+    from service.translate import fix_bodies, read_fix_requests
 
     bodies = [orjson.dumps(b) for b in four_station_requests(count, np.random.default_rng(12))]
     error_summary(np.eye(3))  # its interpolation tables are built once per process, on first use: not per fix
-    totals = dict.fromkeys(("validate (pydantic)", "to_problem", "solve (start + LM + finish)",
-                            "error_summary", "fix_to_dict without summary", "serialise (orjson)"), 0.0)
+    totals = dict.fromkeys(("parse (orjson)", "read (reader, geodesy)", "solve (start + LM + finish)",
+                            "bodies (summaries, dicts)", "serialise (orjson)"), 0.0)
     for body in bodies:
         t0 = time.perf_counter()
-        request = schemas.FixRequest.model_validate_json(body)
+        parsed = parse_json(body)
         t1 = time.perf_counter()
-        problem = to_problem(request)
+        read = read_fix_requests([parsed])
         t2 = time.perf_counter()
-        fix = solve(problem, request.method, to_options(request))
+        ((_, fixes),) = solve_many(read.batch, read.methods, read.options)
         t3 = time.perf_counter()
-        summary = error_summary(fix.covariance_enu_m2)
+        out = fix_bodies(fixes, read.formats)
         t4 = time.perf_counter()
-        out = fix_to_dict(problem, fix, request.formats, summary, 0)
+        JsonResponse(out[0]["fix"])
         t5 = time.perf_counter()
-        JsonResponse(out)
-        t6 = time.perf_counter()
-        for key, dt in zip(totals, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t6 - t5)):
+        for key, dt in zip(totals, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
             totals[key] += dt
     return {k: v / count * 1e6 for k, v in totals.items()}
 
@@ -143,11 +141,9 @@ def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections
 
 def _phase_times(problems: list) -> dict[str, float]:
     """Where a batch's server time goes, phase by phase, measured in this process (GC paused as the route does)."""
-    from core.batch import size_groups
-    from core.estimators import SolveOptions
-    from core.estimators.base import get_estimator
+    from core.estimators import solve_many
     from service.responses import JsonResponse
-    from service.translate import fix_batch_to_dicts, to_problem_batch
+    from service.translate import fix_bodies, read_fix_requests
 
     raw = orjson.dumps({"problems": problems})
     times: dict[str, float] = {}
@@ -158,23 +154,22 @@ def _phase_times(problems: list) -> dict[str, float]:
         parsed = orjson.loads(raw)["problems"]
         times["parse JSON (orjson)"] = time.perf_counter() - t
         t = time.perf_counter()
-        slots, options, formats, batch, rest = to_problem_batch(parsed)
-        times["read + build batch (lean reader, geodesy)"] = time.perf_counter() - t
+        read = read_fix_requests(parsed)
+        times["read + build batch (reader, geodesy)"] = time.perf_counter() - t
         t = time.perf_counter()
-        solved = [(group, get_estimator("ml").solve_batch(batch.take(group), SolveOptions()))
-                  for group in size_groups(batch.n_measurements, batch.n_stations)]
+        solved = solve_many(read.batch, read.methods, read.options)
         times["core: start + LM + finish"] = time.perf_counter() - t
         t = time.perf_counter()
-        bodies = [fix_batch_to_dicts(fixes, [formats[i] for i in group]) for group, fixes in solved]
+        bodies = [fix_bodies(fixes, [read.formats[i] for i in rows]) for rows, fixes in solved]
         times["response dicts (summaries, geodetic, dicts)"] = time.perf_counter() - t
         t = time.perf_counter()
-        results = [{"index": i, "ok": True, "fix": b} for part in bodies for i, b in enumerate(part)]
+        results = [{"index": i, **b} for part in bodies for i, b in enumerate(part)]
         JsonResponse({"results": results})
         times["serialise (orjson)"] = time.perf_counter() - t
     finally:
         gc.enable()
-    if rest:
-        raise RuntimeError(f"{len(rest)} benchmark problems left the lean path")
+    if len(read.slots) != len(problems) or read.errors:
+        raise RuntimeError(f"{len(problems) - len(read.slots)} benchmark problems were not read")
     return times
 
 
@@ -182,7 +177,7 @@ def batch_row(url: str, size: int, repeats: int = 5) -> tuple[Row, float, list]:
     """Row 2: one POST of ``size`` four-station problems, end to end; and the core's own time per fix."""
     from core.estimators import SolveOptions
     from core.estimators.base import get_estimator
-    from service.translate import to_problem_batch
+    from service.translate import read_fix_requests
 
     problems = four_station_requests(size, np.random.default_rng(22))
     body = orjson.dumps({"problems": problems})
@@ -200,7 +195,7 @@ def batch_row(url: str, size: int, repeats: int = 5) -> tuple[Row, float, list]:
     connection.close()
     http_s = float(np.median(elapsed))
 
-    _, _, _, batch, _ = to_problem_batch(problems)
+    batch = read_fix_requests(problems).batch
     core_runs = []
     gc.collect()
     gc.freeze()
@@ -237,9 +232,9 @@ def scipy_row(problems: list, rounds: int = 10) -> Row:
     from core.estimators.base import get_estimator
     from core.estimators.start import initial_positions
     from core.measurements import Kind
-    from service.translate import to_problem_batch
+    from service.translate import read_fix_requests
 
-    _, _, _, batch, _ = to_problem_batch(problems)
+    batch = read_fix_requests(problems).batch
     starts, _, _ = initial_positions(batch)
     stations, rotations = batch.measurement_stations()
     is_azimuth = batch.kinds == Kind.AZIMUTH

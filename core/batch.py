@@ -210,6 +210,47 @@ class ProblemBatch:
         )
 
     @classmethod
+    def concatenate(cls, parts: Sequence["ProblemBatch"]) -> "ProblemBatch":
+        """One batch of the problems of ``parts``, in order, padded to the widest."""
+        if len(parts) == 1:
+            return parts[0]
+        n = max(p.stations_enu_m.shape[1] for p in parts)
+        m = max(p.kinds.shape[1] for p in parts)
+
+        def widened(name, width, fill):
+            arrays = []
+            for p in parts:
+                a = getattr(p, name)
+                extra = width - a.shape[1]
+                if extra:
+                    pad = np.broadcast_to(np.asarray(fill, dtype=a.dtype), (a.shape[0], extra, *a.shape[2:]))
+                    a = np.concatenate([a, pad], axis=1)
+                arrays.append(a)
+            return np.concatenate(arrays)
+
+        def joined(name):
+            return np.concatenate([getattr(p, name) for p in parts])
+
+        return cls(
+            station_ids=tuple(ids for p in parts for ids in p.station_ids),
+            origin=joined("origin"),
+            geodetic=joined("geodetic"),
+            n_stations=joined("n_stations"),
+            stations_enu_m=widened("stations_enu_m", n, 0.0),
+            station_rotations=widened("station_rotations", n, np.eye(3)),
+            n_measurements=joined("n_measurements"),
+            kinds=widened("kinds", m, PAD_KIND),
+            station_index=widened("station_index", m, 0),
+            values=widened("values", m, 0.0),
+            sigmas=widened("sigmas", m, np.nan),
+            bearing_index=widened("bearing_index", m, -1),
+            source_index=widened("source_index", m, -1),
+            toa_reference_s=joined("toa_reference_s"),
+            altitude_m=joined("altitude_m"),
+            initial_guess_enu_m=joined("initial_guess_enu_m"),
+        )
+
+    @classmethod
     def from_problems(cls, problems: Sequence[Problem]) -> "ProblemBatch":
         """Pad built problems into one batch (inverse of :meth:`problem`)."""
         if len(problems) == 1:

@@ -12,7 +12,8 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service import problems
+from service import problems, schemas
+from service.coalesce import Coalescer
 from service.metrics import Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
@@ -37,6 +38,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def lifespan(app: FastAPI):
         store = open_store(settings.store)
         app.state.store = store
+        app.state.fix_coalescer = Coalescer()
         try:
             yield
         finally:
@@ -53,6 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         ),
         lifespan=lifespan,
     )
+    app.openapi = lambda: _openapi(app)
     app.state.settings = settings
     app.state.metrics = metrics
     problems.install(app)
@@ -63,3 +66,21 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        rate_limiter=limiter)
     logging.getLogger("passive_locator").setLevel(settings.log_level.upper())
     return app
+
+
+#: Request models of routes that read their own body (documented by reference in ``openapi_extra``).
+_BODY_MODELS = (schemas.FixRequest,)
+
+
+def _openapi(app: FastAPI) -> dict:
+    """The generated spec, with the components of the body models that no route parameter declares."""
+    if app.openapi_schema is None:
+        spec = FastAPI.openapi(app)
+        components = spec.setdefault("components", {}).setdefault("schemas", {})
+        for model in _BODY_MODELS:
+            schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
+            for name, definition in schema.pop("$defs", {}).items():
+                components.setdefault(name, definition)
+            components.setdefault(model.__name__, schema)
+        app.openapi_schema = spec
+    return app.openapi_schema

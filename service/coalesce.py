@@ -1,81 +1,57 @@
 """Concurrent single fixes share one batched solve.
 
-``POST /v1/fixes`` validates and translates each request on its own, then
-hands ``(problem, method, options)`` to the app's :class:`Coalescer`. One
-drain at a time takes *everything queued at that moment* (there is no
+``POST /v1/fixes`` hands its parsed body to the app's :class:`Coalescer`.
+One drain at a time takes *everything queued at that moment* (there is no
 waiting window: a lone request on an idle service is solved at once, alone)
-and runs :func:`core.estimators.solve_batch` on a worker thread, so ML
-problems that arrived together share one batched Levenberg-Marquardt and
-one batched error summary; other methods run as they would alone. Requests
-that arrive while a solve is running queue up for the next drain.
+and runs :func:`service.translate.fix_results` on the drained bodies on a
+worker thread: exactly what ``POST /v1/fixes/batch`` does with its problems,
+so a single fix is slot 0 of a batch of one, and fixes that arrived together
+share one batched read, solve and write. Requests that arrive while a drain
+is running queue up for the next.
 
-A problem's result is what a lone :func:`core.estimators.solve` gives it
-(the batched core is row-independent); its :class:`~core.errors.LocalizationError`
-stays its own. If the shared solve fails with anything else (a bug), every
-problem of that drain is solved again alone, so the bug fails only the
-request that triggers it.
+A body's result is what it gets alone (the batched core is row-independent);
+its error stays its own. If the shared call fails with anything else (a
+bug), it is logged and every body of that drain is solved again alone, so
+the bug fails only the request that triggers it.
 
-The coalescer belongs to one app (``app.state``) and binds to no event loop
-until a drain runs; a drain ends in the same step that resolves its last
-futures, so nothing is left running when the loop goes idle.
+The coalescer belongs to one app (``app.state``, made in the lifespan) and
+binds to no event loop until a drain runs; a drain ends in the same step that
+resolves its last futures, so nothing is left running when the loop goes idle.
 """
 
 from __future__ import annotations
 
 import asyncio
-from dataclasses import dataclass
+import logging
 
-import numpy as np
 from starlette.concurrency import run_in_threadpool
 
-from core.accuracy import ErrorSummary, error_summary
-from core.errors import LocalizationError
-from core.estimators import Fix, SolveOptions, solve, solve_batch
-from core.problem import Problem
+from service.translate import fix_results
+
+logger = logging.getLogger("passive_locator")
 
 
-@dataclass(frozen=True)
-class Solved:
-    """One request's share of a drain: its fix and the drain's error summaries (``summary`` row ``index``)."""
+def solve_together(items: list[tuple[object, str | None]]) -> list[dict | BaseException]:
+    """Results of ``(body, request_id)`` items as one :func:`fix_results` call; each gets its own result.
 
-    fix: Fix
-    summary: ErrorSummary
-    index: int
-
-
-def solve_together(items: list[tuple[Problem, str, SolveOptions]]) -> list[Solved | BaseException]:
-    """Solve problems as one :func:`solve_batch` call; each gets its :class:`Solved` or its own exception.
-
-    A failure of the shared call that is not a :class:`LocalizationError`
-    falls back to solving each problem alone, so one problem's bug fails only it.
+    A failure of the shared call falls back to solving each body alone, so
+    one body's bug fails only its request.
     """
     try:
-        fixes: list = solve_batch([p for p, _, _ in items], [m for _, m, _ in items], [o for _, _, o in items])
+        return fix_results([body for body, _ in items], [rid for _, rid in items])
     except Exception:
-        fixes = []
-        for problem, method, options in items:
-            try:
-                fixes.append(solve(problem, method, options))
-            except Exception as error:
-                fixes.append(error)
-    good = [i for i, fix in enumerate(fixes) if isinstance(fix, Fix)]
-    out: list[Solved | BaseException] = list(fixes)
-    if good:
+        logger.exception("shared solve of %d fixes failed; solving each alone", len(items))
+    out: list[dict | BaseException] = []
+    for body, rid in items:
         try:
-            summary = error_summary(np.stack([fixes[i].covariance_enu_m2 for i in good]))
-            for k, i in enumerate(good):
-                out[i] = Solved(fixes[i], summary, k)
-        except Exception:
-            for i in good:
-                try:
-                    out[i] = Solved(fixes[i], error_summary(fixes[i].covariance_enu_m2), 0)
-                except Exception as error:
-                    out[i] = error
+            out.append(fix_results([body], rid)[0])
+        except Exception as error:
+            out.append(error)
     return out
 
 
 class Coalescer:
-    """Queues single problems and solves whatever is queued together, one drain at a time.
+    """Queues single fix bodies and solves whatever is queued together, one drain at a time.
 
     Attributes
     ----------
@@ -84,26 +60,21 @@ class Coalescer:
     """
 
     def __init__(self) -> None:
-        self._pending: list[tuple[Problem, str, SolveOptions, asyncio.Future]] = []
+        self._pending: list[tuple[object, str | None, asyncio.Future]] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self.drains = 0
         self.solved = 0
 
-    async def solve(self, problem: Problem, method: str, options: SolveOptions) -> Solved:
-        """The fix of one problem, solved together with whatever else is queued.
-
-        Raises
-        ------
-        LocalizationError
-            As :func:`core.estimators.solve` would for this problem alone.
-        """
+    async def solve(self, body, request_id: str | None = None) -> dict:
+        """The result of one parsed FixRequest body (``{"index": 0, "ok", "fix" | "error"}``), solved
+        together with whatever else is queued."""
         loop = asyncio.get_running_loop()
         if self._loop is not None and self._loop is not loop:
             # A drain runs on another event loop (an odd test setup): solve this one alone, off the loop.
-            (result,) = await run_in_threadpool(solve_together, [(problem, method, options)])
+            (result,) = await run_in_threadpool(solve_together, [(body, request_id)])
             return _unwrap(result)
         future = loop.create_future()
-        self._pending.append((problem, method, options, future))
+        self._pending.append((body, request_id, future))
         if self._loop is None:
             self._loop = loop
             loop.create_task(self._drain())
@@ -116,7 +87,7 @@ class Coalescer:
                 self.drains += 1
                 self.solved += len(taken)
                 try:
-                    results = await run_in_threadpool(solve_together, [item[:3] for item in taken])
+                    results = await run_in_threadpool(solve_together, [item[:2] for item in taken])
                 except BaseException:  # cancelled with the loop: nobody may wait forever
                     self._fail(taken)
                     raise
@@ -136,7 +107,7 @@ class Coalescer:
                 future.set_exception(RuntimeError("the shared solve was cancelled"))
 
 
-def _unwrap(result: Solved | BaseException) -> Solved:
+def _unwrap(result: dict | BaseException) -> dict:
     if isinstance(result, BaseException):
         raise result
     return result

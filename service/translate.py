@@ -1,28 +1,39 @@
 """The one translation between HTTP schemas (degrees, request order) and core types.
 
-Responses are built as plain dicts (serialised by orjson) rather than
-re-validated models: the schema documents them and the tests check that every
-response validates against it.
+Fix requests, single or batched, take one road: :func:`fix_results` reads
+parsed bodies into one core batch (:func:`read_fix_requests`), solves it with
+:func:`core.estimators.solve_many` and writes every fix from the batch's
+arrays (:func:`fix_bodies`). Responses are plain dicts (serialised by
+orjson) rather than re-validated models: the schema documents them and the
+tests check that every response validates against it.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import typing
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import nullcontext
+from dataclasses import dataclass
 
 import numpy as np
+from pydantic import ValidationError
 
 from core import geodesy
 from core.accuracy import error_summary
 from core.batch import ProblemBatch, build_problem_batch
-from core.estimators import Fix, SolveOptions
+from core.crlb import information_at
+from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
+from core.estimators import FixBatch, SolveOptions, solve_many
 from core.measurements import Kind
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from service import schemas
+from service.problems import localization_problem, problem_body, validation_errors
 
-_COMPONENT = {Kind.AZIMUTH: "azimuth", Kind.ELEVATION: "elevation", Kind.RANGE: "range", Kind.TOA: "toa"}
-_COMPONENT_NAMES = {int(k): name for k, name in _COMPONENT.items()}
+_COMPONENT_NAMES = {int(Kind.AZIMUTH): "azimuth", int(Kind.ELEVATION): "elevation", int(Kind.RANGE): "range",
+                    int(Kind.TOA): "toa"}
 _AZ, _EL, _RG, _TOA = int(Kind.AZIMUTH), int(Kind.ELEVATION), int(Kind.RANGE), int(Kind.TOA)
-_ANGLE_CODES = frozenset((_AZ, _EL))
 
 
 def to_point(position) -> GeodeticPoint | LocalPoint:
@@ -79,8 +90,6 @@ def crlb_problem(request: schemas.CrlbRequest) -> tuple[Problem, np.ndarray]:
         if sensor.toa:
             measurements.append(TimeOfArrival(sensor.station_id, 0.0, sensor.sigma_toa_s))
     if not measurements:
-        from core.errors import InvalidInput
-
         raise InvalidInput("the sensors measure nothing", ("sensors",))
     problem = build_problem(
         stations=[(s.id, to_point(s.position)) for s in request.stations],
@@ -91,8 +100,6 @@ def crlb_problem(request: schemas.CrlbRequest) -> tuple[Problem, np.ndarray]:
     target = to_point(request.target)
     if isinstance(target, GeodeticPoint):
         if not problem.frame.is_geodetic:
-            from core.errors import InvalidInput
-
             raise InvalidInput("a geodetic target needs a geodetic frame or an origin", ("target",))
         target_enu = problem.frame.from_geodetic(target.lat_rad, target.lon_rad, target.alt_m)
     else:
@@ -100,12 +107,14 @@ def crlb_problem(request: schemas.CrlbRequest) -> tuple[Problem, np.ndarray]:
     return problem, target_enu
 
 
-def _matrix(m) -> list[list[float]]:
-    return np.asarray(m, dtype=float).tolist()
-
-
-def _local(p) -> dict:
-    return {"east_m": float(p[0]), "north_m": float(p[1]), "up_m": float(p[2])}
+def crlb_response(request: schemas.CrlbRequest) -> dict:
+    """The bound of a planned geometry at its target (UnobservableGeometry when the sensors cannot fix it)."""
+    problem, target = crlb_problem(request)
+    info = information_at(problem, target)
+    if not info.observable[0]:
+        raise UnobservableGeometry("these sensors do not determine the target position (singular information)")
+    bound = info.covariance_enu_m2[0]
+    return {"crlb_enu_m2": bound.tolist(), "error": error_dict(error_summary(bound))}
 
 
 def error_dict(summary, i: int = 0) -> dict:
@@ -120,66 +129,6 @@ def error_dict(summary, i: int = 0) -> dict:
             "orientation_deg": float(np.degrees(summary.ellipse_orientation_rad[i])),
         },
     }
-
-
-def _residual_value(kind: int, value: float) -> float:
-    return math.degrees(value) if kind in _ANGLE_CODES else float(value)
-
-
-def fix_to_dict(problem: Problem, fix: Fix, formats=(), summary=None, index: int = 0) -> dict:
-    """The response body of one fix.
-
-    Parameters
-    ----------
-    problem, fix
-    formats : sequence of {"geojson", "cot"}
-    summary : core.accuracy.ErrorSummary, optional
-        Precomputed for a batch (then ``index`` selects this fix).
-    """
-    if summary is None:
-        summary, index = error_summary(fix.covariance_enu_m2), 0
-    p = fix.position_enu_m
-    names = problem.station_ids
-    body: dict = {
-        "method": fix.method,
-        "position_local": _local(p),
-        "covariance_enu_m2": _matrix(fix.covariance_enu_m2),
-        "covariance_source": fix.covariance_source,
-        "crlb_enu_m2": _matrix(fix.crlb_enu_m2),
-        "error": error_dict(summary, index),
-        "residuals": [
-            {
-                "station_id": names[s],
-                "measurement_index": src,
-                "component": _COMPONENT_NAMES[k],
-                "residual": _residual_value(k, r),
-                "normalized": n,
-            }
-            for s, src, k, r, n in zip(problem.station_index.tolist(), problem.source_index.tolist(),
-                                       problem.kinds.tolist(), fix.residuals.tolist(),
-                                       fix.normalized_residuals.tolist())
-        ],
-        "fit": {"chi2": fix.chi2, "dof": fix.dof, "p_value": fix.p_value, "sigma_scale": fix.sigma_scale},
-        "converged": fix.converged,
-        "iterations": fix.iterations,
-        "warnings": [{"code": w.code, "message": w.message} for w in fix.warnings],
-    }
-    if problem.frame.is_geodetic:
-        ecef = problem.frame.to_ecef(p)
-        lat, lon, alt = geodesy.ecef_to_geodetic(ecef)
-        rotation = problem.frame.ecef_to_enu
-        body["position"] = {"lat_deg": math.degrees(lat), "lon_deg": math.degrees(lon), "alt_m": float(alt)}
-        body["position_ecef_m"] = ecef.tolist()
-        body["covariance_ecef_m2"] = _matrix(rotation.T @ np.asarray(fix.covariance_enu_m2, dtype=float) @ rotation)
-    if fix.coarse_position_enu_m is not None:
-        body["stages"] = {"coarse": _local(fix.coarse_position_enu_m)}
-    if fix.estimated_bearing_errors_rad is not None:
-        body["estimated_bearing_errors_deg"] = np.degrees(fix.estimated_bearing_errors_rad).tolist()
-    if "geojson" in formats:
-        body["geojson"] = _geojson(body)
-    if "cot" in formats:
-        body["cot"] = _cot(body)
-    return body
 
 
 def _geojson(body: dict) -> dict:
@@ -205,21 +154,37 @@ def _cot(body: dict) -> str | None:
             f'ce="{ce:.1f}" le="{le:.1f}"/></event>')
 
 
-# --- The batch path: many fix requests straight from parsed JSON to one core batch, and back. ---
 
-_GEODETIC_KEYS = frozenset(schemas.GeodeticPosition.model_fields)
-_LOCAL_KEYS = frozenset(schemas.LocalPosition.model_fields)
-_REQUEST_KEYS = frozenset(schemas.FixRequest.model_fields)
-_STATION_KEYS = frozenset(schemas.Station.model_fields)
-_BEARING_KEYS = frozenset(schemas.BearingMeasurement.model_fields)
-_RANGE_KEYS = frozenset(schemas.RangeMeasurement.model_fields)
-_TOA_KEYS = frozenset(schemas.ToaMeasurement.model_fields)
-_OPTION_KEYS = frozenset(schemas.Options.model_fields)
-_CONSTRAINT_KEYS = frozenset(schemas.Constraints.model_fields)
-_FORMATS = frozenset(("geojson", "cot"))
-_ML_METHODS = frozenset(("ml", "auto"))
+# --- Fix requests: one reader, one solve, one writer, for POST /v1/fixes (a batch of one) and the batch route. ---
+
+#: The fields the reader handles, per request model. A test holds each set against the model's own fields,
+#: so a field added to the schema fails it until the reader handles the field.
+READ_FIELDS = {
+    schemas.FixRequest: frozenset(("frame", "origin", "stations", "measurements", "method", "constraints", "options",
+                                   "formats")),
+    schemas.Station: frozenset(("id", "position")),
+    schemas.GeodeticPosition: frozenset(("lat_deg", "lon_deg", "alt_m")),
+    schemas.LocalPosition: frozenset(("east_m", "north_m", "up_m")),
+    schemas.BearingMeasurement: frozenset(("type", "station_id", "azimuth_deg", "elevation_deg", "sigma_azimuth_deg",
+                                           "sigma_elevation_deg")),
+    schemas.RangeMeasurement: frozenset(("type", "station_id", "range_m", "sigma_m")),
+    schemas.ToaMeasurement: frozenset(("type", "station_id", "toa_s", "sigma_s")),
+    schemas.Options: frozenset(("max_iterations", "tolerance_m", "initial_guess", "variant")),
+    schemas.Constraints: frozenset(("altitude_m",)),
+}
+_GEODETIC_KEYS = READ_FIELDS[schemas.GeodeticPosition]
+_LOCAL_KEYS = READ_FIELDS[schemas.LocalPosition]
+_REQUEST_KEYS = READ_FIELDS[schemas.FixRequest]
+_STATION_KEYS = READ_FIELDS[schemas.Station]
+_BEARING_KEYS = READ_FIELDS[schemas.BearingMeasurement]
+_RANGE_KEYS = READ_FIELDS[schemas.RangeMeasurement]
+_TOA_KEYS = READ_FIELDS[schemas.ToaMeasurement]
+_OPTION_KEYS = READ_FIELDS[schemas.Options]
+_CONSTRAINT_KEYS = READ_FIELDS[schemas.Constraints]
+_FORMATS = frozenset(typing.get_args(schemas.Format))
+_METHODS = frozenset(typing.get_args(schemas.Method))
 _DEFAULT_OPTIONS = schemas.Options()
-_DEFAULT_KEY = (_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m)
+_DEFAULT_SOLVE = SolveOptions(_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m, _DEFAULT_OPTIONS.variant)
 #: A request with only these fields needs no per-field settings beyond frame and method.
 _PLAIN_KEYS = frozenset(("frame", "method", "stations", "measurements"))
 _NAN3 = (math.nan, math.nan, math.nan)
@@ -241,7 +206,7 @@ def _bounds(model, name: str) -> tuple[float, float, bool, bool]:
 
 
 class _Reject(Exception):
-    """The lean reader cannot vouch for this problem: the full schema path decides."""
+    """The lean reader cannot vouch for this problem: the schema and :func:`to_problem` decide."""
 
 
 def _number(value, bounds=None) -> float:
@@ -257,24 +222,27 @@ def _number(value, bounds=None) -> float:
     return value
 
 
-def _optional_number(body: dict, key: str, bounds=None):
-    value = body.get(key)
-    return None if value is None else _number(value, bounds)
-
-
 _LAT = _bounds(schemas.GeodeticPosition, "lat_deg")
 _LON = _bounds(schemas.GeodeticPosition, "lon_deg")
 _ALT = _bounds(schemas.GeodeticPosition, "alt_m")
+_EAST = _bounds(schemas.LocalPosition, "east_m")
+_NORTH = _bounds(schemas.LocalPosition, "north_m")
+_UP = _bounds(schemas.LocalPosition, "up_m")
 _AZIMUTH = _bounds(schemas.BearingMeasurement, "azimuth_deg")
 _ELEVATION = _bounds(schemas.BearingMeasurement, "elevation_deg")
 _SIGMA_AZIMUTH = _bounds(schemas.BearingMeasurement, "sigma_azimuth_deg")
 _SIGMA_ELEVATION = _bounds(schemas.BearingMeasurement, "sigma_elevation_deg")
 _RANGE = _bounds(schemas.RangeMeasurement, "range_m")
 _SIGMA_RANGE = _bounds(schemas.RangeMeasurement, "sigma_m")
+_TOA_S = _bounds(schemas.ToaMeasurement, "toa_s")
 _SIGMA_TOA = _bounds(schemas.ToaMeasurement, "sigma_s")
 _TOLERANCE = _bounds(schemas.Options, "tolerance_m")
+_ITERATIONS = _bounds(schemas.Options, "max_iterations")
+_ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
                        if getattr(rule, "max_length", None) is not None)
+_VARIANT_MAX = next(rule.max_length for rule in schemas.Options.model_fields["variant"].metadata
+                    if getattr(rule, "max_length", None) is not None)
 _ABSENT = object()
 
 
@@ -289,37 +257,33 @@ def _position(body, geodetic: bool) -> tuple[float, float, float]:
                 _number(body.get("alt_m", 0.0), _ALT))
     if not body.keys() <= _LOCAL_KEYS or "lat_deg" in body or "lon_deg" in body:
         raise _Reject
-    return _number(body["east_m"]), _number(body["north_m"]), _number(body.get("up_m", 0.0))
-
-
-def _station_id(value) -> str:
-    if type(value) is not str or not 0 < len(value) <= _STATION_ID_MAX:
-        raise _Reject
-    return value
+    return (_number(body["east_m"], _EAST), _number(body["north_m"], _NORTH), _number(body.get("up_m", 0.0), _UP))
 
 
 def _problem_settings(body: dict) -> tuple:
-    """Frame, origin, options, guess, altitude and formats of one FixRequest dict (``_Reject`` if unusual)."""
+    """Frame, origin, method, options, guess, altitude and formats of one FixRequest dict (``_Reject`` if unusual)."""
     frame = body.get("frame", "wgs84")
     if frame != "wgs84" and frame != "local":
         raise _Reject
     geodetic = frame == "wgs84"
-    if body.get("method", "auto") not in _ML_METHODS:
+    method = body.get("method", "auto")
+    if type(method) is not str or method not in _METHODS:
         raise _Reject
     origin = body.get("origin")
     origin = _NAN3 if origin is None else _position(origin, True)
     options = body.get("options", _ABSENT)
-    key, guess, guess_geodetic = _DEFAULT_KEY, _NAN3, False
+    solve, guess, guess_geodetic = _DEFAULT_SOLVE, _NAN3, False
     if options is not _ABSENT:
         if type(options) is not dict or not options.keys() <= _OPTION_KEYS:
             raise _Reject
         iterations = options.get("max_iterations", _DEFAULT_OPTIONS.max_iterations)
-        if type(iterations) is not int or not 1 <= iterations <= 1000:
+        if type(iterations) is not int or not _ITERATIONS[0] <= iterations <= _ITERATIONS[1]:
             raise _Reject
-        key = (iterations, _number(options.get("tolerance_m", _DEFAULT_OPTIONS.tolerance_m), _TOLERANCE))
         variant = options.get("variant")
-        if variant is not None and (type(variant) is not str or len(variant) > 32):
+        if variant is not None and (type(variant) is not str or len(variant) > _VARIANT_MAX):
             raise _Reject
+        solve = SolveOptions(iterations, _number(options.get("tolerance_m", _DEFAULT_OPTIONS.tolerance_m), _TOLERANCE),
+                             variant)
         raw = options.get("initial_guess")
         if raw is not None:
             guess_geodetic = type(raw) is dict and ("lat_deg" in raw or "lon_deg" in raw)
@@ -331,15 +295,15 @@ def _problem_settings(body: dict) -> tuple:
     if constraints is not None:
         if type(constraints) is not dict or not constraints.keys() <= _CONSTRAINT_KEYS:
             raise _Reject
-        value = _optional_number(constraints, "altitude_m")
-        altitude = math.nan if value is None else value
+        value = constraints.get("altitude_m")
+        altitude = math.nan if value is None else _number(value, _ALTITUDE)
     formats = body.get("formats", ())
     if formats != ():
         if type(formats) is not list or len(formats) > 2 or any(type(f) is not str or f not in _FORMATS
                                                                  for f in formats):
             raise _Reject
         formats = tuple(formats)
-    return geodetic, origin, key, guess, guess_geodetic, altitude, formats
+    return geodetic, origin, method, solve, guess, guess_geodetic, altitude, formats
 
 
 def _read(bodies: list):
@@ -355,24 +319,25 @@ def _read(bodies: list):
         Raw station position values, API units, three per station, flattened.
     scalars : list
         Raw scalar measurements, API units, six per measurement (kind, station, value, sigma,
-        bearing, source), flattened.
+        bearing, source), flattened; a missing azimuth sigma is NaN.
     rest : list of int
     """
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
     coordinates, scalars, rest = [], [], []
     add_coordinates, add_scalar = coordinates.extend, scalars.extend
     geodetic_keys, local_keys, station_keys = _GEODETIC_KEYS, _LOCAL_KEYS, _STATION_KEYS
-    bearing_keys, range_keys, toa_keys, id_max = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX
-    plain = {"wgs84": (True, _NAN3, _DEFAULT_KEY, _NAN3, False, math.nan, ()),
-             "local": (False, _NAN3, _DEFAULT_KEY, _NAN3, False, math.nan, ())}
+    bearing_keys, range_keys, toa_keys, id_max, methods = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX, _METHODS
+    nan = math.nan
+    plain = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, nan, ())
+             for frame in ("wgs84", "local") for method in _METHODS}
     for slot, body in enumerate(bodies):
         n_coordinates, n_scalars = len(coordinates), len(scalars)
         try:
             if type(body) is not dict:
                 raise _Reject
             keys = body.keys()
-            if keys <= _PLAIN_KEYS and body.get("method", "auto") in _ML_METHODS:
-                setting = plain.get(body.get("frame", "wgs84"))
+            if keys <= _PLAIN_KEYS:
+                setting = plain.get((body.get("frame", "wgs84"), body.get("method", "auto")))
                 if setting is None:
                     raise _Reject
             elif keys <= _REQUEST_KEYS:
@@ -413,7 +378,9 @@ def _read(bodies: list):
                 if kind == "bearing":
                     if not m.keys() <= bearing_keys:
                         raise _Reject
-                    add_scalar((_AZ, station, m["azimuth_deg"], m["sigma_azimuth_deg"], n_bearings, i))
+                    sigma_azimuth = m.get("sigma_azimuth_deg")
+                    add_scalar((_AZ, station, m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth,
+                                n_bearings, i))
                     elevation, sigma_elevation = m.get("elevation_deg"), m.get("sigma_elevation_deg")
                     if elevation is not None:
                         if sigma_elevation is None:
@@ -447,14 +414,15 @@ def _read(bodies: list):
 def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
     """Rows of raw JSON numbers (flattened) as floats ``(R, width)``, and which rows hold only numbers.
 
-    JSON numbers (and booleans, which the schema's lax floats also take) convert as pydantic converts
-    them; a row with anything else (a string, null, a huge integer) is marked for the full path.
+    A row with anything but a float or an int (a boolean, a string, null, an integer too large for a
+    float) is marked for the schema path.
     """
     table = np.array(flat) if flat else np.zeros(0)
-    if table.dtype.kind in "fiub":
+    if table.dtype.kind in "fi":
         return table.astype(float, copy=False).reshape(-1, width), np.ones(len(flat) // width, dtype=bool)
     rows = [flat[i:i + width] for i in range(0, len(flat), width)]
-    good = np.array([all(type(v) in (float, int, bool) and abs(v) < 1e300 for v in row) for row in rows], dtype=bool)
+    good = np.array([all((type(v) is float or type(v) is int) and abs(v) < 1e300 for v in row) for row in rows],
+                    dtype=bool)
     table = np.array([row if ok else [0.0] * width for row, ok in zip(rows, good)], dtype=float).reshape(-1, width)
     return table, good
 
@@ -466,96 +434,130 @@ def _within(values, bounds) -> np.ndarray:
     return above & below
 
 
-def to_problem_batch(bodies: list) -> tuple[list[int], list[tuple[int, float]], list[tuple[str, ...]],
-                                            ProblemBatch | None, list[int]]:
-    """Read FixRequest dicts straight into one core batch, for the ML problems the lean reader vouches for.
+@dataclass(frozen=True)
+class FixRequests:
+    """Fix requests read into one core batch.
 
-    A problem is taken when it is plainly valid (the exact fields, the types
-    and bounds of :class:`schemas.FixRequest`, known and unique station ids),
-    asks for ``ml`` or for ``auto`` with every sigma given (which resolves to
-    ML), and builds exactly as :func:`to_problem` would build it. Anything
-    else is left to the full path (``FixRequest.model_validate``,
-    :func:`to_problem`, :func:`core.estimators.solve_many`), which decides
-    and words its errors. Structure is checked problem by problem; numbers
-    are converted and range-checked for the whole batch at once.
-
-    Parameters
+    Attributes
     ----------
-    bodies : list
-        Parsed JSON of each problem.
-
-    Returns
-    -------
+    batch : ProblemBatch or None
+        The problems that were read; None when none was.
     slots : list of int
         Request index of each batch row.
-    options : list of (int, float)
-        ``(max_iterations, tolerance_m)`` of each row.
+    methods : list of str
+    options : list of SolveOptions
     formats : list of tuple of str
-        Extra renderings asked for by each row.
-    batch : ProblemBatch or None
-        None when no problem was taken.
-    rest : list of int
-        Request indices for the full path, in request order.
+        Per batch row.
+    errors : dict of int to dict
+        Problem bodies of the requests that could not be read, by request index.
+    """
+
+    batch: ProblemBatch | None
+    slots: list[int]
+    methods: list[str]
+    options: list[SolveOptions]
+    formats: list[tuple[str, ...]]
+    errors: dict[int, dict]
+
+
+def read_fix_requests(bodies: list) -> FixRequests:
+    """Read parsed FixRequest bodies into one core batch.
+
+    A body that is plainly valid (the exact fields, types and bounds of
+    :class:`schemas.FixRequest`, known and unique station ids) is read in
+    bulk: structure problem by problem, numbers converted and range-checked
+    for all at once, the frames placed by :func:`core.batch.build_problem_batch`.
+    Any other body is validated by the schema and built by :func:`to_problem`,
+    which decide and word its error, and joins the same batch.
     """
     accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, rest = _read(bodies)
-    if not accepted:
-        return [], [], [], None, rest
-    station_counts = np.array(station_counts)
-    measurement_counts = np.array(measurement_counts)
-    station_owner = np.repeat(np.arange(len(accepted)), station_counts)
-    scalar_owner = np.repeat(np.arange(len(accepted)), measurement_counts)
-    geodetic = np.array([s[0] for s in settings], dtype=bool)
-
-    coords, coords_ok = _numeric(coordinates, 3)
-    table, scalars_ok = _numeric(scalars, 6)
-    kinds = table[:, 0].astype(np.int8)
-    values, sigmas = table[:, 2], table[:, 3]
-    on_earth = geodetic[station_owner]
-    coords_ok &= np.all(np.isfinite(coords), axis=-1)
-    coords_ok &= ~on_earth | (_within(coords[:, 0], _LAT) & _within(coords[:, 1], _LON) & _within(coords[:, 2], _ALT))
-    is_az, is_el, is_range, is_toa = kinds == _AZ, kinds == _EL, kinds == _RG, kinds == _TOA
-    scalars_ok &= np.isfinite(values) & np.isfinite(sigmas)
-    scalars_ok &= ~is_az | (_within(values, _AZIMUTH) & _within(sigmas, _SIGMA_AZIMUTH))
-    scalars_ok &= ~is_el | (_within(values, _ELEVATION) & _within(sigmas, _SIGMA_ELEVATION))
-    scalars_ok &= ~is_range | (_within(values, _RANGE) & _within(sigmas, _SIGMA_RANGE))
-    scalars_ok &= ~is_toa | _within(sigmas, _SIGMA_TOA)
-    bad = np.zeros(len(accepted), dtype=bool)
-    bad[station_owner[~coords_ok]] = True
-    bad[scalar_owner[~scalars_ok]] = True
-    if np.any(bad):
-        rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
-        keep = np.flatnonzero(~bad)
-        if keep.size == 0:
-            return [], [], [], None, rest
-        station_keep, scalar_keep = ~bad[station_owner], ~bad[scalar_owner]
-        accepted = [accepted[i] for i in keep]
-        settings = [settings[i] for i in keep]
-        station_ids = [station_ids[i] for i in keep]
-        station_counts, measurement_counts, geodetic = station_counts[keep], measurement_counts[keep], geodetic[keep]
-        coords, on_earth = coords[station_keep], on_earth[station_keep]
-        table, kinds, is_az, is_el = table[scalar_keep], kinds[scalar_keep], is_az[scalar_keep], is_el[scalar_keep]
+    errors: dict[int, dict] = {}
+    lean = None
+    if accepted:
+        station_counts = np.array(station_counts)
+        measurement_counts = np.array(measurement_counts)
+        station_owner = np.repeat(np.arange(len(accepted)), station_counts)
+        scalar_owner = np.repeat(np.arange(len(accepted)), measurement_counts)
+        geodetic = np.array([s[0] for s in settings], dtype=bool)
+        coords, coords_ok = _numeric(coordinates, 3)
+        table, scalars_ok = _numeric(scalars, 6)
+        kinds = table[:, 0].astype(np.int8)
         values, sigmas = table[:, 2], table[:, 3]
+        on_earth = geodetic[station_owner]
+        coords_ok &= np.where(on_earth[:, None], np.array([_within(coords[:, 0], _LAT), _within(coords[:, 1], _LON),
+                                                          _within(coords[:, 2], _ALT)]).T,
+                              np.array([_within(coords[:, 0], _EAST), _within(coords[:, 1], _NORTH),
+                                        _within(coords[:, 2], _UP)]).T).all(axis=-1)
+        is_az, is_el, is_range, is_toa = kinds == _AZ, kinds == _EL, kinds == _RG, kinds == _TOA
+        scalars_ok &= ~is_az | (_within(values, _AZIMUTH) & (_within(sigmas, _SIGMA_AZIMUTH) | np.isnan(sigmas)))
+        scalars_ok &= ~is_el | (_within(values, _ELEVATION) & _within(sigmas, _SIGMA_ELEVATION))
+        scalars_ok &= ~is_range | (_within(values, _RANGE) & _within(sigmas, _SIGMA_RANGE))
+        scalars_ok &= ~is_toa | (_within(values, _TOA_S) & _within(sigmas, _SIGMA_TOA))
+        bad = np.zeros(len(accepted), dtype=bool)
+        bad[station_owner[~coords_ok]] = True
+        bad[scalar_owner[~scalars_ok]] = True
+        if np.any(bad):
+            rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
+            keep = np.flatnonzero(~bad)
+            station_keep, scalar_keep = ~bad[station_owner], ~bad[scalar_owner]
+            accepted = [accepted[i] for i in keep]
+            settings = [settings[i] for i in keep]
+            station_ids = [station_ids[i] for i in keep]
+            station_counts, measurement_counts, geodetic = station_counts[keep], measurement_counts[keep], geodetic[keep]
+            coords, on_earth = coords[station_keep], on_earth[station_keep]
+            table, kinds, is_az, is_el = table[scalar_keep], kinds[scalar_keep], is_az[scalar_keep], is_el[scalar_keep]
+            values, sigmas = table[:, 2], table[:, 3]
+        if accepted:
+            coords = np.where(on_earth[:, None], np.concatenate([np.radians(coords[:, :2]), coords[:, 2:]], axis=-1),
+                              coords)
+            angle = is_az | is_el
+            lean = build_problem_batch(
+                station_counts=station_counts,
+                station_ids=station_ids,
+                station_coordinates=coords,
+                geodetic_stations=geodetic,
+                origin=np.array([s[1] for s in settings], dtype=float),
+                measurement_counts=measurement_counts,
+                kinds=kinds,
+                station_index=table[:, 1].astype(np.intp),
+                values=np.where(angle, np.radians(values), values),
+                sigmas=np.where(angle, np.radians(sigmas), sigmas),
+                bearing_index=table[:, 4].astype(np.intp),
+                source_index=table[:, 5].astype(np.intp),
+                altitude_m=np.array([s[6] for s in settings], dtype=float),
+                initial_guess=np.array([s[4] for s in settings], dtype=float),
+                geodetic_guess=np.array([s[5] for s in settings], dtype=bool),
+            )
+    slots = list(accepted)
+    methods = [s[2] for s in settings]
+    options = [s[3] for s in settings]
+    formats = [s[7] for s in settings]
+    built: list[Problem] = []
+    for slot in rest:
+        try:
+            request = schemas.FixRequest.model_validate(bodies[slot])
+        except ValidationError as error:
+            errors[slot] = _invalid(error)
+            continue
+        try:
+            built.append(to_problem(request))
+        except LocalizationError as error:
+            errors[slot] = localization_problem(error)
+            continue
+        slots.append(slot)
+        methods.append(request.method)
+        options.append(to_options(request))
+        formats.append(tuple(request.formats))
+    parts = [p for p in (lean, ProblemBatch.from_problems(built) if built else None) if p is not None]
+    batch = ProblemBatch.concatenate(parts) if parts else None
+    return FixRequests(batch, slots, methods, options, formats, errors)
 
-    coords = np.where(on_earth[:, None], np.concatenate([np.radians(coords[:, :2]), coords[:, 2:]], axis=-1), coords)
-    angle = is_az | is_el
-    batch = build_problem_batch(
-        station_counts=station_counts,
-        station_ids=station_ids,
-        station_coordinates=coords,
-        geodetic_stations=geodetic,
-        origin=np.array([s[1] for s in settings], dtype=float),
-        measurement_counts=measurement_counts,
-        kinds=kinds,
-        station_index=table[:, 1].astype(np.intp),
-        values=np.where(angle, np.radians(values), values),
-        sigmas=np.where(angle, np.radians(sigmas), sigmas),
-        bearing_index=table[:, 4].astype(np.intp),
-        source_index=table[:, 5].astype(np.intp),
-        altitude_m=np.array([s[5] for s in settings], dtype=float),
-        initial_guess=np.array([s[3] for s in settings], dtype=float),
-        geodetic_guess=np.array([s[4] for s in settings], dtype=bool),
-    )
-    return accepted, [s[2] for s in settings], [s[6] for s in settings], batch, rest
+
+def _invalid(error: ValidationError) -> dict:
+    errors = validation_errors(error.errors())
+    first = errors[0] if errors else {"loc": [], "msg": "invalid problem"}
+    detail = f"{'.'.join(map(str, first['loc'])) or 'problem'}: {first['msg']}"
+    return problem_body(422, "invalid_input", detail, errors)
 
 
 #: Error summaries are computed this many at a time: their quadrature arrays (B x 192) then stay in cache
@@ -563,14 +565,7 @@ def to_problem_batch(bodies: list) -> tuple[list[int], list[tuple[int, float]], 
 _SUMMARY_CHUNK = 256
 
 
-def batch_error_summary(fixes):
-    """Error summaries of a FixBatch's covariances (failed rows get a zero covariance's)."""
-    ok = np.ones(fixes.problems.size, dtype=bool)
-    ok[list(fixes.errors)] = False
-    return _error_summaries(np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0))
-
-
-def _error_summaries(covariance_enu_m2):
+def error_summaries(covariance_enu_m2):
     """:func:`core.accuracy.error_summary` of ``(B, 3, 3)`` covariances, in cache-sized chunks."""
     parts = [error_summary(covariance_enu_m2[i:i + _SUMMARY_CHUNK])
              for i in range(0, max(len(covariance_enu_m2), 1), _SUMMARY_CHUNK)]
@@ -580,8 +575,8 @@ def _error_summaries(covariance_enu_m2):
                             for f in parts[0].__dataclass_fields__))
 
 
-def fix_batch_to_dicts(fixes, formats, summary=None) -> list[dict | None]:
-    """Response bodies of a :class:`core.estimators.ml.FixBatch`, as :func:`fix_to_dict` gives them one by one.
+def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
+    """Response bodies of a :class:`core.estimators.FixBatch`: a fix body, or the problem body of its error.
 
     Conversions (error summaries, geodetic positions, ECEF covariances,
     degrees) run once over the batch; only the dicts are built per fix. The
@@ -593,22 +588,18 @@ def fix_batch_to_dicts(fixes, formats, summary=None) -> list[dict | None]:
     ----------
     fixes : FixBatch
     formats : sequence of tuple of str, length B
-    summary : core.accuracy.ErrorSummary, optional
-        Of ``fixes.covariance_enu_m2`` (see :func:`batch_error_summary`), when already computed.
 
     Returns
     -------
-    list of dict or None
-        None for the rows in ``fixes.errors``.
+    list of dict
+        ``{"ok": True, "fix": body}`` or ``{"ok": False, "error": problem body}`` per problem.
     """
     batch = fixes.problems
     size = batch.size
-    ok = np.ones(size, dtype=bool)
-    ok[list(fixes.errors)] = False
+    ok = fixes.ok
     position = np.where(ok[:, None], fixes.position_enu_m, 0.0)
     covariance = np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0)
-    if summary is None:
-        summary = batch_error_summary(fixes)
+    summary = error_summaries(covariance)
     geodetic = batch.geodetic
     o = batch.origin
     ecef = geodesy.enu_to_ecef(position, o[:, 0], o[:, 1], o[:, 2])
@@ -626,7 +617,7 @@ def fix_batch_to_dicts(fixes, formats, summary=None) -> list[dict | None]:
     vertical, gdop = summary.vertical_sigma_m.tolist(), summary.gdop_m.tolist()
     major, minor = summary.ellipse_semi_major_m.tolist(), summary.ellipse_semi_minor_m.tolist()
     orientation = np.degrees(summary.ellipse_orientation_rad).tolist()
-    is_angle = (batch.kinds == Kind.AZIMUTH) | (batch.kinds == Kind.ELEVATION)
+    is_angle = (batch.kinds == _AZ) | (batch.kinds == _EL)
     residual_l = np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals).tolist()
     normalized_l = fixes.normalized_residuals.tolist()
     component_l = [[_COMPONENT_NAMES[k] for k in row] for row in batch.kinds.tolist()]
@@ -637,13 +628,16 @@ def fix_batch_to_dicts(fixes, formats, summary=None) -> list[dict | None]:
     p_value = [None if math.isnan(v) else v for v in fixes.p_value.tolist()]
     sigma_scale = [None if math.isnan(v) else v for v in fixes.sigma_scale.tolist()]
     converged, iterations = fixes.converged.tolist(), fixes.iterations.tolist()
+    coarse = fixes.coarse_position_enu_m
+    has_coarse = (~np.isnan(coarse[:, 0])).tolist()
+    coarse_l = np.nan_to_num(coarse).tolist()
     geodetic_l = geodetic.tolist()
     method, source = fixes.method, fixes.covariance_source
 
-    out: list[dict | None] = []
+    out: list[dict] = []
     for b in range(size):
         if not ok[b]:
-            out.append(None)
+            out.append({"ok": False, "error": localization_problem(fixes.errors[b])})
             continue
         p = position_l[b]
         ids = batch.station_ids[b]
@@ -673,12 +667,74 @@ def fix_batch_to_dicts(fixes, formats, summary=None) -> list[dict | None]:
             body["position"] = {"lat_deg": lat_l[b], "lon_deg": lon_l[b], "alt_m": alt_l[b]}
             body["position_ecef_m"] = ecef_l[b]
             body["covariance_ecef_m2"] = covariance_ecef_l[b]
+        if has_coarse[b]:
+            c = coarse_l[b]
+            body["stages"] = {"coarse": {"east_m": c[0], "north_m": c[1], "up_m": c[2]}}
+        bearing_errors = fixes.estimated_bearing_errors_rad[b]
+        if bearing_errors is not None:
+            body["estimated_bearing_errors_deg"] = np.degrees(bearing_errors).tolist()
         wanted = formats[b]
         if wanted:
             if "geojson" in wanted:
                 body["geojson"] = _geojson(body)
             if "cot" in wanted:
                 body["cot"] = _cot(body)
-        out.append(body)
+        out.append({"ok": True, "fix": body})
     return out
 
+
+#: A large batch is solved in parts of this many problems; with more than one part, worker threads solve
+#: the next parts (numpy releases the GIL in its loops) while the calling thread builds the bodies of the last.
+PART_PROBLEMS = 2048
+MAX_WORKERS = min(2, os.cpu_count() or 1)
+
+
+def fix_results(bodies: list, request_ids=None) -> list[dict]:
+    """Results of parsed FixRequest bodies: read, solved and written as one batch.
+
+    Parameters
+    ----------
+    bodies : list
+        Parsed JSON of each request.
+    request_ids : str or sequence of str, optional
+        Written into each error body (one for all, or one per body).
+
+    Returns
+    -------
+    list of dict
+        ``{"index", "ok": True, "fix"}`` or ``{"index", "ok": False, "error"}`` per body, in order.
+    """
+    if request_ids is None or isinstance(request_ids, str):
+        request_ids = [request_ids] * len(bodies)
+    results: list[dict | None] = [None] * len(bodies)
+
+    def put(slot: int, result: dict) -> None:
+        if not result["ok"]:
+            result["error"]["request_id"] = request_ids[slot]
+        results[slot] = {"index": slot, **result}
+
+    read = read_fix_requests(bodies)
+    for slot, error in read.errors.items():
+        put(slot, {"ok": False, "error": error})
+    batch = read.batch
+    if batch is not None:
+        rows = np.arange(batch.size)
+        parts = [rows[i:i + PART_PROBLEMS] for i in range(0, batch.size, PART_PROBLEMS)]
+
+        def solve_part(chosen):
+            part = batch if chosen.size == batch.size else batch.take(chosen)
+            return chosen, solve_many(part, [read.methods[r] for r in chosen], [read.options[r] for r in chosen])
+
+        workers = min(MAX_WORKERS, len(parts))
+        with ThreadPoolExecutor(workers) if workers > 1 else nullcontext() as pool:
+            solved = pool.map(solve_part, parts) if pool is not None else map(solve_part, parts)
+            for chosen, groups in solved:
+                for rows_in_part, fixes in groups:
+                    taken = chosen[rows_in_part]
+                    if isinstance(fixes, LocalizationError):
+                        for r in taken.tolist():
+                            put(read.slots[r], {"ok": False, "error": localization_problem(fixes)})
+                        continue
+                    for r, result in zip(taken.tolist(), fix_bodies(fixes, [read.formats[r] for r in taken])):
+                        put(read.slots[r], result)
+    return results

@@ -1,23 +1,23 @@
 """Fixes and planning bounds.
 
-``POST /v1/fixes`` runs on the event loop: it validates and translates its
-request, then awaits the app's :class:`~service.coalesce.Coalescer`, which
-solves every fix queued at that moment in one batched call on a worker
-thread (an idle service solves a lone request at once, alone).
+``POST /v1/fixes`` hands its parsed body to the app's
+:class:`~service.coalesce.Coalescer`, which solves every fix queued at that
+moment as one batch on a worker thread, through the same
+:func:`~service.translate.fix_results` as ``POST /v1/fixes/batch``: a single
+fix is a batch of one.
 """
 
 from __future__ import annotations
 
+import orjson
 from fastapi import APIRouter, Depends, Request
-from service.responses import JsonResponse
+from starlette.responses import Response
 
-from core.accuracy import error_summary
-from core.crlb import information_at
-from core.errors import UnobservableGeometry
 from service import schemas
-from service.coalesce import Coalescer
-from service.deps import OwnerDep, get_owner
-from service.translate import crlb_problem, error_dict, fix_to_dict, to_options, to_problem
+from service.deps import JsonBody, OwnerDep, get_owner, json_request_body, request_id
+from service.problems import MEDIA_TYPE
+from service.responses import JsonResponse
+from service.translate import crlb_response
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
@@ -29,29 +29,18 @@ async def _owner_on_loop(request: Request) -> str:
     return get_owner(request)
 
 
-def coalescer(app) -> Coalescer:
-    """The app's coalescer of single fixes, made on first use (no module-level state)."""
-    found = getattr(app.state, "fix_coalescer", None)
-    if found is None:
-        found = app.state.fix_coalescer = Coalescer()
-    return found
-
-
 @router.post("/fixes", operation_id="fixes-create", summary="Locate an emitter from one set of measurements",
-             response_model=schemas.FixResponse, responses=_ERRORS)
-async def create_fix(request: schemas.FixRequest, http: Request,
-                     owner: str = Depends(_owner_on_loop)) -> JsonResponse:
-    problem = to_problem(request)
-    solved = await coalescer(http.app).solve(problem, request.method, to_options(request))
-    return JsonResponse(fix_to_dict(problem, solved.fix, request.formats, solved.summary, solved.index))
+             response_model=schemas.FixResponse, responses=_ERRORS,
+             openapi_extra={"requestBody": json_request_body(schemas.FixRequest)})
+async def create_fix(body: JsonBody, http: Request, owner: str = Depends(_owner_on_loop)) -> Response:
+    result = await http.app.state.fix_coalescer.solve(body, request_id(http))
+    if result["ok"]:
+        return JsonResponse(result["fix"])
+    error = result["error"]
+    return Response(orjson.dumps(error), status_code=error["status"], media_type=MEDIA_TYPE)
 
 
 @router.post("/crlb", operation_id="fixes-crlb", summary="The Cramer-Rao bound of a geometry (planning)",
              response_model=schemas.CrlbResponse, responses=_ERRORS)
 def crlb(request: schemas.CrlbRequest, owner: OwnerDep) -> JsonResponse:
-    problem, target = crlb_problem(request)
-    info = information_at(problem, target)
-    if not info.observable[0]:
-        raise UnobservableGeometry("these sensors do not determine the target position (singular information)")
-    bound = info.covariance_enu_m2[0]
-    return JsonResponse({"crlb_enu_m2": bound.tolist(), "error": error_dict(error_summary(bound))})
+    return JsonResponse(crlb_response(request))
