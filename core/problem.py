@@ -95,7 +95,7 @@ class CommonFrame:
         return self.origin is not None
 
     @property
-    def ecef_to_enu(self) -> np.ndarray:
+    def ecef_to_enu_rotation(self) -> np.ndarray:
         """Rotation ``(3, 3)``: ECEF vectors to the frame's ENU axes."""
         return geodesy.ecef_to_enu_rotation(self.origin.lat_rad, self.origin.lon_rad)
 
@@ -115,7 +115,7 @@ class CommonFrame:
 
     def covariance_to_ecef(self, covariance_enu_m2):
         """Rotate covariances ``(..., 3, 3)`` from the frame's ENU to ECEF."""
-        r = self.ecef_to_enu
+        r = self.ecef_to_enu_rotation
         return r.T @ covariance_enu_m2 @ r
 
     def origin_array(self) -> np.ndarray:

@@ -235,7 +235,7 @@ def test_covariance_rotation_round_trip_and_consistency_with_points():
     root = rng.normal(size=(3, 3)) * [100.0, 20.0, 5.0]
     cov_enu = root @ root.T
     cov_ecef = frame.covariance_to_ecef(cov_enu)
-    r = frame.ecef_to_enu
+    r = frame.ecef_to_enu_rotation
     np.testing.assert_allclose(r @ cov_ecef @ r.T, cov_enu, rtol=0, atol=1e-9)  # 1e-9 m^2 on ~1e4 m^2
     assert np.trace(cov_ecef) == pytest.approx(np.trace(cov_enu), rel=1e-12)  # rotation keeps the trace
     # Points: the sample covariance of the ECEF images of ENU samples is the rotated one.

@@ -186,7 +186,7 @@ def test_known_altitude_with_azimuths_only_in_wgs84():
     assert alt == pytest.approx(TARGET_DEG[2], abs=1e-6)  # 1 micrometre: on the altitude surface
     # 2 unknowns on the surface: the covariance has no extent along the local vertical there.
     lat, lon, _ = problem.frame.to_geodetic(fix.position_enu_m)
-    up = ecef_to_enu_rotation(lat, lon)[2] @ problem.frame.ecef_to_enu.T
+    up = ecef_to_enu_rotation(lat, lon)[2] @ problem.frame.ecef_to_enu_rotation.T
     assert up @ fix.covariance_enu_m2 @ up < 1e-6 * np.trace(fix.covariance_enu_m2)
     assert fix.dof == 0
 
