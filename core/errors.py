@@ -16,7 +16,8 @@ class LocalizationError(Exception):
     message : str
         Human-readable explanation, shown to API clients as ``detail``.
     loc : tuple of (str or int), optional
-        Path of the offending input field, when one field is to blame.
+        Path of the offending input, when one input is to blame, in core names
+        (``("measurements", 3, "sigma_azimuth_rad")``); the service maps it to the API's field path.
     """
 
     code = "localization_error"

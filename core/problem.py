@@ -334,23 +334,25 @@ class LinesOfSight:
         return np.einsum("kji,kj->ki", self.rotations, local)
 
 
-#: API field names of point attributes held in radians here (loc paths name the API field).
-_API_FIELD = {"lat_rad": "lat_deg", "lon_rad": "lon_deg"}
-
-
 def _check_finite(value, loc):
     if value is None or not np.isfinite(value):
-        raise InvalidInput(f"{loc[-1]} must be a finite number", loc)
+        raise InvalidInput(f"{_words(loc[-1])} must be a finite number", loc)
 
 
 def _check_sigma(value, loc, required=True):
     if value is None:
         if required:
-            raise InvalidInput(f"{loc[-1]} is required", loc)
+            raise InvalidInput(f"{_words(loc[-1])} is required", loc)
         return
     _check_finite(value, loc)
     if value <= 0:
-        raise InvalidInput(f"{loc[-1]} must be > 0", loc)
+        raise InvalidInput(f"{_words(loc[-1])} must be > 0", loc)
+
+
+def _words(name: str) -> str:
+    """A core field name as words without its unit: ``sigma_azimuth_rad`` -> ``sigma azimuth``."""
+    head, _, unit = name.rpartition("_")
+    return (head if unit in ("rad", "m", "s", "deg") and head else name).replace("_", " ")
 
 
 def build_problem(
@@ -399,9 +401,9 @@ def build_problem(
         raise InvalidInput("stations mix geodetic and local positions", ("stations", i, "position"))
     for i, (_, p) in enumerate(stations):
         for name, value in vars(p).items():
-            _check_finite(value, ("stations", i, "position", _API_FIELD.get(name, name)))
+            _check_finite(value, ("stations", i, "position", name))
         if isinstance(p, GeodeticPoint) and abs(p.lat_rad) > np.pi / 2:
-            raise InvalidInput("latitude must be within [-90, 90] deg", ("stations", i, "position", "lat_deg"))
+            raise InvalidInput("latitude must be within [-90, 90] deg", ("stations", i, "position", "lat_rad"))
 
     geodetic_frame = all(geodetic)
     kinds, station_index, values, sigmas, bearing_index, source_index = [], [], [], [], [], []
@@ -421,14 +423,14 @@ def build_problem(
             raise InvalidInput(f"unknown station id {m.station_id!r}", loc + ("station_id",))
         s = ids[m.station_id]
         if isinstance(m, Bearing):
-            _check_finite(m.azimuth_rad, loc + ("azimuth_deg",))
-            _check_sigma(m.sigma_azimuth_rad, loc + ("sigma_azimuth_deg",), required=require_sigmas)
+            _check_finite(m.azimuth_rad, loc + ("azimuth_rad",))
+            _check_sigma(m.sigma_azimuth_rad, loc + ("sigma_azimuth_rad",), required=require_sigmas)
             add(Kind.AZIMUTH, s, m.azimuth_rad, m.sigma_azimuth_rad, n_bearings, i)
             if m.elevation_rad is not None:
-                _check_finite(m.elevation_rad, loc + ("elevation_deg",))
+                _check_finite(m.elevation_rad, loc + ("elevation_rad",))
                 if abs(m.elevation_rad) > np.pi / 2:
-                    raise InvalidInput("elevation must be within [-90, 90] deg", loc + ("elevation_deg",))
-                _check_sigma(m.sigma_elevation_rad, loc + ("sigma_elevation_deg",))
+                    raise InvalidInput("elevation must be within [-90, 90] deg", loc + ("elevation_rad",))
+                _check_sigma(m.sigma_elevation_rad, loc + ("sigma_elevation_rad",))
                 add(Kind.ELEVATION, s, m.elevation_rad, m.sigma_elevation_rad, n_bearings, i)
             n_bearings += 1
         elif isinstance(m, Range):
@@ -447,14 +449,14 @@ def build_problem(
     guess, geodetic_guess = (np.nan, np.nan, np.nan), False
     if initial_guess is not None:
         for name, value in vars(initial_guess).items():
-            _check_finite(value, ("options", "initial_guess", _API_FIELD.get(name, name)))
+            _check_finite(value, ("initial_guess", name))
         geodetic_guess = isinstance(initial_guess, GeodeticPoint)
         if geodetic_guess and not geodetic_frame and origin is None:
             raise InvalidInput("a geodetic initial guess needs a geodetic frame or an origin",
-                               ("options", "initial_guess"))
+                               ("initial_guess",))
         guess = tuple(vars(initial_guess).values())
     if altitude_m is not None:
-        _check_finite(altitude_m, ("constraints", "altitude_m"))
+        _check_finite(altitude_m, ("altitude_m",))
 
     from core.batch import build_problem_batch
 

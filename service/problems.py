@@ -78,10 +78,32 @@ def localization_status(error: LocalizationError) -> tuple[int, str]:
     return 422, error.code
 
 
+#: Core names in an error's ``loc`` -> the API's field path: the one table between the two.
+API_PATH = {
+    "azimuth_rad": ("azimuth_deg",),
+    "elevation_rad": ("elevation_deg",),
+    "sigma_azimuth_rad": ("sigma_azimuth_deg",),
+    "sigma_elevation_rad": ("sigma_elevation_deg",),
+    "lat_rad": ("lat_deg",),
+    "lon_rad": ("lon_deg",),
+    "altitude_m": ("constraints", "altitude_m"),
+    "initial_guess": ("options", "initial_guess"),
+    "variant": ("options", "variant"),
+}
+
+
+def api_loc(loc) -> list:
+    """A core error's ``loc`` as the API's field path (:data:`API_PATH`)."""
+    out: list = []
+    for part in loc:
+        out.extend(API_PATH.get(part, (part,)) if isinstance(part, str) else (part,))
+    return out
+
+
 def localization_problem(error: LocalizationError, prefix: tuple = ()) -> dict:
     """The problem body for a core error (also used per slot in a batch)."""
     status, code = localization_status(error)
-    errors = [{"loc": [*prefix, *error.loc], "msg": error.message}] if error.loc else []
+    errors = [{"loc": [*prefix, *api_loc(error.loc)], "msg": error.message}] if error.loc else []
     return problem_body(status, code, error.message, errors)
 
 

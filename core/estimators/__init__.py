@@ -84,8 +84,8 @@ def solve_many(batch: ProblemBatch, methods, options) -> list[tuple[np.ndarray, 
             for b in rows[lacking].tolist():
                 m = int(np.flatnonzero(missing[b])[0])
                 out.append((np.array([b]), InvalidInput(
-                    f"method {name} needs sigma_azimuth_deg on every bearing",
-                    ("measurements", int(batch.source_index[b, m]), "sigma_azimuth_deg"))))
+                    f"method {name} needs the azimuth sigma of every bearing",
+                    ("measurements", int(batch.source_index[b, m]), "sigma_azimuth_rad"))))
             rows = rows[~lacking]
         if rows.size == 0:
             continue
@@ -134,8 +134,8 @@ def _check_variant(spec, options: SolveOptions) -> None:
         return
     if spec.variants:
         raise InvalidInput(f"{spec.name} variant must be one of {', '.join(spec.variants)}; got {variant!r}",
-                           ("options", "variant"))
-    raise InvalidInput(f"{spec.name} has no variants; got {variant!r}", ("options", "variant"))
+                           ("variant",))
+    raise InvalidInput(f"{spec.name} has no variants; got {variant!r}", ("variant",))
 
 
 __all__ = ["AUTO", "REGISTRY", "Fix", "FixBatch", "FixWarning", "SolveOptions", "resolve_methods", "solve",
