@@ -15,7 +15,7 @@ done once for every station of every problem.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Sequence
 
@@ -60,6 +60,10 @@ class ProblemBatch:
         Known target altitude; NaN where unconstrained.
     initial_guess_enu_m : ndarray, shape (B, 3)
         NaN rows where none was given.
+    used : ndarray of bool, shape (B, M), or None
+        Measurements the estimator may use (None: every one). An unused
+        measurement is still reported (its residual at the fix) but carries
+        no weight and enters no verdict: see :meth:`with_used`.
     """
 
     station_ids: tuple[tuple[str, ...], ...]
@@ -78,15 +82,25 @@ class ProblemBatch:
     toa_reference_s: np.ndarray
     altitude_m: np.ndarray
     initial_guess_enu_m: np.ndarray
+    used: np.ndarray | None = None
 
     @property
     def size(self) -> int:
         return int(self.n_measurements.size)
 
     @property
-    def valid(self) -> np.ndarray:
+    def present(self) -> np.ndarray:
         """``(B, M)``: True on real measurements, False on padding."""
         return np.arange(self.kinds.shape[1]) < self.n_measurements[:, None]
+
+    @property
+    def valid(self) -> np.ndarray:
+        """``(B, M)``: True on the measurements an estimator uses (real and not set aside by :meth:`with_used`)."""
+        return self.present if self.used is None else self.used
+
+    def with_used(self, used) -> "ProblemBatch":
+        """The same problems with only ``used`` ``(B, M)`` (and present) measurements in the fit."""
+        return replace(self, used=self.present & np.asarray(used, dtype=bool))
 
     @property
     def constrained(self) -> np.ndarray:
@@ -165,21 +179,25 @@ class ProblemBatch:
         return CommonFrame(GeodeticPoint(lat, lon, alt))
 
     def problem(self, b: int) -> Problem:
-        """Problem ``b`` on its own (no padding)."""
-        n, m = int(self.n_stations[b]), int(self.n_measurements[b])
+        """Problem ``b`` on its own: no padding, and only the measurements in use."""
+        n = int(self.n_stations[b])
+        m = np.flatnonzero(self.valid[b])
         altitude = float(self.altitude_m[b])
         guess = self.initial_guess_enu_m[b]
+        bearing = self.bearing_index[b, m]
+        lines = bearing >= 0
+        bearing[lines] = np.unique(bearing[lines], return_inverse=True)[1]
         return Problem(
             frame=self.frame(b),
             station_ids=self.station_ids[b],
             stations_enu_m=self.stations_enu_m[b, :n].copy(),
             station_rotations=self.station_rotations[b, :n].copy(),
-            kinds=self.kinds[b, :m].copy(),
-            station_index=self.station_index[b, :m].copy(),
-            values=self.values[b, :m].copy(),
-            sigmas=self.sigmas[b, :m].copy(),
-            bearing_index=self.bearing_index[b, :m].copy(),
-            source_index=self.source_index[b, :m].copy(),
+            kinds=self.kinds[b, m],
+            station_index=self.station_index[b, m],
+            values=self.values[b, m],
+            sigmas=self.sigmas[b, m],
+            bearing_index=bearing,
+            source_index=self.source_index[b, m],
             toa_reference_s=float(self.toa_reference_s[b]),
             altitude_m=None if np.isnan(altitude) else altitude,
             initial_guess_enu_m=None if np.isnan(guess[0]) else guess.copy(),
@@ -207,6 +225,7 @@ class ProblemBatch:
             toa_reference_s=self.toa_reference_s[idx],
             altitude_m=self.altitude_m[idx],
             initial_guess_enu_m=self.initial_guess_enu_m[idx],
+            used=None if self.used is None else self.used[idx, :m],
         )
 
     @classmethod
@@ -231,6 +250,10 @@ class ProblemBatch:
         def joined(name):
             return np.concatenate([getattr(p, name) for p in parts])
 
+        def widened_used():
+            masks = [p.valid for p in parts]
+            return np.concatenate([np.pad(v, ((0, 0), (0, m - v.shape[1]))) for v in masks])
+
         return cls(
             station_ids=tuple(ids for p in parts for ids in p.station_ids),
             origin=joined("origin"),
@@ -248,6 +271,7 @@ class ProblemBatch:
             toa_reference_s=joined("toa_reference_s"),
             altitude_m=joined("altitude_m"),
             initial_guess_enu_m=joined("initial_guess_enu_m"),
+            used=None if all(p.used is None for p in parts) else widened_used(),
         )
 
     @classmethod

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, StrictBool, Tag, model_validator
 
 from core.estimators import REGISTRY
-from core.estimators.result import WARNING_CODES
+from core.estimators.result import COVARIANCE_SOURCES, SCALED_COVARIANCE_SOURCES, WARNING_CODES
 
 
 class Strict(BaseModel):
@@ -95,11 +95,20 @@ class Constraints(Strict):
     altitude_m: float | None = Field(None, description="known target altitude (surface emitter)")
 
 
+Variant = Literal[tuple(sorted({v for spec in REGISTRY.values() for v in spec.variants}))]  # type: ignore[valid-type]
+
+
 class Options(Strict):
     max_iterations: int = Field(50, ge=1, le=1000)
     tolerance_m: float = Field(1e-3, gt=0.0)
     initial_guess: Position | None = None
-    variant: str | None = Field(None, max_length=32, description="method variant, e.g. ctls: projected | newton")
+    variant: Variant | None = Field(None, description="method variant: ctls newton (default) | projected")
+    outliers: Literal["report", "exclude"] = Field(
+        "report", description="exclude: fault detection and exclusion (chi-square test, then the measurement with "
+                              "the largest studentized residual, repeated while the test fails and dof remain); "
+                              "report: only warn")
+    absolute_sigma: StrictBool = Field(
+        True, description="false: scale the covariance by the fit's sigma_scale^2 (as scipy's curve_fit)")
 
 
 Format = Literal["geojson", "cot"]
@@ -145,6 +154,9 @@ class Residual(BaseModel):
     component: Literal["azimuth", "elevation", "range", "toa"]
     residual: float = Field(description="measured minus fitted: deg, m or s")
     normalized: float = Field(description="residual / sigma")
+    used: bool = Field(True, description="false: left out of the fit and its verdicts (the method does not use "
+                                         "this kind, or it was excluded)")
+    excluded: bool = Field(False, description="removed by outlier exclusion (options.outliers exclude)")
 
 
 class Fit(BaseModel):
@@ -174,7 +186,9 @@ class FixResponse(BaseModel):
     position_ecef_m: list[float] | None = None
     covariance_enu_m2: Matrix3
     covariance_ecef_m2: Matrix3 | None = None
-    covariance_source: Literal["information", "propagated", "crlb"]
+    covariance_source: Literal[COVARIANCE_SOURCES + SCALED_COVARIANCE_SOURCES] = Field(  # type: ignore[valid-type]
+        description="information: inverse Fisher information at the fix; propagated: first-order through the "
+                    "closed form; crlb: the bound; _scaled: times sigma_scale^2 (options.absolute_sigma false)")
     crlb_enu_m2: Matrix3
     error: ErrorSummary
     residuals: list[Residual]

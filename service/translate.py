@@ -74,7 +74,8 @@ def to_problem(request: schemas.FixRequest) -> Problem:
 
 def to_options(request: schemas.FixRequest) -> SolveOptions:
     o = request.options
-    return SolveOptions(max_iterations=o.max_iterations, tolerance_m=o.tolerance_m, variant=o.variant)
+    return SolveOptions(max_iterations=o.max_iterations, tolerance_m=o.tolerance_m, variant=o.variant,
+                        outliers=o.outliers, absolute_sigma=o.absolute_sigma)
 
 
 def crlb_problem(request: schemas.CrlbRequest) -> tuple[Problem, np.ndarray]:
@@ -169,7 +170,8 @@ READ_FIELDS = {
                                            "sigma_elevation_deg")),
     schemas.RangeMeasurement: frozenset(("type", "station_id", "range_m", "sigma_m")),
     schemas.ToaMeasurement: frozenset(("type", "station_id", "toa_s", "sigma_s")),
-    schemas.Options: frozenset(("max_iterations", "tolerance_m", "initial_guess", "variant")),
+    schemas.Options: frozenset(("max_iterations", "tolerance_m", "initial_guess", "variant", "outliers",
+                                "absolute_sigma")),
     schemas.Constraints: frozenset(("altitude_m",)),
 }
 _GEODETIC_KEYS = READ_FIELDS[schemas.GeodeticPosition]
@@ -184,7 +186,10 @@ _CONSTRAINT_KEYS = READ_FIELDS[schemas.Constraints]
 _FORMATS = frozenset(typing.get_args(schemas.Format))
 _METHODS = frozenset(typing.get_args(schemas.Method))
 _DEFAULT_OPTIONS = schemas.Options()
-_DEFAULT_SOLVE = SolveOptions(_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m, _DEFAULT_OPTIONS.variant)
+_VARIANTS = frozenset(typing.get_args(schemas.Variant))
+_OUTLIERS = frozenset(typing.get_args(schemas.Options.model_fields["outliers"].annotation))
+_DEFAULT_SOLVE = SolveOptions(_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m, _DEFAULT_OPTIONS.variant,
+                              _DEFAULT_OPTIONS.outliers, _DEFAULT_OPTIONS.absolute_sigma)
 #: A request with only these fields needs no per-field settings beyond frame and method.
 _PLAIN_KEYS = frozenset(("frame", "method", "stations", "measurements"))
 _NAN3 = (math.nan, math.nan, math.nan)
@@ -241,8 +246,6 @@ _ITERATIONS = _bounds(schemas.Options, "max_iterations")
 _ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
                        if getattr(rule, "max_length", None) is not None)
-_VARIANT_MAX = next(rule.max_length for rule in schemas.Options.model_fields["variant"].metadata
-                    if getattr(rule, "max_length", None) is not None)
 _ABSENT = object()
 
 
@@ -280,10 +283,14 @@ def _problem_settings(body: dict) -> tuple:
         if type(iterations) is not int or not _ITERATIONS[0] <= iterations <= _ITERATIONS[1]:
             raise _Reject
         variant = options.get("variant")
-        if variant is not None and (type(variant) is not str or len(variant) > _VARIANT_MAX):
+        if variant is not None and variant not in _VARIANTS:
+            raise _Reject
+        outliers = options.get("outliers", _DEFAULT_OPTIONS.outliers)
+        absolute_sigma = options.get("absolute_sigma", _DEFAULT_OPTIONS.absolute_sigma)
+        if outliers not in _OUTLIERS or type(absolute_sigma) is not bool:
             raise _Reject
         solve = SolveOptions(iterations, _number(options.get("tolerance_m", _DEFAULT_OPTIONS.tolerance_m), _TOLERANCE),
-                             variant)
+                             variant, outliers, absolute_sigma)
         raw = options.get("initial_guess")
         if raw is not None:
             guess_geodetic = type(raw) is dict and ("lat_deg" in raw or "lon_deg" in raw)
@@ -620,6 +627,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     is_angle = (batch.kinds == _AZ) | (batch.kinds == _EL)
     residual_l = np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals).tolist()
     normalized_l = fixes.normalized_residuals.tolist()
+    used_l, excluded_l = fixes.used.tolist(), fixes.excluded.tolist()
     component_l = [[_COMPONENT_NAMES[k] for k in row] for row in batch.kinds.tolist()]
     station_l = batch.station_index.tolist()
     source_l = batch.source_index.tolist()
@@ -642,7 +650,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         p = position_l[b]
         ids = batch.station_ids[b]
         stations, components, sources = station_l[b], component_l[b], source_l[b]
-        res, nres = residual_l[b], normalized_l[b]
+        res, nres, used, excluded = residual_l[b], normalized_l[b], used_l[b], excluded_l[b]
         body = {
             "method": method,
             "position_local": {"east_m": p[0], "north_m": p[1], "up_m": p[2]},
@@ -655,7 +663,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
             },
             "residuals": [
                 {"station_id": ids[stations[m]], "measurement_index": sources[m], "component": components[m],
-                 "residual": res[m], "normalized": nres[m]}
+                 "residual": res[m], "normalized": nres[m], "used": used[m], "excluded": excluded[m]}
                 for m in range(counts[b])
             ],
             "fit": {"chi2": chi2[b], "dof": dof[b], "p_value": p_value[b], "sigma_scale": sigma_scale[b]},

@@ -92,8 +92,54 @@ def solve_many(batch: ProblemBatch, methods, options) -> list[tuple[np.ndarray, 
         for group in size_groups(batch.n_measurements[rows], batch.n_stations[rows]):
             chosen = rows[group]
             part = batch if chosen.size == size else batch.take(chosen)
-            out.append((chosen, spec.solve_batch(part, opts)))
+            fixes = spec.solve_batch(part, opts)
+            if opts.outliers == "exclude":
+                fixes = exclude_outliers(spec, part, opts, fixes)
+            out.append((chosen, fixes if opts.absolute_sigma else fixes.scaled_by_fit()))
     return out
+
+
+#: Chi-square p-value below which a fit fails the consistency test and its worst measurement is excluded.
+EXCLUSION_P = 0.01
+#: At most this many measurements are excluded from one problem.
+MAX_EXCLUSIONS = 8
+
+
+def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: FixBatch) -> FixBatch:
+    """Fault detection and exclusion (RAIM FDE) over a batch.
+
+    While a fix fails the chi-square test (``p < EXCLUSION_P``) and one more
+    exclusion leaves it a degree of freedom, the request measurement with
+    the largest studentized residual (a bearing's azimuth and elevation
+    together) is excluded and the problem solved again. A refit that fails
+    keeps the fix before it and ends that problem's exclusions. The
+    covariance and CRLB are those of the measurements used; every excluded
+    one is named in a warning.
+    """
+    present = batch.present
+    used = batch.valid.copy()
+    excluded = np.zeros_like(used)
+    settled = np.zeros(batch.size, dtype=bool)
+    every = np.arange(batch.size)
+    for _ in range(MAX_EXCLUSIONS):
+        worst = np.argmax(np.where(fixes.used, np.abs(fixes.studentized_residuals), -1.0), axis=-1)
+        drop = used & (batch.source_index == batch.source_index[every, worst][:, None])
+        left = fixes.dof - np.count_nonzero(drop & np.isfinite(batch.sigmas), axis=-1)
+        failing = ~settled & fixes.ok & (np.nan_to_num(fixes.p_value, nan=1.0) < EXCLUSION_P) & (left > 0)
+        rows = np.flatnonzero(failing)
+        if rows.size == 0:
+            break
+        sub = batch.take(rows)
+        width = sub.kinds.shape[1]
+        refit = spec.solve_batch(sub.with_used((used & ~drop)[rows, :width]), options,
+                                 excluded=(excluded | drop)[rows, :width])
+        accepted = refit.ok
+        settled[rows[~accepted]] = True
+        keep = rows[accepted]
+        used[keep] &= ~drop[keep]
+        excluded[keep] |= drop[keep]
+        fixes = fixes.replace_rows(keep, refit.take(np.flatnonzero(accepted)))
+    return fixes
 
 
 def solve_batch(problems, method=AUTO, options=None) -> list[Fix | LocalizationError]:
@@ -138,5 +184,5 @@ def _check_variant(spec, options: SolveOptions) -> None:
     raise InvalidInput(f"{spec.name} has no variants; got {variant!r}", ("variant",))
 
 
-__all__ = ["AUTO", "REGISTRY", "Fix", "FixBatch", "FixWarning", "SolveOptions", "resolve_methods", "solve",
+__all__ = ["AUTO", "REGISTRY", "Fix", "FixBatch", "FixWarning", "SolveOptions", "exclude_outliers", "resolve_methods", "solve",
            "solve_batch", "solve_many"]

@@ -18,7 +18,13 @@ from core.batch import ProblemBatch
 from core.errors import InvalidInput, LocalizationError
 from core.estimators.finish import finish
 from core.estimators.result import Estimates, FixBatch, FixWarning
+from core.measurements import Kind
 from core.problem import Problem
+
+#: Every measurement kind.
+ALL_KINDS = frozenset(Kind)
+#: The kinds of a bearing.
+ANGLES = frozenset((Kind.AZIMUTH, Kind.ELEVATION))
 
 
 @dataclass(frozen=True)
@@ -32,11 +38,18 @@ class SolveOptions:
         Iterations stop when the position step is below this.
     variant : str or None
         Method-specific variant (e.g. ``"projected"`` or ``"newton"`` for CTLS).
+    outliers : {"report", "exclude"}
+        ``"exclude"``: fault detection and exclusion as GNSS receivers do it
+        (:func:`core.estimators.exclude_outliers`); ``"report"`` only warns.
+    absolute_sigma : bool
+        False scales each covariance by the fit's ``sigma_scale^2`` (as scipy's ``curve_fit``).
     """
 
     max_iterations: int = 50
     tolerance_m: float = 1e-3
     variant: str | None = None
+    outliers: str = "report"
+    absolute_sigma: bool = True
 
 
 Estimator = Callable[[ProblemBatch, SolveOptions], Estimates]
@@ -57,6 +70,8 @@ class EstimatorSpec:
         False when the method can estimate missing bearing sigmas.
     variants : tuple of str
         Accepted ``options.variant`` values (the first is the default); empty when none.
+    uses : frozenset of Kind
+        The measurement kinds the method uses; the others are reported, not judged.
     """
 
     name: str
@@ -64,22 +79,31 @@ class EstimatorSpec:
     summary: str
     needs_sigmas: bool = True
     variants: tuple[str, ...] = ()
+    uses: frozenset = ALL_KINDS
 
-    def solve_batch(self, batch: ProblemBatch, options: SolveOptions) -> FixBatch:
-        """Fixes of every problem of ``batch`` (a problem that cannot be solved carries its error)."""
-        return finish(batch, self.name, self.estimate(batch, options))
+    def solve_batch(self, batch: ProblemBatch, options: SolveOptions, excluded=None) -> FixBatch:
+        """Fixes of every problem of ``batch`` (a problem that cannot be solved carries its error).
+
+        Measurements of kinds the method does not use are set aside first; ``excluded`` ``(B, M)``
+        names those outlier exclusion removed (already out of ``batch.valid``).
+        """
+        if self.uses != ALL_KINDS:
+            batch = batch.with_used(batch.valid & np.isin(batch.kinds, list(self.uses)))
+        return finish(batch, self.name, self.estimate(batch, options), excluded=excluded)
 
 
 REGISTRY: dict[str, EstimatorSpec] = {}
 
 
-def register(name: str, summary: str, needs_sigmas: bool = True, variants: tuple[str, ...] = ()):
+def register(name: str, summary: str, needs_sigmas: bool = True, variants: tuple[str, ...] = (),
+             uses: frozenset = None):
     """Decorator adding a batch estimator to :data:`REGISTRY` under its API name."""
 
     def add(estimate: Estimator) -> Estimator:
         if name in REGISTRY:
             raise RuntimeError(f"estimator {name!r} registered twice")
-        REGISTRY[name] = EstimatorSpec(name, estimate, summary, needs_sigmas, variants)
+        REGISTRY[name] = EstimatorSpec(name, estimate, summary, needs_sigmas, variants,
+                                       ALL_KINDS if uses is None else frozenset(uses))
         return estimate
 
     return add

@@ -49,7 +49,8 @@ def optimal_bias_m(weights, values_m, ranges_m, is_toa):
     return np.where(total > 0, np.einsum("bm,bm->b", w, values_m - ranges_m) / safe, 0.0)
 
 
-def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: MeasurementModel | None = None) -> FixBatch:
+def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: MeasurementModel | None = None,
+           excluded=None) -> FixBatch:
     """Everything a fix reports, for every problem of a batch.
 
     Parameters
@@ -60,6 +61,8 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     estimates : Estimates
     model : MeasurementModel, optional
         The batch's measurement model, when the estimator already built it.
+    excluded : ndarray of bool, shape (B, M), optional
+        Measurements outlier exclusion set aside (not in ``batch.valid``); each is named in a warning.
 
     Returns
     -------
@@ -78,8 +81,8 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     stations, rotations = batch.measurement_stations()
     if model is None:
         model = MeasurementModel(stations, rotations, batch.kinds)
-    valid = batch.valid
-    sigmas = batch.sigmas if estimates.sigmas is None else np.where(valid, estimates.sigmas, np.nan)
+    present, valid = batch.present, batch.valid
+    sigmas = batch.sigmas if estimates.sigmas is None else np.where(present, estimates.sigmas, np.nan)
     weights = batch.weights(sigmas)
     values = batch.model_values()
     is_toa = valid & (batch.kinds == Kind.TOA)
@@ -89,10 +92,11 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
         bias = optimal_bias_m(weights, values, ranges, is_toa)
     predicted, jacobian = model.predict(position, bias)
     unit = batch.unit_scale()
-    raw = np.where(valid, model.residuals(values, predicted) / unit, 0.0)
-    known = valid & np.isfinite(sigmas)
-    normalized = np.where(known, raw / np.where(known, sigmas, 1.0), 0.0)
-    chi2 = np.sum(normalized**2, axis=-1)
+    raw = np.where(present, model.residuals(values, predicted) / unit, 0.0)
+    stated = present & np.isfinite(sigmas)
+    normalized = np.where(stated, raw / np.where(stated, sigmas, 1.0), 0.0)
+    known = valid & stated
+    chi2 = np.sum(np.where(known, normalized, 0.0) ** 2, axis=-1)
     n_parameters = np.where(batch.constrained, 2, 3) + batch.has_toa
     dof = np.count_nonzero(known, axis=-1) - n_parameters
     positive = dof > 0
@@ -115,7 +119,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
 
     leverage = weights * np.einsum("bim,bij,bjm->bm", local, info.covariance_params, local)
-    studentized = normalized / np.sqrt(np.clip(1.0 - leverage, 1e-12, None))
+    studentized = np.where(known, normalized, 0.0) / np.sqrt(np.clip(1.0 - leverage, 1e-12, None))
     worst = np.argmax(np.abs(studentized), axis=-1)
     worst_value = studentized[np.arange(size), worst]
     outlier = positive & (np.abs(worst_value) > OUTLIER_SIGMAS)
@@ -130,8 +134,11 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
         inefficient = (bound_trace > 0) & (own_trace > INEFFICIENCY_RATIO * bound_trace)
     behind, zenith, spread, collinear = _geometry(batch, position, stations, rotations)
 
+    excluded = np.zeros_like(present) if excluded is None else excluded & present
+    unused = present & ~valid & ~excluded
     own = estimates.warnings or [()] * size
     flagged = ~converged | ill | inefficient | outlier | mismatch | collinear | np.any(behind | zenith, axis=-1)
+    flagged |= np.any(unused | excluded, axis=-1)
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
     for b in np.flatnonzero(flagged & ~failed):
         found = list(own[b])
@@ -169,6 +176,15 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
                 "sigma_mismatch",
                 f"chi2 = {chi2[b]:.1f} on {dof[b]} dof (p = {p_value[b]:.1e}): residuals are "
                 f"{sigma_scale[b]:.2f} x what the stated sigmas allow"))
+        for source in sorted(set(batch.source_index[b, excluded[b]].tolist())):
+            found.append(FixWarning("measurement_excluded",
+                                    f"measurement {source} failed the consistency test and was excluded"))
+        if np.any(unused[b]):
+            kinds = sorted({Kind(k).name.lower() for k in batch.kinds[b, unused[b]].tolist()})
+            found.append(FixWarning(
+                "measurements_unused",
+                f"{method} does not use the {', '.join(kinds)} measurements "
+                f"({np.count_nonzero(unused[b])} left out of the fit and its verdicts); ml uses every kind"))
         warnings[b] = tuple(found)
 
     coarse = estimates.coarse_position_enu_m
@@ -182,6 +198,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
         crlb_enu_m2=crlb,
         residuals=raw,
         normalized_residuals=normalized,
+        studentized_residuals=studentized,
         chi2=chi2,
         dof=dof,
         p_value=p_value,
@@ -192,6 +209,8 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
         coarse_position_enu_m=np.full((size, 3), np.nan) if coarse is None else np.asarray(coarse, dtype=float),
         estimated_bearing_errors_rad=estimates.estimated_bearing_errors_rad or [None] * size,
         details=estimates.details or [{} for _ in range(size)],
+        used=valid,
+        excluded=excluded,
     )
 
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.errors import TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import Estimate, SolveOptions, per_problem, register
+from core.estimators.base import ANGLES, Estimate, SolveOptions, per_problem, register
 from core.problem import LinesOfSight, Problem
 
 #: Relative singular value below which the stacked rows are rank-deficient.
@@ -172,10 +172,11 @@ def _weighted_eove(problem: Problem, options: SolveOptions) -> Estimate:
     return Estimate(*solve_orthogonal(problem, True, True, True, "weighted_eove"))
 
 
-register("ove", "orthogonal vector estimator: elevation-plane normals only, needs >= 3 lines of sight")(
+register("ove", "orthogonal vector estimator: elevation-plane normals only, needs >= 3 lines of sight", uses=ANGLES)(
     per_problem(_ove, "propagated"))
-register("eove", "extended orthogonal vector estimator: both normals per line of sight (paper 000)")(
+register("eove", "extended orthogonal vector estimator: both normals per line of sight (paper 000)", uses=ANGLES)(
     per_problem(_eove, "propagated"))
-register("weighted_eove", "EOVE with rows weighted by their first-order noise: the small-noise BLUE")(
+register("weighted_eove", "EOVE with rows weighted by their first-order noise: the small-noise BLUE",
+         uses=ANGLES)(
     per_problem(_weighted_eove, "propagated"))
 

@@ -9,7 +9,7 @@ row ``b`` of a batch, squeezed (:meth:`FixBatch.fix`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -30,11 +30,15 @@ WARNING_CODES = {
     "azimuth_undefined": "the target is nearly at a station's zenith, where azimuth is undefined",
     "coarse_polar_fallback": "stations at one height: the coarse fix used per-station polar points",
     "start_fallback": "the closed-form start failed; a fallback start was used",
+    "measurement_excluded": "outlier exclusion removed this measurement from the fit (named in the message)",
+    "measurements_unused": "the method does not use some kinds of the given measurements (named in the message)",
 }
 
 #: Covariance sources: the inverse information at the estimate (ML-type methods), first-order
 #: propagation through a closed form, or the CRLB at the estimate where the method has none of its own.
 COVARIANCE_SOURCES = ("information", "propagated", "crlb")
+#: Each source with ``_scaled``: multiplied by the fit's ``sigma_scale^2`` (``absolute_sigma`` false).
+SCALED_COVARIANCE_SOURCES = tuple(f"{source}_scaled" for source in COVARIANCE_SOURCES)
 
 
 @dataclass(frozen=True)
@@ -118,6 +122,10 @@ class Fix:
     estimated_bearing_errors_rad : ndarray, shape (K,), or None
     details : dict
         Method-specific facts (e.g. which start or coarse stage ran).
+    used : ndarray of bool, shape (M,)
+        The measurements that entered the fit (the others are reported, not judged).
+    excluded : ndarray of bool, shape (M,)
+        Those outlier exclusion removed.
     """
 
     method: str
@@ -137,6 +145,8 @@ class Fix:
     coarse_position_enu_m: np.ndarray | None = None
     estimated_bearing_errors_rad: np.ndarray | None = None
     details: dict = field(default_factory=dict)
+    used: np.ndarray | None = None
+    excluded: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -157,6 +167,8 @@ class FixBatch:
     covariance_source : str
     residuals, normalized_residuals : ndarray, shape (B, M)
         Problem units; zero on padding.
+    studentized_residuals : ndarray, shape (B, M)
+        Normalized residuals over their own standard deviation (leverage-corrected); zero where unused.
     chi2 : ndarray, shape (B,)
     dof : ndarray of int, shape (B,)
     p_value, sigma_scale : ndarray, shape (B,)
@@ -168,6 +180,8 @@ class FixBatch:
         NaN rows where the method has no coarse stage.
     estimated_bearing_errors_rad : list of ndarray or None, length B
     details : list of dict, length B
+    used, excluded : ndarray of bool, shape (B, M)
+        As in :class:`Fix`.
     """
 
     method: str
@@ -179,6 +193,7 @@ class FixBatch:
     crlb_enu_m2: np.ndarray
     residuals: np.ndarray
     normalized_residuals: np.ndarray
+    studentized_residuals: np.ndarray
     chi2: np.ndarray
     dof: np.ndarray
     p_value: np.ndarray
@@ -189,6 +204,8 @@ class FixBatch:
     coarse_position_enu_m: np.ndarray
     estimated_bearing_errors_rad: list
     details: list
+    used: np.ndarray
+    excluded: np.ndarray
 
     @property
     def size(self) -> int:
@@ -226,6 +243,8 @@ class FixBatch:
             coarse_position_enu_m=None if np.isnan(coarse[0]) else coarse.copy(),
             estimated_bearing_errors_rad=self.estimated_bearing_errors_rad[b],
             details=dict(self.details[b]),
+            used=self.used[b, :m].copy(),
+            excluded=self.excluded[b, :m].copy(),
         )
 
     def fixes(self) -> list[Fix | LocalizationError]:
@@ -241,7 +260,7 @@ class FixBatch:
 
         def joined(name):
             arrays = [getattr(p, name) for p in parts]
-            if name in ("residuals", "normalized_residuals"):
+            if name in _MEASUREMENT_FIELDS:
                 arrays = [np.pad(a, ((0, 0), (0, width - a.shape[1]))) for a in arrays]
             return np.concatenate(arrays)
 
@@ -249,10 +268,55 @@ class FixBatch:
         for part in parts:
             errors.update({offset + b: e for b, e in part.errors.items()})
             offset += part.size
-        arrays = {name: joined(name) for name in (
-            "position_enu_m", "covariance_enu_m2", "crlb_enu_m2", "residuals", "normalized_residuals", "chi2",
-            "dof", "p_value", "sigma_scale", "converged", "iterations", "coarse_position_enu_m")}
-        lists = {name: [x for p in parts for x in getattr(p, name)]
-                 for name in ("warnings", "estimated_bearing_errors_rad", "details")}
+        arrays = {name: joined(name) for name in _ARRAY_FIELDS}
+        lists = {name: [x for p in parts for x in getattr(p, name)] for name in _LIST_FIELDS}
         return cls(method=parts[0].method, problems=problems, errors=errors,
                    covariance_source=parts[0].covariance_source, **arrays, **lists)
+
+    def take(self, rows) -> "FixBatch":
+        """The fixes of ``rows`` as a batch of their own."""
+        rows = np.asarray(rows, dtype=np.intp)
+        if rows.size == self.size and np.all(rows == np.arange(self.size)):
+            return self
+        where = {int(b): j for j, b in enumerate(rows)}
+        problems = self.problems.take(rows)
+        width = problems.kinds.shape[1]
+        return replace(
+            self, problems=problems,
+            errors={where[b]: e for b, e in self.errors.items() if b in where},
+            **{name: getattr(self, name)[rows, :width] if name in _MEASUREMENT_FIELDS else getattr(self, name)[rows]
+               for name in _ARRAY_FIELDS},
+            **{name: [getattr(self, name)[b] for b in rows.tolist()] for name in _LIST_FIELDS})
+
+    def replace_rows(self, rows, other: "FixBatch") -> "FixBatch":
+        """A copy with rows ``rows`` taken from ``other`` (the fixes of those rows' problems, in order)."""
+        rows = np.asarray(rows, dtype=np.intp)
+        arrays = {}
+        for name in _ARRAY_FIELDS:
+            mine, theirs = getattr(self, name).copy(), getattr(other, name)
+            if name in _MEASUREMENT_FIELDS:
+                mine[rows] = 0
+                mine[rows, :theirs.shape[1]] = theirs
+            else:
+                mine[rows] = theirs
+            arrays[name] = mine
+        lists = {name: list(getattr(self, name)) for name in _LIST_FIELDS}
+        for j, b in enumerate(rows.tolist()):
+            for name in _LIST_FIELDS:
+                lists[name][b] = getattr(other, name)[j]
+        errors = {b: e for b, e in self.errors.items() if b not in set(rows.tolist())}
+        errors.update({int(rows[j]): e for j, e in other.errors.items()})
+        return replace(self, errors=errors, **arrays, **lists)
+
+    def scaled_by_fit(self) -> "FixBatch":
+        """The covariances scaled by ``sigma_scale^2`` where the fit has degrees of freedom
+        (scipy's ``curve_fit(absolute_sigma=False)``); ``covariance_source`` gains ``_scaled``."""
+        scale = np.where(self.dof > 0, np.nan_to_num(self.sigma_scale, nan=1.0) ** 2, 1.0)
+        return replace(self, covariance_enu_m2=self.covariance_enu_m2 * scale[:, None, None],
+                       covariance_source=f"{self.covariance_source}_scaled")
+
+
+_MEASUREMENT_FIELDS = ("residuals", "normalized_residuals", "studentized_residuals", "used", "excluded")
+_ARRAY_FIELDS = ("position_enu_m", "covariance_enu_m2", "crlb_enu_m2", "chi2", "dof", "p_value", "sigma_scale",
+                 "converged", "iterations", "coarse_position_enu_m", *_MEASUREMENT_FIELDS)
+_LIST_FIELDS = ("warnings", "estimated_bearing_errors_rad", "details")

@@ -1,0 +1,116 @@
+"""Outlier exclusion (RAIM fault detection and exclusion), unused measurements and ``absolute_sigma``.
+
+Six stations around a target 3 km up, 0.5 deg bearings; a gross error is one azimuth 20 deg off
+(a reflection or a wrong lobe). The bounds are the CRLB of the measurements that should be used.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import chi2 as chi2_distribution
+
+from core.crlb import information_at
+from core.estimators import SolveOptions, solve_batch
+from core.problem import Bearing, LocalPoint, Range, build_problem
+from core.simulation.measurements import measure
+
+SIGMA = np.deg2rad(0.5)
+TRIALS = 400
+TARGET = np.array([4e3, 9e3, 3e3])
+ANGLES = np.deg2rad(np.arange(6) * 60.0 + 10.0)
+STATIONS = [(f"s{k}", LocalPoint(30e3 * np.cos(a), 30e3 * np.sin(a), 0.0)) for k, a in enumerate(ANGLES)]
+CULPRIT = 2  # request index of the corrupted bearing
+
+
+def _problem(with_ranges=False):
+    bearings = [Bearing(sid, 0.0, 0.0, SIGMA, SIGMA) for sid, _ in STATIONS]
+    ranges = [Range(sid, 0.0, 200.0) for sid, _ in STATIONS[:2]] if with_ranges else []
+    return build_problem(STATIONS, bearings + ranges)
+
+
+def _draws(problem, seed, outlier=True):
+    rng = np.random.default_rng(seed)
+    draws = []
+    for _ in range(TRIALS):
+        noisy = measure(problem, TARGET, rng)
+        if outlier:
+            values = noisy.values.copy()
+            values[2 * CULPRIT] += np.deg2rad(20.0)  # the azimuth of bearing CULPRIT
+            noisy = noisy.with_values(values)
+        draws.append(noisy)
+    return draws
+
+
+def _rmse(fixes):
+    errors = np.array([f.position_enu_m - TARGET for f in fixes])
+    return float(np.sqrt(np.mean(np.sum(errors**2, axis=-1))))
+
+
+def _bound_without_culprit(problem):
+    sigmas = problem.sigmas.copy()
+    sigmas[problem.source_index == CULPRIT] = np.inf
+    return float(np.sqrt(np.trace(information_at(problem, TARGET, sigmas=sigmas).covariance_enu_m2[0])))
+
+
+def test_one_gross_bearing_is_excluded_and_the_fix_reaches_the_bound_without_it():
+    problem = _problem()
+    fixes = solve_batch(_draws(problem, 7), "ml", SolveOptions(outliers="exclude"))
+    assert all(not isinstance(f, Exception) for f in fixes)
+    culprit_alone = [np.array_equal(np.flatnonzero(f.excluded), np.flatnonzero(problem.source_index == CULPRIT))
+                     for f in fixes]
+    assert np.mean(culprit_alone) >= 0.95
+    assert _rmse(fixes) <= 1.2 * _bound_without_culprit(problem)
+    named = [w for w in fixes[0].warnings if w.code == "measurement_excluded"]
+    assert named and f"measurement {CULPRIT}" in named[0].message
+
+
+def test_report_mode_keeps_the_outlier_and_is_far_from_the_bound():
+    problem = _problem()
+    fixes = solve_batch(_draws(problem, 7)[:100], "ml")
+    assert _rmse(fixes) > 3 * _bound_without_culprit(problem)
+    assert all(not f.excluded.any() for f in fixes)
+
+
+def test_clean_data_are_rarely_touched_by_exclusion():
+    problem = _problem()
+    draws = _draws(problem, 11, outlier=False)
+    report = solve_batch(draws, "ml")
+    exclude = solve_batch(draws, "ml", SolveOptions(outliers="exclude"))
+    touched = np.mean([f.excluded.any() for f in exclude])
+    assert touched <= 0.05
+    assert _rmse(exclude) == pytest.approx(_rmse(report), rel=0.05)
+
+
+def test_relative_sigma_makes_the_covariance_honest_when_the_noise_is_three_times_larger():
+    """With the scale estimated from ``dof`` residuals the NEES is ``3 F(3, dof)``, mean ``3 dof / (dof - 2)``:
+    eight looks per station (93 dof) bring that within the chi-square interval of known covariances."""
+    looks = [Bearing(sid, 0.0, 0.0, SIGMA, SIGMA) for sid, _ in STATIONS for _ in range(8)]
+    problem = build_problem(STATIONS, looks)
+    rng = np.random.default_rng(5)
+    truth_sigmas = problem.with_sigmas(3.0 * problem.sigmas)
+    draws = [measure(truth_sigmas, TARGET, rng).with_sigmas(problem.sigmas) for _ in range(TRIALS)]
+    absolute = solve_batch(draws, "ml")
+    relative = solve_batch(draws, "ml", SolveOptions(absolute_sigma=False))
+
+    def mean_nees(fixes):
+        return float(np.mean([(f.position_enu_m - TARGET) @ np.linalg.solve(f.covariance_enu_m2, f.position_enu_m - TARGET)
+                              for f in fixes]))
+
+    low, high = chi2_distribution.ppf([0.005, 0.995], 3 * TRIALS) / TRIALS
+    assert low <= mean_nees(relative) <= high
+    assert mean_nees(absolute) > 5.0
+    assert relative[0].covariance_source == "information_scaled"
+
+
+def test_measurements_a_method_does_not_use_are_left_out_of_its_verdicts():
+    problem = _problem(with_ranges=True)
+    draws = _draws(problem, 3, outlier=False)[:200]
+    for fix in solve_batch(draws, "eove"):
+        ranges = problem.kinds == 2
+        assert not fix.used[ranges].any() and fix.used[~ranges].all()
+        assert fix.dof == 12 - 3
+        assert "measurements_unused" in {w.code for w in fix.warnings}
+    flagged = np.mean([any(w.code in ("outlier_suspected", "sigma_mismatch") for w in f.warnings)
+                       for f in solve_batch(draws, "eove")])
+    assert flagged <= 0.05
