@@ -20,11 +20,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.batch import TOA, ProblemBatch
-from core.crlb import normal_matrix, parameterisation
+from core.crlb import batch_information, normal_matrix, parameterisation
 from core.errors import LocalizationError
 from core.estimators.base import SolveOptions, register
 from core.estimators.finish import optimal_bias_m
 from core.estimators.result import Estimates
+from core.estimators.search import candidates
 from core.estimators.start import initial_positions
 from core.measurements import MeasurementModel
 from core.problem import onto_altitude
@@ -51,12 +52,15 @@ class Solution:
     bias_m : ndarray, shape (B,)
     iterations : ndarray of int, shape (B,)
     converged : ndarray of bool, shape (B,)
+    cost : ndarray, shape (B,)
+        Weighted sum of squared residuals at the end.
     """
 
     position_enu_m: np.ndarray
     bias_m: np.ndarray
     iterations: np.ndarray
     converged: np.ndarray
+    cost: np.ndarray
 
 
 class _Problems:
@@ -124,6 +128,7 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     size = x_all.shape[0]
     converged_all = np.zeros(size, dtype=bool)
     iterations_all = np.zeros(size, dtype=int)
+    cost_all = np.zeros(size)
 
     work = np.arange(size)
     sub = problems
@@ -135,7 +140,7 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     r, cost, jacobian = sub.evaluate(x, bias)
 
     def store():
-        x_all[work], bias_all[work] = x, bias
+        x_all[work], bias_all[work], cost_all[work] = x, bias, cost
         converged_all[work], iterations_all[work] = converged, iterations
 
     eye = _EYE4
@@ -176,7 +181,7 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
         converged |= done
         active &= ~(done | stuck)
     store()
-    return Solution(x_all, bias_all, iterations_all, converged_all)
+    return Solution(x_all, bias_all, iterations_all, converged_all, cost_all)
 
 
 def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, start_names, failures) -> Estimates:
@@ -217,7 +222,42 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
     )
 
 
+def searched_starts(batch: ProblemBatch, options: SolveOptions) -> np.ndarray:
+    """Starts ``(B, 3)`` where no closed form applies: ML from every candidate of
+    :func:`core.estimators.search.candidates`, the lowest final cost where the information is regular kept
+    (an iterate that ran off to where the measurements say nothing may fit better, and is no fix).
+
+    NaN rows where no candidate gave a finite solution.
+    """
+    points = candidates(batch)
+    size, count = points.shape[:2]
+    tried = np.repeat(np.arange(size), count)
+    flat = points.reshape(-1, 3)
+    finite = np.all(np.isfinite(flat), axis=-1)
+    out = np.full((size, 3), np.nan)
+    if not np.any(finite):
+        return out
+    tried, flat = tried[finite], flat[finite]
+    expanded = batch.take(tried)
+    solution = levenberg_marquardt(expanded, flat, options.max_iterations, options.tolerance_m)
+    finite = np.all(np.isfinite(solution.position_enu_m), axis=-1)
+    observable = batch_information(expanded, np.where(finite[:, None], solution.position_enu_m, 0.0)).observable
+    cost = np.where(finite & observable, solution.cost, np.inf)
+    order = np.lexsort((cost, tried))
+    first = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
+    good = np.isfinite(cost[first])
+    out[tried[first][good]] = solution.position_enu_m[first][good]
+    return out
+
+
 @register("ml", "maximum likelihood (Levenberg-Marquardt) over any mix of measurements; the reference")
 def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     starts, names, failures = initial_positions(batch)
+    if failures:
+        rows = np.array(sorted(failures))
+        found = searched_starts(batch.take(rows), options)
+        ok = np.all(np.isfinite(found), axis=-1)
+        for b, position in zip(rows[ok].tolist(), found[ok]):
+            starts[b], names[b] = position, "search"
+            del failures[b]
     return estimate_from(batch, starts, options, names, failures)

@@ -1,0 +1,85 @@
+"""Candidate starting points from the geometry, where no closed form applies.
+
+Hybrid mixes (one bearing with ranges or TOAs, too few TOAs for Bancroft,
+ranges from two stations with a known altitude) have no closed form here,
+yet the information matrix may well call them observable. ML runs from
+every candidate and keeps the lowest cost (:func:`core.estimators.ml.searched_starts`):
+scoring the candidates themselves would not do, since precise TOAs make the
+cost a narrow valley that a grid misses while a far plateau scores better.
+Candidates come from the geometry:
+
+- along every line of sight, at log-spaced distances (an azimuth-only
+  bearing also over a fan of elevations);
+- without a line of sight, around the stations' centroid, over a sphere
+  (or, with a known altitude, a circle) of directions at log-spaced distances.
+
+With a known altitude every candidate is put on that surface first.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from core.angles import line_of_sight_enu
+from core.batch import ProblemBatch
+from core.problem import onto_altitude
+
+#: Distances (m) at which candidates are placed from a station or the stations' centroid (a factor 2.15
+#: apart: every basin of a precise TOA or range is reached from one of them).
+DISTANCES_M = np.geomspace(100.0, 1e6, 13)
+#: Elevations (rad) tried along an azimuth-only line of sight.
+FAN_ELEVATIONS_RAD = np.deg2rad([-2.0, 1.0, 5.0, 12.0, 25.0, 50.0])
+#: Directions around the centroid: a Fibonacci sphere (free height) or a circle (known altitude).
+SPHERE_DIRECTIONS = 26
+CIRCLE_DIRECTIONS = 12
+
+
+def _sphere(count: int) -> np.ndarray:
+    k = np.arange(count) + 0.5
+    z = 1.0 - 2.0 * k / count
+    phi = np.pi * (1.0 + 5.0**0.5) * k
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)
+
+
+def _circle(count: int) -> np.ndarray:
+    a = 2.0 * np.pi * np.arange(count) / count
+    return np.stack([np.cos(a), np.sin(a), np.zeros(count)], axis=-1)
+
+
+def candidates(batch: ProblemBatch) -> np.ndarray:
+    """Candidate points ``(B, C, 3)`` of every problem (common frame; NaN where a problem has fewer).
+
+    Returns
+    -------
+    ndarray, shape (B, C, 3)
+    """
+    size = batch.size
+    stations, rotations = batch.measurement_stations()
+    is_line, elevation, _ = batch.lines_of_sight()
+    constrained = batch.constrained
+    fan = np.concatenate([[np.nan], FAN_ELEVATIONS_RAD])
+    # Along each line of sight: (B, M lines, E elevations, D distances); the measured elevation where given.
+    el = np.where(np.isnan(elevation)[..., None], fan[None, None, 1:], np.nan)
+    el = np.concatenate([elevation[..., None], el], axis=-1)
+    az = np.where(is_line, batch.values, 0.0)
+    local = line_of_sight_enu(az[..., None], np.nan_to_num(el))
+    direction = np.einsum("bmji,bmej->bmei", rotations, local)
+    along = stations[:, :, None, None, :] + direction[..., None, :] * DISTANCES_M[:, None]
+    along = np.where((is_line[:, :, None] & ~np.isnan(el))[..., None, None], along, np.nan)
+    along = along.reshape(size, -1, 3)
+    # Around the stations' centroid.
+    n = batch.n_stations
+    centroid = np.array([batch.stations_enu_m[b, :n[b]].mean(axis=0) for b in range(size)]) if size else np.zeros((0, 3))
+    sphere, circle = _sphere(SPHERE_DIRECTIONS), _circle(CIRCLE_DIRECTIONS)
+    circle = np.concatenate([circle, np.full((SPHERE_DIRECTIONS - CIRCLE_DIRECTIONS, 3), np.nan)])
+    directions = np.where(constrained[:, None, None], circle[None], sphere[None])
+    around = centroid[:, None, None, :] + directions[:, :, None, :] * DISTANCES_M[:, None]
+    around = np.where(np.any(is_line, axis=-1)[:, None, None, None], np.nan, around)
+    points = np.concatenate([along, around.reshape(size, -1, 3)], axis=1)
+    if np.any(constrained):
+        flat = points.reshape(size, -1, 3)
+        moved = onto_altitude(flat, np.where(constrained, batch.altitude_m, 0.0)[:, None],
+                              batch.origin[:, None, :], batch.geodetic[:, None])
+        points = np.where(constrained[:, None, None], moved, flat)
+    return points
