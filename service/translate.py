@@ -18,6 +18,7 @@ from core.estimators import Fix, SolveOptions
 from core.measurements import Kind
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from service import schemas
+from service.renderings import fix_cot as _cot, fix_geojson as _geojson
 
 _COMPONENT = {Kind.AZIMUTH: "azimuth", Kind.ELEVATION: "elevation", Kind.RANGE: "range", Kind.TOA: "toa"}
 _COMPONENT_NAMES = {int(k): name for k, name in _COMPONENT.items()}
@@ -176,33 +177,10 @@ def fix_to_dict(problem: Problem, fix: Fix, formats=(), summary=None, index: int
     if fix.estimated_bearing_errors_rad is not None:
         body["estimated_bearing_errors_deg"] = np.degrees(fix.estimated_bearing_errors_rad).tolist()
     if "geojson" in formats:
-        body["geojson"] = _geojson(body)
+        body["geojson"] = _geojson(body, formats)
     if "cot" in formats:
-        body["cot"] = _cot(body)
+        body["cot"] = _cot(body, formats)
     return body
-
-
-def _geojson(body: dict) -> dict:
-    """A GeoJSON Feature (RFC 7946: lon, lat, alt) with the error summary as properties."""
-    properties = {"method": body["method"], **body["error"]}
-    if "position" not in body:
-        return {"type": "Feature", "geometry": None, "properties": properties}
-    pos = body["position"]
-    return {"type": "Feature",
-            "geometry": {"type": "Point", "coordinates": [pos["lon_deg"], pos["lat_deg"], pos["alt_m"]]},
-            "properties": properties}
-
-
-def _cot(body: dict) -> str | None:
-    """A Cursor-on-Target event (ce = CEP50 scaled to ~90 %, le = vertical 90 %)."""
-    if "position" not in body:
-        return None
-    pos, err = body["position"], body["error"]
-    ce = 2.146 / 1.1774 * err["cep50_m"]
-    le = 1.645 * err["vertical_sigma_m"]
-    return (f'<event version="2.0" uid="passive-locator-fix" type="a-u-G" how="m-g">'
-            f'<point lat="{pos["lat_deg"]:.8f}" lon="{pos["lon_deg"]:.8f}" hae="{pos["alt_m"]:.2f}" '
-            f'ce="{ce:.1f}" le="{le:.1f}"/></event>')
 
 
 # --- The batch path: many fix requests straight from parsed JSON to one core batch, and back. ---
@@ -301,7 +279,7 @@ def _station_id(value) -> str:
 def _problem_settings(body: dict) -> tuple:
     """Frame, origin, options, guess, altitude and formats of one FixRequest dict (``_Reject`` if unusual)."""
     frame = body.get("frame", "wgs84")
-    if frame != "wgs84" and frame != "local":
+    if frame != "wgs84" and frame != "local" or "cot" in body or "observed_at" in body:
         raise _Reject
     geodetic = frame == "wgs84"
     if body.get("method", "auto") not in _ML_METHODS:

@@ -37,6 +37,7 @@ from core.estimators.ml import solve_ml_problem_batch
 from service import schemas
 from service.deps import OwnerDep
 from service.problems import localization_problem, problem_body, validation_errors
+from service.renderings import batch_geojson, of_request
 from service.responses import JsonResponse
 from service.translate import (batch_error_summary, fix_batch_to_dicts, fix_to_dict, to_options, to_problem,
                                to_problem_batch)
@@ -98,8 +99,8 @@ async def _raw_body(request: Request) -> bytes:
 RawBody = Annotated[bytes, Depends(_raw_body)]
 
 
-def _problems(raw: bytes) -> list:
-    """The ``problems`` list of a batch body; 400/422 as for any body when it is not one."""
+def _problems(raw: bytes) -> tuple[list, list]:
+    """The ``problems`` list and ``formats`` of a batch body; 400/422 as for any body when it is not one."""
     try:
         data = orjson.loads(raw)
     except orjson.JSONDecodeError as error:
@@ -108,12 +109,12 @@ def _problems(raw: bytes) -> list:
     if type(data) is dict and data.keys() == {"problems"}:
         problems = data["problems"]
         if type(problems) is list and 0 < len(problems) <= MAX_PROBLEMS:
-            return problems
+            return problems, []
     try:
         schemas.BatchRequest.model_validate(data)
     except ValidationError as error:
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in error.errors()]) from None
-    return data["problems"]
+    return data["problems"], data.get("formats", [])
 
 
 def _slot_error(body: dict, request_id: str | None) -> dict:
@@ -184,7 +185,7 @@ def solve_batch(problems: list, request_id: str | None = None) -> list[dict]:
             if isinstance(fix, LocalizationError):
                 put(slot, error=_slot_error(localization_problem(fix), request_id))
             else:
-                put(slot, fix_to_dict(problem, fix, request.formats, summary, where[i]))
+                put(slot, fix_to_dict(problem, fix, of_request(request), summary, where[i]))
     return results
 
 
@@ -196,9 +197,9 @@ def solve_batch(problems: list, request_id: str | None = None) -> list[dict]:
 def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonResponse:
     request_id = request.scope.get("state", {}).get("request_id")
     with gc_paused():
-        problems = _problems(raw)
+        problems, formats = _problems(raw)
         results = solve_batch(problems, request_id)
         request.app.state.metrics.count("batch_problems_total", len(problems))
-        response = JsonResponse({"results": results})
+        response = JsonResponse({"results": results, **({"geojson": batch_geojson(results, problems)} if formats else {})})
         del problems, results
     return response

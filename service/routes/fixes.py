@@ -16,6 +16,7 @@ from core.crlb import information_at
 from core.errors import UnobservableGeometry
 from service import schemas
 from service.coalesce import Coalescer
+from service.renderings import of_request
 from service.deps import OwnerDep, get_owner
 from service.translate import crlb_problem, error_dict, fix_to_dict, to_options, to_problem
 
@@ -43,7 +44,7 @@ async def create_fix(request: schemas.FixRequest, http: Request,
                      owner: str = Depends(_owner_on_loop)) -> JsonResponse:
     problem = to_problem(request)
     solved = await coalescer(http.app).solve(problem, request.method, to_options(request))
-    return JsonResponse(fix_to_dict(problem, solved.fix, request.formats, solved.summary, solved.index))
+    return JsonResponse(fix_to_dict(problem, solved.fix, of_request(request), solved.summary, solved.index))
 
 
 @router.post("/crlb", operation_id="fixes-crlb", summary="The Cramer-Rao bound of a geometry (planning)",
