@@ -58,9 +58,13 @@ def list_sessions(owner: OwnerDep, store: StoreDep,
 
 
 @router.get("/{session_id}", operation_id="sessions-get", summary="A session's state",
-            response_model=schemas.SessionState, responses={200: {"headers": _ETAG}, **_NOT_FOUND})
-def get_session(session_id: str, owner: OwnerDep, store: StoreDep) -> JsonResponse:
-    return _state_response(sessions.get(store, owner, session_id))
+            response_model=schemas.SessionState, responses={200: {"headers": _ETAG}, **_NOT_FOUND, **_INVALID})
+def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
+                formats: Annotated[str | None, Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$",
+                                                     description="comma-separated renderings: cot, geojson")] = None,
+                ) -> JsonResponse:
+    record = sessions.get(store, owner, session_id)
+    return _state_response(record, body=sessions.rendered_state(record, formats.split(",") if formats else ()))
 
 
 @router.post("/{session_id}/measurements", operation_id="sessions-post-measurements",
