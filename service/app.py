@@ -7,19 +7,20 @@ like with different settings.
 
 from __future__ import annotations
 
+import importlib.metadata
 import logging
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service import problems
+from service import openapi, problems
 from service.metrics import Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
 from service.settings import Settings
 from service.stores import open_store
 
-API_VERSION = "1.0.0"
+API_VERSION = importlib.metadata.version("passive-locator")
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -56,6 +57,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.settings = settings
     app.state.metrics = metrics
     problems.install(app)
+    openapi.install(app)
     for router in ROUTERS:
         app.include_router(router)
     limiter = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst) if settings.rate_limit_per_s else None

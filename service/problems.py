@@ -60,6 +60,7 @@ def problem_body(status: int, code: str, detail: str, errors=None, request_id: s
         "detail": detail,
         "code": code,
         "errors": errors or [],
+        "instance": None if request_id is None else f"urn:passive-locator:request:{request_id}",
         "request_id": request_id,
     }
 
@@ -112,6 +113,7 @@ def install(app: FastAPI) -> None:
     async def _localization(request: Request, exc: LocalizationError):
         body = localization_problem(exc)
         body["request_id"] = _request_id(request)
+        body["instance"] = f"urn:passive-locator:request:{body['request_id']}"
         return Response(orjson.dumps(body), status_code=body["status"], media_type=MEDIA_TYPE)
 
     @app.exception_handler(ApiError)

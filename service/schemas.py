@@ -278,16 +278,25 @@ class CrlbResponse(BaseModel):
     error: ErrorSummary
 
 
-class Problem(BaseModel):
-    """RFC 9457 problem details."""
+class ProblemError(BaseModel):
+    """One invalid field."""
 
-    type: str
+    loc: list[str | int] = Field(description="path to the field in the request: names and list indices")
+    msg: str = Field(description="what is wrong with it")
+    type: str | None = Field(None, description="machine-readable kind of error, when the validator gives one")
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details (``application/problem+json``)."""
+
+    type: str = Field(description="URI of the problem type: PROBLEM_BASE + code")
     title: str
     status: int
     detail: str
-    code: str
-    errors: list[dict[str, Any]] = Field(default_factory=list)
-    request_id: str | None = None
+    code: str = Field(description="stable machine-readable code, e.g. invalid_input, unobservable, not_found")
+    errors: list[ProblemError] = Field(default_factory=list)
+    instance: str | None = Field(None, description="URI of this occurrence (urn:passive-locator:request:<id>)")
+    request_id: str | None = Field(None, description="the X-Request-ID of the request: quote it when reporting")
 
 
 class BatchRequest(Strict):
@@ -336,3 +345,12 @@ class EvaluationResponse(BaseModel):
     trials: int
     seed: int
     noise: str
+
+
+class Health(BaseModel):
+    status: str = Field(description="ok: the process answers")
+
+
+class Readiness(BaseModel):
+    status: str = Field(description="ready: the session store answered")
+    store: str = Field(description="the session store's kind: sqlite or redis")
