@@ -14,7 +14,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from service import openapi, problems
-from service.metrics import Metrics
+from service.metrics import InFlight, Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
 from service.settings import Settings
@@ -63,5 +63,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     limiter = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst) if settings.rate_limit_per_s else None
     app.add_middleware(ServiceMiddleware, max_body_bytes=settings.max_body_bytes, metrics=metrics,
                        rate_limiter=limiter)
+    app.add_middleware(InFlight, metrics=metrics)
     logging.getLogger("passive_locator").setLevel(settings.log_level.upper())
     return app

@@ -200,6 +200,7 @@ def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonRespons
         problems, formats = _problems(raw)
         results = solve_batch(problems, request_id)
         request.app.state.metrics.count("batch_problems_total", len(problems))
+        request.app.state.metrics.batch_fixes(problems, results)
         response = JsonResponse({"results": results, **({"geojson": batch_geojson(results, problems)} if formats else {})})
         del problems, results
     return response

@@ -13,7 +13,7 @@ from service.responses import JsonResponse
 
 from core.accuracy import error_summary
 from core.crlb import information_at
-from core.errors import UnobservableGeometry
+from core.errors import LocalizationError, UnobservableGeometry
 from service import schemas
 from service.coalesce import Coalescer
 from service.renderings import of_request
@@ -42,8 +42,13 @@ def coalescer(app) -> Coalescer:
              response_model=schemas.FixResponse, responses=_ERRORS)
 async def create_fix(request: schemas.FixRequest, http: Request,
                      owner: str = Depends(_owner_on_loop)) -> JsonResponse:
-    problem = to_problem(request)
-    solved = await coalescer(http.app).solve(problem, request.method, to_options(request))
+    try:
+        problem = to_problem(request)
+        solved = await coalescer(http.app).solve(problem, request.method, to_options(request))
+    except LocalizationError as error:
+        http.app.state.metrics.fix(request.method, error.code)
+        raise
+    http.app.state.metrics.fix(solved.fix.method, "ok")
     return JsonResponse(fix_to_dict(problem, solved.fix, of_request(request), solved.summary, solved.index))
 
 

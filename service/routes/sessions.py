@@ -11,12 +11,42 @@ from service import session_schemas as schemas
 from service import sessions
 from service.deps import OwnerDep
 from service.responses import JsonResponse
+from service.problems import ApiError
 from service.schemas import Problem
 from service.stores import SessionStore
 
 
+class _CountedStore:
+    """The app's store, counting the failures of its operations in the store-errors metric.
+
+    A failure is anything a store method raises other than an :class:`ApiError` below 500 (which is a
+    decision about the request, such as the 404/409/412 that a session change raises inside ``update``).
+    """
+
+    def __init__(self, store: SessionStore, metrics):
+        self._store, self._metrics = store, metrics
+
+    def __getattr__(self, name):
+        found = getattr(self._store, name)
+        if not callable(found) or name.startswith("_"):
+            return found
+
+        def counted(*args, **kwargs):
+            try:
+                return found(*args, **kwargs)
+            except ApiError as error:
+                if error.status >= 500:
+                    self._metrics.store_errors.labels(name).inc()
+                raise
+            except Exception:
+                self._metrics.store_errors.labels(name).inc()
+                raise
+
+        return counted
+
+
 def get_store(request: Request) -> SessionStore:
-    return request.app.state.store
+    return _CountedStore(request.app.state.store, request.app.state.metrics)  # type: ignore[return-value]
 
 
 StoreDep = Annotated[SessionStore, Depends(get_store)]
@@ -81,6 +111,7 @@ def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: O
                       ) -> JsonResponse:
     outcome = sessions.post_measurements(store, owner, session_id, batch, if_match)
     metrics = request.app.state.metrics
+    metrics.count("session_updates_total", 1 if outcome.applied else 0)
     metrics.count("session_epochs_applied_total", outcome.applied)
     metrics.count("session_epochs_duplicate_total", outcome.duplicates)
     body = {**sessions.state_body(outcome.record), "applied": outcome.applied, "duplicates": outcome.duplicates}

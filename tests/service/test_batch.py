@@ -259,7 +259,10 @@ def test_route_is_documented():
     spec = create_app(Settings(store="sqlite:///:memory:")).openapi()
     operation = spec["paths"]["/v1/fixes/batch"]["post"]
     assert operation["operationId"] == "fixes-batch"
-    items = operation["requestBody"]["content"]["application/json"]["schema"]["properties"]["problems"]["items"]
+    schema = operation["requestBody"]["content"]["application/json"]["schema"]
+    if "$ref" in schema:  # named in components (service/openapi.py)
+        schema = spec["components"]["schemas"][schema["$ref"].rsplit("/", 1)[-1]]
+    items = schema["properties"]["problems"]["items"]
     assert items == {"$ref": "#/components/schemas/FixRequest"}
 
 
