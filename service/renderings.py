@@ -236,13 +236,13 @@ def batch_geojson(results: list[dict], problems: list) -> dict:
     features = []
     for result in results:
         if result.get("ok"):
-            for feature in fix_features(result["fix"], _problem_renderings(problems[result["index"]])):
+            for feature in fix_features(result["fix"], problem_renderings(problems[result["index"]])):
                 feature["properties"] = {"index": result["index"], **feature["properties"]}
                 features.append(feature)
     return {"type": "FeatureCollection", "features": features}
 
 
-def _problem_renderings(problem: dict) -> Renderings:
+def problem_renderings(problem: dict) -> Renderings:
     if "observed_at" not in problem and "cot" not in problem:
         return Renderings()
     from service.schemas import FixRequest

@@ -34,7 +34,7 @@ from core.batch import size_groups
 from core.errors import LocalizationError
 from core.estimators import SolveOptions, solve_many
 from core.estimators.ml import solve_ml_problem_batch
-from service import schemas
+from service import schemas, tak
 from service.deps import OwnerDep
 from service.problems import localization_problem, problem_body, validation_errors
 from service.renderings import batch_geojson, of_request
@@ -201,6 +201,7 @@ def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonRespons
         results = solve_batch(problems, request_id)
         request.app.state.metrics.count("batch_problems_total", len(problems))
         request.app.state.metrics.batch_fixes(problems, results)
+        tak.push_batch(request.app, problems, results)
         response = JsonResponse({"results": results, **({"geojson": batch_geojson(results, problems)} if formats else {})})
         del problems, results
     return response

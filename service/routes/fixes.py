@@ -14,7 +14,7 @@ from service.responses import JsonResponse
 from core.accuracy import error_summary
 from core.crlb import information_at
 from core.errors import LocalizationError, UnobservableGeometry
-from service import schemas
+from service import schemas, tak
 from service.coalesce import Coalescer
 from service.renderings import of_request
 from service.deps import OwnerDep, get_owner
@@ -49,7 +49,9 @@ async def create_fix(request: schemas.FixRequest, http: Request,
         http.app.state.metrics.fix(request.method, error.code)
         raise
     http.app.state.metrics.fix(solved.fix.method, "ok")
-    return JsonResponse(fix_to_dict(problem, solved.fix, of_request(request), solved.summary, solved.index))
+    body = fix_to_dict(problem, solved.fix, of_request(request), solved.summary, solved.index)
+    tak.push_fix(http.app, body, of_request(request))
+    return JsonResponse(body)
 
 
 @router.post("/crlb", operation_id="fixes-crlb", summary="The Cramer-Rao bound of a geometry (planning)",
