@@ -13,7 +13,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service import openapi, problems
+from service import openapi, problems, web
 from service.metrics import InFlight, Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
@@ -53,16 +53,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "emitter from one fixed observer. Errors are application/problem+json (RFC 9457)."
         ),
         lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
     )
     app.state.settings = settings
     app.state.metrics = metrics
     problems.install(app)
     openapi.install(app)
+    web.install_docs(app)
     for router in ROUTERS:
         app.include_router(router)
     limiter = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst) if settings.rate_limit_per_s else None
     app.add_middleware(ServiceMiddleware, max_body_bytes=settings.max_body_bytes, metrics=metrics,
                        rate_limiter=limiter)
     app.add_middleware(InFlight, metrics=metrics)
+    web.install_cors(app, settings.cors_allow_origins)
     logging.getLogger("passive_locator").setLevel(settings.log_level.upper())
     return app

@@ -10,18 +10,35 @@ import tempfile
 
 
 def _settings_help() -> str:
-    """The environment variables the service reads, from :class:`service.settings.Settings` itself."""
+    """The environment variables the service reads, from its settings models themselves."""
     from service.settings import Settings
+    from service.tak import TakSettings
 
-    prefix = Settings.model_config.get("env_prefix", "")
-    lines = ["environment (the service's settings; see README.md):"]
-    for name, field in Settings.model_fields.items():
-        default = field.get_default(call_default_factory=True)
-        shown = "" if default in (None, "", []) else f" (default {default!r})"
-        lines.append(f"  {prefix}{name.upper()}{shown}")
-    lines.append("  PROMETHEUS_MULTIPROC_DIR  with --workers > 1: where the workers' metrics are kept "
+    lines = ["environment (lists as JSON, e.g. PASSIVE_LOCATOR_API_KEYS='[\"k1\"]'; see README.md):"]
+    for model in (Settings, TakSettings):
+        prefix = model.model_config.get("env_prefix", "")
+        for name, field in model.model_fields.items():
+            default = field.get_default(call_default_factory=True)
+            shown = "" if default in (None, "", []) else f" (default {default!r})"
+            about = field.description or _documented(model).get(name)
+            about = f": {about}" if about else ""
+            lines.append(f"  {prefix}{name.upper()}{shown}{about}")
+    lines.append("  PROMETHEUS_MULTIPROC_DIR: with --workers > 1, where the workers' metrics are kept "
                  "(default: a fresh temporary directory)")
     return "\n".join(lines)
+
+
+def _documented(model) -> dict[str, str]:
+    """``{attribute: description}`` from a numpydoc "Attributes" section (what Settings documents)."""
+    found: dict[str, str] = {}
+    name = None
+    for line in (model.__doc__ or "").splitlines():
+        text = line.strip()
+        if " : " in text and not line.startswith(" " * 8):
+            name = text.split(" : ")[0]
+        elif name and text:
+            found[name] = f"{found.get(name, '')} {text}".strip().replace("``", "")
+    return found
 
 
 def _metrics_for_workers(workers: int) -> None:
