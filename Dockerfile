@@ -16,8 +16,11 @@ RUN /opt/venv/bin/python -c "import tomllib; print(*tomllib.load(open('pyproject
 COPY README.md ./
 COPY core ./core
 COPY service ./service
-# The runtime needs no installer: pip and setuptools leave the venv once it is complete and checked.
+# The runtime needs no installer: pip and setuptools leave the venv once it is complete and checked; nor
+# numpy's and scipy's own test suites (about 50 MB).
 RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check \
+    && find /opt/venv/lib/python3*/site-packages/numpy /opt/venv/lib/python3*/site-packages/scipy \
+        -type d -name tests -prune -exec rm -rf {} + \
     && (/opt/venv/bin/pip uninstall --yes --quiet setuptools wheel || true) \
     && /opt/venv/bin/python -m pip uninstall --yes --quiet pip \
     && ! /opt/venv/bin/python -c "import pip" 2>/dev/null

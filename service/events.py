@@ -16,10 +16,13 @@ always the latest state.
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 import orjson
+
+logger = logging.getLogger("passive_locator")
 
 #: Seconds between keep-alive comments on an idle stream (and store polls without Redis).
 POLL_S = 2.0
@@ -37,7 +40,10 @@ class LocalBus:
         with self._lock:
             targets = list(self._subscribers.get(session_id, ()))
         for loop, queue in targets:
-            loop.call_soon_threadsafe(_offer, queue, version)
+            try:
+                loop.call_soon_threadsafe(_offer, queue, version)
+            except RuntimeError:  # that subscriber's loop has closed: nobody is listening there any more
+                pass
 
     def subscribe(self, session_id: str) -> "Subscription":
         queue: asyncio.Queue = asyncio.Queue(maxsize=1)
@@ -102,8 +108,8 @@ class Subscription:
 class RedisBus:
     """Redis pub/sub: posts publish with the store's own client; each stream listens on its own connection."""
 
-    def __init__(self, store, url: str):
-        self.store = store
+    def __init__(self, store, url: str, metrics=None):
+        self.store, self.metrics = store, metrics
         self.prefix = getattr(store, "prefix", "")
         parts = urlsplit(url)
         rest = urlencode([(k, v) for k, v in parse_qsl(parts.query, keep_blank_values=True) if k != "key_prefix"])
@@ -114,7 +120,15 @@ class RedisBus:
         return f"{self.prefix}events:{session_id}"
 
     def publish(self, session_id: str, version: int) -> None:
-        self.store.client.publish(self.channel(session_id), orjson.dumps({"version": version}))
+        """Publish, never failing the post that applied the update (it is stored; streams poll on timeout)."""
+        import redis
+
+        try:
+            self.store.client.publish(self.channel(session_id), orjson.dumps({"version": version}))
+        except redis.RedisError as error:
+            logger.warning("session event for %s not published: %s", session_id, error)
+            if self.metrics is not None:
+                self.metrics.store_errors.labels("publish").inc()
 
     def subscribe(self, session_id: str) -> Subscription:
         import redis.asyncio
@@ -144,7 +158,7 @@ def bus(app):
     found = getattr(app.state, "event_bus", None)
     if found is None:
         store = app.state.store
-        found = RedisBus(store, app.state.settings.store) if store.kind == "redis" else LocalBus()
+        found = RedisBus(store, app.state.settings.store, app.state.metrics) if store.kind == "redis" else LocalBus()
         app.state.event_bus = found
     return found
 

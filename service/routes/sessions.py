@@ -120,6 +120,7 @@ def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: O
     body = {**sessions.state_body(outcome.record), "applied": outcome.applied, "duplicates": outcome.duplicates}
     if outcome.applied:
         events.bus(request.app).publish(session_id, outcome.record.version)
+        metrics.count("events_published_total")
         tak.push_session(request.app, body, sessions.cot_options(outcome.record))
     return _state_response(outcome.record, body=body)
 

@@ -213,3 +213,28 @@ def test_tak_queue_drops_are_counted_and_never_block(monkeypatch, tmp_path):
         assert 8 - 2 - 1 <= dropped <= 8 - 2  # the queue holds 2, the sender at most 1 more
         assert sample(text, "passive_locator_tak_events_total", outcome="failed") >= 1
         client.app.state.tak_feed.close()
+
+
+def test_tak_feed_over_udp_sends_one_datagram_per_event(monkeypatch, tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.settimeout(5.0)
+        monkeypatch.setenv("PASSIVE_LOCATOR_TAK_URL", f"udp://127.0.0.1:{listener.getsockname()[1]}")
+        with TestClient(create_app(Settings(store=f"sqlite:///{tmp_path}/s.db"))) as client:
+            for uid in ("u-1", "u-2"):
+                body = bearing_request(STATIONS_300KM, TARGET, cot={"uid": uid})
+                assert client.post("/v1/fixes", json=body).status_code == 200
+            received = [cot_event(listener.recv(65536).decode()).get("uid") for _ in range(2)]
+            assert received == ["u-1", "u-2"]
+            client.app.state.tak_feed.close()
+
+
+def test_a_bad_tak_url_is_refused():
+    from pydantic import ValidationError
+
+    from service.tak import TakSettings
+
+    for url in ("http://tak:8087", "tcp://tak", "tak:8087"):
+        with pytest.raises(ValidationError):
+            TakSettings(url=url)
+    assert TakSettings(url="tls://tak.example:8089").url == "tls://tak.example:8089"
