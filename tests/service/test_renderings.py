@@ -77,8 +77,17 @@ def test_cot_is_valid_with_one_sigma_errors(client):
     assert abs((datetime.now(start.tzinfo) - start).total_seconds()) < 60
 
 
-def test_cot_ce_holds_the_one_sigma_share_on_an_elongated_ellipse(client):
-    """On a long thin ellipse, the circle of radius ce holds far less than a 90 % radius would."""
+def test_ce_on_a_7_to_1_ellipse_is_the_rms_of_the_axis_sigmas():
+    from service.renderings import one_sigma_errors
+
+    ce, le = one_sigma_errors(np.diag([49.0, 1.0, 4.0]))  # sigmas 7 m and 1 m horizontally, 2 m up
+    assert (ce, le) == (pytest.approx(5.0), pytest.approx(2.0))
+    rotated = np.array([[25.0, 24.0, 0.0], [24.0, 25.0, 0.0], [0.0, 0.0, 4.0]])  # the same ellipse at 45 degrees
+    assert one_sigma_errors(rotated) == (pytest.approx(5.0), pytest.approx(2.0))
+
+
+def test_cot_ce_holds_the_one_sigma_share_not_ninety_percent(client):
+    """The circle of radius ce holds about the 2-D one-sigma share (39 % for a circular error), not 90 %."""
     fix = _fix(client, formats=["cot"])
     rng = np.random.default_rng(3)
     covariance = _covariance_at_fix(fix)[:2, :2]
