@@ -238,3 +238,47 @@ def test_a_bad_tak_url_is_refused():
         with pytest.raises(ValidationError):
             TakSettings(url=url)
     assert TakSettings(url="tls://tak.example:8089").url == "tls://tak.example:8089"
+
+
+def _self_signed(directory) -> tuple[str, str]:
+    """A certificate and key for 127.0.0.1 (openssl CLI), to stand for a TAK server's."""
+    import shutil
+    import subprocess
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is needed to make a test certificate")
+    cert, key = str(directory / "tak.pem"), str(directory / "tak.key")
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1", "-subj", "/CN=127.0.0.1",
+                    "-addext", "subjectAltName=IP:127.0.0.1", "-keyout", key, "-out", cert],
+                   check=True, capture_output=True, timeout=60)
+    return cert, key
+
+
+def test_tak_feed_over_tls_verifies_the_server(monkeypatch, tmp_path):
+    import ssl
+
+    cert, key = _self_signed(tmp_path)
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    context.load_cert_chain(cert, key)
+    server = socket.create_server(("127.0.0.1", 0))
+    received = queue.Queue()
+
+    def serve():
+        conn, _ = server.accept()
+        with context.wrap_socket(conn, server_side=True) as tls:
+            data = b""
+            while b"</event>" not in data:
+                data += tls.recv(65536)
+            received.put(data.decode())
+
+    threading.Thread(target=serve, daemon=True).start()
+    monkeypatch.setenv("PASSIVE_LOCATOR_TAK_URL", f"tls://127.0.0.1:{server.getsockname()[1]}")
+    monkeypatch.setenv("PASSIVE_LOCATOR_TAK_CA_FILE", cert)
+    try:
+        with TestClient(create_app(Settings(store=f"sqlite:///{tmp_path}/s.db"))) as client:
+            body = bearing_request(STATIONS_300KM, TARGET, cot={"uid": "tls-1"})
+            assert client.post("/v1/fixes", json=body).status_code == 200
+            assert cot_event(received.get(timeout=10)).get("uid") == "tls-1"
+            client.app.state.tak_feed.close()
+    finally:
+        server.close()
