@@ -60,6 +60,7 @@ _ETAG = {"ETag": {"description": "the session's version, quoted: send it back in
                   "schema": {"type": "string"}}}
 _NOT_FOUND = {404: {"model": Problem, "description": "no such session for this key (or it expired)"}}
 _INVALID = {422: {"model": Problem, "description": "invalid values, with the field path"}}
+_FORMATS = Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$", description="comma-separated renderings: cot, geojson")
 _BUSY = {503: {"model": Problem, "description": "the store could not serialise this write in time; retry"}}
 
 
@@ -93,8 +94,7 @@ def list_sessions(owner: OwnerDep, store: StoreDep,
 @router.get("/{session_id}", operation_id="sessions-get", summary="A session's state",
             response_model=schemas.SessionState, responses={200: {"headers": _ETAG}, **_NOT_FOUND, **_INVALID})
 def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
-                formats: Annotated[str | None, Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$",
-                                                     description="comma-separated renderings: cot, geojson")] = None,
+                formats: Annotated[str | None, _FORMATS] = None,
                 ) -> JsonResponse:
     record = sessions.get(store, owner, session_id)
     return _state_response(record, body=sessions.rendered_state(record, formats.split(",") if formats else ()))
@@ -132,8 +132,6 @@ def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, request: R
     events.bus(request.app).publish(session_id, 0)
     return Response(status_code=204)
 
-
-_FORMATS = Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$", description="comma-separated renderings: cot, geojson")
 
 
 @router.get("/{session_id}/events", operation_id="sessions-events", summary="Server-sent events: the state after "
