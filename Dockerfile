@@ -6,18 +6,30 @@ FROM python:3.11-slim AS build
 ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1
 WORKDIR /src
 RUN python -m venv /opt/venv
-# Dependencies first, read from pyproject.toml itself (no second list to drift from it): this layer is
-# rebuilt only when pyproject.toml changes, not when the source or the README does.
-COPY pyproject.toml ./
+# Dependencies first, read from pyproject.toml itself (no second list to drift from it) and pinned to the
+# tested versions by constraints.txt (`make constraints`): this layer is rebuilt only when those two change,
+# not when the source or the README does.
+COPY pyproject.toml constraints.txt ./
 RUN /opt/venv/bin/python -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" \
         > /tmp/requirements.txt \
-    && /opt/venv/bin/pip install -r /tmp/requirements.txt
+    && /opt/venv/bin/pip install -c constraints.txt -r /tmp/requirements.txt
 COPY README.md ./
 COPY core ./core
 COPY service ./service
-RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check
+# The runtime needs no installer: pip and setuptools leave the venv once it is complete and checked; nor
+# numpy's and scipy's own test suites (about 50 MB).
+RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check \
+    && find /opt/venv/lib/python3*/site-packages/numpy /opt/venv/lib/python3*/site-packages/scipy \
+        -type d -name tests -prune -exec rm -rf {} + \
+    && (/opt/venv/bin/pip uninstall --yes --quiet setuptools wheel || true) \
+    && /opt/venv/bin/python -m pip uninstall --yes --quiet pip \
+    && ! /opt/venv/bin/python -c "import pip" 2>/dev/null
 
 FROM python:3.11-slim
+# No installer in the runtime either: the base's own pip, setuptools and the wheels ensurepip/venv would
+# install (the official image has them under /usr/local, Debian's python3-venv under /usr/share).
+RUN (python -m pip uninstall --yes --quiet pip setuptools wheel 2>/dev/null || true) \
+    && rm -rf /usr/local/lib/python3*/ensurepip /usr/share/python-wheels /usr/local/bin/pip*
 # Fixed numeric ids: USER is numeric so a runtime can verify non-root (Kubernetes runAsNonRoot), and the
 # store directory's owner matches the user a volume or `--user 10001:10001` brings.
 RUN groupadd --system --gid 10001 locator \

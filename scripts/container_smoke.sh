@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Container smoke test, run by hand (NOT part of `make test` or CI): builds the Dockerfile with podman,
+# Container smoke test (`make image-test`; not part of `make test`): builds the Dockerfile with podman,
 # then runs the image's filesystem under chroot as the image's own non-root user with the image's ENV,
 # and checks GET /healthz, GET /readyz, one POST /v1/fixes (the README example), the HEALTHCHECK command,
 # and that the SQLite session store file appears under the image's /app/var. Exits non-zero on any failure.
@@ -129,6 +129,12 @@ for dev_path in src tests bench .venv; do
     compgen -G "$mnt$where$dev_path" >/dev/null && fail "dev path in image: $where$dev_path"
   done
 done
+for installer in /opt/venv/bin/pip /usr/local/bin/pip /usr/local/lib/python3*/site-packages/pip \
+                 /opt/venv/lib/python3*/site-packages/pip /opt/venv/lib/python3*/site-packages/setuptools \
+                 /usr/local/lib/python3*/site-packages/setuptools; do
+  compgen -G "$mnt$installer" >/dev/null && fail "installer in the runtime image: $installer"
+done
+say "no pip or setuptools in the runtime image"
 [ ! -e "$mnt$store_path" ] || fail "store $store_path already exists in the image"
 [ "$(stat -c %u "$mnt$(dirname "$store_path")")" = "$uid" ] || fail "$(dirname "$store_path") is not owned by uid $uid"
 

@@ -7,20 +7,21 @@ like with different settings.
 
 from __future__ import annotations
 
+import importlib.metadata
 import logging
 from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service import problems, schemas
+from service import openapi, problems, web
 from service.coalesce import Coalescer
-from service.metrics import Metrics
+from service.metrics import InFlight, Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
 from service.settings import Settings
 from service.stores import open_store
 
-API_VERSION = "1.0.0"
+API_VERSION = importlib.metadata.version("passive-locator")
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -54,33 +55,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "emitter from one fixed observer. Errors are application/problem+json (RFC 9457)."
         ),
         lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
     )
-    app.openapi = lambda: _openapi(app)
     app.state.settings = settings
     app.state.metrics = metrics
     problems.install(app)
+    openapi.install(app)
+    web.install_docs(app)
     for router in ROUTERS:
         app.include_router(router)
     limiter = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst) if settings.rate_limit_per_s else None
     app.add_middleware(ServiceMiddleware, max_body_bytes=settings.max_body_bytes, metrics=metrics,
                        rate_limiter=limiter)
+    app.add_middleware(InFlight, metrics=metrics)
+    web.install_cors(app, settings.cors_allow_origins)
     logging.getLogger("passive_locator").setLevel(settings.log_level.upper())
     return app
-
-
-#: Request models of routes that read their own body (documented by reference in ``openapi_extra``).
-_BODY_MODELS = (schemas.FixRequest,)
-
-
-def _openapi(app: FastAPI) -> dict:
-    """The generated spec, with the components of the body models that no route parameter declares."""
-    if app.openapi_schema is None:
-        spec = FastAPI.openapi(app)
-        components = spec.setdefault("components", {}).setdefault("schemas", {})
-        for model in _BODY_MODELS:
-            schema = model.model_json_schema(ref_template="#/components/schemas/{model}")
-            for name, definition in schema.pop("$defs", {}).items():
-                components.setdefault(name, definition)
-            components.setdefault(model.__name__, schema)
-        app.openapi_schema = spec
-    return app.openapi_schema

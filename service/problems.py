@@ -60,8 +60,19 @@ def problem_body(status: int, code: str, detail: str, errors=None, request_id: s
         "detail": detail,
         "code": code,
         "errors": errors or [],
-        "request_id": request_id,
+        **_request_fields(request_id),
     }
+
+
+def _request_fields(request_id: str | None) -> dict:
+    return {"instance": None if request_id is None else f"urn:passive-locator:request:{request_id}",
+            "request_id": request_id}
+
+
+def for_request(body: dict, request_id: str | None) -> dict:
+    """A problem body made without a request (a core error, a batch slot), tied to the request's id."""
+    body.update(_request_fields(request_id))
+    return body
 
 
 def problem_response(status: int, code: str, detail: str, errors=None, request_id=None, headers=None) -> Response:
@@ -132,8 +143,7 @@ def install(app: FastAPI) -> None:
 
     @app.exception_handler(LocalizationError)
     async def _localization(request: Request, exc: LocalizationError):
-        body = localization_problem(exc)
-        body["request_id"] = _request_id(request)
+        body = for_request(localization_problem(exc), _request_id(request))
         return Response(orjson.dumps(body), status_code=body["status"], media_type=MEDIA_TYPE)
 
     @app.exception_handler(ApiError)

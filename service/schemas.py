@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, StrictBool, Tag, model_validator
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Discriminator, Field, StrictBool, Tag, model_validator
 
 from core.estimators import REGISTRY
 from core.estimators.result import COVARIANCE_SOURCES, SCALED_COVARIANCE_SOURCES, WARNING_CODES
@@ -114,6 +114,17 @@ class Options(Strict):
 Format = Literal["geojson", "cot"]
 
 
+class CotOptions(Strict):
+    """How a fix is sent as Cursor-on-Target (the ``cot`` format, and the TAK feed)."""
+
+    uid: str | None = Field(None, min_length=1, max_length=128, pattern=r"^[!-~]+$",
+                            description="the emitter's CoT uid (printable ASCII, no spaces): events with one uid "
+                                        "update one marker; absent = a new uid per fix")
+    type: str = Field("a-u-G", max_length=64, pattern=r"^[A-Za-z0-9_]+(-[A-Za-z0-9_]+)*$",
+                      description="CoT type; default a-u-G, an unknown-affiliation ground track")
+    stale_s: float = Field(300.0, gt=0.0, le=7 * 86400.0, description="stale = start + stale_s")
+
+
 class FixRequest(Strict):
     frame: Literal["wgs84", "local"] = "wgs84"
     origin: GeodeticPosition | None = None
@@ -123,6 +134,11 @@ class FixRequest(Strict):
     constraints: Constraints | None = None
     options: Options = Field(default_factory=Options)
     formats: list[Format] = Field(default_factory=list, max_length=2)
+    observed_at: AwareDatetime | None = Field(
+        None, description="RFC 3339 time of the measurements (with an offset): the CoT event's time and start, "
+                          "the GeoJSON time; absent = when the fix is made")
+    cot: CotOptions | None = Field(None, description="CoT uid, type and stale time; a fix that carries them is "
+                                                     "also sent to the TAK feed when one is configured")
 
     @model_validator(mode="after")
     def _stations_match_frame(self):
@@ -179,6 +195,40 @@ class Stages(BaseModel):
 Matrix3 = list[list[float]]
 
 
+class PointGeometry(BaseModel):
+    type: Literal["Point"]
+    coordinates: list[float] = Field(description="[longitude_deg, latitude_deg, height_m] (RFC 7946)")
+
+
+class PolygonGeometry(BaseModel):
+    type: Literal["Polygon"]
+    coordinates: list[list[list[float]]] = Field(description="one closed counter-clockwise ring of "
+                                                             "[longitude_deg, latitude_deg]")
+
+
+class MultiPolygonGeometry(BaseModel):
+    type: Literal["MultiPolygon"]
+    coordinates: list[list[list[list[float]]]] = Field(description="the ellipse cut at the antimeridian")
+
+
+Geometry = Annotated[Union[PointGeometry, PolygonGeometry, MultiPolygonGeometry], Field(discriminator="type")]
+
+
+class Feature(BaseModel):
+    type: Literal["Feature"]
+    geometry: Geometry | None = Field(description="null for a fix in a flat local frame (no place on the earth)")
+    properties: dict[str, Any] = Field(description="kind fix: method, time, error summary; kind track: course_deg, "
+                                                   "speed_mps; kind error_ellipse: semi-axes (m), orientation "
+                                                   "(deg clockwise from north), probability 0.95")
+
+
+class FeatureCollection(BaseModel):
+    """GeoJSON (RFC 7946): the point, and its 95 % error ellipse as a polygon placed in the point's tangent plane."""
+
+    type: Literal["FeatureCollection"]
+    features: list[Feature]
+
+
 class FixResponse(BaseModel):
     method: str
     position: GeodeticPosition | None = None
@@ -198,8 +248,12 @@ class FixResponse(BaseModel):
     stages: Stages | None = None
     estimated_bearing_errors_deg: list[float] | None = None
     warnings: list[Warning]
-    geojson: dict[str, Any] | None = None
-    cot: str | None = None
+    geojson: FeatureCollection | None = Field(None, description="when formats asks for geojson")
+    cot: str | None = Field(None, description="when formats asks for cot: a CoT 2.0 event; point ce and le are "
+                                              "one-sigma errors in metres, ce = sqrt((l1 + l2) / 2) of the "
+                                              "horizontal covariance's eigenvalues at the fix, le = sigma_up; "
+                                              "detail/shape/ellipse is the 95 % ellipse (semi-axes in metres, "
+                                              "angle clockwise from north); null in a flat local frame")
 
 
 class SensorSpec(Strict):
@@ -238,22 +292,35 @@ class CrlbResponse(BaseModel):
     error: ErrorSummary
 
 
-class Problem(BaseModel):
-    """RFC 9457 problem details."""
+class ProblemError(BaseModel):
+    """One invalid field."""
 
-    type: str
+    loc: list[str | int] = Field(description="path to the field in the request: names and list indices")
+    msg: str = Field(description="what is wrong with it")
+    type: str | None = Field(None, description="machine-readable kind of error, when the validator gives one")
+
+
+class Problem(BaseModel):
+    """RFC 9457 problem details (``application/problem+json``)."""
+
+    type: str = Field(description="URI of the problem type: PROBLEM_BASE + code")
     title: str
     status: int
     detail: str
-    code: str
-    errors: list[dict[str, Any]] = Field(default_factory=list)
-    request_id: str | None = None
+    code: str = Field(description="stable machine-readable code, e.g. invalid_input, unobservable, not_found")
+    errors: list[ProblemError] = Field(default_factory=list)
+    instance: str | None = Field(None, description="URI of this occurrence (urn:passive-locator:request:<id>)")
+    request_id: str | None = Field(None, description="the X-Request-ID of the request: quote it when reporting")
 
 
 class BatchRequest(Strict):
     problems: list[dict[str, Any]] = Field(
         min_length=1, max_length=10000,
         description="FixRequest objects; each is validated on its own so one bad problem fails only its slot")
+    formats: list[Literal["geojson"]] = Field(
+        default_factory=list, max_length=1,
+        description="geojson: one FeatureCollection of every solved fix (Point and 95 % ellipse, each with its "
+                    "`index`) in the response's `geojson`")
 
 
 class BatchResult(BaseModel):
@@ -265,6 +332,7 @@ class BatchResult(BaseModel):
 
 class BatchResponse(BaseModel):
     results: list[BatchResult]
+    geojson: FeatureCollection | None = Field(None, description="when the request's formats ask for geojson")
 
 
 class EvaluationRequest(Strict):
@@ -291,3 +359,12 @@ class EvaluationResponse(BaseModel):
     trials: int
     seed: int
     noise: str
+
+
+class Health(BaseModel):
+    status: str = Field(description="ok: the process answers")
+
+
+class Readiness(BaseModel):
+    status: str = Field(description="ready: the session store answered")
+    store: str = Field(description="the session store's kind: sqlite or redis")

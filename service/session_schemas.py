@@ -10,7 +10,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
-from service.schemas import GeodeticPosition, LocalPosition, Position, Strict, Warning
+from service.schemas import CotOptions, FeatureCollection, GeodeticPosition, LocalPosition, Position, Strict, Warning
 
 #: JavaScript's largest exact integer: a seq above it would be mangled by many JSON clients.
 MAX_SEQ = 2**53 - 1
@@ -60,6 +60,8 @@ class SessionCreate(Strict):
     ttl_s: float = Field(86400.0, gt=0.0, le=MAX_TTL_S,
                          description="idle lifetime: the session is deleted ttl_s after its last write "
                                      "(creation or a post that applied measurements)")
+    cot: CotOptions | None = Field(None, description="CoT uid (default passive-locator-session-<id>: one uid per "
+                                                     "session), type and stale time of the session's track events")
 
     @model_validator(mode="after")
     def _observer_matches_frame(self):
@@ -123,6 +125,11 @@ class SessionState(BaseModel):
     updated_at: str = Field(description="RFC 3339, UTC")
     expires_at: str = Field(description="RFC 3339, UTC; moves forward by ttl_s on every write")
     ttl_s: float
+    cot: str | None = Field(None, description="with ?formats=cot: the estimate as a CoT 2.0 track event (how m-p, "
+                                              "detail/track course and speed, ce/le one-sigma; null before the "
+                                              "filter is initialised or in a local frame)")
+    geojson: FeatureCollection | None = Field(None, description="with ?formats=geojson: the track point (course, "
+                                                                "speed) and its 95 % ellipse")
 
 
 class MeasurementResult(SessionState):

@@ -146,6 +146,26 @@ def state_body(record: SessionRecord) -> dict:
     return body
 
 
+def cot_options(record: SessionRecord):
+    """The session's :class:`service.schemas.CotOptions`, or None."""
+    from service.schemas import CotOptions
+
+    found = record.config["request"].get("cot")
+    return None if found is None else CotOptions.model_validate(found)
+
+
+def rendered_state(record: SessionRecord, formats=()) -> dict:
+    """:func:`state_body` with the renderings ``formats`` asks for (``"cot"``, ``"geojson"``)."""
+    from service import renderings
+
+    body = state_body(record)
+    if "cot" in formats:
+        body["cot"] = renderings.session_cot(body, cot_options(record))
+    if "geojson" in formats:
+        body["geojson"] = renderings.session_geojson(body, cot_options(record))
+    return body
+
+
 def etag(record: SessionRecord) -> str:
     return f'"{record.version}"'
 

@@ -21,6 +21,9 @@ class Settings(BaseSettings):
     rate_limit_per_s : float
         Sustained requests per second per client (key or address); 0 disables.
     rate_limit_burst : int
+    cors_allow_origins : list of str
+        Origins whose browser pages may call the API (a JSON list, ``["*"]`` for any); empty (the
+        default) sends no CORS headers, so browsers refuse cross-origin calls.
     """
 
     model_config = SettingsConfigDict(env_prefix="PASSIVE_LOCATOR_", extra="ignore")
@@ -31,3 +34,4 @@ class Settings(BaseSettings):
     rate_limit_per_s: float = Field(0.0, ge=0.0)
     rate_limit_burst: int = Field(100, ge=1)
     log_level: str = "info"
+    cors_allow_origins: list[str] = Field(default_factory=list)

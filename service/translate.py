@@ -29,7 +29,8 @@ from core.estimators import FixBatch, SolveOptions, solve_many
 from core.measurements import Kind
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from service import schemas
-from service.problems import localization_problem, problem_body, validation_errors
+from service.problems import for_request, localization_problem, problem_body, validation_errors
+from service.renderings import Renderings, fix_cot, fix_geojson, of_request
 
 _COMPONENT_NAMES = {int(Kind.AZIMUTH): "azimuth", int(Kind.ELEVATION): "elevation", int(Kind.RANGE): "range",
                     int(Kind.TOA): "toa"}
@@ -132,37 +133,15 @@ def error_dict(summary, i: int = 0) -> dict:
     }
 
 
-def _geojson(body: dict) -> dict:
-    """A GeoJSON Feature (RFC 7946: lon, lat, alt) with the error summary as properties."""
-    properties = {"method": body["method"], **body["error"]}
-    if "position" not in body:
-        return {"type": "Feature", "geometry": None, "properties": properties}
-    pos = body["position"]
-    return {"type": "Feature",
-            "geometry": {"type": "Point", "coordinates": [pos["lon_deg"], pos["lat_deg"], pos["alt_m"]]},
-            "properties": properties}
-
-
-def _cot(body: dict) -> str | None:
-    """A Cursor-on-Target event (ce = CEP50 scaled to ~90 %, le = vertical 90 %)."""
-    if "position" not in body:
-        return None
-    pos, err = body["position"], body["error"]
-    ce = 2.146 / 1.1774 * err["cep50_m"]
-    le = 1.645 * err["vertical_sigma_m"]
-    return (f'<event version="2.0" uid="passive-locator-fix" type="a-u-G" how="m-g">'
-            f'<point lat="{pos["lat_deg"]:.8f}" lon="{pos["lon_deg"]:.8f}" hae="{pos["alt_m"]:.2f}" '
-            f'ce="{ce:.1f}" le="{le:.1f}"/></event>')
-
-
-
 # --- Fix requests: one reader, one solve, one writer, for POST /v1/fixes (a batch of one) and the batch route. ---
 
 #: The fields the reader handles, per request model. A test holds each set against the model's own fields,
 #: so a field added to the schema fails it until the reader handles the field.
 READ_FIELDS = {
     schemas.FixRequest: frozenset(("frame", "origin", "stations", "measurements", "method", "constraints", "options",
-                                   "formats")),
+                                   "formats", "observed_at", "cot")),
+    # A body with observed_at or cot options is read through the schema (they shape only its renderings).
+    schemas.CotOptions: frozenset(schemas.CotOptions.model_fields),
     schemas.Station: frozenset(("id", "position")),
     schemas.GeodeticPosition: frozenset(("lat_deg", "lon_deg", "alt_m")),
     schemas.LocalPosition: frozenset(("east_m", "north_m", "up_m")),
@@ -266,7 +245,7 @@ def _position(body, geodetic: bool) -> tuple[float, float, float]:
 def _problem_settings(body: dict) -> tuple:
     """Frame, origin, method, options, guess, altitude and formats of one FixRequest dict (``_Reject`` if unusual)."""
     frame = body.get("frame", "wgs84")
-    if frame != "wgs84" and frame != "local":
+    if frame != "wgs84" and frame != "local" or "cot" in body or "observed_at" in body:
         raise _Reject
     geodetic = frame == "wgs84"
     method = body.get("method", "auto")
@@ -453,8 +432,8 @@ class FixRequests:
         Request index of each batch row.
     methods : list of str
     options : list of SolveOptions
-    formats : list of tuple of str
-        Per batch row.
+    formats : list of Renderings
+        Per batch row: the formats asked for, with the options that shape them.
     errors : dict of int to dict
         Problem bodies of the requests that could not be read, by request index.
     """
@@ -538,7 +517,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
     slots = list(accepted)
     methods = [s[2] for s in settings]
     options = [s[3] for s in settings]
-    formats = [s[7] for s in settings]
+    formats = [Renderings(s[7]) for s in settings]
     built: list[Problem] = []
     for slot in rest:
         try:
@@ -554,7 +533,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
         slots.append(slot)
         methods.append(request.method)
         options.append(to_options(request))
-        formats.append(tuple(request.formats))
+        formats.append(of_request(request))
     parts = [p for p in (lean, ProblemBatch.from_problems(built) if built else None) if p is not None]
     batch = ProblemBatch.concatenate(parts) if parts else None
     return FixRequests(batch, slots, methods, options, formats, errors)
@@ -684,9 +663,9 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         wanted = formats[b]
         if wanted:
             if "geojson" in wanted:
-                body["geojson"] = _geojson(body)
+                body["geojson"] = fix_geojson(body, wanted)
             if "cot" in wanted:
-                body["cot"] = _cot(body)
+                body["cot"] = fix_cot(body, wanted)
         out.append({"ok": True, "fix": body})
     return out
 
@@ -718,7 +697,7 @@ def fix_results(bodies: list, request_ids=None) -> list[dict]:
 
     def put(slot: int, result: dict) -> None:
         if not result["ok"]:
-            result["error"]["request_id"] = request_ids[slot]
+            for_request(result["error"], request_ids[slot])
         results[slot] = {"index": slot, **result}
 
     read = read_fix_requests(bodies)

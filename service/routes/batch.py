@@ -19,8 +19,9 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from service import schemas
+from service import schemas, tak
 from service.deps import OwnerDep, parse_json, request_id
+from service.renderings import batch_geojson
 from service.responses import JsonResponse
 from service.translate import fix_results
 
@@ -76,18 +77,18 @@ async def _raw_body(request: Request) -> bytes:
 RawBody = Annotated[bytes, Depends(_raw_body)]
 
 
-def _problems(raw: bytes) -> list:
-    """The ``problems`` list of a batch body; 400/422 as for any body when it is not one."""
+def _problems(raw: bytes) -> tuple[list, list]:
+    """The ``problems`` list and ``formats`` of a batch body; 400/422 as for any body when it is not one."""
     data = parse_json(raw)
     if type(data) is dict and data.keys() == {"problems"}:
         problems = data["problems"]
         if type(problems) is list and 0 < len(problems) <= MAX_PROBLEMS:
-            return problems
+            return problems, []
     try:
         schemas.BatchRequest.model_validate(data)
     except ValidationError as error:
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in error.errors()]) from None
-    return data["problems"]
+    return data["problems"], data.get("formats", [])
 
 
 @router.post("/fixes/batch", operation_id="fixes-batch", summary="Locate many emitters, each from its own measurements",
@@ -97,9 +98,11 @@ def _problems(raw: bytes) -> list:
              response_model=schemas.BatchResponse, responses=_ERRORS, openapi_extra={"requestBody": _request_body_schema()})
 def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonResponse:
     with gc_paused():
-        problems = _problems(raw)
+        problems, formats = _problems(raw)
         results = fix_results(problems, request_id(request))
         request.app.state.metrics.count("batch_problems_total", len(problems))
-        response = JsonResponse({"results": results})
+        request.app.state.metrics.batch_fixes(problems, results)
+        tak.push_batch(request.app, problems, results)
+        response = JsonResponse({"results": results, **({"geojson": batch_geojson(results, problems)} if formats else {})})
         del problems, results
     return response

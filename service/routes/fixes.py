@@ -13,9 +13,10 @@ import orjson
 from fastapi import APIRouter, Depends, Request
 from starlette.responses import Response
 
-from service import schemas
+from service import schemas, tak
 from service.deps import JsonBody, OwnerDep, get_owner, json_request_body, request_id
 from service.problems import MEDIA_TYPE
+from service.renderings import problem_renderings
 from service.responses import JsonResponse
 from service.translate import crlb_response
 
@@ -35,8 +36,13 @@ async def _owner_on_loop(request: Request) -> str:
 async def create_fix(body: JsonBody, http: Request, owner: str = Depends(_owner_on_loop)) -> Response:
     result = await http.app.state.fix_coalescer.solve(body, request_id(http))
     if result["ok"]:
-        return JsonResponse(result["fix"])
+        fix = result["fix"]
+        http.app.state.metrics.fix(fix["method"], "ok")
+        if type(body) is dict and body.get("cot") is not None:
+            tak.push_fix(http.app, fix, problem_renderings(body))
+        return JsonResponse(fix)
     error = result["error"]
+    http.app.state.metrics.fix(body.get("method", "auto") if type(body) is dict else "auto", error["code"])
     return Response(orjson.dumps(error), status_code=error["status"], media_type=MEDIA_TYPE)
 
 

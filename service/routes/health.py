@@ -5,17 +5,19 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse
 
+from service import schemas
 from service.problems import ApiError
 
 router = APIRouter(tags=["operations"])
 
 
-@router.get("/healthz", operation_id="operations-healthz", summary="Liveness")
+@router.get("/healthz", operation_id="operations-healthz", summary="Liveness", response_model=schemas.Health)
 def healthz() -> dict:
     return {"status": "ok"}
 
 
-@router.get("/readyz", operation_id="operations-readyz", summary="Readiness: the session store is reachable")
+@router.get("/readyz", operation_id="operations-readyz", summary="Readiness: the session store is reachable",
+            response_model=schemas.Readiness)
 def readyz(request: Request) -> dict:
     store = request.app.state.store
     try:

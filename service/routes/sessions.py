@@ -2,21 +2,54 @@
 
 from __future__ import annotations
 
+import asyncio
 from typing import Annotated
 
+import orjson
 from fastapi import APIRouter, Depends, Header, Query, Request
-from starlette.responses import Response
+from starlette.concurrency import run_in_threadpool
+from starlette.responses import Response, StreamingResponse
 
 from service import session_schemas as schemas
-from service import sessions
+from service import events, sessions, tak
 from service.deps import OwnerDep
 from service.responses import JsonResponse
+from service.problems import ApiError
 from service.schemas import Problem
 from service.stores import SessionStore
 
 
+class _CountedStore:
+    """The app's store, counting the failures of its operations in the store-errors metric.
+
+    A failure is anything a store method raises other than an :class:`ApiError` below 500 (which is a
+    decision about the request, such as the 404/409/412 that a session change raises inside ``update``).
+    """
+
+    def __init__(self, store: SessionStore, metrics):
+        self._store, self._metrics = store, metrics
+
+    def __getattr__(self, name):
+        found = getattr(self._store, name)
+        if not callable(found) or name.startswith("_"):
+            return found
+
+        def counted(*args, **kwargs):
+            try:
+                return found(*args, **kwargs)
+            except ApiError as error:
+                if error.status >= 500:
+                    self._metrics.store_errors.labels(name).inc()
+                raise
+            except Exception:
+                self._metrics.store_errors.labels(name).inc()
+                raise
+
+        return counted
+
+
 def get_store(request: Request) -> SessionStore:
-    return request.app.state.store
+    return _CountedStore(request.app.state.store, request.app.state.metrics)  # type: ignore[return-value]
 
 
 StoreDep = Annotated[SessionStore, Depends(get_store)]
@@ -27,6 +60,7 @@ _ETAG = {"ETag": {"description": "the session's version, quoted: send it back in
                   "schema": {"type": "string"}}}
 _NOT_FOUND = {404: {"model": Problem, "description": "no such session for this key (or it expired)"}}
 _INVALID = {422: {"model": Problem, "description": "invalid values, with the field path"}}
+_FORMATS = Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$", description="comma-separated renderings: cot, geojson")
 _BUSY = {503: {"model": Problem, "description": "the store could not serialise this write in time; retry"}}
 
 
@@ -58,9 +92,12 @@ def list_sessions(owner: OwnerDep, store: StoreDep,
 
 
 @router.get("/{session_id}", operation_id="sessions-get", summary="A session's state",
-            response_model=schemas.SessionState, responses={200: {"headers": _ETAG}, **_NOT_FOUND})
-def get_session(session_id: str, owner: OwnerDep, store: StoreDep) -> JsonResponse:
-    return _state_response(sessions.get(store, owner, session_id))
+            response_model=schemas.SessionState, responses={200: {"headers": _ETAG}, **_NOT_FOUND, **_INVALID})
+def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
+                formats: Annotated[str | None, _FORMATS] = None,
+                ) -> JsonResponse:
+    record = sessions.get(store, owner, session_id)
+    return _state_response(record, body=sessions.rendered_state(record, formats.split(",") if formats else ()))
 
 
 @router.post("/{session_id}/measurements", operation_id="sessions-post-measurements",
@@ -77,14 +114,70 @@ def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: O
                       ) -> JsonResponse:
     outcome = sessions.post_measurements(store, owner, session_id, batch, if_match)
     metrics = request.app.state.metrics
+    metrics.count("session_updates_total", 1 if outcome.applied else 0)
     metrics.count("session_epochs_applied_total", outcome.applied)
     metrics.count("session_epochs_duplicate_total", outcome.duplicates)
     body = {**sessions.state_body(outcome.record), "applied": outcome.applied, "duplicates": outcome.duplicates}
+    if outcome.applied:
+        events.bus(request.app).publish(session_id, outcome.record.version)
+        metrics.count("events_published_total")
+        tak.push_session(request.app, body, sessions.cot_options(outcome.record))
     return _state_response(outcome.record, body=body)
 
 
 @router.delete("/{session_id}", operation_id="sessions-delete", status_code=204, summary="End a session",
                response_class=Response, responses=_NOT_FOUND)
-def delete_session(session_id: str, owner: OwnerDep, store: StoreDep) -> Response:
+def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, request: Request) -> Response:
     sessions.delete(store, owner, session_id)
+    events.bus(request.app).publish(session_id, 0)
     return Response(status_code=204)
+
+
+
+@router.get("/{session_id}/events", operation_id="sessions-events", summary="Server-sent events: the state after "
+            "every applied update", response_class=StreamingResponse,
+            description="`text/event-stream`. The first event is the current state (unless `Last-Event-ID` "
+                        "already names its version); then one `state` event (`id`: the version, `data`: the "
+                        "SessionState JSON, with the renderings `formats` asks for) whenever a post applies "
+                        "epochs, on whichever replica (Redis pub/sub with the Redis store). States are "
+                        "cumulative: a client that falls behind, or reconnects with `Last-Event-ID`, gets the "
+                        "latest state, not every version in between. A `deleted` event ends the stream when "
+                        "the session is deleted or expires; comments keep an idle connection open.",
+            responses={200: {"description": "the event stream", "content": {"text/event-stream": {
+                "schema": {"type": "string"}}}}, **_NOT_FOUND})
+async def session_events(session_id: str, owner: OwnerDep, request: Request,
+                         formats: Annotated[str | None, _FORMATS] = None,
+                         last_event_id: Annotated[str | None, Header(description="the id (version) of the last "
+                                                                                 "event received")] = None,
+                         ) -> StreamingResponse:
+    store = get_store(request)
+    record = await run_in_threadpool(sessions.get, store, owner, session_id)
+    wanted = formats.split(",") if formats else ()
+    last = int(last_event_id) if last_event_id and last_event_id.strip().isdigit() else None
+
+    async def stream():
+        nonlocal record, last
+        subscription = events.bus(request.app).subscribe(session_id)
+        try:
+            await asyncio.wait_for(subscription.ready.wait(), 10.0)
+            record = await run_in_threadpool(store.get, owner, session_id) or record  # what came before listening
+            while True:
+                if last is None or record.version > last:
+                    body = orjson.dumps(sessions.rendered_state(record, wanted), option=orjson.OPT_SERIALIZE_NUMPY)
+                    yield events.sse("state", body, record.version)
+                    last = record.version
+                notice = await subscription.next(subscription.poll_s or events.HEARTBEAT_S)
+                if notice is None:
+                    yield b": keep-alive\n\n"
+                try:
+                    record = await run_in_threadpool(sessions.get, store, owner, session_id)
+                except ApiError as error:
+                    if error.status != 404:
+                        raise
+                    yield events.sse("deleted", orjson.dumps({"id": session_id}))
+                    return
+        finally:
+            await subscription.aclose()
+
+    return StreamingResponse(stream(), media_type="text/event-stream",
+                             headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})

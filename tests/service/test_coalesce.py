@@ -43,7 +43,7 @@ def _post_concurrently(client, bodies: list[dict]) -> list:
 
 
 def _without_request_id(body: dict) -> dict:
-    return {k: v for k, v in body.items() if k != "request_id"}
+    return {k: v for k, v in body.items() if k not in ("request_id", "instance")}
 
 
 def test_concurrent_fixes_equal_lone_fixes(make_client):

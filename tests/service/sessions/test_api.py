@@ -316,7 +316,10 @@ def test_metrics_count_applied_and_duplicate_epochs(client, epochs):
     session = create(client)
     post(client, session["id"], epochs[:10])
     post(client, session["id"], epochs[5:12])
+    from tests.service.test_metrics import sample
+
     text = client.get("/metrics").text
-    assert "passive_locator_sessions_created_total 1\n" in text
-    assert "passive_locator_session_epochs_applied_total 12\n" in text
-    assert "passive_locator_session_epochs_duplicate_total 5\n" in text
+    assert sample(text, "passive_locator_sessions_created_total") == 1
+    assert sample(text, "passive_locator_session_epochs_applied_total") == 12
+    assert sample(text, "passive_locator_session_epochs_duplicate_total") == 5
+    assert sample(text, "passive_locator_session_updates_total") == 2

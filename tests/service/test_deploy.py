@@ -1,0 +1,134 @@
+"""deploy/compose.yaml and deploy/kubernetes/ against the app, its settings and the Dockerfile.
+
+Drift caught here: a probe path that is not a route, an environment variable that no setting reads (a
+renamed setting leaves the manifests configuring nothing), an image tag or port that is not the one the
+Dockerfile and the package give, a pod that could run as root or write its root filesystem.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import pathlib
+import re
+
+import pytest
+import yaml
+
+from service.app import create_app
+from service.settings import Settings
+from service.tak import TakSettings
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+DEPLOY = ROOT / "deploy"
+IMAGE = f"passive-locator:{importlib.metadata.version('passive-locator')}"
+
+
+def _documents(path: pathlib.Path) -> list[dict]:
+    return [d for d in yaml.safe_load_all(path.read_text()) if d]
+
+
+@pytest.fixture(scope="module")
+def k8s() -> dict:
+    found = {}
+    for path in sorted(p for p in (DEPLOY / "kubernetes").glob("*.yaml") if p.name != "kustomization.yaml"):
+        for document in _documents(path):
+            found[(document["kind"], document["metadata"]["name"])] = document
+    return found
+
+
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    return _documents(DEPLOY / "compose.yaml")[0]
+
+
+@pytest.fixture(scope="module")
+def routes() -> set[str]:
+    return set(create_app(Settings(store="sqlite:///:memory:")).openapi()["paths"])
+
+
+def _dockerfile() -> dict:
+    text = (ROOT / "Dockerfile").read_text()
+    runtime = text.split("\nFROM ")[-1]
+    return {"expose": int(re.search(r"^EXPOSE (\d+)", runtime, re.M).group(1)),
+            "user": re.search(r"^USER (\d+):(\d+)", runtime, re.M).groups(),
+            "cmd_port": int(re.search(r'"--port", "(\d+)"', runtime).group(1))}
+
+
+#: Environment variables that are not service settings but are read by the service all the same.
+OTHER_ENV = {"PROMETHEUS_MULTIPROC_DIR"}
+
+
+def _known_env() -> set[str]:
+    names = set(OTHER_ENV)
+    for model in (Settings, TakSettings):
+        prefix = model.model_config["env_prefix"]
+        names |= {f"{prefix}{field}".upper() for field in model.model_fields}
+    return names
+
+
+def _container(k8s) -> dict:
+    return k8s[("Deployment", "passive-locator")]["spec"]["template"]["spec"]["containers"][0]
+
+
+def test_kustomization_lists_every_manifest():
+    kustomization = yaml.safe_load((DEPLOY / "kubernetes" / "kustomization.yaml").read_text())
+    listed = set(kustomization["resources"])
+    present = {p.name for p in (DEPLOY / "kubernetes").glob("*.yaml")} - {"kustomization.yaml"}
+    assert listed == present
+
+
+def test_probes_are_routes_and_the_pod_is_locked_down(k8s, routes):
+    container = _container(k8s)
+    assert container["livenessProbe"]["httpGet"]["path"] == "/healthz"
+    assert container["readinessProbe"]["httpGet"]["path"] == "/readyz"
+    for probe in ("livenessProbe", "readinessProbe", "startupProbe"):
+        assert container[probe]["httpGet"]["path"] in routes
+    pod = k8s[("Deployment", "passive-locator")]["spec"]["template"]["spec"]
+    uid, gid = _dockerfile()["user"]
+    assert pod["securityContext"]["runAsNonRoot"] is True
+    assert (str(pod["securityContext"]["runAsUser"]), str(pod["securityContext"]["runAsGroup"])) == (uid, gid)
+    assert container["securityContext"]["readOnlyRootFilesystem"] is True
+    assert container["securityContext"]["allowPrivilegeEscalation"] is False
+    assert {"cpu", "memory"} <= set(container["resources"]["requests"]) and container["resources"]["limits"]
+    assert any(m["mountPath"] == "/tmp" for m in container["volumeMounts"])  # multiprocess metrics, tempfiles
+
+
+def test_image_and_port_agree_with_the_dockerfile(k8s, compose):
+    docker = _dockerfile()
+    assert docker["expose"] == docker["cmd_port"]
+    container = _container(k8s)
+    assert container["image"] == IMAGE == compose["services"]["api"]["image"]
+    assert [p["containerPort"] for p in container["ports"]] == [docker["expose"]]
+    assert container["args"][container["args"].index("--port") + 1] == str(docker["expose"])
+    service = k8s[("Service", "passive-locator")]
+    assert service["spec"]["ports"][0]["targetPort"] == container["ports"][0]["name"]
+    assert all(p.endswith(f":{docker['expose']}") for p in compose["services"]["api"]["ports"])
+    assert f"127.0.0.1:{docker['expose']}/readyz" in " ".join(compose["services"]["api"]["healthcheck"]["test"])
+
+
+def test_every_environment_variable_is_a_setting(k8s, compose):
+    known = _known_env()
+    container = _container(k8s)
+    used = {e["name"] for e in container["env"]} | set(compose["services"]["api"]["environment"])
+    commented = set(re.findall(r"#\s*(PASSIVE_LOCATOR_[A-Z_]+):", (DEPLOY / "compose.yaml").read_text()))
+    assert used | commented <= known, sorted((used | commented) - known)
+    for entry in container["env"]:
+        ref = entry.get("valueFrom", {}).get("secretKeyRef")
+        if ref:
+            assert ref["key"] in k8s[("Secret", ref["name"])]["stringData"]
+    assert compose["services"]["api"]["environment"]["PASSIVE_LOCATOR_STORE"].startswith("redis://redis:")
+    store = next(e["value"] for e in container["env"] if e["name"] == "PASSIVE_LOCATOR_STORE")
+    assert store.startswith("redis://passive-locator-redis:") and ("Service", "passive-locator-redis") in k8s
+
+
+def test_redis_persists_with_aof_and_everything_has_a_healthcheck(k8s, compose):
+    redis_args = k8s[("StatefulSet", "passive-locator-redis")]["spec"]["template"]["spec"]["containers"][0]["args"]
+    for args in (redis_args, compose["services"]["redis"]["command"]):
+        assert args[args.index("--appendonly") + 1] == "yes"
+    assert compose["services"]["api"]["deploy"]["replicas"] == 2
+    assert all("healthcheck" in service for service in compose["services"].values())
+    assert compose["services"]["api"]["depends_on"]["redis"]["condition"] == "service_healthy"
+    assert compose["services"]["api"]["read_only"] is True
+    hpa = k8s[("HorizontalPodAutoscaler", "passive-locator")]
+    assert hpa["spec"]["scaleTargetRef"]["name"] == "passive-locator"
+    assert hpa["spec"]["minReplicas"] >= 2

@@ -1,0 +1,45 @@
+"""The README's curl examples work as written (run through the app, not a shell)."""
+
+from __future__ import annotations
+
+import pathlib
+import re
+
+ROOT = pathlib.Path(__file__).resolve().parents[2]
+BASE = "http://127.0.0.1:8080"
+
+
+def readme_requests() -> list[tuple[str, str, str | None]]:
+    """``(method, path, body)`` of every curl in the README's sh blocks, in order (streams left out)."""
+    text = (ROOT / "README.md").read_text()
+    found = []
+    for block in re.findall(r"```sh\n(.*?)```", text, re.S):
+        for segment in re.split(r"(?=\bcurl )", block)[1:]:
+            url = re.search(r'"?(http://[^\s"]+)', segment)[1]
+            body = re.search(r"-d '(.*?)'", segment, re.S)
+            if " -N " in segment or "/events" in url:
+                continue
+            found.append(("POST" if body else "GET", url[len(BASE):], body[1] if body else None))
+    return found
+
+
+def test_the_readme_examples_answer(client):
+    requests = readme_requests()
+    assert [(m, p.split("?")[0]) for m, p, _ in requests] == [
+        ("POST", "/v1/fixes"), ("POST", "/v1/fixes/batch"), ("POST", "/v1/crlb"), ("POST", "/v1/evaluations"),
+        ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$ID/measurements"), ("GET", "/v1/sessions/$ID")]
+    session_id = None
+    for method, path, body in requests:
+        if session_id is not None:
+            path = path.replace("$ID", session_id)
+        response = client.request(method, path, content=body, headers={"content-type": "application/json"})
+        assert response.status_code in (200, 201), (path, response.text)
+        answer = response.json()
+        if path == "/v1/sessions":
+            session_id = answer["id"]
+        if path == "/v1/fixes":
+            assert answer["cot"].startswith("<event") and answer["geojson"]["type"] == "FeatureCollection"
+        if path == "/v1/fixes/batch":
+            assert [r["ok"] for r in answer["results"]] == [True, False] and answer["geojson"]["features"]
+        if path.endswith("/measurements"):
+            assert answer["applied"] == 3
