@@ -194,30 +194,30 @@ def _polar_points(batch: ProblemBatch, stations: _RangeStations):
     exists : ndarray of bool, shape (B,)
     """
     is_line, elevation, sigma_elevation = batch.lines_of_sight()
-    rows = np.arange(batch.size)[:, None]
     station = batch.station_index
-    used = is_line & ~np.isnan(elevation) & stations.present[rows, station]
-    az = np.where(used, batch.values, 0.0)
-    el = np.where(used, elevation, 0.0)
-    range_m = stations.ranges_m[rows, station]
+    b, m = np.nonzero(is_line & ~np.isnan(elevation) & stations.present[np.arange(batch.size)[:, None], station])
+    exists = np.zeros(batch.size, dtype=bool)
+    exists[b] = True
+    az, el = batch.values[b, m], elevation[b, m]
+    s = station[b, m]
+    range_m = stations.ranges_m[b, s]
     sin_az, cos_az, sin_el, cos_el = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
     along = np.stack([cos_el * sin_az, cos_el * cos_az, sin_el], axis=-1)
     across_az = np.stack([cos_az, -sin_az, np.zeros_like(az)], axis=-1)
     across_el = np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1)
     basis = np.stack([along, across_az, across_el], axis=-1)
-    sd = np.stack([np.sqrt(stations.variances_m2[rows, station]),
-                   range_m * cos_el * np.where(used, batch.sigmas, 1.0),
-                   range_m * np.where(used, sigma_elevation, 1.0)], axis=-1)
+    sd = np.stack([np.sqrt(stations.variances_m2[b, s]), range_m * cos_el * batch.sigmas[b, m],
+                   range_m * sigma_elevation[b, m]], axis=-1)
     local = (basis * np.square(np.maximum(sd, 1e-9))[..., None, :]) @ np.swapaxes(basis, -1, -2)
-    stations_m, rotations = batch.measurement_stations()
-    to_common = np.swapaxes(rotations, -1, -2)
-    points = stations_m + np.einsum("bmij,bmj->bmi", to_common, range_m[..., None] * along)
-    covariances = to_common @ local @ rotations
-    information = np.linalg.inv(np.where(used[..., None, None], covariances, np.eye(3)))
-    information = np.where(used[..., None, None], information, 0.0)
-    exists = np.any(used, axis=-1)
+    rotation = batch.station_rotations[b, s]
+    to_common = np.swapaxes(rotation, -1, -2)
+    points = batch.stations_enu_m[b, s] + np.einsum("pij,pj->pi", to_common, range_m[:, None] * along)
+    information = np.zeros(batch.kinds.shape + (3, 3))
+    information[b, m] = np.linalg.inv(to_common @ local @ rotation)
+    weighted = np.zeros(batch.kinds.shape + (3,))
+    weighted[b, m] = np.einsum("pij,pj->pi", information[b, m], points)
     total = np.linalg.inv(np.where(exists[:, None, None], _column_sum(information), np.eye(3)))
-    point = np.einsum("bij,bj->bi", total, _column_sum(np.einsum("bmij,bmj->bmi", information, points)))
+    point = np.einsum("bij,bj->bi", total, _column_sum(weighted))
     return point, total, exists
 
 
@@ -261,30 +261,21 @@ def coarse_fix(batch: ProblemBatch) -> CoarseFixes:
     use_polar = ~use_ranges & has_polar
     position = np.where(use_ranges[:, None], np.concatenate([horizontal, height[:, None]], axis=-1),
                         np.where(use_polar[:, None], polar, np.nan))
-    method: list[str | None] = [None] * size
+    failed = np.zeros(size, dtype=bool)
+    failed[list(errors)] = True
+    method = np.where(failed, None, np.where(use_ranges, "range_difference", np.where(use_polar, "polar", None))).tolist()
+    sigmas = [{} if no else {"range_difference": rd, "polar": p} if rd_ok and p_ok else {"range_difference": rd}
+              if rd_ok else {"polar": p} if p_ok else {}
+              for no, rd_ok, p_ok, rd, p in zip(failed.tolist(), by_ranges.tolist(), has_polar.tolist(),
+                                                height_sd.tolist(), polar_sd.tolist())]
     warnings: list[tuple] = [()] * size
-    sigmas: list[dict] = [{} for _ in range(size)]
-    fallback = []  # mixes with no coarse form of their own: the closed-form start, one by one (rare)
-    for b, (ranges, polar_used, rd_sd, p_sd, rd_ok, p_ok, horizontal_ok, count, span) in enumerate(zip(
-            use_ranges.tolist(), use_polar.tolist(), height_sd.tolist(), polar_sd.tolist(), by_ranges.tolist(),
-            has_polar.tolist(), has_horizontal.tolist(), stations.count.tolist(), stations.height_span_m.tolist())):
-        if b in errors:
-            continue
-        if rd_ok:
-            sigmas[b]["range_difference"] = rd_sd
-        if p_ok:
-            sigmas[b]["polar"] = p_sd
-        if ranges:
-            method[b] = "range_difference"
-        elif polar_used:
-            method[b] = "polar"
-            if horizontal_ok and count >= 2:
-                why = ("the range-difference height is undefined" if not rd_ok else
-                       f"too little for the range-difference height (sigma {rd_sd:.0f} m against {p_sd:.0f} m "
-                       "from the polar points)")
-                warnings[b] = (FixWarning("coarse_polar_fallback", f"the range stations' heights span {span:.0f} m, {why}"),)
-        else:
-            fallback.append(b)
+    for b in np.flatnonzero(use_polar & has_horizontal & (stations.count >= 2) & ~failed).tolist():
+        why = ("the range-difference height is undefined" if not by_ranges[b] else
+               f"too little for the range-difference height (sigma {height_sd[b]:.0f} m against {polar_sd[b]:.0f} m "
+               "from the polar points)")
+        warnings[b] = (FixWarning("coarse_polar_fallback",
+                                  f"the range stations' heights span {stations.height_span_m[b]:.0f} m, {why}"),)
+    fallback = np.flatnonzero(~use_ranges & ~use_polar & ~failed).tolist()  # no coarse form: closed-form start (rare)
     for b in fallback:
         try:
             start, method[b] = initial_position(replace(batch.problem(b), initial_guess_enu_m=None))
