@@ -64,3 +64,16 @@ def line_of_sight_derivatives(azimuth_rad, elevation_rad):
     d_azimuth = np.stack([cos_el * cos_az, -cos_el * sin_az, np.zeros_like(sin_az)], axis=-1)
     d_elevation = np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1)
     return direction, d_azimuth, d_elevation
+
+
+def station_to_common(vectors, rotations):
+    """Vectors ``(..., 3)`` in each station's ENU rotated into the common frame: ``R^T v``.
+
+    Parameters
+    ----------
+    vectors : ndarray, shape (..., 3)
+    rotations : ndarray, shape (..., 3, 3)
+        Station ENU <- common ENU.
+    """
+    return (vectors[..., 0, None] * rotations[..., 0, :] + vectors[..., 1, None] * rotations[..., 1, :]
+            + vectors[..., 2, None] * rotations[..., 2, :])

@@ -37,6 +37,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.angles import station_to_common
 from core.batch import AZIMUTH, RANGE, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators.base import SolveOptions, register
@@ -147,7 +148,7 @@ class _AzimuthPlanes:
         stations, rotations = batch.measurement_stations()
         azimuth = np.where(self.used, batch.values, 0.0)
         cos_az, sin_az = np.cos(azimuth), np.sin(azimuth)
-        self.normals = cos_az[..., None] * rotations[..., 0, :] - sin_az[..., None] * rotations[..., 1, :]
+        self.normals = station_to_common(np.stack([cos_az, -sin_az, np.zeros_like(azimuth)], axis=-1), rotations)
         self.offsets = np.sum(self.normals * stations, axis=-1)
         self.origins, self.rotations = stations, rotations
         self.sigmas = np.where(self.used, batch.sigmas, 1.0)
@@ -211,7 +212,7 @@ def _polar_points(batch: ProblemBatch, stations: _RangeStations):
     local = (basis * np.square(np.maximum(sd, 1e-9))[..., None, :]) @ np.swapaxes(basis, -1, -2)
     rotation = batch.station_rotations[b, s]
     to_common = np.swapaxes(rotation, -1, -2)
-    points = batch.stations_enu_m[b, s] + np.einsum("pij,pj->pi", to_common, range_m[:, None] * along)
+    points = batch.stations_enu_m[b, s] + station_to_common(range_m[:, None] * along, rotation)
     information = np.zeros(batch.kinds.shape + (3, 3))
     information[b, m] = np.linalg.inv(to_common @ local @ rotation)
     weighted = np.zeros(batch.kinds.shape + (3,))

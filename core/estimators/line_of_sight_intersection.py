@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.angles import line_of_sight_derivatives, line_of_sight_enu
+from core.angles import line_of_sight_derivatives, line_of_sight_enu, station_to_common
 from core.batch import AZIMUTH, ELEVATION, RANGE, TOA, ProblemBatch
 from core.crlb import invert_information, normal_matrix, parameterisation
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
@@ -46,12 +46,6 @@ PARALLEL_SIN2 = 1e-10
 SAME_ORIGIN_M = 1e-3
 #: Smallest per-axis variance (m^2) given to a pair's point.
 MIN_VARIANCE_M2 = 1e-12
-
-
-def to_common(vectors, rotations):
-    """Station-ENU vectors ``(..., 3)`` in the common frame, ``R^T v`` with ``R`` ``(..., 3, 3)`` station <- common."""
-    return (vectors[..., 0, None] * rotations[..., 0, :] + vectors[..., 1, None] * rotations[..., 1, :]
-            + vectors[..., 2, None] * rotations[..., 2, :])
 
 
 def common_perpendicular(origins_enu_m, rotations, azimuth_rad, elevation_rad):
@@ -75,7 +69,7 @@ def common_perpendicular(origins_enu_m, rotations, azimuth_rad, elevation_rad):
         ``D = a c - b^2``, the squared sine of the angle between the lines
         (the feet are undefined where it is ~0).
     """
-    u, du_az, du_el = (np.moveaxis(to_common(v, rotations), (-2, -1), (0, 1))
+    u, du_az, du_el = (np.moveaxis(station_to_common(v, rotations), (-2, -1), (0, 1))
                        for v in line_of_sight_derivatives(azimuth_rad, elevation_rad))
     feet, jacobian, sin2 = _perpendicular(np.moveaxis(origins_enu_m, (-2, -1), (0, 1)), u,
                                           np.stack([du_az, du_el], axis=1))
@@ -272,7 +266,7 @@ def intersect_lines_of_sight(batch: ProblemBatch, options: SolveOptions | None =
         return Estimates(position_enu_m=np.full((size, 3), np.nan), covariance_source="propagated", errors=errors)
 
     directions, d_azimuth, d_elevation = (
-        np.moveaxis(to_common(v, lines.rotations), -1, 0)
+        np.moveaxis(station_to_common(v, lines.rotations), -1, 0)
         for v in line_of_sight_derivatives(lines.azimuth_rad, lines.elevation_rad))
     origins = np.moveaxis(lines.origins_enu_m, -1, 0)
 
@@ -316,7 +310,7 @@ def intersect_lines_of_sight(batch: ProblemBatch, options: SolveOptions | None =
         seen = np.einsum("tij,tj->ti", rotation, offset)
         seen_elevation = np.arctan2(seen[:, 2], np.hypot(seen[:, 0], seen[:, 1]))
         line_elevation = np.where(lines.has_elevation[b, k], lines.elevation_rad[b, k], seen_elevation)
-        direction = to_common(line_of_sight_enu(lines.azimuth_rad[b, k], line_elevation), rotation)
+        direction = station_to_common(line_of_sight_enu(lines.azimuth_rad[b, k], line_elevation), rotation)
         reference[b] = batch.onto_altitude(origin + distance[:, None] * direction, b)
 
     predicted, jac = model.predict(reference, zero_bias)
