@@ -152,8 +152,8 @@ class _AzimuthPlanes:
         self.offsets = np.sum(self.normals * stations, axis=-1)
         self.origins, self.rotations = stations, rotations
         self.sigmas = np.where(self.used, batch.sigmas, 1.0)
-        apart = np.any(stations[:, :, None, :] != stations[:, None, :, :], axis=-1)
-        self.distinct = np.any(apart & self.used[:, :, None] & self.used[:, None, :], axis=(-2, -1))
+        first = stations[np.arange(batch.size), np.argmax(self.used, axis=-1)]
+        self.distinct = np.any(self.used & np.any(stations != first[:, None, :], axis=-1), axis=-1)
 
     def intersection(self, height_m, previous_m=None):
         """``(x0, y0)`` ``(B, 2)`` at given heights, its covariance ``(B, 2, 2)``, and where it is determined.

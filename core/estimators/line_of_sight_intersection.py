@@ -46,6 +46,8 @@ PARALLEL_SIN2 = 1e-10
 SAME_ORIGIN_M = 1e-3
 #: Smallest per-axis variance (m^2) given to a pair's point.
 MIN_VARIANCE_M2 = 1e-12
+#: A batch is intersected in chunks of at most about this many pairs of lines (problems x pairs each).
+CHUNK_PAIRS = 1 << 18
 
 
 def common_perpendicular(origins_enu_m, rotations, azimuth_rad, elevation_rad):
@@ -258,12 +260,36 @@ def intersect_lines_of_sight(batch: ProblemBatch, options: SolveOptions | None =
         parallel; or the angles do not determine the position at the
         reference point.
     """
+    width = int(batch.bearing_index.max(initial=0)) + 1
+    rows = max(1, CHUNK_PAIRS // max(width * (width - 1) // 2, 1))
+    if batch.size <= rows:
+        return _intersect(batch)
+    parts = [_intersect(batch.take(np.arange(start, min(start + rows, batch.size))))
+             for start in range(0, batch.size, rows)]
+    errors = {start + b: e for start, part in zip(range(0, batch.size, rows), parts) for b, e in part.errors.items()}
+    return Estimates(
+        position_enu_m=np.concatenate([p.position_enu_m for p in parts]),
+        covariance_source="propagated",
+        covariance_enu_m2=np.concatenate([p.covariance_enu_m2 for p in parts]),
+        errors=errors,
+        iterations=np.ones(batch.size, dtype=int),
+        warnings=[w for p in parts for w in p.warnings],
+        coarse_position_enu_m=np.concatenate([p.coarse_position_enu_m for p in parts]),
+        details=[d for p in parts for d in p.details],
+    )
+
+
+def _intersect(batch: ProblemBatch) -> Estimates:
+    """:func:`intersect_lines_of_sight` of one chunk."""
     size = batch.size
     lines = _Lines(batch)
     first, second, pair_ok = _pairs(lines)
     errors = _pair_errors(batch, lines, pair_ok)
     if len(errors) == size:
-        return Estimates(position_enu_m=np.full((size, 3), np.nan), covariance_source="propagated", errors=errors)
+        return Estimates(position_enu_m=np.full((size, 3), np.nan), covariance_source="propagated",
+                         covariance_enu_m2=np.full((size, 3, 3), np.nan), errors=errors,
+                         iterations=np.ones(size, dtype=int), warnings=[()] * size,
+                         coarse_position_enu_m=np.full((size, 3), np.nan), details=[{} for _ in range(size)])
 
     directions, d_azimuth, d_elevation = (
         np.moveaxis(station_to_common(v, lines.rotations), -1, 0)

@@ -55,3 +55,19 @@ def test_each_problem_gets_what_it_gets_alone(method):
     assert sum(not isinstance(r, Exception) for r in together) >= 5
     for problem, batched in zip(every, together):
         assert_same_fix(batched, solve_batch([problem], method)[0])
+
+
+def test_los_intersection_chunks_do_not_change_results(monkeypatch):
+    import core.estimators.line_of_sight_intersection as los
+    from core.batch import ProblemBatch
+    from core.estimators import SolveOptions
+    from core.estimators.base import get_estimator
+
+    batch = ProblemBatch.from_problems(problems())
+    spec = get_estimator("los_intersection")
+    whole = spec.solve_batch(batch, SolveOptions())
+    monkeypatch.setattr(los, "CHUNK_PAIRS", 20)
+    chunked = spec.solve_batch(batch, SolveOptions())
+    assert whole.errors.keys() == chunked.errors.keys() and len(whole.errors) < batch.size
+    for b in range(batch.size):
+        assert_same_fix(whole.fix(b), chunked.fix(b))
