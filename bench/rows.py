@@ -285,7 +285,7 @@ def paper_002_row() -> Row:
     from core.crlb import information_at
     from core.estimators.line_of_sight_intersection import intersect_lines_of_sight
     from core.problem import Bearing, LocalPoint, build_problem
-    from core.simulation.measurements import draw_noise, true_values
+    from core.simulation.measurements import draw_noise, trial_batch, true_values
 
     stations = [("s1", LocalPoint(0.0, 0.0, 0.0)), ("s2", LocalPoint(10_000.0, 0.0, 0.0)),
                 ("s3", LocalPoint(5_000.0, 10_000.0, 0.0))]
@@ -297,8 +297,8 @@ def paper_002_row() -> Row:
     for east in grid:
         for north in grid:
             target_enu = np.array([east, north, 500.0])
-            result = intersect_lines_of_sight(problem, true_values(problem, target_enu)
-                                              + draw_noise(rng, problem.sigmas, size=1000))
+            result = intersect_lines_of_sight(trial_batch(problem, true_values(problem, target_enu)
+                                                          + draw_noise(rng, problem.sigmas, size=1000)))
             squared = np.sum((result.position_enu_m - target_enu) ** 2, axis=1)
             ratios.append(np.nanmean(squared) / np.trace(information_at(problem, target_enu).covariance_enu_m2[0]))
     elapsed = time.perf_counter() - t

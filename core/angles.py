@@ -42,3 +42,38 @@ def line_of_sight_enu(azimuth_rad, elevation_rad):
     el = np.asarray(elevation_rad, dtype=float)
     cos_el = np.cos(el)
     return np.stack([cos_el * np.sin(az), cos_el * np.cos(az), np.sin(el)], axis=-1)
+
+
+def line_of_sight_derivatives(azimuth_rad, elevation_rad):
+    """Unit lines of sight in a station's ENU frame and their derivatives by azimuth and elevation.
+
+    Parameters
+    ----------
+    azimuth_rad, elevation_rad : ndarray, shape (...)
+        As in :func:`line_of_sight_enu`.
+
+    Returns
+    -------
+    direction, d_azimuth, d_elevation : ndarray, shape (..., 3)
+        ``u`` (as :func:`line_of_sight_enu`), ``du/daz`` and ``du/del`` (per radian).
+    """
+    az = np.asarray(azimuth_rad, dtype=float)
+    el = np.asarray(elevation_rad, dtype=float)
+    sin_az, cos_az, sin_el, cos_el = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
+    direction = np.stack([cos_el * sin_az, cos_el * cos_az, sin_el], axis=-1)
+    d_azimuth = np.stack([cos_el * cos_az, -cos_el * sin_az, np.zeros_like(sin_az)], axis=-1)
+    d_elevation = np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1)
+    return direction, d_azimuth, d_elevation
+
+
+def station_to_common(vectors, rotations):
+    """Vectors ``(..., 3)`` in each station's ENU rotated into the common frame: ``R^T v``.
+
+    Parameters
+    ----------
+    vectors : ndarray, shape (..., 3)
+    rotations : ndarray, shape (..., 3, 3)
+        Station ENU <- common ENU.
+    """
+    return (vectors[..., 0, None] * rotations[..., 0, :] + vectors[..., 1, None] * rotations[..., 1, :]
+            + vectors[..., 2, None] * rotations[..., 2, :])

@@ -23,7 +23,7 @@ import numpy as np
 
 from core import geodesy
 from core.measurements import SPEED_OF_LIGHT_MPS, Kind
-from core.problem import CommonFrame, GeodeticPoint, Problem, local_axes
+from core.problem import CommonFrame, GeodeticPoint, Problem, local_axes, onto_altitude
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).
 PAD_KIND = Kind.RANGE
@@ -132,6 +132,27 @@ class ProblemBatch:
         known = self.valid & np.isfinite(sigmas)
         return np.where(known, 1.0 / (np.where(known, sigmas, 1.0) * self.unit_scale()) ** 2, 0.0)
 
+    def onto_altitude(self, positions_enu_m, rows=None) -> np.ndarray:
+        """Positions moved onto their problem's known altitude (unconstrained problems' unchanged).
+
+        Parameters
+        ----------
+        positions_enu_m : ndarray, shape (R, 3)
+        rows : ndarray of int, shape (R,), optional
+            The problem of each position (default: position ``b`` is problem ``b``).
+
+        Returns
+        -------
+        ndarray, shape (R, 3)
+        """
+        rows = np.arange(self.size) if rows is None else np.asarray(rows, dtype=np.intp)
+        out = np.array(positions_enu_m, dtype=float, copy=True)
+        chosen = np.flatnonzero(self.constrained[rows])
+        if chosen.size:
+            b = rows[chosen]
+            out[chosen] = onto_altitude(out[chosen], self.altitude_m[b], self.origin[b], self.geodetic[b])
+        return out
+
     def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
         """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement (computed once)."""
         return self._measurement_stations
@@ -170,6 +191,34 @@ class ProblemBatch:
             elevation[b, target] = self.values[b, m]
             sigma[b, target] = self.sigmas[b, m]
         return is_line, elevation, sigma
+
+    def by_bearing(self, values, kind: int, fill=np.nan) -> np.ndarray:
+        """Per-measurement values ``(B, M)`` of the ``kind`` rows (azimuth or elevation) laid out per bearing.
+
+        Returns
+        -------
+        ndarray, shape (B, K)
+            Column ``k`` is bearing ``k`` of each problem (request order);
+            ``fill`` where a problem has no such bearing or row. ``K`` is the
+            largest bearing count in the batch.
+        """
+        values = np.asarray(values)
+        b, m, k = self._bearing_rows[kind]
+        out = np.full((self.size, self._bearing_width), fill, dtype=np.result_type(values.dtype, np.asarray(fill)))
+        out[b, k] = values[b, m]
+        return out
+
+    @cached_property
+    def _bearing_width(self) -> int:
+        return int(self.bearing_index.max(initial=-1)) + 1
+
+    @cached_property
+    def _bearing_rows(self) -> dict:
+        out = {}
+        for kind in (AZIMUTH, ELEVATION):
+            b, m = np.nonzero(self.valid & (self.kinds == kind))
+            out[kind] = b, m, self.bearing_index[b, m]
+        return out
 
     def frame(self, b: int) -> CommonFrame:
         """The common frame of problem ``b``."""

@@ -31,7 +31,7 @@ from core.estimators import solve_batch
 from core.estimators.line_of_sight_intersection import intersect_lines_of_sight
 from core.measurements import Kind, predict
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, build_problem
-from core.simulation.measurements import draw_noise, true_values
+from core.simulation.measurements import draw_noise, trial_batch, true_values
 
 DEG = np.pi / 180.0
 
@@ -64,10 +64,11 @@ def paper_002_grid(step_m, trials, seed):
         for north in np.arange(0.0, 10_000.0 + 1.0, step_m):
             target = np.array([east, north, 500.0])
             noise = draw_noise(rng, problem.sigmas, size=trials)
-            result = intersect_lines_of_sight(problem, true_values(problem, target) + noise)
+            result = intersect_lines_of_sight(trial_batch(problem, true_values(problem, target) + noise))
             nearest = np.min(np.hypot(*(problem.stations_enu_m[:, :2] - target[:2]).T))
             if nearest == 0.0:
-                above.append((east, north, result.moved.mean(), bool(np.isfinite(result.position_enu_m).all())))
+                moved = np.mean([d.get("reference_station") is not None for d in result.details])
+                above.append((east, north, moved, bool(np.isfinite(result.position_enu_m).all())))
             if nearest <= 1_000.0:
                 continue
             trace = np.trace(information_at(problem, target).covariance_enu_m2[0])

@@ -21,6 +21,11 @@ stations use the polar points, else the usual closed-form start
 (:func:`core.estimators.start.initial_position`). ``details["coarse"]``
 says which ran.
 
+The coarse stage runs over the whole batch at once; the per-station polar
+points and their fusion are computed here for the batch (a private copy of
+``core.estimators.start.polar_points`` / ``fuse_points`` until the batched
+starts take them over).
+
 Fine stage: maximum likelihood (batched Levenberg-Marquardt, section 3) over
 every angle and range, started at the coarse point. The covariance is the
 inverse Fisher information at the fine fix.
@@ -32,15 +37,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.angles import station_to_common
+from core.batch import AZIMUTH, RANGE, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements
-from core.batch import ProblemBatch
 from core.estimators.base import SolveOptions, register
-from core.estimators.result import Estimates, FixWarning
 from core.estimators.ml import estimate_from
-from core.estimators.orthogonal_vector import orthogonal_rows
-from core.estimators.start import fuse_points, initial_position, polar_points
-from core.measurements import Kind
-from core.problem import Problem
+from core.estimators.result import Estimates, FixWarning
+from core.estimators.start import initial_position
 
 #: Relative eigenvalue below which the azimuth planes do not determine ``(x0, y0)``.
 RANK_TOLERANCE = 1e-9
@@ -53,196 +56,238 @@ MIN_HEIGHT_SPREAD_M = 1e-6
 
 
 @dataclass(frozen=True)
-class CoarseFix:
-    """The coarse stage's point and how it was obtained.
+class CoarseFixes:
+    """The coarse stage's points for a batch of B problems, and how each was obtained.
 
     Attributes
     ----------
-    position_enu_m : ndarray, shape (3,)
-    method : str
+    position_enu_m : ndarray, shape (B, 3)
+        NaN rows for problems in ``errors``.
+    method : list of str or None, length B
         ``"range_difference"`` (the paper's), ``"polar"``, or the name of the
         closed-form start used otherwise.
-    warnings : tuple of FixWarning
-    height_sigma_m : dict
+    warnings : list of tuple of FixWarning, length B
+    height_sigma_m : list of dict, length B
         First-order height sigmas of the candidates that were available.
+    errors : dict of int to LocalizationError
+        Problems without at least one bearing and one range, or whose mix has no coarse form.
     """
 
     position_enu_m: np.ndarray
-    method: str
-    warnings: tuple[FixWarning, ...] = ()
-    height_sigma_m: dict | None = None
+    method: list
+    warnings: list
+    height_sigma_m: list
+    errors: dict
 
 
-@dataclass(frozen=True)
+def _column_sum(values):
+    """``sum_m values[:, m]`` over axis 1, added in column order (padding adds exact zeros: no batch dependence)."""
+    total = np.zeros(values.shape[:1] + values.shape[2:])
+    for m in range(values.shape[1]):
+        total = total + values[:, m]
+    return total
+
+
 class _RangeStations:
-    """Stations with a range, each range fused over the station by inverse variance.
+    """Per station slot ``(B, N)``: whether it has a range, and its ranges fused by inverse variance."""
 
-    Attributes
-    ----------
-    index : ndarray of int, shape (S,)
-    positions_enu_m : ndarray, shape (S, 3)
-    ranges_m, sigmas_m : ndarray, shape (S,)
-    """
+    def __init__(self, batch: ProblemBatch):
+        is_range = batch.valid & (batch.kinds == RANGE)
+        weights = np.where(is_range, 1.0 / np.where(is_range, batch.sigmas, 1.0) ** 2, 0.0)
+        slots = (batch.size, batch.stations_enu_m.shape[1])
+        total, weighted, count = np.zeros(slots), np.zeros(slots), np.zeros(slots, dtype=int)
+        rows = np.arange(batch.size)
+        for m in range(batch.kinds.shape[1]):
+            station = batch.station_index[:, m]
+            total[rows, station] += weights[:, m]
+            weighted[rows, station] += weights[:, m] * np.where(is_range[:, m], batch.values[:, m], 0.0)
+            count[rows, station] += is_range[:, m]
+        self.present = count > 0
+        safe = np.where(self.present, total, 1.0)
+        self.ranges_m = np.where(self.present, weighted / safe, 0.0)
+        self.variances_m2 = 1.0 / safe
+        self.positions_enu_m = batch.stations_enu_m
+        self.count = np.count_nonzero(self.present, axis=-1)
+        heights = self.positions_enu_m[..., 2]
+        self.mean_height_m = _column_sum(np.where(self.present, heights, 0.0)) / np.maximum(self.count, 1)
+        self.height_span_m = (np.where(self.present, heights, -np.inf).max(axis=-1)
+                              - np.where(self.present, heights, np.inf).min(axis=-1))
 
-    index: np.ndarray
-    positions_enu_m: np.ndarray
-    ranges_m: np.ndarray
-    sigmas_m: np.ndarray
+    def height(self, horizontal_m, horizontal_covariance_m2):
+        """``z0`` ``(B,)`` from the differences of squared ranges, its first-order sigma, and where it is defined.
 
-    @classmethod
-    def from_problem(cls, problem: Problem) -> "_RangeStations":
-        is_range = problem.kinds == Kind.RANGE
-        index = np.unique(problem.station_index[is_range])
-        weights = 1.0 / problem.sigmas[is_range] ** 2
-        slot = np.searchsorted(index, problem.station_index[is_range])
-        total = np.bincount(slot, weights, minlength=index.size)
-        ranges = np.bincount(slot, weights * problem.values[is_range], minlength=index.size) / total
-        return cls(index, problem.stations_enu_m[index], ranges, 1.0 / np.sqrt(total))
+        ``q_k = R_k^2 - r_k^2 - z_k^2 = z^2 - 2 z z_k``; eliminating ``z^2`` by
+        the weighted mean over stations (weights ``1 / (2 R_k sigma_k)^2``)
+        leaves ``z = sum_k g_k q_k`` with ``g_k = -w_k (z_k - zbar) / (2 sum w (z - zbar)^2)``.
+        Undefined with fewer than two range stations or when their heights
+        coincide (weighted spread below :data:`MIN_HEIGHT_SPREAD_M`).
+        """
+        s = self.positions_enu_m
+        offset = horizontal_m[:, None, :] - s[..., :2]
+        q = self.ranges_m**2 - np.sum(offset**2, axis=-1) - s[..., 2] ** 2
+        q_sd = 2.0 * self.ranges_m * np.sqrt(self.variances_m2)
+        w = np.where(self.present, 1.0 / np.where(self.present, q_sd, 1.0) ** 2, 0.0)
+        total = _column_sum(w)
+        safe_total = np.where(total > 0, total, 1.0)
+        centred = s[..., 2] - (_column_sum(w * s[..., 2]) / safe_total)[:, None]
+        spread = _column_sum(w * centred**2)
+        defined = (self.count >= 2) & (spread > total * MIN_HEIGHT_SPREAD_M**2)
+        gain = -w * centred / (2.0 * np.where(defined, spread, 1.0))[:, None]
+        height = _column_sum(gain * q)
+        slope = _column_sum(gain[..., None] * (-2.0 * offset))
+        variance = (_column_sum((gain * q_sd) ** 2)
+                    + np.einsum("bi,bij,bj->b", slope, horizontal_covariance_m2, slope))
+        return height, np.sqrt(variance), defined
 
 
-@dataclass(frozen=True)
 class _AzimuthPlanes:
-    """The vertical plane of each azimuth, ``normals_enu . p = offsets_m`` (common frame).
+    """The vertical plane of each azimuth row ``(B, M)``, ``normals . p = offsets`` (common frame)."""
 
-    Attributes
-    ----------
-    normals_enu : ndarray, shape (K, 3)
-    offsets_m : ndarray, shape (K,)
-    origins_enu_m : ndarray, shape (K, 3)
-    rotations : ndarray, shape (K, 3, 3)
-    sigma_azimuth_rad : ndarray, shape (K,)
-    """
+    def __init__(self, batch: ProblemBatch):
+        self.used = batch.valid & (batch.kinds == AZIMUTH)
+        stations, rotations = batch.measurement_stations()
+        azimuth = np.where(self.used, batch.values, 0.0)
+        cos_az, sin_az = np.cos(azimuth), np.sin(azimuth)
+        self.normals = station_to_common(np.stack([cos_az, -sin_az, np.zeros_like(azimuth)], axis=-1), rotations)
+        self.offsets = np.sum(self.normals * stations, axis=-1)
+        self.origins, self.rotations = stations, rotations
+        self.sigmas = np.where(self.used, batch.sigmas, 1.0)
+        first = stations[np.arange(batch.size), np.argmax(self.used, axis=-1)]
+        self.distinct = np.any(self.used & np.any(stations != first[:, None, :], axis=-1), axis=-1)
 
-    normals_enu: np.ndarray
-    offsets_m: np.ndarray
-    origins_enu_m: np.ndarray
-    rotations: np.ndarray
-    sigma_azimuth_rad: np.ndarray
-
-    @classmethod
-    def from_problem(cls, problem: Problem) -> "_AzimuthPlanes":
-        los = problem.lines_of_sight()
-        rows, rhs, line, _ = orthogonal_rows(los, use_vertical=False, use_horizontal=True)
-        return cls(rows, rhs, los.origins_enu_m[line], los.rotations[line], los.sigma_azimuth_rad[line])
-
-    def intersection(self, height_m: float, previous_m=None):
-        """``(x0, y0)`` at a given height and its covariance ``(2, 2)``; None if undetermined.
+    def intersection(self, height_m, previous_m=None):
+        """``(x0, y0)`` ``(B, 2)`` at given heights, its covariance ``(B, 2, 2)``, and where it is determined.
 
         Rows are weighted by ``1 / (sigma_az rho_i)`` with horizontal distances
         ``rho_i`` from ``previous_m`` (unweighted without it).
         """
-        if np.unique(self.origins_enu_m, axis=0).shape[0] < 2:
-            return None
-        a = self.normals_enu[:, :2]
-        b = self.offsets_m - self.normals_enu[:, 2] * height_m
+        a = self.normals[..., :2]
+        b = self.offsets - self.normals[..., 2] * height_m[:, None]
         if previous_m is None:
-            noise_sd = np.ones(a.shape[0])
+            noise_sd = np.ones(self.used.shape)
         else:
-            seen = np.einsum("kij,kj->ki", self.rotations, np.append(previous_m, height_m) - self.origins_enu_m)
-            noise_sd = self.sigma_azimuth_rad * np.maximum(np.hypot(seen[:, 0], seen[:, 1]), 1.0)
-        w = 1.0 / noise_sd**2
-        normal = a.T @ (a * w[:, None])
+            point = np.concatenate([previous_m, height_m[:, None]], axis=-1)
+            seen = np.einsum("bmij,bmj->bmi", self.rotations, point[:, None, :] - self.origins)
+            noise_sd = self.sigmas * np.maximum(np.hypot(seen[..., 0], seen[..., 1]), 1.0)
+        w = np.where(self.used, 1.0 / noise_sd**2, 0.0)
+        normal = _column_sum(a[..., :, None] * (a * w[..., None])[..., None, :])
+        finite = np.all(np.isfinite(normal), axis=(-2, -1))
+        normal = np.where(finite[:, None, None], normal, np.eye(2))
         eig = np.linalg.eigvalsh(normal)
-        if eig[0] <= RANK_TOLERANCE * eig[-1]:
-            return None
-        covariance = np.linalg.inv(normal)
-        return covariance @ (a.T @ (w * b)), covariance
+        determined = self.distinct & finite & (eig[:, 0] > RANK_TOLERANCE * eig[:, -1])
+        covariance = np.linalg.inv(np.where(determined[:, None, None], normal, np.eye(2)))
+        right = _column_sum(a * (w * b)[..., None])
+        return np.einsum("bij,bj->bi", covariance, right), covariance, determined
 
 
-def _height_from_ranges(stations: _RangeStations, horizontal_m, horizontal_covariance_m2):
-    """``z0`` from the differences of squared ranges, and its first-order sigma.
+def _polar_points(batch: ProblemBatch, stations: _RangeStations):
+    """Per-station polar fixes ``s + R u`` fused by inverse covariance (batched ``start.polar_points`` /
+    ``start.fuse_points``).
 
-    ``q_k = R_k^2 - r_k^2 - z_k^2 = z^2 - 2 z z_k``; eliminating ``z^2`` by
-    the weighted mean over stations (weights ``1 / (2 R_k sigma_k)^2``) leaves
-    ``z = sum_k g_k q_k`` with ``g_k = -w_k (z_k - zbar) / (2 sum w (z - zbar)^2)``.
-
-    Returns None with fewer than two range stations or when their heights
-    coincide (weighted spread below :data:`MIN_HEIGHT_SPREAD_M`).
-    """
-    if stations.index.size < 2:
-        return None
-    s = stations.positions_enu_m
-    offset = horizontal_m - s[:, :2]
-    q = stations.ranges_m**2 - np.sum(offset**2, axis=1) - s[:, 2] ** 2
-    q_sd = 2.0 * stations.ranges_m * stations.sigmas_m
-    w = 1.0 / q_sd**2
-    centred = s[:, 2] - np.sum(w * s[:, 2]) / np.sum(w)
-    spread = np.sum(w * centred**2)
-    if spread <= np.sum(w) * MIN_HEIGHT_SPREAD_M**2:
-        return None
-    gain = -w * centred / (2.0 * spread)
-    height = float(gain @ q)
-    d_height_d_horizontal = gain @ (-2.0 * offset)
-    variance = float(np.sum((gain * q_sd) ** 2) + d_height_d_horizontal @ horizontal_covariance_m2 @ d_height_d_horizontal)
-    return height, np.sqrt(variance)
-
-
-def coarse_fix(problem: Problem) -> CoarseFix:
-    """The coarse stage of paper 003 for any number of stations.
-
-    Parameters
-    ----------
-    problem : Problem
-        Bearings (with or without elevation) and ranges; other measurements
-        are not used by this stage.
+    A polar point comes from each bearing with elevation at a station with a
+    range; its first-order covariance is ``R^2 sigma_el^2`` and
+    ``(R cos el)^2 sigma_az^2`` across the line of sight, ``sigma_R^2`` along it.
 
     Returns
     -------
-    CoarseFix
-
-    Raises
-    ------
-    TooFewMeasurements
-        Without at least one bearing and one range.
-    LocalizationError
-        When no coarse form applies to the mix.
+    point_enu_m : ndarray, shape (B, 3)
+    covariance_enu_m2 : ndarray, shape (B, 3, 3)
+    exists : ndarray of bool, shape (B,)
     """
-    if problem.count(Kind.AZIMUTH) == 0 or problem.count(Kind.RANGE) == 0:
-        raise TooFewMeasurements(
+    is_line, elevation, sigma_elevation = batch.lines_of_sight()
+    station = batch.station_index
+    b, m = np.nonzero(is_line & ~np.isnan(elevation) & stations.present[np.arange(batch.size)[:, None], station])
+    exists = np.zeros(batch.size, dtype=bool)
+    exists[b] = True
+    az, el = batch.values[b, m], elevation[b, m]
+    s = station[b, m]
+    range_m = stations.ranges_m[b, s]
+    sin_az, cos_az, sin_el, cos_el = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
+    along = np.stack([cos_el * sin_az, cos_el * cos_az, sin_el], axis=-1)
+    across_az = np.stack([cos_az, -sin_az, np.zeros_like(az)], axis=-1)
+    across_el = np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1)
+    basis = np.stack([along, across_az, across_el], axis=-1)
+    sd = np.stack([np.sqrt(stations.variances_m2[b, s]), range_m * cos_el * batch.sigmas[b, m],
+                   range_m * sigma_elevation[b, m]], axis=-1)
+    local = (basis * np.square(np.maximum(sd, 1e-9))[..., None, :]) @ np.swapaxes(basis, -1, -2)
+    rotation = batch.station_rotations[b, s]
+    to_common = np.swapaxes(rotation, -1, -2)
+    points = batch.stations_enu_m[b, s] + station_to_common(range_m[:, None] * along, rotation)
+    information = np.zeros(batch.kinds.shape + (3, 3))
+    information[b, m] = np.linalg.inv(to_common @ local @ rotation)
+    weighted = np.zeros(batch.kinds.shape + (3,))
+    weighted[b, m] = np.einsum("pij,pj->pi", information[b, m], points)
+    total = np.linalg.inv(np.where(exists[:, None, None], _column_sum(information), np.eye(3)))
+    point = np.einsum("bij,bj->bi", total, _column_sum(weighted))
+    return point, total, exists
+
+
+def coarse_fix(batch: ProblemBatch) -> CoarseFixes:
+    """The coarse stage of paper 003 for every problem of a batch, any number of stations.
+
+    Bearings (with or without elevation) and ranges are used; other
+    measurements only by the closed-form start of a mix that has no coarse
+    form of its own.
+
+    Returns
+    -------
+    CoarseFixes
+        With ``errors``: TooFewMeasurements without at least one bearing and
+        one range; a LocalizationError when no coarse form applies to the mix.
+    """
+    size = batch.size
+    n_azimuth = np.count_nonzero(batch.valid & (batch.kinds == AZIMUTH), axis=-1)
+    n_range = np.count_nonzero(batch.valid & (batch.kinds == RANGE), axis=-1)
+    errors: dict[int, LocalizationError] = {}
+    for b in np.flatnonzero((n_azimuth == 0) | (n_range == 0)).tolist():
+        errors[b] = TooFewMeasurements(
             "angle_range needs at least one bearing and one range (use ml for other mixes); got "
-            f"{problem.count(Kind.AZIMUTH)} bearing(s) and {problem.count(Kind.RANGE)} range(s)", ("measurements",))
-    range_stations = _RangeStations.from_problem(problem)
-    heights = range_stations.positions_enu_m[:, 2]
-    planes = _AzimuthPlanes.from_problem(problem)
-    horizontal = planes.intersection(float(np.mean(heights)))
-    by_ranges = None
-    if horizontal is not None:
+            f"{n_azimuth[b]} bearing(s) and {n_range[b]} range(s)", ("measurements",))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        stations = _RangeStations(batch)
+        planes = _AzimuthPlanes(batch)
+        horizontal, horizontal_covariance, has_horizontal = planes.intersection(stations.mean_height_m)
+        height, height_sd, by_ranges = stations.height(horizontal, horizontal_covariance)
+        by_ranges &= has_horizontal
         for _ in range(COARSE_ROUNDS):
-            by_ranges = _height_from_ranges(range_stations, *horizontal)
-            if by_ranges is None:
-                break
-            horizontal = planes.intersection(by_ranges[0], horizontal[0]) or horizontal
+            height, height_sd, _ = stations.height(horizontal, horizontal_covariance)
+            moved, moved_covariance, determined = planes.intersection(height, horizontal)
+            update = by_ranges & determined
+            horizontal = np.where(update[:, None], moved, horizontal)
+            horizontal_covariance = np.where(update[:, None, None], moved_covariance, horizontal_covariance)
+        polar, polar_covariance, has_polar = _polar_points(batch, stations)
+    polar_sd = np.sqrt(polar_covariance[:, 2, 2])
 
-    points, covariances = polar_points(problem)
-    polar = fuse_points(points, covariances) if len(points) else None
-    sigmas = {}
-    if by_ranges is not None:
-        sigmas["range_difference"] = float(by_ranges[1])
-    if polar is not None:
-        sigmas["polar"] = float(np.sqrt(polar[1][2, 2]))
-
-    if by_ranges is not None and (polar is None or sigmas["range_difference"] <= sigmas["polar"]):
-        return CoarseFix(np.append(horizontal[0], by_ranges[0]), "range_difference", (), sigmas)
-    if polar is not None:
-        warnings = ()
-        if horizontal is not None and range_stations.index.size >= 2:
-            spread = float(np.ptp(heights))
-            if by_ranges is None:
-                why = "the range-difference height is undefined"
-            else:
-                why = (f"too little for the range-difference height (sigma {sigmas['range_difference']:.0f} m "
-                       f"against {sigmas['polar']:.0f} m from the polar points)")
-            warnings = (FixWarning("coarse_polar_fallback",
-                                   f"the range stations' heights span {spread:.0f} m, {why}"),)
-        return CoarseFix(polar[0], "polar", warnings, sigmas)
-    try:
-        position, name = initial_position(replace(problem, initial_guess_enu_m=None))
-    except LocalizationError as error:
-        raise type(error)(
-            "angle_range has no coarse fix for this mix: it needs azimuths from 2 stations with ranges from 2 "
-            "stations at different heights, or a bearing with elevation and a range at one station, or bearings "
-            f"that fix a point on their own ({error.message})", error.loc) from error
-    return CoarseFix(np.asarray(position, dtype=float), name, (), sigmas)
+    use_ranges = by_ranges & (~has_polar | (height_sd <= polar_sd))
+    use_polar = ~use_ranges & has_polar
+    position = np.where(use_ranges[:, None], np.concatenate([horizontal, height[:, None]], axis=-1),
+                        np.where(use_polar[:, None], polar, np.nan))
+    failed = np.zeros(size, dtype=bool)
+    failed[list(errors)] = True
+    method = np.where(failed, None, np.where(use_ranges, "range_difference", np.where(use_polar, "polar", None))).tolist()
+    sigmas = [{} if no else {"range_difference": rd, "polar": p} if rd_ok and p_ok else {"range_difference": rd}
+              if rd_ok else {"polar": p} if p_ok else {}
+              for no, rd_ok, p_ok, rd, p in zip(failed.tolist(), by_ranges.tolist(), has_polar.tolist(),
+                                                height_sd.tolist(), polar_sd.tolist())]
+    warnings: list[tuple] = [()] * size
+    for b in np.flatnonzero(use_polar & has_horizontal & (stations.count >= 2) & ~failed).tolist():
+        why = ("the range-difference height is undefined" if not by_ranges[b] else
+               f"too little for the range-difference height (sigma {height_sd[b]:.0f} m against {polar_sd[b]:.0f} m "
+               "from the polar points)")
+        warnings[b] = (FixWarning("coarse_polar_fallback",
+                                  f"the range stations' heights span {stations.height_span_m[b]:.0f} m, {why}"),)
+    fallback = np.flatnonzero(~use_ranges & ~use_polar & ~failed).tolist()  # no coarse form: closed-form start (rare)
+    for b in fallback:
+        try:
+            start, method[b] = initial_position(replace(batch.problem(b), initial_guess_enu_m=None))
+            position[b] = start
+        except LocalizationError as error:
+            errors[b] = type(error)(
+                "angle_range has no coarse fix for this mix: it needs azimuths from 2 stations with ranges from 2 "
+                "stations at different heights, or a bearing with elevation and a range at one station, or "
+                f"bearings that fix a point on their own ({error.message})", error.loc)
+    position[list(errors)] = np.nan
+    return CoarseFixes(position, method, warnings, sigmas, errors)
 
 
 @register("angle_range", "bearings and ranges: analytic coarse fix, then ML from it (paper 003)")
@@ -253,18 +298,8 @@ def angle_range(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     the coarse form used. A problem without at least one bearing and one
     range, or whose mix has no coarse form, carries a LocalizationError.
     """
-    size = batch.size
-    starts = np.full((size, 3), np.nan)
-    failures: dict[int, LocalizationError] = {}
-    coarse: dict[int, CoarseFix] = {}
-    for b in range(size):
-        try:
-            coarse[b] = coarse_fix(batch.problem(b))
-            starts[b] = coarse[b].position_enu_m
-        except LocalizationError as error:
-            failures[b] = error
-    fine = estimate_from(batch, starts, options, [None] * size, failures)
-    warnings = [coarse[b].warnings if b in coarse else () for b in range(size)]
-    details = [{"coarse": coarse[b].method, "coarse_height_sigma_m": coarse[b].height_sigma_m, "fine": "ml"}
-               if b in coarse else {} for b in range(size)]
-    return replace(fine, coarse_position_enu_m=starts, warnings=warnings, details=details)
+    coarse = coarse_fix(batch)
+    fine = estimate_from(batch, coarse.position_enu_m, options, [None] * batch.size, coarse.errors)
+    details = [{"coarse": name, "coarse_height_sigma_m": sigma, "fine": "ml"} if name is not None else {}
+               for name, sigma in zip(coarse.method, coarse.height_sigma_m)]
+    return replace(fine, coarse_position_enu_m=coarse.position_enu_m, warnings=coarse.warnings, details=details)

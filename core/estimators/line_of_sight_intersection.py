@@ -17,27 +17,24 @@ too close to that line's station for linearisation: the pass is linearised
 instead at the point of that station's measured line of sight at the same
 distance ``|X_s - s_p|``.
 
-Everything is vectorised over a leading trial axis ``T``: the geometry
-(stations, rotations, sigmas) is the problem's, the measured values may be a
-``(T, M)`` batch of noise draws, so a Monte Carlo over one scenario is one
-call of :func:`intersect_lines_of_sight`. Only angles are used; ranges and
-TOAs in the problem are ignored by this method (they still enter the fix's
+Everything is vectorised over the problems of a :class:`~core.batch.ProblemBatch`
+(a Monte Carlo over one geometry is one batch:
+:func:`core.simulation.measurements.trial_batch`). Only angles are used; ranges
+and TOAs in a problem are ignored by this method (they still enter the fix's
 residuals and CRLB).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from itertools import combinations
-
 import numpy as np
 
+from core.angles import line_of_sight_derivatives, line_of_sight_enu, station_to_common
+from core.batch import AZIMUTH, ELEVATION, RANGE, TOA, ProblemBatch
 from core.crlb import invert_information, normal_matrix, parameterisation
-from core.errors import TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import Estimate, SolveOptions, per_problem, register
-from core.estimators.result import FixWarning
-from core.measurements import Kind, predict, residuals
-from core.problem import Problem
+from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
+from core.estimators.base import SolveOptions, register
+from core.estimators.result import Estimates, FixWarning
+from core.measurements import MeasurementModel
 
 #: ``R_p`` (largest normalised angle residual at ``X_s``) from which the
 #: linearisation point is moved onto the worst line of sight (paper: 6).
@@ -49,33 +46,8 @@ PARALLEL_SIN2 = 1e-10
 SAME_ORIGIN_M = 1e-3
 #: Smallest per-axis variance (m^2) given to a pair's point.
 MIN_VARIANCE_M2 = 1e-12
-
-
-def line_of_sight_derivatives(azimuth_rad, elevation_rad, rotations):
-    """Unit lines of sight and their derivatives with respect to azimuth and elevation.
-
-    Parameters
-    ----------
-    azimuth_rad, elevation_rad : ndarray, shape (...)
-        Compass azimuth and elevation in each station's own ENU.
-    rotations : ndarray, shape (..., 3, 3)
-        Station ENU <- common ENU.
-
-    Returns
-    -------
-    direction, d_azimuth, d_elevation : ndarray, shape (..., 3)
-        ``u``, ``du/daz`` and ``du/del`` in the common frame (per radian).
-    """
-    sin_az, cos_az = np.sin(azimuth_rad), np.cos(azimuth_rad)
-    sin_el, cos_el = np.sin(elevation_rad), np.cos(elevation_rad)
-    zero = np.zeros_like(sin_az)
-    local = np.stack([
-        np.stack([cos_el * sin_az, cos_el * cos_az, sin_el], axis=-1),
-        np.stack([cos_el * cos_az, -cos_el * sin_az, zero], axis=-1),
-        np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1),
-    ])
-    common = (local[..., None, :] @ rotations)[..., 0, :]
-    return common[0], common[1], common[2]
+#: A batch is intersected in chunks of at most about this many pairs of lines (problems x pairs each).
+CHUNK_PAIRS = 1 << 18
 
 
 def common_perpendicular(origins_enu_m, rotations, azimuth_rad, elevation_rad):
@@ -99,47 +71,56 @@ def common_perpendicular(origins_enu_m, rotations, azimuth_rad, elevation_rad):
         ``D = a c - b^2``, the squared sine of the angle between the lines
         (the feet are undefined where it is ~0).
     """
-    u, du_az, du_el = line_of_sight_derivatives(azimuth_rad, elevation_rad, rotations)
-    u1, u2 = u[..., 0, :], u[..., 1, :]
-    w = origins_enu_m[..., 0, :] - origins_enu_m[..., 1, :]
-    a = np.sum(u1 * u1, axis=-1)
-    b = np.sum(u1 * u2, axis=-1)
-    c = np.sum(u2 * u2, axis=-1)
-    d = np.sum(u1 * w, axis=-1)
-    e = np.sum(u2 * w, axis=-1)
+    u, du_az, du_el = (np.moveaxis(station_to_common(v, rotations), (-2, -1), (0, 1))
+                       for v in line_of_sight_derivatives(azimuth_rad, elevation_rad))
+    feet, jacobian, sin2 = _perpendicular(np.moveaxis(origins_enu_m, (-2, -1), (0, 1)), u,
+                                          np.stack([du_az, du_el], axis=1))
+    return np.moveaxis(feet, (0, 1), (-2, -1)), np.moveaxis(jacobian, (0, 1, 2), (-3, -2, -1)), sin2
+
+
+def _perpendicular(origins, directions, tangents):
+    """:func:`common_perpendicular`, component-first: the arithmetic runs on whole planes of pairs.
+
+    Parameters
+    ----------
+    origins, directions : ndarray, shape (2, 3, ...)
+        Per line of the pair: station and unit line of sight (common frame).
+    tangents : ndarray, shape (2, 2, 3, ...)
+        Per line: ``du/daz`` and ``du/del``.
+
+    Returns
+    -------
+    feet : ndarray, shape (2, 3, ...)
+    jacobian : ndarray, shape (2, 3, 4, ...)
+    sin2 : ndarray, shape (...)
+    """
+    u1, u2 = directions[0], directions[1]
+    w = origins[0] - origins[1]
+    a = np.sum(u1 * u1, axis=0)
+    b = np.sum(u1 * u2, axis=0)
+    c = np.sum(u2 * u2, axis=0)
+    d = np.sum(u1 * w, axis=0)
+    e = np.sum(u2 * w, axis=0)
     sin2 = a * c - b * b
-    safe = np.where(sin2 > 0, sin2, 1.0)[..., None]
-    t1 = (b * e - c * d) / safe[..., 0]
-    t2 = (a * e - b * d) / safe[..., 0]
-    feet = np.stack([origins_enu_m[..., 0, :] + t1[..., None] * u1,
-                     origins_enu_m[..., 1, :] + t2[..., None] * u2], axis=-2)
+    safe = np.where(sin2 > 0, sin2, 1.0)
+    t1 = (b * e - c * d) / safe
+    t2 = (a * e - b * d) / safe
+    feet = np.stack([origins[0] + t1 * u1, origins[1] + t2 * u2])
 
-    def x(scalar):
-        return scalar[..., None]
+    d_sin2_du1 = 2 * c * u1 - 2 * b * u2
+    d_sin2_du2 = 2 * a * u2 - 2 * b * u1
+    dt1_du1 = (e * u2 - c * w - t1 * d_sin2_du1) / safe
+    dt1_du2 = (e * u1 + b * w - 2 * d * u2 - t1 * d_sin2_du2) / safe
+    dt2_du1 = (2 * e * u1 - d * u2 - b * w - t2 * d_sin2_du1) / safe
+    dt2_du2 = (a * w - d * u1 - t2 * d_sin2_du2) / safe
 
-    d_sin2_du1 = 2 * x(c) * u1 - 2 * x(b) * u2
-    d_sin2_du2 = 2 * x(a) * u2 - 2 * x(b) * u1
-    dt1_du1 = (x(e) * u2 - x(c) * w - x(t1) * d_sin2_du1) / safe
-    dt1_du2 = (x(e) * u1 + x(b) * w - 2 * x(d) * u2 - x(t1) * d_sin2_du2) / safe
-    dt2_du1 = (2 * x(e) * u1 - x(d) * u2 - x(b) * w - x(t2) * d_sin2_du1) / safe
-    dt2_du2 = (x(a) * w - x(d) * u1 - x(t2) * d_sin2_du2) / safe
-
-    # columns: derivative of u_1 (az_1, el_1), then of u_2 (az_2, el_2)
-    v1 = np.stack([du_az[..., 0, :], du_el[..., 0, :]], axis=-2)
-    v2 = np.stack([du_az[..., 1, :], du_el[..., 1, :]], axis=-2)
-
-    def dot(gradient, tangents):
-        return np.sum(gradient[..., None, :] * tangents, axis=-1)
-
-    foot1 = np.concatenate([
-        u1[..., :, None] * dot(dt1_du1, v1)[..., None, :] + t1[..., None, None] * np.swapaxes(v1, -1, -2),
-        u1[..., :, None] * dot(dt1_du2, v2)[..., None, :],
-    ], axis=-1)
-    foot2 = np.concatenate([
-        u2[..., :, None] * dot(dt2_du1, v1)[..., None, :],
-        u2[..., :, None] * dot(dt2_du2, v2)[..., None, :] + t2[..., None, None] * np.swapaxes(v2, -1, -2),
-    ], axis=-1)
-    return feet, np.stack([foot1, foot2], axis=-3), sin2
+    v1, v2 = tangents[0], tangents[1]  # (az, el) x component
+    jacobian = np.empty((2, 3, 4) + sin2.shape)
+    jacobian[0, :, 0:2] = u1[:, None] * np.sum(dt1_du1 * v1, axis=1) + t1 * np.swapaxes(v1, 0, 1)
+    jacobian[0, :, 2:4] = u1[:, None] * np.sum(dt1_du2 * v2, axis=1)
+    jacobian[1, :, 0:2] = u2[:, None] * np.sum(dt2_du1 * v1, axis=1)
+    jacobian[1, :, 2:4] = u2[:, None] * np.sum(dt2_du2 * v2, axis=1) + t2 * np.swapaxes(v2, 0, 1)
+    return feet, jacobian, sin2
 
 
 def fuse_feet(feet_enu_m, jacobian, angle_variances_rad2):
@@ -161,232 +142,259 @@ def fuse_feet(feet_enu_m, jacobian, angle_variances_rad2):
     variance_enu_m2 : ndarray, shape (..., 3)
         Per-axis variances (the paper's ``sigma_x^2, sigma_y^2, sigma_z^2``).
     """
-    r = angle_variances_rad2[..., None, :]
-    a1, a2 = jacobian[..., 0, :, :], jacobian[..., 1, :, :]
-    p = np.sum(a1 * a1 * r, axis=-1)
-    q = np.sum(a1 * a2 * r, axis=-1)
-    s = np.sum(a2 * a2 * r, axis=-1)
+    point, variance = _fuse(np.moveaxis(feet_enu_m, (-2, -1), (0, 1)),
+                            np.moveaxis(jacobian, (-3, -2, -1), (0, 1, 2)), np.moveaxis(angle_variances_rad2, -1, 0))
+    return np.moveaxis(point, 0, -1), np.moveaxis(variance, 0, -1)
+
+
+def _fuse(feet, jacobian, variances):
+    """:func:`fuse_feet`, component-first: feet ``(2, 3, ...)``, jacobian ``(2, 3, 4, ...)``, variances
+    ``(4, ...)``; returns point and per-axis variance ``(3, ...)``."""
+    a1, a2 = jacobian[0], jacobian[1]
+    p = np.sum(a1 * a1 * variances, axis=1)
+    q = np.sum(a1 * a2 * variances, axis=1)
+    s = np.sum(a2 * a2 * variances, axis=1)
     spread = p + s - 2 * q
     degenerate = spread <= 1e-12 * (p + s)
     safe = np.where(degenerate, 1.0, spread)
-    x1, x2 = feet_enu_m[..., 0, :], feet_enu_m[..., 1, :]
+    x1, x2 = feet[0], feet[1]
     point = np.where(degenerate, 0.5 * (x1 + x2), ((s - q) * x1 + (p - q) * x2) / safe)
     variance = np.where(degenerate, 0.5 * (p + s), (p * s - q * q) / safe)
     return point, np.maximum(variance, MIN_VARIANCE_M2)
 
 
-@dataclass(frozen=True)
-class IntersectionBatch:
-    """Line-of-sight intersection of one geometry over ``T`` sets of measured values.
+class _Lines:
+    """The lines of sight of B problems laid out per bearing, ``(B, K)`` (see :meth:`ProblemBatch.by_bearing`).
 
     Attributes
     ----------
-    position_enu_m : ndarray, shape (T, 3)
-        After the extended-WLS pass (NaN where ``valid`` is False).
-    covariance_enu_m2 : ndarray, shape (T, 3, 3)
-        ``(K^T R^-1 K)^-1`` at the linearisation point.
-    coarse_position_enu_m : ndarray, shape (T, 3)
-        ``X_s``, the inverse-variance combination of the pairs' points.
-    coarse_variance_enu_m2 : ndarray, shape (T, 3)
-        Its per-axis variances.
-    reference_enu_m : ndarray, shape (T, 3)
-        Where the pass was linearised (``X_s`` unless moved).
-    reference_ratio : ndarray, shape (T,)
-        ``R_p`` at ``X_s``.
-    reference_line : ndarray of int, shape (T,)
-        Line of sight giving ``R_p``.
-    moved : ndarray of bool, shape (T,)
-        ``R_p >= 6``: the reference point was moved onto that line.
-    pairs_used : ndarray of int, shape (T,)
-        Pairs that gave a point (not parallel, distinct stations).
-    pairs_total : int
-    valid : ndarray of bool, shape (T,)
-        A usable pair existed and the pass was observable.
+    exists, has_elevation : ndarray of bool, shape (B, K)
+    station : ndarray of int, shape (B, K)
+    origins_enu_m : ndarray, shape (B, K, 3)
+    rotations : ndarray, shape (B, K, 3, 3)
+    azimuth_rad, elevation_rad : ndarray, shape (B, K)
+        Elevation 0 where a line has none.
+    sigma_azimuth_rad, sigma_elevation_rad : ndarray, shape (B, K)
     """
 
-    position_enu_m: np.ndarray
-    covariance_enu_m2: np.ndarray
-    coarse_position_enu_m: np.ndarray
-    coarse_variance_enu_m2: np.ndarray
-    reference_enu_m: np.ndarray
-    reference_ratio: np.ndarray
-    reference_line: np.ndarray
-    moved: np.ndarray
-    pairs_used: np.ndarray
-    pairs_total: int
-    valid: np.ndarray
+    def __init__(self, batch: ProblemBatch):
+        self.exists = batch.by_bearing(np.ones(batch.kinds.shape, dtype=bool), AZIMUTH, False)
+        self.has_elevation = batch.by_bearing(np.ones(batch.kinds.shape, dtype=bool), ELEVATION, False)
+        self.station = batch.by_bearing(batch.station_index, AZIMUTH, 0)
+        rows = np.arange(batch.size)[:, None]
+        self.origins_enu_m = batch.stations_enu_m[rows, self.station]
+        self.rotations = batch.station_rotations[rows, self.station]
+        self.azimuth_rad = batch.by_bearing(batch.values, AZIMUTH, 0.0)
+        self.elevation_rad = batch.by_bearing(batch.values, ELEVATION, 0.0)
+        self.sigma_azimuth_rad = batch.by_bearing(batch.sigmas, AZIMUTH, 1.0)
+        self.sigma_elevation_rad = batch.by_bearing(batch.sigmas, ELEVATION, 1.0)
 
 
-def _pairs(los):
-    """Pairs of lines with elevation from distinct station positions, as index arrays ``(P,)``."""
-    with_elevation = np.flatnonzero(los.has_elevation)
-    stations = np.unique(los.station_index[with_elevation])
-    if stations.size < 2:
-        raise TooFewMeasurements(
+def _pairs(lines: _Lines):
+    """Every pair ``i < j`` of bearing columns ``(P,)``, and which pairs join two lines with elevation
+    from distinct station positions ``(B, P)``."""
+    width = lines.exists.shape[1]
+    first, second = np.triu_indices(width, k=1)
+    both = lines.has_elevation[:, first] & lines.has_elevation[:, second]
+    apart = np.linalg.norm(lines.origins_enu_m[:, first] - lines.origins_enu_m[:, second], axis=-1) > SAME_ORIGIN_M
+    return first, second, both & apart
+
+
+def _pair_errors(batch: ProblemBatch, lines: _Lines, pair_ok) -> dict[int, LocalizationError]:
+    """Problems whose lines of sight give no pair, with the documented errors."""
+    has_el = lines.has_elevation
+    same_station = lines.station[:, :, None] == lines.station[:, None, :]
+    earlier = np.tril(np.ones((has_el.shape[1],) * 2, dtype=bool), k=-1)
+    repeated = np.any(same_station & earlier & has_el[:, None, :], axis=-1)
+    with_elevation = np.count_nonzero(has_el, axis=-1)
+    stations = np.count_nonzero(has_el & ~repeated, axis=-1)
+    errors: dict[int, LocalizationError] = {}
+    for b in np.flatnonzero(stations < 2).tolist():
+        errors[b] = TooFewMeasurements(
             "los_intersection needs bearings with elevation from at least 2 stations; got "
-            f"{with_elevation.size} such bearing(s) from {stations.size} station(s)", ("measurements",))
-    first, second = [], []
-    for i, j in combinations(with_elevation, 2):
-        if np.linalg.norm(los.origins_enu_m[i] - los.origins_enu_m[j]) > SAME_ORIGIN_M:
-            first.append(i)
-            second.append(j)
-    if not first:
-        raise UnobservableGeometry("los_intersection: every line of sight with elevation starts at one point")
-    return np.array(first), np.array(second)
+            f"{with_elevation[b]} such bearing(s) from {stations[b]} station(s)", ("measurements",))
+    for b in np.flatnonzero((stations >= 2) & ~np.any(pair_ok, axis=-1)).tolist():
+        errors[b] = UnobservableGeometry("los_intersection: every line of sight with elevation starts at one point")
+    return errors
 
 
-def intersect_lines_of_sight(problem: Problem, values=None) -> IntersectionBatch:
-    """The common-perpendicular fix of one geometry for a batch of measured values.
+def _sum_over_pairs(values, used):
+    """``sum_p values[:, p]`` over used pairs, added in pair order (a problem's sums do not depend on the batch)."""
+    total = np.zeros(values.shape[:1] + values.shape[2:])
+    for p in range(values.shape[1]):
+        total = total + np.where(used[:, p, None], values[:, p], 0.0)
+    return total
+
+
+def intersect_lines_of_sight(batch: ProblemBatch, options: SolveOptions | None = None) -> Estimates:
+    """The common-perpendicular fix of every problem of a batch.
+
+    A known altitude constrains the extended-WLS pass to the local
+    east/north at the reference point. The covariance is that pass's
+    ``(K^T R^-1 K)^-1`` at the linearisation point; ``coarse_position_enu_m``
+    is ``X_s``, the pairs' combined point before it.
 
     Parameters
     ----------
-    problem : Problem
-        Stations, kinds, sigmas and frame; a known altitude constrains the
-        extended-WLS pass to the local east/north at the reference point.
-    values : ndarray, shape (T, M), optional
-        Measured values in problem units (rad, m, s); default the problem's
-        own, ``T = 1``.
+    batch : ProblemBatch
+    options : SolveOptions, optional
+        Unused (a closed form).
 
     Returns
     -------
-    IntersectionBatch
+    Estimates
+        ``covariance_source`` ``"propagated"``; ``position_enu_m`` NaN on
+        problems in ``errors``. ``details`` per solved problem:
+        ``pairs_used`` (pairs that gave a point), ``pairs_total``,
+        ``reference_ratio`` (``R_p`` at ``X_s``), ``reference_station``
+        (the station whose line of sight the pass was moved onto, or None),
+        ``coarse_variance_enu_m2`` (``(3,)``, the per-axis variances of
+        ``X_s``) and ``ignored_measurements`` (ranges and TOAs).
 
-    Raises
-    ------
+    Errors (in ``errors``)
+    ----------------------
     TooFewMeasurements
         Fewer than 2 stations give a bearing with elevation.
     UnobservableGeometry
-        All lines with elevation start at one point.
+        All lines with elevation start at one point; every pair of lines is
+        parallel; or the angles do not determine the position at the
+        reference point.
     """
-    values = np.atleast_2d(problem.values if values is None else np.asarray(values, dtype=float))
-    trials = values.shape[0]
-    los = problem.lines_of_sight()
-    first, second = _pairs(los)
-
-    elevation = np.where(los.has_elevation, values[:, los.elevation_row], 0.0)
-    azimuth = values[:, los.azimuth_row]
-    pair = np.stack([first, second], axis=-1)
-    feet, jacobian, sin2 = common_perpendicular(
-        los.origins_enu_m[pair], los.rotations[pair], azimuth[:, pair], elevation[:, pair])
-    variances = np.stack([los.sigma_azimuth_rad, los.sigma_elevation_rad], axis=-1)[pair].reshape(-1, 4) ** 2
-    points, point_variance = fuse_feet(feet, jacobian, variances)
-    usable = (sin2 > PARALLEL_SIN2) & np.all(np.isfinite(points), axis=-1) & np.all(np.isfinite(point_variance), axis=-1)
-    weights = np.where(usable[..., None], 1.0 / np.where(usable[..., None], point_variance, 1.0), 0.0)
-    total = weights.sum(axis=1)
-    has_pair = np.all(total > 0, axis=-1)
-    safe_total = np.where(total > 0, total, 1.0)
-    coarse = np.einsum("tpi,tpi->ti", weights, np.where(usable[..., None], points, 0.0)) / safe_total
-    coarse_variance = 1.0 / safe_total
-    coarse = np.where(has_pair[:, None], coarse, 0.0)
-
-    constrained = problem.altitude_m is not None
-    if constrained:
-        coarse_on = problem.frame.onto_altitude(coarse, problem.altitude_m)
-    else:
-        coarse_on = coarse
-    rows = np.flatnonzero((problem.kinds == Kind.AZIMUTH) | (problem.kinds == Kind.ELEVATION))
-    s = problem.station_index[rows]
-    stations, rotations = problem.stations_enu_m[s], problem.station_rotations[s]
-    kinds = np.broadcast_to(problem.kinds[rows], (trials, rows.size))
-    sigma = problem.sigmas[rows]
-    measured = values[:, rows]
-    bias = np.zeros(trials)
-
-    predicted, _ = predict(coarse_on, bias, stations, rotations, kinds)
-    normalised = np.abs(residuals(measured, predicted, kinds)) / sigma
-    worst = np.argmax(normalised, axis=-1)
-    ratio = normalised[np.arange(trials), worst]
-    line = problem.bearing_index[rows][worst]
-    moved = has_pair & (ratio >= REFERENCE_RATIO_LIMIT)
-    if np.any(moved):
-        origin = los.origins_enu_m[line]
-        distance = np.linalg.norm(coarse_on - origin, axis=-1)
-        seen = np.einsum("tij,tj->ti", los.rotations[line], coarse_on - origin)
-        seen_elevation = np.arctan2(seen[:, 2], np.hypot(seen[:, 0], seen[:, 1]))
-        line_elevation = np.where(los.has_elevation[line], elevation[np.arange(trials), line], seen_elevation)
-        direction, _, _ = line_of_sight_derivatives(azimuth[np.arange(trials), line], line_elevation,
-                                                    los.rotations[line])
-        reference = np.where(moved[:, None], origin + distance[:, None] * direction, coarse_on)
-        if constrained:
-            reference = problem.frame.onto_altitude(reference, problem.altitude_m)
-    else:
-        reference = coarse_on
-
-    predicted, jac = predict(reference, bias, stations, rotations, kinds)
-    delta_z = residuals(measured, predicted, kinds)
-    altitude = np.full(trials, np.nan if problem.altitude_m is None else problem.altitude_m)
-    origin = np.broadcast_to(problem.frame.origin_array(), (trials, 3))
-    geodetic = np.full(trials, problem.frame.is_geodetic)
-    axes, free = parameterisation(reference, altitude, np.zeros(trials, dtype=bool), origin, geodetic)
-    w = np.broadcast_to(1.0 / sigma**2, (trials, rows.size))
-    information, local_jacobian = normal_matrix(np.swapaxes(jac, -1, -2), w, axes, free)
-    inverse = invert_information(information, axes, free)
-    gradient = np.einsum("tim,tm,tm->ti", local_jacobian, w, delta_z)
-    step = np.einsum("tij,tj->ti", inverse.covariance_params, gradient)
-    position = reference + (step[:, :3] if axes is None else np.einsum("ti,tij->tj", step[:, :3], axes))
-    if constrained:
-        position = problem.frame.onto_altitude(position, problem.altitude_m)
-
-    valid = has_pair & inverse.observable & np.all(np.isfinite(position), axis=-1)
-    return IntersectionBatch(
-        position_enu_m=np.where(valid[:, None], position, np.nan),
-        covariance_enu_m2=inverse.covariance_enu_m2,
-        coarse_position_enu_m=np.where(has_pair[:, None], coarse, np.nan),
-        coarse_variance_enu_m2=np.where(has_pair[:, None], coarse_variance, np.nan),
-        reference_enu_m=reference,
-        reference_ratio=ratio,
-        reference_line=line,
-        moved=moved,
-        pairs_used=np.count_nonzero(usable, axis=-1),
-        pairs_total=int(first.size),
-        valid=valid,
+    width = int(batch.bearing_index.max(initial=0)) + 1
+    rows = max(1, CHUNK_PAIRS // max(width * (width - 1) // 2, 1))
+    if batch.size <= rows:
+        return _intersect(batch)
+    parts = [_intersect(batch.take(np.arange(start, min(start + rows, batch.size))))
+             for start in range(0, batch.size, rows)]
+    errors = {start + b: e for start, part in zip(range(0, batch.size, rows), parts) for b, e in part.errors.items()}
+    return Estimates(
+        position_enu_m=np.concatenate([p.position_enu_m for p in parts]),
+        covariance_source="propagated",
+        covariance_enu_m2=np.concatenate([p.covariance_enu_m2 for p in parts]),
+        errors=errors,
+        iterations=np.ones(batch.size, dtype=int),
+        warnings=[w for p in parts for w in p.warnings],
+        coarse_position_enu_m=np.concatenate([p.coarse_position_enu_m for p in parts]),
+        details=[d for p in parts for d in p.details],
     )
 
 
-def _line_of_sight_intersection(problem: Problem, options: SolveOptions) -> Estimate:
-    """Fix by the common-perpendicular method (:func:`intersect_lines_of_sight` with ``T = 1``).
+def _intersect(batch: ProblemBatch) -> Estimates:
+    """:func:`intersect_lines_of_sight` of one chunk."""
+    size = batch.size
+    lines = _Lines(batch)
+    first, second, pair_ok = _pairs(lines)
+    errors = _pair_errors(batch, lines, pair_ok)
+    if len(errors) == size:
+        return Estimates(position_enu_m=np.full((size, 3), np.nan), covariance_source="propagated",
+                         covariance_enu_m2=np.full((size, 3, 3), np.nan), errors=errors,
+                         iterations=np.ones(size, dtype=int), warnings=[()] * size,
+                         coarse_position_enu_m=np.full((size, 3), np.nan), details=[{} for _ in range(size)])
 
-    The covariance is the extended-WLS ``(K^T R^-1 K)^-1`` at the
-    linearisation point; ``coarse_position_enu_m`` is ``X_s``, the pairs'
-    combined point before that pass.
+    directions, d_azimuth, d_elevation = (
+        np.moveaxis(station_to_common(v, lines.rotations), -1, 0)
+        for v in line_of_sight_derivatives(lines.azimuth_rad, lines.elevation_rad))
+    origins = np.moveaxis(lines.origins_enu_m, -1, 0)
 
-    Raises
-    ------
-    TooFewMeasurements
-        Fewer than 2 stations give a bearing with elevation.
-    UnobservableGeometry
-        Every pair of lines is parallel (or starts at one point), or the
-        angles do not determine the position at the reference point.
-    """
-    result = intersect_lines_of_sight(problem)
-    if result.pairs_used[0] == 0:
-        raise UnobservableGeometry(
-            f"los_intersection: all {result.pairs_total} pair(s) of lines of sight are parallel, "
-            "so no common perpendicular defines a point")
-    if not result.valid[0]:
-        raise UnobservableGeometry(
-            "los_intersection: the angles do not determine the position at the reference point "
-            "(singular extended-WLS normal matrix)")
-    los = problem.lines_of_sight()
-    line = int(result.reference_line[0])
-    station = problem.station_ids[los.station_index[line]]
-    warnings = []
-    if result.moved[0]:
-        warnings.append(FixWarning(
-            "reference_point_moved",
-            f"R_p = {result.reference_ratio[0]:.1f} >= {REFERENCE_RATIO_LIMIT:g} at station {station}: "
-            "linearised on its line of sight at the same distance"))
-    details = {
-        "pairs_used": int(result.pairs_used[0]),
-        "pairs_total": result.pairs_total,
-        "reference_ratio": float(result.reference_ratio[0]),
-        "reference_station": station if result.moved[0] else None,
-        "ignored_measurements": int(np.count_nonzero((problem.kinds == Kind.RANGE) | (problem.kinds == Kind.TOA))),
-    }
-    return Estimate(result.position_enu_m[0], result.covariance_enu_m2[0], iterations=1, warnings=tuple(warnings),
-                    coarse_position_enu_m=result.coarse_position_enu_m[0], details=details)
+    def paired(planes):
+        return np.stack([planes[..., first], planes[..., second]])
+
+    feet, jacobian, sin2 = _perpendicular(paired(origins), paired(directions),
+                                          np.stack([paired(d_azimuth), paired(d_elevation)], axis=1))
+    variances = np.stack([lines.sigma_azimuth_rad[:, first], lines.sigma_elevation_rad[:, first],
+                          lines.sigma_azimuth_rad[:, second], lines.sigma_elevation_rad[:, second]]) ** 2
+    points, point_variance = (np.moveaxis(x, 0, -1) for x in _fuse(feet, jacobian, variances))
+    usable = (pair_ok & (sin2 > PARALLEL_SIN2) & np.all(np.isfinite(points), axis=-1)
+              & np.all(np.isfinite(point_variance), axis=-1))
+    weights = 1.0 / np.where(usable[..., None], point_variance, 1.0)
+    total = _sum_over_pairs(weights, usable)
+    has_pair = np.all(total > 0, axis=-1)
+    safe_total = np.where(total > 0, total, 1.0)
+    coarse = np.where(has_pair[:, None], _sum_over_pairs(weights * points, usable) / safe_total, 0.0)
+    coarse_variance = 1.0 / safe_total
+    coarse_on = batch.onto_altitude(coarse)
+
+    stations, rotations = batch.measurement_stations()
+    model = MeasurementModel(stations, rotations, batch.kinds)
+    angle = batch.valid & ((batch.kinds == AZIMUTH) | (batch.kinds == ELEVATION))
+    sigma = np.where(angle, batch.sigmas, 1.0)
+    zero_bias = np.zeros(size)
+    predicted, _ = model.predict(coarse_on, zero_bias)
+    normalised = np.where(angle, np.abs(model.residuals(batch.values, predicted)) / sigma, -1.0)
+    worst = np.argmax(normalised, axis=-1)
+    every = np.arange(size)
+    ratio = normalised[every, worst]
+    line = np.maximum(batch.bearing_index[every, worst], 0)
+    moved = has_pair & (ratio >= REFERENCE_RATIO_LIMIT)
+    reference = coarse_on.copy()
+    if np.any(moved):
+        b, k = np.flatnonzero(moved), line[moved]
+        origin = lines.origins_enu_m[b, k]
+        rotation = lines.rotations[b, k]
+        offset = coarse_on[b] - origin
+        distance = np.linalg.norm(offset, axis=-1)
+        seen = np.einsum("tij,tj->ti", rotation, offset)
+        seen_elevation = np.arctan2(seen[:, 2], np.hypot(seen[:, 0], seen[:, 1]))
+        line_elevation = np.where(lines.has_elevation[b, k], lines.elevation_rad[b, k], seen_elevation)
+        direction = station_to_common(line_of_sight_enu(lines.azimuth_rad[b, k], line_elevation), rotation)
+        reference[b] = batch.onto_altitude(origin + distance[:, None] * direction, b)
+
+    predicted, jac = model.predict(reference, zero_bias)
+    delta_z = np.where(angle, model.residuals(batch.values, predicted), 0.0)
+    w = np.where(angle, 1.0 / sigma**2, 0.0)
+    axes, free = parameterisation(reference, batch.altitude_m, np.zeros(size, dtype=bool), batch.origin,
+                                  batch.geodetic)
+    information, local_jacobian = normal_matrix(jac, w, axes, free)
+    inverse = invert_information(information, axes, free)
+    gradient = np.einsum("bim,bm->bi", local_jacobian, w * delta_z)
+    step = np.einsum("bij,bj->bi", inverse.covariance_params, gradient)[:, :3]
+    position = batch.onto_altitude(reference + (step if axes is None else np.einsum("bi,bij->bj", step, axes)))
+    valid = has_pair & inverse.observable & np.all(np.isfinite(position), axis=-1)
+
+    pairs_used = np.count_nonzero(usable, axis=-1)
+    pairs_total = np.count_nonzero(pair_ok, axis=-1)
+    for b in np.flatnonzero(~valid).tolist():
+        if b in errors:
+            continue
+        if pairs_used[b] == 0:
+            errors[b] = UnobservableGeometry(
+                f"los_intersection: all {pairs_total[b]} pair(s) of lines of sight are parallel, "
+                "so no common perpendicular defines a point")
+        else:
+            errors[b] = UnobservableGeometry(
+                "los_intersection: the angles do not determine the position at the reference point "
+                "(singular extended-WLS normal matrix)")
+
+    ignored = np.count_nonzero(batch.valid & ((batch.kinds == RANGE) | (batch.kinds == TOA)), axis=-1).tolist()
+    reference_station = lines.station[every, line].tolist()
+    warnings: list[tuple] = [()] * size
+    details: list[dict] = [{} for _ in range(size)]
+    for b, (used, total_pairs, r_p, was_moved, station, n_ignored, axis_variance) in enumerate(zip(
+            pairs_used.tolist(), pairs_total.tolist(), ratio.tolist(), moved.tolist(), reference_station, ignored,
+            coarse_variance)):
+        if b in errors:
+            continue
+        name = batch.station_ids[b][station] if was_moved else None
+        if was_moved:
+            warnings[b] = (FixWarning(
+                "reference_point_moved",
+                f"R_p = {r_p:.1f} >= {REFERENCE_RATIO_LIMIT:g} at station {name}: "
+                "linearised on its line of sight at the same distance"),)
+        details[b] = {"pairs_used": used, "pairs_total": total_pairs, "reference_ratio": r_p,
+                      "reference_station": name, "coarse_variance_enu_m2": axis_variance,
+                      "ignored_measurements": n_ignored}
+    return Estimates(
+        position_enu_m=np.where(valid[:, None], position, np.nan),
+        covariance_source="propagated",
+        covariance_enu_m2=inverse.covariance_enu_m2,
+        errors=errors,
+        iterations=np.ones(size, dtype=int),
+        warnings=warnings,
+        coarse_position_enu_m=np.where(has_pair[:, None], coarse, np.nan),
+        details=details,
+    )
 
 
 register("los_intersection",
          "common-perpendicular line-of-sight intersection, pairwise WLS fusion and an extended-WLS pass (paper 002)")(
-    per_problem(_line_of_sight_intersection, "propagated"))
+    intersect_lines_of_sight)

@@ -38,6 +38,11 @@ What this module adds to the patent, and why:
 - Start: ``problem.initial_guess_enu_m`` or the unweighted orthogonal-vector
   solution (azimuth-only: the pseudolinear Stansfield least squares).
 
+Every step runs over the whole batch at once (the problems still iterating,
+and still re-estimating a sigma, form the working set); the sums over
+measurements are added in measurement order, so a problem's fix does not
+depend on what else is in the batch.
+
 Covariance: ``(A^T Q^-1 A)^-1`` at the fix, the inverse Fisher information,
 i.e. the CRLB at the estimate (with estimated sigmas where they were
 estimated); ``covariance_source`` is ``"information"``. The method is
@@ -48,227 +53,382 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.batch import AZIMUTH, ELEVATION, ProblemBatch
 from core.crlb import OBSERVABILITY_THRESHOLD
-from core.errors import InvalidInput, TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import Estimate, SolveOptions, per_problem, register
-from core.estimators.result import FixWarning
-from core.estimators.orthogonal_vector import solve_orthogonal
-from core.measurements import Kind, predict, residuals
-from core.problem import Problem
+from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
+from core.estimators.base import SolveOptions, get_estimator, register
+from core.estimators.result import Estimates, FixWarning
+from core.measurements import Kind, MeasurementModel
+from core.problem import local_axes
 
 #: Relative cost increase a step may make before it counts as divergence (round-off allowance).
 COST_INCREASE_TOLERANCE = 1e-9
 #: Outer passes re-estimating a shared unknown sigma when known sigmas are mixed in.
 SIGMA_PASSES = 10
+NAME = "taylor_wls"
 
 
-class _Iteration:
-    """State of the Gauss-Newton iteration on a fixed set of angle rows."""
-
-    def __init__(self, problem: Problem, rows: np.ndarray):
-        self.problem = problem
-        self.rows = rows
-        s = problem.station_index[rows]
-        self.stations = problem.stations_enu_m[s][None]
-        self.rotations = problem.station_rotations[s][None]
-        self.kinds = problem.kinds[rows]
-        self.values = problem.values[rows]
-        self.constrained = problem.altitude_m is not None
-
-    def linearise(self, position_enu_m):
-        """``Z`` ``(R,)``, ``A`` ``(R, P)`` in the free parameters, and the axes ``(P, 3)``."""
-        predicted, jacobian = predict(position_enu_m[None], np.zeros(1), self.stations, self.rotations,
-                                      self.kinds[None])
-        z = residuals(self.values, predicted[0], self.kinds)
-        if self.constrained:
-            axes = self.problem.frame.local_axes(position_enu_m)[:2]
-        else:
-            axes = np.eye(3)
-        return z, jacobian[0, :, :3] @ axes.T, axes
-
-    def step(self, position_enu_m, axes, delta):
-        moved = position_enu_m + delta @ axes
-        if self.constrained:
-            moved = self.problem.frame.onto_altitude(moved, self.problem.altitude_m)
-        return moved
+def _column_sum(values):
+    """``sum_m values[..., m]`` added in column order (padding adds exact zeros, so no batch dependence)."""
+    total = np.zeros(values.shape[:-1])
+    for m in range(values.shape[-1]):
+        total = total + values[..., m]
+    return total
 
 
-def _normal_inverse(a, weights, name):
-    information = a.T @ (a * weights[:, None])
-    diag = np.diag(information)
-    if np.any(diag <= 0):
-        raise UnobservableGeometry(f"{name}: the bearings do not determine the position")
-    scale = 1.0 / np.sqrt(diag)
-    scaled = information * np.outer(scale, scale)
-    if np.linalg.eigvalsh(scaled)[0] <= OBSERVABILITY_THRESHOLD:
-        raise UnobservableGeometry(
-            f"{name}: the bearings do not determine the position (the linearised equations are rank-deficient: "
-            "lines of sight parallel or all from one place)")
-    return np.linalg.inv(scaled) * np.outer(scale, scale)
+class _Rows:
+    """The angle rows of R problems of a batch, as the iteration needs them (``take`` keeps a subset)."""
+
+    def __init__(self, batch: ProblemBatch, problems, weights):
+        self.batch = batch
+        self.problems = np.asarray(problems, dtype=np.intp)
+        stations, rotations = batch.measurement_stations()
+        self.model = MeasurementModel(stations[self.problems], rotations[self.problems], batch.kinds[self.problems])
+        self.values = batch.values[self.problems]
+        self.weights = weights
+        self.constrained = batch.constrained[self.problems]
+
+    def take(self, rows) -> "_Rows":
+        out = object.__new__(_Rows)
+        out.batch, out.problems, out.model = self.batch, self.problems[rows], self.model.take(rows)
+        out.values, out.weights, out.constrained = self.values[rows], self.weights[rows], self.constrained[rows]
+        return out
+
+    def linearise(self, positions_enu_m):
+        """``Z`` ``(R, M)``, ``A`` ``(R, 3, M)`` over the free parameters (zero row for a frozen up), axes ``(R, 3, 3)``."""
+        predicted, jacobian = self.model.predict(positions_enu_m, np.zeros(positions_enu_m.shape[0]))
+        used = self.weights > 0
+        z = np.where(used, self.model.residuals(self.values, predicted), 0.0)
+        a = np.where(used[:, None, :], jacobian[:, :3], 0.0)
+        axes = np.broadcast_to(np.eye(3), (z.shape[0], 3, 3)).copy()
+        c = np.flatnonzero(self.constrained)
+        if c.size:
+            b = self.problems[c]
+            axes[c] = local_axes(positions_enu_m[c], self.batch.origin[b], self.batch.geodetic[b])
+            j = a[c]
+            for p in range(2):
+                a[c, p] = axes[c, p, 0, None] * j[:, 0] + axes[c, p, 1, None] * j[:, 1] + axes[c, p, 2, None] * j[:, 2]
+            a[c, 2] = 0.0
+        return z, a, axes
+
+    def step(self, positions_enu_m, axes, delta):
+        moved = positions_enu_m + (delta[:, 0, None] * axes[:, 0] + delta[:, 1, None] * axes[:, 1]
+                                   + delta[:, 2, None] * axes[:, 2])
+        return self.batch.onto_altitude(moved, self.problems)
+
+    def cost(self, z):
+        return _column_sum(self.weights * z * z)
 
 
-def iterate(problem: Problem, rows, sigmas, start_enu_m, max_iterations: int, tolerance_m: float,
-            name: str = "taylor_wls"):
-    """Run the Taylor-series WLS iteration from a start.
+def _normal_inverse(a, weights, constrained):
+    """``(A^T W A)^-1`` ``(R, 3, 3)`` (zero for a frozen up) and the reason it does not exist (None where it does)."""
+    size = a.shape[0]
+    weighted = a * weights[:, None, :]
+    information = _column_sum(weighted[:, :, None, :] * a[:, None, :, :])
+    information[constrained, 2, 2] = 1.0
+    diag = np.einsum("rii->ri", information)
+    scale = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
+    outer = scale[:, :, None] * scale[:, None, :]
+    scaled = information * outer
+    no_diagonal = np.any(diag <= 0, axis=-1)
+    finite = np.all(np.isfinite(scaled), axis=(-2, -1))
+    scaled = np.where((finite & ~no_diagonal)[:, None, None], scaled, np.eye(3))
+    rank_deficient = ~no_diagonal & ~finite
+    unsure = np.flatnonzero(~no_diagonal & finite & (_determinant(scaled) <= 9.0 * OBSERVABILITY_THRESHOLD))
+    if unsure.size:
+        rank_deficient[unsure] = np.linalg.eigvalsh(scaled[unsure])[:, 0] <= OBSERVABILITY_THRESHOLD
+    fails = no_diagonal | rank_deficient
+    inverse = np.linalg.inv(np.where(fails[:, None, None], np.eye(3), scaled)) * outer
+    inverse[constrained, 2, :] = 0.0
+    inverse[constrained, :, 2] = 0.0
+    reasons = [None] * size
+    for r in np.flatnonzero(fails).tolist():
+        reasons[r] = (f"{NAME}: the bearings do not determine the position" if no_diagonal[r] else
+                      f"{NAME}: the bearings do not determine the position (the linearised equations are "
+                      "rank-deficient: lines of sight parallel or all from one place)")
+    return inverse, reasons
 
-    Parameters
-    ----------
-    problem : Problem
-    rows : ndarray of int, shape (R,)
-        Angle measurements used.
-    sigmas : ndarray, shape (R,)
-        Their sigmas (rad), all finite.
-    start_enu_m : ndarray, shape (3,)
-    max_iterations : int
-    tolerance_m : float
+
+def _determinant(m):
+    """Determinants ``(R,)`` of ``(R, 3, 3)`` matrices.
+
+    For a unit-diagonal positive semi-definite matrix the eigenvalues are at
+    most its trace, 3, so the smallest is at least ``det / 9``: only where
+    that bound is not enough does the observability test need the eigenvalues.
+    """
+    return (m[:, 0, 0] * (m[:, 1, 1] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 1])
+            - m[:, 0, 1] * (m[:, 1, 0] * m[:, 2, 2] - m[:, 1, 2] * m[:, 2, 0])
+            + m[:, 0, 2] * (m[:, 1, 0] * m[:, 2, 1] - m[:, 1, 1] * m[:, 2, 0]))
+
+
+def _apply(matrix, vector):
+    """``matrix @ vector`` for ``(R, 3, 3)`` and ``(R, 3)``, summed in index order."""
+    return matrix[:, :, 0] * vector[:, 0, None] + matrix[:, :, 1] * vector[:, 1, None] + matrix[:, :, 2] * vector[:, 2, None]
+
+
+def iterate(rows: _Rows, start_enu_m, max_iterations: int, tolerance_m: float):
+    """Run the Taylor-series WLS iteration of every problem of ``rows`` from its start.
 
     Returns
     -------
-    dict
-        ``position_enu_m`` (3,), ``errors_rad`` (R,) the estimated errors
-        ``Z - A dX`` of the iteration that produced the position,
-        ``normal_inverse`` (P, P), ``axes`` (P, 3), ``leverage`` (R,),
-        ``iterations``, ``converged``, ``diverged`` (str or None).
+    dict of ndarray (leading axis R)
+        ``position_enu_m`` (R, 3), ``errors_rad`` (R, M) the estimated errors
+        ``Z - A dX`` of the iteration that produced the position (0 off the
+        angle rows), ``normal_inverse`` (R, 3, 3), ``axes`` (R, 3, 3),
+        ``leverage`` (R, M), ``iterations``, ``converged``, ``diverged``
+        (list of str or None), ``failure`` (list of str or None: the normal
+        equations became singular).
     """
-    it = _Iteration(problem, rows)
-    weights = 1.0 / sigmas**2
-    position = np.asarray(start_enu_m, dtype=float)
-    z, a, axes = it.linearise(position)
-    cost = float(np.sum(weights * z * z))
+    size = rows.problems.size
+    position = np.array(start_enu_m, dtype=float)
+    z, a, axes = rows.linearise(position)
+    cost = rows.cost(z)
     errors = z.copy()
-    converged, diverged, iterations = False, None, 0
-    for iterations in range(1, max_iterations + 1):
-        gain = _normal_inverse(a, weights, name)
-        delta = gain @ (a.T @ (weights * z))
-        moved = it.step(position, axes, delta)
-        z_new, a_new, axes_new = it.linearise(moved)
-        cost_new = float(np.sum(weights * z_new * z_new))
-        if not (np.all(np.isfinite(moved)) and np.isfinite(cost_new)) or \
-                cost_new > cost * (1.0 + COST_INCREASE_TOLERANCE) + 1e-300:
-            diverged = (f"{name} diverged at iteration {iterations} (weighted cost {cost:.4g} -> {cost_new:.4g}); "
-                        f"the iterate before it is returned")
-            iterations -= 1
+    iterations = np.zeros(size, dtype=int)
+    converged = np.zeros(size, dtype=bool)
+    diverged: list[str | None] = [None] * size
+    failure: list[str | None] = [None] * size
+    active = np.arange(size)
+    for iteration in range(1, max_iterations + 1):
+        if active.size == 0:
             break
-        errors = z - a @ delta
-        step_m = float(np.linalg.norm(moved - position))
-        position, z, a, axes, cost = moved, z_new, a_new, axes_new, cost_new
-        if step_m < tolerance_m:
-            converged = True
-            break
-    gain = _normal_inverse(a, weights, name)
-    leverage = np.einsum("rp,pq,rq->r", a, gain, a) * weights
+        sub = rows.take(active)
+        gain, reasons = _normal_inverse(a[active], sub.weights, sub.constrained)
+        broken = np.array([r is not None for r in reasons], dtype=bool)
+        for k in np.flatnonzero(broken).tolist():
+            failure[active[k]] = reasons[k]
+        keep = np.flatnonzero(~broken)
+        active, sub, gain = active[keep], sub.take(keep), gain[keep]
+        a_act, z_act = a[active], z[active]
+        delta = _apply(gain, _column_sum(a_act * (sub.weights * z_act)[:, None, :]))
+        moved = sub.step(position[active], axes[active], delta)
+        z_new, a_new, axes_new = sub.linearise(moved)
+        cost_new = sub.cost(z_new)
+        old = cost[active]
+        bad = ~(np.all(np.isfinite(moved), axis=-1) & np.isfinite(cost_new)) | \
+            (cost_new > old * (1.0 + COST_INCREASE_TOLERANCE) + 1e-300)
+        for k in np.flatnonzero(bad).tolist():
+            diverged[active[k]] = (f"{NAME} diverged at iteration {iteration} (weighted cost {old[k]:.4g} -> "
+                                   f"{cost_new[k]:.4g}); the iterate before it is returned")
+            iterations[active[k]] = iteration - 1
+        good = ~bad
+        g = active[good]
+        errors[g] = z_act[good] - (a_act[good] * delta[good][:, :, None]).sum(axis=1)
+        step_m = np.linalg.norm(moved[good] - position[g], axis=-1)
+        position[g], z[g], a[g], axes[g], cost[g] = moved[good], z_new[good], a_new[good], axes_new[good], cost_new[good]
+        iterations[g] = iteration
+        done = step_m < tolerance_m
+        converged[g[done]] = True
+        active = g[~done]
+    ok = np.array([f is None for f in failure], dtype=bool)
+    gain = np.zeros((size, 3, 3))
+    leverage = np.zeros(z.shape)
+    if np.any(ok):
+        chosen = np.flatnonzero(ok)
+        sub = rows.take(chosen)
+        gain[chosen], reasons = _normal_inverse(a[chosen], sub.weights, sub.constrained)
+        for k, reason in enumerate(reasons):
+            if reason is not None:
+                failure[chosen[k]] = reason
+        a_ok = a[chosen]
+        spread = (gain[chosen][:, :, :, None] * a_ok[:, None, :, :]).sum(axis=2)
+        leverage[chosen] = (a_ok * spread).sum(axis=1) * sub.weights
     return {"position_enu_m": position, "errors_rad": errors, "normal_inverse": gain, "axes": axes,
             "leverage": leverage, "iterations": iterations, "converged": converged, "diverged": diverged,
-            "cost": cost}
+            "failure": failure, "cost": cost}
 
 
-def _angle_rows(problem: Problem, name: str) -> np.ndarray:
-    other = np.flatnonzero((problem.kinds == Kind.RANGE) | (problem.kinds == Kind.TOA))
-    if other.size:
-        i = int(problem.source_index[other[0]])
-        raise InvalidInput(f"{name} uses bearings only; measurement {i} is a "
-                           f"{Kind(problem.kinds[other[0]]).name.lower()}: use ml for a mix", ("measurements", i))
-    is_elevation = problem.kinds == Kind.ELEVATION
-    if problem.altitude_m is None and not np.any(is_elevation):
-        raise TooFewMeasurements(
-            f"{name} from azimuths alone needs the target altitude (constraints.altitude_m): azimuths do not "
-            "determine the height; give elevations or the altitude", ("constraints", "altitude_m"))
-    return np.flatnonzero((problem.kinds == Kind.AZIMUTH) | is_elevation)
+def _checks(batch: ProblemBatch) -> dict[int, LocalizationError]:
+    """The documented input failures, in the order the method meets them."""
+    valid = batch.valid
+    is_az = valid & (batch.kinds == AZIMUTH)
+    is_el = valid & (batch.kinds == ELEVATION)
+    angle = is_az | is_el
+    other = valid & ~angle
+    unknown = angle & np.isnan(batch.sigmas)
+    n_parameters = np.where(batch.constrained, 2, 3)
+    n_angles = np.count_nonzero(angle, axis=-1)
+    errors: dict[int, LocalizationError] = {}
+    first_other = np.argmax(other, axis=-1)
+    for b in np.flatnonzero(np.any(other, axis=-1)).tolist():
+        m = int(first_other[b])
+        i = int(batch.source_index[b, m])
+        errors[b] = InvalidInput(f"{NAME} uses bearings only; measurement {i} is a "
+                                 f"{Kind(batch.kinds[b, m]).name.lower()}: use ml for a mix", ("measurements", i))
+    checks = [
+        (~batch.constrained & ~np.any(is_el, axis=-1), lambda b: TooFewMeasurements(
+            f"{NAME} from azimuths alone needs the target altitude (constraints.altitude_m): azimuths do not "
+            "determine the height; give elevations or the altitude", ("constraints", "altitude_m"))),
+        (n_angles < n_parameters, lambda b: TooFewMeasurements(
+            f"{NAME} needs at least {n_parameters[b]} angles here; got {n_angles[b]}", ("measurements",))),
+        (np.any(unknown & ~is_az, axis=-1), lambda b: InvalidInput(
+            f"{NAME} estimates azimuth sigmas only; give sigma_elevation_deg", ("measurements",))),
+        ((np.count_nonzero(unknown, axis=-1) == n_angles) & (n_angles <= n_parameters), lambda b: TooFewMeasurements(
+            f"{NAME} estimates the unknown bearing sigma from the estimated errors with N - {n_parameters[b]} "
+            f"degrees of freedom: give more than {n_parameters[b]} bearings, or their sigmas", ("measurements",))),
+    ]
+    for fails, error in checks:
+        for b in np.flatnonzero(fails).tolist():
+            errors.setdefault(b, error(b))
+    return errors
 
 
-def _start(problem: Problem, name: str) -> tuple[np.ndarray, str]:
-    if problem.initial_guess_enu_m is not None:
-        return np.asarray(problem.initial_guess_enu_m, dtype=float), "initial_guess"
-    has_elevation = bool(np.any(problem.kinds == Kind.ELEVATION))
-    position, _ = solve_orthogonal(problem, has_elevation, True, False, name)
-    return position, "eove" if has_elevation else "pseudolinear"
+def _starts(batch: ProblemBatch, rows, options: SolveOptions):
+    """Start ``(R, 3)`` of problems ``rows``: the initial guess, else EOVE (azimuth planes only without
+    elevations, the pseudolinear solution); its names and the failures of the start."""
+    starts = batch.initial_guess_enu_m[rows].copy()
+    guessed = ~np.isnan(starts[:, 0])
+    has_elevation = np.any(batch.valid[rows] & (batch.kinds[rows] == ELEVATION), axis=-1)
+    names = np.where(guessed, "initial_guess", np.where(has_elevation, "eove", "pseudolinear")).tolist()
+    failures: dict[int, LocalizationError] = {}
+    need = np.flatnonzero(~guessed)
+    if need.size:
+        eove = get_estimator("eove").estimate(batch.take(rows[need]), options)
+        starts[need] = eove.position_enu_m
+        for k, error in eove.errors.items():
+            message = error.message
+            if message.startswith("eove"):
+                message = NAME + message[len("eove"):]
+            failures[int(need[k])] = type(error)(message, error.loc)
+    return starts, names, failures
 
 
-def _taylor_wls(problem: Problem, options: SolveOptions) -> Estimate:
-    """Taylor-series WLS fix with estimated bearing errors; see the module docstring.
+@register("taylor_wls", "iterative Taylor-series WLS that estimates each bearing's error (paper 004); "
+                        "estimates an unknown bearing sigma", needs_sigmas=False)
+def taylor_wls(batch: ProblemBatch, options: SolveOptions) -> Estimates:
+    """Taylor-series WLS fixes with estimated bearing errors; see the module docstring.
 
     Returns
     -------
-    Fix
-        ``estimated_bearing_errors_rad`` ``(K,)``: one azimuth error per
-        bearing, request order. ``details``: ``start``,
+    Estimates
+        ``estimated_bearing_errors_rad`` ``(K,)`` per problem: one azimuth
+        error per bearing, request order. ``details``: ``start``,
         ``estimated_sigma_azimuth_rad`` (when estimated),
         ``estimated_elevation_errors_rad`` (NaN where no elevation).
 
-    Raises
-    ------
+    Errors (in ``errors``)
+    ----------------------
+    InvalidInput
+        A range or TOA in the mix; an unknown elevation sigma.
     TooFewMeasurements
         Azimuths only without a known altitude; or too few bearings to
         estimate an unknown sigma (more than 2 needed in 2D).
     UnobservableGeometry
         When the linearised equations are rank-deficient.
     """
-    name = "taylor_wls"
-    rows = _angle_rows(problem, name)
-    sigmas = problem.sigmas[rows].copy()
-    unknown = np.isnan(sigmas)
-    n_parameters = 2 if problem.altitude_m is not None else 3
-    if rows.size < n_parameters:
-        raise TooFewMeasurements(f"{name} needs at least {n_parameters} angles here; got {rows.size}",
-                                 ("measurements",))
-    if np.any(unknown & (problem.kinds[rows] != Kind.AZIMUTH)):
-        raise InvalidInput(f"{name} estimates azimuth sigmas only; give sigma_elevation_deg", ("measurements",))
-    if np.all(unknown) and rows.size <= n_parameters:
-        raise TooFewMeasurements(
-            f"{name} estimates the unknown bearing sigma from the estimated errors with N - {n_parameters} "
-            f"degrees of freedom: give more than {n_parameters} bearings, or their sigmas", ("measurements",))
-    start, start_name = _start(problem, name)
+    size = batch.size
+    errors = _checks(batch)
+    candidates = np.array(sorted(set(range(size)) - set(errors)), dtype=np.intp)
+    position = np.full((size, 3), np.nan)
+    covariance = np.full((size, 3, 3), np.nan)
+    converged = np.zeros(size, dtype=bool)
+    iterations = np.zeros(size, dtype=int)
+    warnings: list[tuple] = [()] * size
+    details: list[dict] = [{} for _ in range(size)]
+    bearing_errors: list = [None] * size
+    nothing = Estimates(position, "information", covariance, errors, converged, iterations, warnings,
+                        estimated_bearing_errors_rad=bearing_errors, details=details)
+    if candidates.size == 0:
+        return nothing
+    starts, start_names, failures = _starts(batch, candidates, options)
+    errors.update({int(candidates[k]): e for k, e in failures.items()})
+    keep = np.array([k not in failures for k in range(candidates.size)], dtype=bool)
+    problems, starts = candidates[keep], starts[keep]
+    start_names = [n for n, k in zip(start_names, keep) if k]
+    if problems.size == 0:
+        return nothing
 
-    estimated_sigma = None
-    sigmas[unknown] = 1.0
-    for _ in range(SIGMA_PASSES if np.any(unknown) else 1):
-        result = iterate(problem, rows, sigmas, start, options.max_iterations, options.tolerance_m, name)
-        if not np.any(unknown):
+    valid = batch.valid[problems]
+    angle = valid & ((batch.kinds[problems] == AZIMUTH) | (batch.kinds[problems] == ELEVATION))
+    unknown = angle & np.isnan(batch.sigmas[problems])
+    any_unknown = np.any(unknown, axis=-1)
+    all_unknown = np.count_nonzero(unknown, axis=-1) == np.count_nonzero(angle, axis=-1)
+    sigmas = np.where(unknown, 1.0, np.where(angle, batch.sigmas[problems], 1.0))
+    estimated = np.full(problems.size, np.nan)
+    results: dict[str, np.ndarray | list] = {}
+    failed = np.zeros(problems.size, dtype=bool)
+    pending = np.arange(problems.size)
+    for _ in range(SIGMA_PASSES):
+        if pending.size == 0:
             break
-        dof = float(np.sum(1.0 - result["leverage"][unknown]))
-        if dof <= 1e-9:
-            raise TooFewMeasurements(f"{name}: no degrees of freedom left to estimate the bearing sigma; "
-                                     "give more bearings or their sigmas", ("measurements",))
-        used = sigmas[unknown][0]
-        estimated_sigma = float(np.sqrt(np.sum(result["errors_rad"][unknown] ** 2) / dof))
-        sigmas[unknown] = estimated_sigma
-        if np.all(unknown) or abs(estimated_sigma / used - 1.0) < 1e-6:
-            break
+        weights = np.where(angle[pending], 1.0 / sigmas[pending] ** 2, 0.0)
+        rows = _Rows(batch, problems[pending], weights)
+        result = iterate(rows, starts[pending], options.max_iterations, options.tolerance_m)
+        for key, value in result.items():
+            if key not in results:
+                results[key] = [None] * problems.size if isinstance(value, list) else \
+                    np.zeros((problems.size,) + value.shape[1:], dtype=value.dtype)
+            if isinstance(value, list):
+                for k, v in zip(pending.tolist(), value):
+                    results[key][k] = v
+            else:
+                results[key][pending] = value
+        broken = np.array([f is not None for f in result["failure"]], dtype=bool)
+        for k in np.flatnonzero(broken).tolist():
+            failed[pending[k]] = True
+            errors[int(problems[pending[k]])] = UnobservableGeometry(result["failure"][k])
+        going = ~broken & any_unknown[pending]
+        p = pending[going]
+        u = unknown[p]
+        dof = _column_sum(np.where(u, 1.0 - result["leverage"][going], 0.0))
+        no_dof = dof <= 1e-9
+        for k in np.flatnonzero(no_dof).tolist():
+            failed[p[k]] = True
+            errors[int(problems[p[k]])] = TooFewMeasurements(
+                f"{NAME}: no degrees of freedom left to estimate the bearing sigma; "
+                "give more bearings or their sigmas", ("measurements",))
+        p, u, dof, errs = p[~no_dof], u[~no_dof], dof[~no_dof], result["errors_rad"][going][~no_dof]
+        used = sigmas[p, u.argmax(axis=-1)]
+        sigma_hat = np.sqrt(_column_sum(np.where(u, errs, 0.0) ** 2) / dof)
+        estimated[p] = sigma_hat
+        sigmas[p] = np.where(u, sigma_hat[:, None], sigmas[p])
+        settled = all_unknown[p] | (np.abs(sigma_hat / used - 1.0) < 1e-6)
+        pending = p[~settled]
 
-    position = result["position_enu_m"]
-    axes = result["axes"]
-    covariance = axes.T @ result["normal_inverse"] @ axes
-    if estimated_sigma is not None and np.all(unknown):
-        covariance = covariance * estimated_sigma**2  # the last pass weighted every row by 1
+    solved = np.flatnonzero(~failed)
+    b_solved = problems[solved]
+    axes = results["axes"][solved]
+    gain = results["normal_inverse"][solved]
+    cov = np.einsum("rpi,rpq,rqj->rij", axes, gain, axes)
+    scale = np.where(all_unknown[solved] & ~np.isnan(estimated[solved]), estimated[solved] ** 2, 1.0)
+    position[b_solved] = results["position_enu_m"][solved]
+    covariance[b_solved] = cov * scale[:, None, None]
+    converged[b_solved] = results["converged"][solved]
+    iterations[b_solved] = results["iterations"][solved]
 
-    warnings = []
-    if result["diverged"]:
-        warnings.append(FixWarning("not_converged", result["diverged"]))
-    elif not result["converged"]:
-        warnings.append(FixWarning("not_converged",
-                                   f"{name} did not converge in {result['iterations']} iterations "
-                                   f"(tolerance {options.tolerance_m:g} m); the last iterate is returned"))
-    all_sigmas = problem.sigmas.copy()
-    if estimated_sigma is not None:
-        all_sigmas[rows[unknown]] = estimated_sigma
-        warnings.append(FixWarning(
-            "sigma_estimated",
-            f"sigma of {np.count_nonzero(unknown)} azimuths estimated from the estimated bearing errors: "
-            f"{np.rad2deg(estimated_sigma):.3f} deg; the covariance and CRLB use it"))
-
-    los = problem.lines_of_sight()
-    per_row = np.full(problem.n_measurements, np.nan)
-    per_row[rows] = result["errors_rad"]
-    azimuth_errors = per_row[los.azimuth_row]
-    elevation_errors = np.where(los.elevation_row >= 0, per_row[np.maximum(los.elevation_row, 0)], np.nan)
-    details = {"start": start_name, "estimated_elevation_errors_rad": elevation_errors}
-    if estimated_sigma is not None:
-        details["estimated_sigma_azimuth_rad"] = estimated_sigma
-    return Estimate(position, covariance, converged=result["converged"], iterations=result["iterations"],
-                    warnings=tuple(warnings), estimated_bearing_errors_rad=azimuth_errors,
-                    sigmas=all_sigmas if estimated_sigma is not None else None, details=details)
-
-
-register("taylor_wls", "iterative Taylor-series WLS that estimates each bearing's error (paper 004); "
-                       "estimates an unknown bearing sigma", needs_sigmas=False)(
-    per_problem(_taylor_wls, "information"))
+    errors_rad = np.zeros(batch.kinds.shape)
+    errors_rad[b_solved] = results["errors_rad"][solved]
+    azimuth_errors = batch.by_bearing(errors_rad, AZIMUTH)
+    elevation_errors = batch.by_bearing(errors_rad, ELEVATION)
+    n_bearings = np.count_nonzero(batch.valid & (batch.kinds == AZIMUTH), axis=-1)
+    with_sigma = solved[~np.isnan(estimated[solved])]
+    all_sigmas = batch.sigmas.copy()
+    b_estimated = problems[with_sigma]
+    all_sigmas[b_estimated] = np.where(unknown[with_sigma], estimated[with_sigma, None], all_sigmas[b_estimated])
+    diverged, did_converge = results["diverged"], results["converged"].tolist()
+    taken, counts, n_unknown = results["iterations"].tolist(), n_bearings.tolist(), np.count_nonzero(unknown, -1).tolist()
+    sigma_hats = estimated.tolist()
+    for k, b in zip(solved.tolist(), b_solved.tolist()):
+        n = counts[b]
+        detail = {"start": start_names[k], "estimated_elevation_errors_rad": elevation_errors[b, :n]}
+        found = []
+        if diverged[k]:
+            found.append(FixWarning("not_converged", diverged[k]))
+        elif not did_converge[k]:
+            found.append(FixWarning("not_converged",
+                                    f"{NAME} did not converge in {taken[k]} iterations "
+                                    f"(tolerance {options.tolerance_m:g} m); the last iterate is returned"))
+        sigma_hat = sigma_hats[k]
+        if sigma_hat == sigma_hat:
+            found.append(FixWarning(
+                "sigma_estimated",
+                f"sigma of {n_unknown[k]} azimuths estimated from the estimated bearing errors: "
+                f"{np.rad2deg(sigma_hat):.3f} deg; the covariance and CRLB use it"))
+            detail["estimated_sigma_azimuth_rad"] = sigma_hat
+        if found:
+            warnings[b] = tuple(found)
+        details[b] = detail
+        bearing_errors[b] = azimuth_errors[b, :n]
+    return Estimates(position, "information", covariance, errors, converged, iterations, warnings,
+                     estimated_bearing_errors_rad=bearing_errors,
+                     sigmas=all_sigmas if with_sigma.size else None, details=details)

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.batch import ProblemBatch
 from core.errors import LocalizationError, UnobservableGeometry
 from core.measurements import predict
 from core.problem import Problem
@@ -26,6 +27,21 @@ def true_values(problem: Problem, target_enu_m) -> np.ndarray:
     predicted, _ = predict(np.asarray(target_enu_m, dtype=float)[None], np.zeros(1),
                            problem.stations_enu_m[s][None], problem.station_rotations[s][None], problem.kinds[None])
     return predicted[0] / problem.unit_scale()
+
+
+def trial_batch(problem: Problem, values) -> ProblemBatch:
+    """One geometry under T sets of measured values, as a batch of T problems (a Monte Carlo in one call).
+
+    Parameters
+    ----------
+    problem : Problem
+        Supplies everything but the values.
+    values : ndarray, shape (T, M) or (M,)
+        Problem units (rad, m, s after the TOA reference).
+    """
+    values = np.atleast_2d(np.asarray(values, dtype=float))
+    one = ProblemBatch.from_problems([problem])
+    return replace(one.take(np.zeros(values.shape[0], dtype=np.intp)), values=values)
 
 
 def measure(problem: Problem, target_enu_m, rng: np.random.Generator | None = None,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.batch import ProblemBatch
 from core.crlb import information_at
 from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators import REGISTRY, SolveOptions, solve
@@ -74,8 +75,8 @@ def test_two_stations_coarse_stage_is_the_papers_formulas():
                                        bearing("b", 0.5 * DEG, elevation=False), Range("b", 1.0, 20.0)])
     target = np.array([15_000.0, 25_000.0, 4_000.0])
     noisy = problem.with_values(true_values(problem, target) + draw_noise(np.random.default_rng(3), problem.sigmas))
-    coarse = coarse_fix(noisy)
-    assert coarse.method == "range_difference" and not coarse.warnings
+    coarse = coarse_fix(ProblemBatch.from_problems([noisy]))
+    assert coarse.method == ["range_difference"] and coarse.warnings == [()] and not coarse.errors
 
     (x1, y1, z1), (x2, y2, z2) = noisy.stations_enu_m
     az1, r1, az2, r2 = noisy.values
@@ -84,10 +85,10 @@ def test_two_stations_coarse_stage_is_the_papers_formulas():
     y0 = (y1 / tan1 - y2 / tan2 + x2 - x1) / (1 / tan1 - 1 / tan2)
     h1, h2 = np.hypot(x0 - x1, y0 - y1), np.hypot(x0 - x2, y0 - y2)
     z0 = (r1**2 - r2**2 - h1**2 + h2**2 - z1**2 + z2**2) / (2 * (z2 - z1))
-    np.testing.assert_allclose(coarse.position_enu_m, [x0, y0, z0], rtol=1e-9)
+    np.testing.assert_allclose(coarse.position_enu_m[0], [x0, y0, z0], rtol=1e-9)
     fix = solve(noisy, "angle_range")
     assert fix.details["coarse"] == "range_difference"
-    np.testing.assert_allclose(fix.coarse_position_enu_m, coarse.position_enu_m)
+    np.testing.assert_allclose(fix.coarse_position_enu_m, coarse.position_enu_m[0])
 
 
 def test_needs_a_bearing_and_a_range():

@@ -16,7 +16,7 @@ from core.estimators.line_of_sight_intersection import (
 )
 from core.measurements import predict
 from core.problem import Bearing, GeodeticPoint, LocalPoint, build_problem
-from core.simulation.measurements import draw_noise, true_values
+from core.simulation.measurements import draw_noise, trial_batch, true_values
 
 SIGMA_RAD = 0.010  # the paper's 10 mrad on both angles
 PAPER_SENSORS = [("s1", LocalPoint(0.0, 0.0, 0.0)), ("s2", LocalPoint(10_000.0, 0.0, 0.0)),
@@ -109,9 +109,9 @@ def test_two_line_per_axis_variances_match_the_scatter_of_the_fused_point():
     target = np.array([4_000.0, 6_000.0, TARGET_HEIGHT_M])
     trials = 4000
     draws = true_values(problem, target) + draw_noise(np.random.default_rng(5), problem.sigmas, size=trials)
-    result = intersect_lines_of_sight(problem, draws)
+    result = intersect_lines_of_sight(trial_batch(problem, draws))
     spread = result.coarse_position_enu_m.var(axis=0)
-    predicted = result.coarse_variance_enu_m2.mean(axis=0)
+    predicted = np.mean([d["coarse_variance_enu_m2"] for d in result.details], axis=0)
     # a variance from 4000 draws has a relative sd of sqrt(2/4000) = 2.2 %
     np.testing.assert_allclose(spread / predicted, 1.0, atol=0.1)
 
@@ -120,7 +120,7 @@ def test_batch_over_trials_equals_one_problem_at_a_time():
     problem = paper_problem()
     target = np.array([6_000.0, 2_000.0, TARGET_HEIGHT_M])
     draws = true_values(problem, target) + draw_noise(np.random.default_rng(8), problem.sigmas, size=5)
-    batch = intersect_lines_of_sight(problem, draws)
+    batch = intersect_lines_of_sight(trial_batch(problem, draws))
     for k, values in enumerate(draws):
         fix = solve(problem.with_values(values), "los_intersection")
         np.testing.assert_allclose(fix.position_enu_m, batch.position_enu_m[k], rtol=0, atol=1e-9)
@@ -132,7 +132,8 @@ def test_covariance_is_honest():
     target = np.array([6_000.0, 4_000.0, TARGET_HEIGHT_M])
     trials = 2000
     draws = true_values(problem, target) + draw_noise(np.random.default_rng(9), problem.sigmas, size=trials)
-    result = intersect_lines_of_sight(problem, draws)
+    result = intersect_lines_of_sight(trial_batch(problem, draws))
+    assert not result.errors
     errors = result.position_enu_m - target
     nees = np.einsum("ti,tij,tj->t", errors, np.linalg.inv(result.covariance_enu_m2), errors)
     # mean of 2000 chi-square(3) draws: sd sqrt(6 / 2000) = 0.055
@@ -187,12 +188,13 @@ def test_reference_point_moves_onto_the_line_of_a_station_below_the_target():
     problem = paper_problem()
     target = np.array([0.0, 0.0, TARGET_HEIGHT_M])
     draws = true_values(problem, target) + draw_noise(np.random.default_rng(4), problem.sigmas, size=300)
-    result = intersect_lines_of_sight(problem, draws)
-    assert result.valid.all() and np.isfinite(result.position_enu_m).all()
-    moved = np.flatnonzero(result.moved)
+    result = intersect_lines_of_sight(trial_batch(problem, draws))
+    assert not result.errors and np.isfinite(result.position_enu_m).all()
+    moved = np.flatnonzero([d["reference_station"] is not None for d in result.details])
     assert moved.size > 30
-    assert np.all(result.reference_ratio[moved] >= REFERENCE_RATIO_LIMIT)
-    assert np.all(problem.lines_of_sight().station_index[result.reference_line[moved]] == 0)
+    assert all(result.details[k]["reference_ratio"] >= REFERENCE_RATIO_LIMIT for k in moved)
+    assert {result.details[k]["reference_station"] for k in moved} == {"s1"}
+    assert all(w[0].code == "reference_point_moved" for w in (result.warnings[k] for k in moved))
     fix = solve(problem.with_values(draws[moved[0]]), "los_intersection")
     assert fix.details["reference_station"] == "s1"
     assert "reference_point_moved" in {w.code for w in fix.warnings}
@@ -218,11 +220,12 @@ def test_paper_002_grid_reaches_the_crlb():
         for north in np.arange(0.0, 10_001.0, 2_000.0):
             target = np.array([east, north, TARGET_HEIGHT_M])
             noise = draw_noise(rng, problem.sigmas, size=trials)
-            result = intersect_lines_of_sight(problem, true_values(problem, target) + noise)
-            assert result.valid.all()
+            result = intersect_lines_of_sight(trial_batch(problem, true_values(problem, target) + noise))
+            assert not result.errors
             nearest_m = np.min(np.hypot(*(stations[:, :2] - target[:2]).T))
             if nearest_m == 0.0:
-                assert result.moved.any() and np.isfinite(result.position_enu_m).all()
+                assert any(d["reference_station"] is not None for d in result.details)
+                assert np.isfinite(result.position_enu_m).all()
             if nearest_m <= 1_000.0:
                 continue
             crlb = information_at(problem, target).covariance_enu_m2[0]
