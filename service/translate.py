@@ -273,6 +273,9 @@ _RANGE = _bounds(schemas.RangeMeasurement, "range_m")
 _SIGMA_RANGE = _bounds(schemas.RangeMeasurement, "sigma_m")
 _SIGMA_TOA = _bounds(schemas.ToaMeasurement, "sigma_s")
 _TOLERANCE = _bounds(schemas.Options, "tolerance_m")
+_LOCAL = _bounds(schemas.LocalPosition, "east_m")
+_TOA_TIME = _bounds(schemas.ToaMeasurement, "toa_s")
+_ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
                        if getattr(rule, "max_length", None) is not None)
 _ABSENT = object()
@@ -289,7 +292,7 @@ def _position(body, geodetic: bool) -> tuple[float, float, float]:
                 _number(body.get("alt_m", 0.0), _ALT))
     if not body.keys() <= _LOCAL_KEYS or "lat_deg" in body or "lon_deg" in body:
         raise _Reject
-    return _number(body["east_m"]), _number(body["north_m"]), _number(body.get("up_m", 0.0))
+    return _number(body["east_m"], _LOCAL), _number(body["north_m"], _LOCAL), _number(body.get("up_m", 0.0), _LOCAL)
 
 
 def _station_id(value) -> str:
@@ -331,7 +334,7 @@ def _problem_settings(body: dict) -> tuple:
     if constraints is not None:
         if type(constraints) is not dict or not constraints.keys() <= _CONSTRAINT_KEYS:
             raise _Reject
-        value = _optional_number(constraints, "altitude_m")
+        value = _optional_number(constraints, "altitude_m", _ALTITUDE)
         altitude = math.nan if value is None else value
     formats = body.get("formats", ())
     if formats != ():
@@ -447,14 +450,17 @@ def _read(bodies: list):
 def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
     """Rows of raw JSON numbers (flattened) as floats ``(R, width)``, and which rows hold only numbers.
 
-    JSON numbers (and booleans, which the schema's lax floats also take) convert as pydantic converts
-    them; a row with anything else (a string, null, a huge integer) is marked for the full path.
+    JSON numbers convert as pydantic converts them; a row with anything else (a boolean, which the strict
+    schema refuses, a string, null, a list, a huge integer) is marked for the full path.
     """
-    table = np.array(flat) if flat else np.zeros(0)
-    if table.dtype.kind in "fiub":
+    try:
+        table = np.array(flat) if flat and bool not in set(map(type, flat)) else None
+    except ValueError:  # a list where a number belongs: ragged
+        table = None
+    if table is not None and table.dtype.kind in "fiu":
         return table.astype(float, copy=False).reshape(-1, width), np.ones(len(flat) // width, dtype=bool)
     rows = [flat[i:i + width] for i in range(0, len(flat), width)]
-    good = np.array([all(type(v) in (float, int, bool) and abs(v) < 1e300 for v in row) for row in rows], dtype=bool)
+    good = np.array([all(type(v) in (float, int) and abs(v) < 1e300 for v in row) for row in rows], dtype=bool)
     table = np.array([row if ok else [0.0] * width for row, ok in zip(rows, good)], dtype=float).reshape(-1, width)
     return table, good
 
@@ -513,12 +519,13 @@ def to_problem_batch(bodies: list) -> tuple[list[int], list[tuple[int, float]], 
     on_earth = geodetic[station_owner]
     coords_ok &= np.all(np.isfinite(coords), axis=-1)
     coords_ok &= ~on_earth | (_within(coords[:, 0], _LAT) & _within(coords[:, 1], _LON) & _within(coords[:, 2], _ALT))
+    coords_ok &= on_earth | np.all(_within(coords, _LOCAL), axis=-1)
     is_az, is_el, is_range, is_toa = kinds == _AZ, kinds == _EL, kinds == _RG, kinds == _TOA
     scalars_ok &= np.isfinite(values) & np.isfinite(sigmas)
     scalars_ok &= ~is_az | (_within(values, _AZIMUTH) & _within(sigmas, _SIGMA_AZIMUTH))
     scalars_ok &= ~is_el | (_within(values, _ELEVATION) & _within(sigmas, _SIGMA_ELEVATION))
     scalars_ok &= ~is_range | (_within(values, _RANGE) & _within(sigmas, _SIGMA_RANGE))
-    scalars_ok &= ~is_toa | _within(sigmas, _SIGMA_TOA)
+    scalars_ok &= ~is_toa | (_within(values, _TOA_TIME) & _within(sigmas, _SIGMA_TOA))
     bad = np.zeros(len(accepted), dtype=bool)
     bad[station_owner[~coords_ok]] = True
     bad[scalar_owner[~scalars_ok]] = True
