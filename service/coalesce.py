@@ -23,6 +23,7 @@ futures, so nothing is left running when the loop goes idle.
 from __future__ import annotations
 
 import asyncio
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,8 @@ from core.accuracy import ErrorSummary, error_summary
 from core.errors import LocalizationError
 from core.estimators import Fix, SolveOptions, solve, solve_many
 from core.problem import Problem
+
+logger = logging.getLogger("passive_locator")
 
 
 @dataclass(frozen=True)
@@ -52,6 +55,7 @@ def solve_together(items: list[tuple[Problem, str, SolveOptions]]) -> list[Solve
     try:
         fixes: list = solve_many([p for p, _, _ in items], [m for _, m, _ in items], [o for _, _, o in items])
     except Exception:
+        logger.exception("shared solve of %d problems failed; solving each alone", len(items))
         fixes = []
         for problem, method, options in items:
             try:
@@ -66,6 +70,7 @@ def solve_together(items: list[tuple[Problem, str, SolveOptions]]) -> list[Solve
             for k, i in enumerate(good):
                 out[i] = Solved(fixes[i], summary, k)
         except Exception:
+            logger.exception("shared error summary of %d fixes failed; summarising each alone", len(good))
             for i in good:
                 try:
                     out[i] = Solved(fixes[i], error_summary(fixes[i].covariance_enu_m2), 0)

@@ -12,14 +12,14 @@ from service import sessions
 from service.deps import OwnerDep
 from service.responses import JsonResponse
 from service.schemas import Problem
-from service.stores import SessionStore
+from service.stores.guard import GuardedStore
 
 
-def get_store(request: Request) -> SessionStore:
+async def get_store(request: Request) -> GuardedStore:
     return request.app.state.store
 
 
-StoreDep = Annotated[SessionStore, Depends(get_store)]
+StoreDep = Annotated[GuardedStore, Depends(get_store)]
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
@@ -27,7 +27,9 @@ _ETAG = {"ETag": {"description": "the session's version, quoted: send it back in
                   "schema": {"type": "string"}}}
 _NOT_FOUND = {404: {"model": Problem, "description": "no such session for this key (or it expired)"}}
 _INVALID = {422: {"model": Problem, "description": "invalid values, with the field path"}}
-_BUSY = {503: {"model": Problem, "description": "the store could not serialise this write in time; retry"}}
+_UNAVAILABLE = {503: {"model": Problem, "description": "the session store is unavailable, too slow, or could not "
+                                                       "serialise this write in time; retry after Retry-After",
+                      "headers": {"Retry-After": {"description": "seconds", "schema": {"type": "string"}}}}}
 
 
 def _state_response(record, status_code: int = 200, body: dict | None = None, headers=None) -> JsonResponse:
@@ -39,28 +41,30 @@ def _state_response(record, status_code: int = 200, body: dict | None = None, he
              response_model=schemas.SessionState,
              responses={201: {"headers": {**_ETAG, "Location": {"description": "/v1/sessions/{id}",
                                                                  "schema": {"type": "string"}}}},
-                        **_INVALID})
-def create_session(body: schemas.SessionCreate, owner: OwnerDep, store: StoreDep, request: Request) -> JsonResponse:
-    record = sessions.create(store, owner, body)
+                        **_INVALID, **_UNAVAILABLE})
+async def create_session(body: schemas.SessionCreate, owner: OwnerDep, store: StoreDep,
+                         request: Request) -> JsonResponse:
+    record = await store.run(sessions.create, owner, body)
     request.app.state.metrics.count("sessions_created_total")
     return _state_response(record, 201, headers={"Location": f"/v1/sessions/{record.id}"})
 
 
 @router.get("", operation_id="sessions-list", summary="This key's live sessions, oldest first (paged)",
-            response_model=schemas.SessionList, responses=_INVALID)
-def list_sessions(owner: OwnerDep, store: StoreDep,
+            response_model=schemas.SessionList, responses={**_INVALID, **_UNAVAILABLE})
+async def list_sessions(owner: OwnerDep, store: StoreDep,
                   limit: Annotated[int, Query(ge=1, le=500, description="sessions per page")] = 50,
                   cursor: Annotated[str | None, Query(max_length=200,
                                                       description="next_cursor of the previous page")] = None,
                   ) -> JsonResponse:
-    records, next_cursor = sessions.page(store, owner, limit, cursor)
+    records, next_cursor = await store.run(sessions.page, owner, limit, cursor)
     return JsonResponse({"sessions": [sessions.state_body(r) for r in records], "next_cursor": next_cursor})
 
 
 @router.get("/{session_id}", operation_id="sessions-get", summary="A session's state",
-            response_model=schemas.SessionState, responses={200: {"headers": _ETAG}, **_NOT_FOUND})
-def get_session(session_id: str, owner: OwnerDep, store: StoreDep) -> JsonResponse:
-    return _state_response(sessions.get(store, owner, session_id))
+            response_model=schemas.SessionState,
+            responses={200: {"headers": _ETAG}, **_NOT_FOUND, **_UNAVAILABLE})
+async def get_session(session_id: str, owner: OwnerDep, store: StoreDep) -> JsonResponse:
+    return _state_response(await store.run(sessions.get, owner, session_id))
 
 
 @router.post("/{session_id}/measurements", operation_id="sessions-post-measurements",
@@ -69,13 +73,13 @@ def get_session(session_id: str, owner: OwnerDep, store: StoreDep) -> JsonRespon
              responses={200: {"headers": _ETAG}, **_NOT_FOUND,
                         409: {"model": Problem, "description": "a new epoch's time_s is not after the previous "
                                                                "one's; nothing of the batch was applied"},
-                        412: {"model": Problem, "description": "If-Match is stale"}, **_INVALID, **_BUSY})
-def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: OwnerDep, store: StoreDep,
+                        412: {"model": Problem, "description": "If-Match is stale"}, **_INVALID, **_UNAVAILABLE})
+async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: OwnerDep, store: StoreDep,
                       request: Request,
                       if_match: Annotated[str | None, Header(description='"<version>" from an ETag: apply only '
                                                                          "if the session is still at it")] = None,
                       ) -> JsonResponse:
-    outcome = sessions.post_measurements(store, owner, session_id, batch, if_match)
+    outcome = await store.run(sessions.post_measurements, owner, session_id, batch, if_match)
     metrics = request.app.state.metrics
     metrics.count("session_epochs_applied_total", outcome.applied)
     metrics.count("session_epochs_duplicate_total", outcome.duplicates)
@@ -84,7 +88,7 @@ def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: O
 
 
 @router.delete("/{session_id}", operation_id="sessions-delete", status_code=204, summary="End a session",
-               response_class=Response, responses=_NOT_FOUND)
-def delete_session(session_id: str, owner: OwnerDep, store: StoreDep) -> Response:
-    sessions.delete(store, owner, session_id)
+               response_class=Response, responses={**_NOT_FOUND, **_UNAVAILABLE})
+async def delete_session(session_id: str, owner: OwnerDep, store: StoreDep) -> Response:
+    await store.run(sessions.delete, owner, session_id)
     return Response(status_code=204)
