@@ -17,6 +17,7 @@ from collections import OrderedDict
 import orjson
 
 from service.auth import authenticate
+from service.limits import fix_cost_limit
 from service.logs import request_id_var
 from service.metrics import Metrics
 from service.problems import MEDIA_TYPE, problem_body
@@ -46,7 +47,8 @@ class ServiceMiddleware:
     """Request id (echoed or made), 415, 413, 429, metrics, access log, and the 500 of last resort."""
 
     def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None,
-                 key_digests: frozenset[bytes] = frozenset()):
+                 key_digests: frozenset[bytes] = frozenset(), max_fix_cost: int | None = None):
+        self.max_fix_cost = max_fix_cost
         self._id_prefix = uuid.uuid4().hex[:16]
         self._id_counter = itertools.count(1)
         self.app = app
@@ -63,6 +65,7 @@ class ServiceMiddleware:
         request_id = headers.get(b"x-request-id", b"").decode("latin-1")[:128] or self._next_request_id()
         scope.setdefault("state", {})["request_id"] = request_id
         token = request_id_var.set(request_id)
+        fix_cost_limit.set(self.max_fix_cost)
         started = time.perf_counter()
         status_holder = {"status": 500, "started": False}
 

@@ -47,9 +47,10 @@ class Settings(BaseSettings):
     request_deadline_s : float
         Longest computation of one request (evaluations stop between chunks; 503 ``deadline_exceeded``).
     max_evaluation_cost : int
-        Largest ``trials x methods x measurements`` of one evaluation (422 ``over_limit`` above).
+        Largest ``trials x measurement rows x method weights`` of one evaluation (422 ``over_limit`` above).
     max_batch_cost : int
-        Largest sum over a batch's problems of ``measurements x method weight`` (ML 1, other methods 4).
+        Largest sum over a batch's problems of ``measurements x method weight`` (batched methods 1, others
+        25: service.limits).
     max_fix_cost : int
         Largest ``stations x measurements`` of one fix (also of each batch problem).
     cpu_workers : int
@@ -76,8 +77,8 @@ class Settings(BaseSettings):
     rate_limit_burst: int = Field(100, ge=1)
     rate_limit_clients: int = Field(10_000, ge=1)
     request_deadline_s: float = Field(30.0, gt=0.0)
-    max_evaluation_cost: int = Field(20_000_000, ge=1)
-    max_batch_cost: int = Field(400_000, ge=1)
+    max_evaluation_cost: int = Field(400_000, ge=1)
+    max_batch_cost: int = Field(200_000, ge=1)
     max_fix_cost: int = Field(256 * 1024, ge=1)
     cpu_workers: int = Field(2, ge=1, le=64)
     graceful_timeout_s: float = Field(10.0, gt=0.0)

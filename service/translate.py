@@ -18,6 +18,7 @@ from core.estimators import Fix, SolveOptions
 from core.measurements import Kind
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from service import schemas
+from service.limits import fix_within_limit
 
 _COMPONENT = {Kind.AZIMUTH: "azimuth", Kind.ELEVATION: "elevation", Kind.RANGE: "range", Kind.TOA: "toa"}
 _COMPONENT_NAMES = {int(k): name for k, name in _COMPONENT.items()}
@@ -276,6 +277,7 @@ _TOLERANCE = _bounds(schemas.Options, "tolerance_m")
 _LOCAL = _bounds(schemas.LocalPosition, "east_m")
 _TOA_TIME = _bounds(schemas.ToaMeasurement, "toa_s")
 _ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
+_MEASUREMENTS_MAX = schemas.MAX_FIX_MEASUREMENTS
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
                        if getattr(rule, "max_length", None) is not None)
 _ABSENT = object()
@@ -403,7 +405,8 @@ def _read(bodies: list):
                         raise _Reject
                     add_coordinates((position["east_m"], position["north_m"], position.get("up_m", 0.0)))
             measurements = body["measurements"]
-            if type(measurements) is not list or not 0 < len(measurements) <= 4096:
+            if type(measurements) is not list or not 0 < len(measurements) <= _MEASUREMENTS_MAX \
+                    or not fix_within_limit(len(ids), len(measurements)):
                 raise _Reject
             n_bearings = 0
             for i, m in enumerate(measurements):

@@ -36,6 +36,7 @@ from core.estimators import SolveOptions, solve_many
 from core.estimators.ml import solve_ml_problem_batch
 from service import schemas
 from service.deps import OwnerDep
+from service.limits import check_batch
 from service.problems import localization_problem, problem_body, validation_errors
 from service.responses import JsonResponse
 from service.translate import (batch_error_summary, fix_batch_to_dicts, fix_to_dict, to_options, to_problem,
@@ -53,7 +54,8 @@ MAX_PROBLEMS = next(rule.max_length for rule in schemas.BatchRequest.model_field
 
 _ERRORS = {
     400: {"model": schemas.Problem, "description": "the body is not valid JSON"},
-    422: {"model": schemas.Problem, "description": "the body is not {\"problems\": [...]} with 1..10000 problems"},
+    422: {"model": schemas.Problem, "description": "the body is not {\"problems\": [...]} with 1..10000 problems, "
+                                                   "or the batch is over max_batch_cost (code over_limit)"},
 }
 
 
@@ -197,6 +199,7 @@ def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonRespons
     request_id = request.scope.get("state", {}).get("request_id")
     with gc_paused():
         problems = _problems(raw)
+        check_batch(problems, request.app.state.settings.max_batch_cost)
         results = solve_batch(problems, request_id)
         request.app.state.metrics.count("batch_problems_total", len(problems))
         response = JsonResponse({"results": results})

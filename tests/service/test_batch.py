@@ -272,7 +272,8 @@ def test_the_lean_reader_knows_every_validator_of_the_request_schema():
     models = (schemas.FixRequest, schemas.Station, schemas.GeodeticPosition, schemas.LocalPosition,
               schemas.BearingMeasurement, schemas.RangeMeasurement, schemas.ToaMeasurement, schemas.Options,
               schemas.Constraints)
-    known = {("FixRequest", "_stations_match_frame"), ("BearingMeasurement", "_elevation_sigma")}
+    known = {("FixRequest", "_stations_match_frame"), ("FixRequest", "_within_cost"),
+             ("BearingMeasurement", "_elevation_sigma")}
     found = {(m.__name__, name) for m in models for kind in ("model_validators", "field_validators")
              for name in getattr(m.__pydantic_decorators__, kind)}
     assert found == known
