@@ -92,6 +92,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(router)
     limiter = TokenBucket(settings.rate_limit_per_s, settings.rate_limit_burst, settings.rate_limit_clients) \
         if settings.rate_limit_per_s else None
+    app.state.rate_limiter = limiter
     app.add_middleware(ServiceMiddleware, max_body_bytes=settings.max_body_bytes, metrics=metrics,
                        rate_limiter=limiter, key_digests=app.state.key_digests, max_fix_cost=settings.max_fix_cost)
     return app

@@ -63,8 +63,8 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="PASSIVE_LOCATOR_", extra="ignore")
 
     store: str = "sqlite:///./var/sessions.db"
-    store_timeout_s: float = Field(1.0, gt=0.0, le=60.0)
-    store_call_timeout_s: float = Field(2.5, gt=0.0, le=120.0)
+    store_timeout_s: float = Field(0.5, gt=0.0, le=60.0)
+    store_call_timeout_s: float = Field(2.0, gt=0.0, le=120.0)
     store_workers: int = Field(8, ge=1, le=256)
     store_breaker_failures: int = Field(3, ge=1)
     store_breaker_cooldown_s: float = Field(1.0, gt=0.0, le=300.0)

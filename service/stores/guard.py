@@ -77,6 +77,13 @@ class CircuitBreaker:
             self._trial = True
             return 0.0
 
+    def cooling(self) -> float:
+        """Seconds left of an open breaker's cooldown (0 when closed or half-open); takes no trial."""
+        with self._lock:
+            if self._failures < self.threshold:
+                return 0.0
+            return max(0.0, self._open_until - self.clock())
+
     def success(self) -> None:
         with self._lock:
             self._failures, self._trial = 0, False
@@ -137,6 +144,9 @@ class GuardedStore:
         return backend
 
     def _guarded(self, work: Callable[..., T], args: tuple) -> T:
+        wait = self.breaker.cooling()
+        if wait:  # the breaker opened while this call queued: do not give a hung store another thread
+            raise unavailable(f"session store {self.kind} unavailable (failing; circuit open); retry", wait)
         try:
             result = work(self.backend(), *args)
         except BACKEND_ERRORS as error:
