@@ -94,5 +94,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if settings.rate_limit_per_s else None
     app.state.rate_limiter = limiter
     app.add_middleware(ServiceMiddleware, max_body_bytes=settings.max_body_bytes, metrics=metrics,
-                       rate_limiter=limiter, key_digests=app.state.key_digests, max_fix_cost=settings.max_fix_cost)
+                       rate_limiter=limiter, key_digests=app.state.key_digests, max_fix_cost=settings.max_fix_cost,
+                       routes=app.router.routes)
     return app

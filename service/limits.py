@@ -30,7 +30,7 @@ fix_cost_limit: contextvars.ContextVar[int | None] = contextvars.ContextVar("fix
 
 
 def method_weight(method) -> int:
-    return 1 if method in BATCHED_METHODS or not isinstance(method, str) else UNBATCHED_WEIGHT
+    return 1 if not isinstance(method, str) or method in BATCHED_METHODS else UNBATCHED_WEIGHT
 
 
 def over_limit(name: str, cost: int, limit: int, loc: list, what: str) -> ApiError:

@@ -15,6 +15,7 @@ import uuid
 from collections import OrderedDict
 
 import orjson
+from starlette.routing import Match
 
 from service.auth import authenticate
 from service.limits import fix_cost_limit
@@ -26,7 +27,8 @@ logger = logging.getLogger("passive_locator")
 
 #: Probes are never rate-limited (an orchestrator's health check must not fail under load).
 PROBE_PATHS = frozenset(("/healthz", "/readyz", "/metrics"))
-_BODY_METHODS = frozenset(("POST", "PUT", "PATCH"))
+#: Methods whose body must be JSON (the only one any route takes a body with; others get 405 from the router).
+_BODY_METHODS = frozenset(("POST",))
 
 
 def is_json_media_type(content_type: bytes) -> bool:
@@ -47,7 +49,8 @@ class ServiceMiddleware:
     """Request id (echoed or made), 415, 413, 429, metrics, access log, and the 500 of last resort."""
 
     def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None,
-                 key_digests: frozenset[bytes] = frozenset(), max_fix_cost: int | None = None):
+                 key_digests: frozenset[bytes] = frozenset(), max_fix_cost: int | None = None, routes=()):
+        self.routes = routes
         self.max_fix_cost = max_fix_cost
         self._id_prefix = uuid.uuid4().hex[:16]
         self._id_counter = itertools.count(1)
@@ -83,7 +86,7 @@ class ServiceMiddleware:
                     await _send_problem(send_with_id, 429, "rate_limited", "over the configured rate limit",
                                         request_id, [(b"retry-after", str(max(1, round(retry_after))).encode())])
                     return
-            if method in _BODY_METHODS and path.startswith("/v1/"):
+            if method in _BODY_METHODS and self._takes_body(scope):
                 if not is_json_media_type(headers.get(b"content-type", b"")):
                     await _send_problem(send_with_id, 415, "unsupported_media_type",
                                         "the body must be JSON: Content-Type: application/json", request_id,
@@ -109,6 +112,10 @@ class ServiceMiddleware:
             logger.info("request", extra={"method": scope.get("method"), "path": template,
                                           "status": status_holder["status"], "duration_ms": round(seconds * 1e3, 2)})
             request_id_var.reset(token)
+
+    def _takes_body(self, scope) -> bool:
+        """Whether a route serves this method at this path (else the router answers 404 or 405 unread)."""
+        return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
 
     def _client_key(self, scope, headers) -> bytes:
         """The authenticated key's digest, else the peer address: a made-up header buys no fresh bucket."""
