@@ -197,3 +197,27 @@ def test_bounds_are_in_the_published_schema():
     assert spec["ToaMeasurement"]["properties"]["toa_s"]["minimum"] == -schemas.MAX_ABS_TIME_S
     ttl = session_schemas.SessionCreate.model_json_schema()["properties"]["ttl_s"]
     assert ttl["minimum"] == session_schemas.MIN_TTL_S
+
+
+def test_max_fix_cost_limits_a_fix_and_each_batch_problem(make_client):
+    small = make_client(max_fix_cost=15)  # 4 stations x 4 bearings = 16
+    body = _fix()
+    response = small.post("/v1/fixes", json=body)
+    problem = assert_problem(response, 422)
+    assert "max_fix_cost" in problem["detail"]
+    three = copy.deepcopy(body)
+    three["measurements"] = three["measurements"][:3]  # 4 x 3 = 12
+    results = small.post("/v1/fixes/batch", json={"problems": [body, three]}).json()["results"]
+    assert [r["ok"] for r in results] == [False, True]
+    assert "max_fix_cost" in results[0]["error"]["detail"]
+
+
+def test_a_batch_over_its_cost_is_422_naming_the_limit(make_client):
+    small = make_client(max_batch_cost=100)
+    body = _fix()
+    assert small.post("/v1/fixes/batch", json={"problems": [body] * 25}).status_code == 200  # 25 x 4 = 100
+    problem = assert_problem(small.post("/v1/fixes/batch", json={"problems": [body] * 26}), 422,
+                             loc=["problems"], code="over_limit")
+    assert "max_batch_cost" in problem["detail"]
+    eove = {**body, "method": "eove"}
+    assert_problem(small.post("/v1/fixes/batch", json={"problems": [eove] * 2}), 422, code="over_limit")  # 2 x 4 x 25
