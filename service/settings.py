@@ -85,6 +85,16 @@ class Settings(BaseSettings):
     log_level: str = "info"
     log_format: Literal["json", "text"] = "json"
 
+    api_keys: str | None = Field(None, description="gone: plain keys in configuration are refused")
+
+    @field_validator("api_keys")
+    @classmethod
+    def _no_plain_keys(cls, value: str | None) -> None:
+        if value is not None:
+            raise ValueError("PASSIVE_LOCATOR_API_KEYS (plain keys) is no longer read: configure their SHA-256 "
+                             "digests in PASSIVE_LOCATOR_API_KEY_HASHES or PASSIVE_LOCATOR_API_KEY_HASHES_FILE")
+        return None
+
     @field_validator("api_key_hashes")
     @classmethod
     def _digests(cls, value: str) -> str:

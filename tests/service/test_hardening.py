@@ -244,3 +244,11 @@ def test_the_coalescer_logs_the_exception_its_fallback_absorbs(monkeypatch, capt
     assert isinstance(solved, coalesce.Solved)
     errors = [line for line in captured_logs() if line["level"] == "error"]
     assert errors and "the batched path broke" in errors[0]["exception"]
+
+
+def test_the_old_plain_key_setting_stops_the_service_rather_than_opening_it(monkeypatch):
+    from service.settings import Settings
+
+    monkeypatch.setenv("PASSIVE_LOCATOR_API_KEYS", '["k1"]')
+    with pytest.raises(ValueError, match="API_KEY_HASHES"):
+        Settings()
