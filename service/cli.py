@@ -14,7 +14,8 @@ def _settings_help() -> str:
     from service.settings import Settings
     from service.tak import TakSettings
 
-    lines = ["environment (lists as JSON, e.g. PASSIVE_LOCATOR_API_KEYS='[\"k1\"]'; see README.md):"]
+    lines = ["environment (lists as JSON, e.g. PASSIVE_LOCATOR_CORS_ALLOW_ORIGINS='[\"https://c2.example\"]'; "
+             "see README.md):"]
     for model in (Settings, TakSettings):
         prefix = model.model_config.get("env_prefix", "")
         for name, field in model.model_fields.items():
@@ -48,6 +49,17 @@ def _metrics_for_workers(workers: int) -> None:
     directory = tempfile.mkdtemp(prefix="passive-locator-metrics-")
     os.environ["PROMETHEUS_MULTIPROC_DIR"] = directory
     atexit.register(shutil.rmtree, directory, ignore_errors=True)
+import ipaddress
+import sys
+
+
+def is_loopback(host: str) -> bool:
+    if host in ("localhost", "localhost.localdomain"):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -63,15 +75,26 @@ def main(argv: list[str] | None = None) -> None:
                        help="server processes (default %(default)s); with more than one, sessions need a shared "
                             "store (redis://) unless every worker may use the same SQLite file, and metrics are "
                             "summed over the workers")
-    serve.add_argument("--log-level", default="info", choices=["critical", "error", "warning", "info", "debug"],
-                       help="uvicorn's log level (default %(default)s)")
+    serve.add_argument("--log-level", default=None, choices=["critical", "error", "warning", "info", "debug"],
+                       help="log level (default: PASSIVE_LOCATOR_LOG_LEVEL, else info)")
     args = parser.parse_args(argv)
+
+    from service.logs import uvicorn_log_config
+    from service.settings import Settings
+
+    settings = Settings()
+    if not settings.key_digests() and not is_loopback(args.host) and not settings.allow_anonymous:
+        sys.exit(f"passive-locator: refusing to serve {args.host} without API keys: set "
+                 "PASSIVE_LOCATOR_API_KEY_HASHES (or PASSIVE_LOCATOR_API_KEY_HASHES_FILE), or "
+                 "PASSIVE_LOCATOR_ALLOW_ANONYMOUS=true to serve anyone who can reach it")
+    level = args.log_level or settings.log_level
 
     import uvicorn
 
     _metrics_for_workers(args.workers)
     uvicorn.run("service.main:app", factory=False, host=args.host, port=args.port, workers=args.workers,
-                log_level=args.log_level, proxy_headers=False)
+                log_level=level, log_config=uvicorn_log_config(level, settings.log_format), access_log=False,
+                proxy_headers=False, timeout_graceful_shutdown=settings.graceful_timeout_s)
 
 
 if __name__ == "__main__":

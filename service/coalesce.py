@@ -30,6 +30,8 @@ from service.translate import fix_results
 
 logger = logging.getLogger("passive_locator")
 
+logger = logging.getLogger("passive_locator")
+
 
 def solve_together(items: list[tuple[object, str | None]]) -> list[dict | BaseException]:
     """Results of ``(body, request_id)`` items as one :func:`fix_results` call; each gets its own result.

@@ -1,39 +1,45 @@
-"""Typed dependencies shared by the routers."""
+"""Typed dependencies shared by the routers (all run on the event loop: no thread hop for a header check)."""
 
 from __future__ import annotations
 
-import hashlib
 import json
-import hmac
 from typing import Annotated, Any
 
 import orjson
 from fastapi import Depends, Request
 from fastapi.exceptions import RequestValidationError
 
+from service.auth import authenticate, key_digest, owner_of
 from service.problems import ApiError
 from service.settings import Settings
 
 
-def get_settings(request: Request) -> Settings:
+async def get_settings(request: Request) -> Settings:
     return request.app.state.settings
 
 
 def get_owner(request: Request) -> str:
-    """The caller's identity: a digest of its bearer key, or ``anonymous`` when keys are off.
+    """The caller's identity: the digest prefix of its bearer key, or ``anonymous`` when keys are off.
 
-    Raises 401 without a key and 403 with a wrong one when keys are configured.
+    Raises 401 (``WWW-Authenticate: Bearer``, RFC 6750) without a key or with a wrong one when keys are
+    configured.
     """
-    keys: list[str] = request.app.state.settings.api_keys
-    if not keys:
+    digests: frozenset[bytes] = request.app.state.key_digests
+    if not digests:
         return "anonymous"
-    header = request.headers.get("authorization", "")
-    scheme, _, key = header.partition(" ")
-    if scheme.lower() != "bearer" or not key:
-        raise ApiError(401, "unauthorized", "missing bearer key", headers={"WWW-Authenticate": "Bearer"})
-    if not any(hmac.compare_digest(key.encode(), k.encode()) for k in keys):
-        raise ApiError(403, "forbidden", "unknown key")
-    return hashlib.sha256(key.encode()).hexdigest()[:32]
+    header = request.headers.get("authorization")
+    digest = authenticate(header, digests)
+    if digest is None:
+        if key_digest(header) is None:
+            raise ApiError(401, "unauthorized", "missing bearer key (Authorization: Bearer <key>)",
+                           headers={"WWW-Authenticate": 'Bearer realm="passive-locator"'})
+        raise ApiError(401, "unauthorized", "unknown bearer key",
+                       headers={"WWW-Authenticate": 'Bearer realm="passive-locator", error="invalid_token"'})
+    return owner_of(digest)
+
+
+async def _owner(request: Request) -> str:
+    return get_owner(request)
 
 
 def parse_json(raw: bytes) -> Any:
@@ -69,4 +75,4 @@ def json_request_body(model) -> dict:
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 JsonBody = Annotated[Any, Depends(json_body)]
-OwnerDep = Annotated[str, Depends(get_owner)]
+OwnerDep = Annotated[str, Depends(_owner)]

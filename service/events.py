@@ -110,22 +110,22 @@ class RedisBus:
 
     def __init__(self, store, url: str, metrics=None):
         self.store, self.metrics = store, metrics
-        self.prefix = getattr(store, "prefix", "")
         parts = urlsplit(url)
         rest = urlencode([(k, v) for k, v in parse_qsl(parts.query, keep_blank_values=True) if k != "key_prefix"])
         self.url = urlunsplit(parts._replace(query=rest))
         self._async_client = None
 
     def channel(self, session_id: str) -> str:
-        return f"{self.prefix}events:{session_id}"
+        return f"{getattr(self.store.backend(), 'prefix', '')}events:{session_id}"
 
     def publish(self, session_id: str, version: int) -> None:
-        """Publish, never failing the post that applied the update (it is stored; streams poll on timeout)."""
+        """Publish (blocking: call it off the event loop), never failing the post that applied the update
+        (it is stored; streams poll on timeout)."""
         import redis
 
         try:
-            self.store.client.publish(self.channel(session_id), orjson.dumps({"version": version}))
-        except redis.RedisError as error:
+            self.store.backend().client.publish(self.channel(session_id), orjson.dumps({"version": version}))
+        except (redis.RedisError, OSError) as error:
             logger.warning("session event for %s not published: %s", session_id, error)
             if self.metrics is not None:
                 self.metrics.store_errors.labels("publish").inc()

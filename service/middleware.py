@@ -1,7 +1,9 @@
-"""Pure-ASGI middleware: request ids, the body limit, rate limiting and metrics.
+"""Pure-ASGI middleware: request ids, content type (415), the body limit (413), rate limiting (429),
+metrics, one log line per request, and the 500 of last resort.
 
-Pure ASGI rather than ``BaseHTTPMiddleware``: no extra task per request and
-the body can be counted while it streams.
+Pure ASGI rather than ``BaseHTTPMiddleware``: no extra task per request, and
+the body is read here, counted while it streams (a chunked body over the
+limit is a 413 like a declared one), and handed to the app in one piece.
 """
 
 from __future__ import annotations
@@ -10,37 +12,53 @@ import itertools
 import logging
 import time
 import uuid
+from collections import OrderedDict
 
 import orjson
+from starlette.routing import Match
 
+from service.auth import authenticate
+from service.limits import fix_cost_limit
+from service.logs import request_id_var
 from service.metrics import Metrics
 from service.problems import MEDIA_TYPE, problem_body
 
 logger = logging.getLogger("passive_locator")
+
+#: Probes are never rate-limited (an orchestrator's health check must not fail under load).
+PROBE_PATHS = frozenset(("/healthz", "/readyz", "/metrics"))
+#: Methods whose body must be JSON (the only one any route takes a body with; others get 405 from the router).
+_BODY_METHODS = frozenset(("POST",))
+
+
+def is_json_media_type(content_type: bytes) -> bool:
+    """``application/json`` or any ``application/<x>+json``, parameters (charset) ignored."""
+    media = content_type.split(b";", 1)[0].strip().lower()
+    return media == b"application/json" or (media.startswith(b"application/") and media.endswith(b"+json"))
 
 
 async def _send_problem(send, status: int, code: str, detail: str, request_id: str, headers=()) -> None:
     body = orjson.dumps(problem_body(status, code, detail, request_id=request_id))
     await send({"type": "http.response.start", "status": status,
                 "headers": [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", str(len(body)).encode()),
-                            (b"x-request-id", request_id.encode()), *headers]})
+                            *headers]})
     await send({"type": "http.response.body", "body": body})
 
 
-class _BodyTooLarge(Exception):
-    pass
-
-
 class ServiceMiddleware:
-    """Request id (echoed or made), body limit (413), rate limit (429), metrics, and the 500 of last resort."""
+    """Request id (echoed or made), 415, 413, 429, metrics, access log, and the 500 of last resort."""
 
-    def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None):
+    def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None,
+                 key_digests: frozenset[bytes] = frozenset(), max_fix_cost: int | None = None, routes=()):
+        self.routes = routes
+        self.max_fix_cost = max_fix_cost
         self._id_prefix = uuid.uuid4().hex[:16]
         self._id_counter = itertools.count(1)
         self.app = app
         self.max_body_bytes = max_body_bytes
         self.metrics = metrics
         self.rate_limiter = rate_limiter
+        self.key_digests = key_digests
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
@@ -49,6 +67,8 @@ class ServiceMiddleware:
         headers = dict(scope.get("headers") or [])
         request_id = headers.get(b"x-request-id", b"").decode("latin-1")[:128] or self._next_request_id()
         scope.setdefault("state", {})["request_id"] = request_id
+        token = request_id_var.set(request_id)
+        fix_cost_limit.set(self.max_fix_cost)
         started = time.perf_counter()
         status_holder = {"status": 500, "started": False}
 
@@ -59,73 +79,113 @@ class ServiceMiddleware:
             await send(message)
 
         try:
-            declared = headers.get(b"content-length")
-            if declared is not None and declared.isdigit() and int(declared) > self.max_body_bytes:
-                await self._too_large(send_with_id, request_id)
-                return
-            if self.rate_limiter is not None:
-                client = headers.get(b"authorization") or (scope.get("client") or ("?",))[0].encode()
-                retry_after = self.rate_limiter.take(client)
+            path, method = scope.get("path", ""), scope.get("method", "GET")
+            if self.rate_limiter is not None and path not in PROBE_PATHS:
+                retry_after = self.rate_limiter.take(self._client_key(scope, headers))
                 if retry_after:
-                    status_holder["started"] = True
-                    status_holder["status"] = 429
-                    await _send_problem(send, 429, "rate_limited", "over the configured rate limit", request_id,
-                                        [(b"retry-after", str(max(1, round(retry_after))).encode())])
+                    await _send_problem(send_with_id, 429, "rate_limited", "over the configured rate limit",
+                                        request_id, [(b"retry-after", str(max(1, round(retry_after))).encode())])
                     return
-            received = 0
-
-            async def counting_receive():
-                nonlocal received
-                message = await receive()
-                if message["type"] == "http.request":
-                    received += len(message.get("body", b""))
-                    if received > self.max_body_bytes:
-                        raise _BodyTooLarge
-                return message
-
-            await self.app(scope, counting_receive, send_with_id)
-        except _BodyTooLarge:
-            if not status_holder["started"]:
-                await self._too_large(send_with_id, request_id)
+            if method in _BODY_METHODS and self._takes_body(scope):
+                if not is_json_media_type(headers.get(b"content-type", b"")):
+                    await _send_problem(send_with_id, 415, "unsupported_media_type",
+                                        "the body must be JSON: Content-Type: application/json", request_id,
+                                        [(b"accept-post", b"application/json")])
+                    return
+                body = await self._read_body(headers, receive)
+                if body is None:
+                    await self._too_large(send_with_id, request_id)
+                    return
+                receive = _replay(body, receive)
+            await self.app(scope, receive, send_with_id)
         except Exception:
-            logger.exception("unhandled error (request id %s)", request_id)
+            logger.exception("unhandled error")
             if not status_holder["started"]:
-                await _send_problem(send, 500, "internal_error", f"internal error; quote request id {request_id}",
-                                    request_id)
+                await _send_problem(send_with_id, 500, "internal_error",
+                                    f"internal error; quote request id {request_id}", request_id)
             status_holder["status"] = 500
         finally:
             route = scope.get("route")
-            path = getattr(route, "path", None) or "unmatched"
-            self.metrics.observe(scope.get("method", "?"), path, status_holder["status"],
-                                 time.perf_counter() - started)
+            template = getattr(route, "path", None) or "unmatched"
+            seconds = time.perf_counter() - started
+            self.metrics.observe(scope.get("method", "?"), template, status_holder["status"], seconds)
+            logger.info("request", extra={"method": scope.get("method"), "path": template,
+                                          "status": status_holder["status"], "duration_ms": round(seconds * 1e3, 2)})
+            request_id_var.reset(token)
+
+    def _takes_body(self, scope) -> bool:
+        """Whether a route serves this method at this path (else the router answers 404 or 405 unread)."""
+        return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
+
+    def _client_key(self, scope, headers) -> bytes:
+        """The authenticated key's digest, else the peer address: a made-up header buys no fresh bucket."""
+        if self.key_digests:
+            digest = authenticate(headers.get(b"authorization"), self.key_digests)
+            if digest is not None:
+                return b"key:" + digest
+        return b"addr:" + str((scope.get("client") or ("?",))[0]).encode()
+
+    async def _read_body(self, headers, receive) -> bytes | None:
+        """The whole body, or None once it is over the limit (declared or as it streams)."""
+        declared = headers.get(b"content-length")
+        if declared is not None and declared.strip().isdigit() and int(declared) > self.max_body_bytes:
+            return None
+        chunks, received = [], 0
+        while True:
+            message = await receive()
+            if message["type"] != "http.request":
+                break  # the client went away: the app sees an empty body, its answer goes nowhere
+            chunk = message.get("body", b"")
+            received += len(chunk)
+            if received > self.max_body_bytes:
+                return None
+            chunks.append(chunk)
+            if not message.get("more_body", False):
+                break
+        return b"".join(chunks)
 
     def _next_request_id(self) -> str:
         """Unique per process start and request; one urandom call per process, not per request."""
         return f"{self._id_prefix}{next(self._id_counter):016x}"
 
     async def _too_large(self, send, request_id):
-        body = orjson.dumps(problem_body(413, "body_too_large",
-                                         f"request body exceeds {self.max_body_bytes} bytes", request_id=request_id))
-        await send({"type": "http.response.start", "status": 413,
-                    "headers": [(b"content-type", MEDIA_TYPE.encode()), (b"content-length", str(len(body)).encode()),
-                                (b"connection", b"close")]})
-        await send({"type": "http.response.body", "body": body})
+        await _send_problem(send, 413, "body_too_large", f"request body exceeds {self.max_body_bytes} bytes",
+                            request_id, [(b"connection", b"close")])
+
+
+def _replay(body: bytes, receive):
+    """A ``receive`` that gives the buffered body once, then waits on the real one (for the disconnect)."""
+    sent = False
+
+    async def replay():
+        nonlocal sent
+        if not sent:
+            sent = True
+            return {"type": "http.request", "body": body, "more_body": False}
+        return await receive()
+
+    return replay
 
 
 class TokenBucket:
-    """Per-client token buckets: ``rate`` tokens per second up to ``burst``."""
+    """Per-client token buckets: ``rate`` tokens per second up to ``burst``, at most ``max_clients`` kept.
 
-    def __init__(self, rate_per_s: float, burst: int, clock=time.monotonic):
-        self.rate, self.burst, self.clock = rate_per_s, burst, clock
-        self.buckets: dict[bytes, tuple[float, float]] = {}
+    The least recently seen client is dropped first when the table is full
+    (it comes back with a full bucket: the worst an attacker who floods the
+    table with clients gains is one burst per client it can really be).
+    """
+
+    def __init__(self, rate_per_s: float, burst: int, max_clients: int = 10_000, clock=time.monotonic):
+        self.rate, self.burst, self.max_clients, self.clock = rate_per_s, burst, max_clients, clock
+        self.buckets: OrderedDict[bytes, tuple[float, float]] = OrderedDict()
 
     def take(self, client: bytes) -> float:
         """Take one token; returns 0 when allowed, else the seconds until one is free."""
         now = self.clock()
-        tokens, last = self.buckets.get(client, (float(self.burst), now))
+        tokens, last = self.buckets.pop(client, (float(self.burst), now))
         tokens = min(float(self.burst), tokens + (now - last) * self.rate)
-        if tokens >= 1.0:
-            self.buckets[client] = (tokens - 1.0, now)
-            return 0.0
-        self.buckets[client] = (tokens, now)
-        return (1.0 - tokens) / self.rate
+        allowed = tokens >= 1.0
+        self.buckets[client] = (tokens - 1.0 if allowed else tokens, now)
+        while len(self.buckets) > self.max_clients:
+            self.buckets.popitem(last=False)
+        return 0.0 if allowed else (1.0 - tokens) / self.rate

@@ -14,6 +14,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
+from starlette.routing import Match
 
 from core.errors import LocalizationError
 
@@ -31,6 +32,7 @@ _TITLES = {
     409: "Conflict",
     412: "Precondition failed",
     413: "Request body too large",
+    415: "Unsupported media type",
     422: "Unprocessable request",
     429: "Too many requests",
     500: "Internal server error",
@@ -122,6 +124,16 @@ def validation_errors(errors, prefix: tuple = ()) -> list[dict]:
     return [{"loc": [*prefix, *clean_loc(e["loc"])], "msg": e["msg"], "type": e.get("type")} for e in errors]
 
 
+_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route serves at this request's path (the router reports only the first route's)."""
+    return [method for method in _METHODS
+            if any(route.matches({**request.scope, "method": method})[0] == Match.FULL
+                   for route in request.app.router.routes)]
+
+
 def _request_id(request: Request) -> str | None:
     return request.scope.get("state", {}).get("request_id")
 
@@ -153,11 +165,14 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):
         code = {404: "not_found", 405: "method_not_allowed"}.get(exc.status_code, "http_error")
+        headers = dict(getattr(exc, "headers", None) or {})
+        if exc.status_code == 405:
+            headers["Allow"] = ", ".join(allowed_methods(request))
         return problem_response(exc.status_code, code, str(exc.detail), request_id=_request_id(request),
-                                headers=getattr(exc, "headers", None))
+                                headers=headers)
 
     @app.exception_handler(Exception)
     async def _bug(request: Request, exc: Exception):
         rid = _request_id(request)
-        logger.exception("unhandled error (request id %s)", rid)
+        logger.exception("unhandled error", exc_info=exc)
         return problem_response(500, "internal_error", f"internal error; quote request id {rid}", request_id=rid)

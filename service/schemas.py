@@ -13,22 +13,58 @@ from pydantic import AwareDatetime, BaseModel, ConfigDict, Discriminator, Field,
 
 from core.estimators import REGISTRY
 from core.estimators.result import COVARIANCE_SOURCES, SCALED_COVARIANCE_SOURCES, WARNING_CODES
+from service.limits import check_fix
+
+
+#: Local coordinates, heights and a known altitude lie within this distance of the frame (beyond geostationary
+#: orbit); squares and products of such numbers stay far from float64 overflow.
+MAX_COORDINATE_M = 1e8
+#: A range is at most the distance between two such points, rounded up.
+MAX_RANGE_M = 1e9
+#: Sigma floors: 1/sigma^2 (the information weight) stays finite and far from overflow; ceilings: noise
+#: larger than the physical quantity it blurs tells nothing.
+MIN_SIGMA_DEG, MAX_SIGMA_AZIMUTH_DEG, MAX_SIGMA_ELEVATION_DEG = 1e-6, 180.0, 90.0
+MIN_SIGMA_M, MAX_SIGMA_M = 1e-6, 1e8
+MIN_SIGMA_S, MAX_SIGMA_S = 1e-15, 1.0
+#: Times (TOA, session clocks) are seconds since a recent epoch: within +-1e10 s (~317 years) of it.
+MAX_ABS_TIME_S = 1e10
+#: Measurements of one fix: the ML fit's collinearity check is O(M^2), 4096 took 15 s and 1.1 GB.
+MAX_FIX_MEASUREMENTS = 1024
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    """Request models: unknown fields rejected, finite numbers, strict JSON types (a boolean is not a number,
+    a string is not a number; an integer is accepted where a float is)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, strict=True)
 
 
 class GeodeticPosition(Strict):
     lat_deg: float = Field(ge=-90.0, le=90.0, description="WGS84 latitude, degrees north")
     lon_deg: float = Field(ge=-180.0, le=360.0, description="WGS84 longitude, degrees east")
-    alt_m: float = Field(0.0, ge=-1.2e4, le=1e9, description="height above the WGS84 ellipsoid, metres")
+    alt_m: float = Field(0.0, ge=-1.2e4, le=MAX_COORDINATE_M, description="height above the WGS84 ellipsoid, metres")
 
 
 class LocalPosition(Strict):
+    east_m: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description="metres east of the plane's origin")
+    north_m: float = Field(ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description="metres north of the plane's origin")
+    up_m: float = Field(0.0, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description="metres above the plane")
+
+
+class GeodeticPositionResult(BaseModel):
+    """A computed position on the earth (a fix or a track): not bounded like a request's positions."""
+
+    lat_deg: float = Field(ge=-90.0, le=90.0, description="WGS84 latitude, degrees north")
+    lon_deg: float = Field(ge=-180.0, le=360.0, description="WGS84 longitude, degrees east")
+    alt_m: float = Field(description="height above the WGS84 ellipsoid, metres")
+
+
+class LocalPositionResult(BaseModel):
+    """A computed position in a local east/north/up plane, metres: not bounded like a request's positions."""
+
     east_m: float
     north_m: float
-    up_m: float = 0.0
+    up_m: float
 
 
 def _position_kind(value: Any) -> str | None:
@@ -59,9 +95,10 @@ class BearingMeasurement(Strict):
     station_id: StationId
     azimuth_deg: float = Field(ge=-360.0, le=720.0, description="clockwise from true north")
     elevation_deg: float | None = Field(None, ge=-90.0, le=90.0, description="absent = azimuth-only")
-    sigma_azimuth_deg: float | None = Field(None, gt=0.0, le=180.0,
+    sigma_azimuth_deg: float | None = Field(None, ge=MIN_SIGMA_DEG, le=MAX_SIGMA_AZIMUTH_DEG,
                                             description="optional only for method taylor_wls (then estimated)")
-    sigma_elevation_deg: float | None = Field(None, gt=0.0, le=90.0, description="required with elevation_deg")
+    sigma_elevation_deg: float | None = Field(None, ge=MIN_SIGMA_DEG, le=MAX_SIGMA_ELEVATION_DEG,
+                                              description="required with elevation_deg")
 
     @model_validator(mode="after")
     def _elevation_sigma(self):
@@ -73,17 +110,17 @@ class BearingMeasurement(Strict):
 class RangeMeasurement(Strict):
     type: Literal["range"]
     station_id: StationId
-    range_m: float = Field(ge=0.0)
-    sigma_m: float = Field(gt=0.0)
+    range_m: float = Field(ge=0.0, le=MAX_RANGE_M)
+    sigma_m: float = Field(ge=MIN_SIGMA_M, le=MAX_SIGMA_M)
 
 
 class ToaMeasurement(Strict):
     type: Literal["toa"]
     station_id: StationId
-    toa_s: float = Field(description=(
+    toa_s: float = Field(ge=-MAX_ABS_TIME_S, le=MAX_ABS_TIME_S, description=(
         "time of arrival, synchronised clocks; emission time unknown. JSON numbers are float64: send seconds "
         "since a recent epoch (float64 resolves ~2e-7 s at Unix time, ~2e-15 s at 10 s)"))
-    sigma_s: float = Field(gt=0.0)
+    sigma_s: float = Field(ge=MIN_SIGMA_S, le=MAX_SIGMA_S)
 
 
 Measurement = Annotated[Union[BearingMeasurement, RangeMeasurement, ToaMeasurement], Field(discriminator="type")]
@@ -92,7 +129,9 @@ Method = Literal[tuple(["auto", *sorted(REGISTRY)])]  # type: ignore[valid-type]
 
 
 class Constraints(Strict):
-    altitude_m: float | None = Field(None, description="known target altitude (surface emitter)")
+    altitude_m: float | None = Field(None, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M,
+                                     description="known target altitude (surface emitter): height above the "
+                                                 "ellipsoid, or the up coordinate in a flat local frame")
 
 
 Variant = Literal[tuple(sorted({v for spec in REGISTRY.values() for v in spec.variants}))]  # type: ignore[valid-type]
@@ -100,7 +139,7 @@ Variant = Literal[tuple(sorted({v for spec in REGISTRY.values() for v in spec.va
 
 class Options(Strict):
     max_iterations: int = Field(50, ge=1, le=1000)
-    tolerance_m: float = Field(1e-3, gt=0.0)
+    tolerance_m: float = Field(1e-3, ge=1e-9, le=1e6)
     initial_guess: Position | None = None
     variant: Variant | None = Field(None, description="method variant: ctls newton (default) | projected")
     outliers: Literal["report", "exclude"] = Field(
@@ -129,16 +168,23 @@ class FixRequest(Strict):
     frame: Literal["wgs84", "local"] = "wgs84"
     origin: GeodeticPosition | None = None
     stations: list[Station] = Field(min_length=1, max_length=256)
-    measurements: list[Measurement] = Field(min_length=1, max_length=4096)
+    measurements: list[Measurement] = Field(min_length=1, max_length=MAX_FIX_MEASUREMENTS, description=(
+        "1..1024 (the largest fix, 256 stations x 1024 measurements, runs within 3 s and 300 MB); a service "
+        "may set a lower max_fix_cost = stations x measurements"))
     method: Method = "auto"  # type: ignore[valid-type]
     constraints: Constraints | None = None
     options: Options = Field(default_factory=Options)
     formats: list[Format] = Field(default_factory=list, max_length=2)
     observed_at: AwareDatetime | None = Field(
-        None, description="RFC 3339 time of the measurements (with an offset): the CoT event's time and start, "
+        None, strict=False, description="RFC 3339 time of the measurements (with an offset): the CoT event's time and start, "
                           "the GeoJSON time; absent = when the fix is made")
     cot: CotOptions | None = Field(None, description="CoT uid, type and stale time; a fix that carries them is "
                                                      "also sent to the TAK feed when one is configured")
+
+    @model_validator(mode="after")
+    def _within_cost(self):
+        check_fix(len(self.stations), len(self.measurements))
+        return self
 
     @model_validator(mode="after")
     def _stations_match_frame(self):
@@ -189,7 +235,7 @@ class Warning(BaseModel):
 
 
 class Stages(BaseModel):
-    coarse: LocalPosition | None = None
+    coarse: LocalPositionResult | None = None
 
 
 Matrix3 = list[list[float]]
@@ -231,8 +277,8 @@ class FeatureCollection(BaseModel):
 
 class FixResponse(BaseModel):
     method: str
-    position: GeodeticPosition | None = None
-    position_local: LocalPosition
+    position: GeodeticPositionResult | None = None
+    position_local: LocalPositionResult
     position_ecef_m: list[float] | None = None
     covariance_enu_m2: Matrix3
     covariance_ecef_m2: Matrix3 | None = None
@@ -262,10 +308,10 @@ class SensorSpec(Strict):
     elevation: bool = True
     range: bool = False
     toa: bool = False
-    sigma_azimuth_deg: float | None = Field(None, gt=0.0)
-    sigma_elevation_deg: float | None = Field(None, gt=0.0)
-    sigma_range_m: float | None = Field(None, gt=0.0)
-    sigma_toa_s: float | None = Field(None, gt=0.0)
+    sigma_azimuth_deg: float | None = Field(None, ge=MIN_SIGMA_DEG, le=MAX_SIGMA_AZIMUTH_DEG)
+    sigma_elevation_deg: float | None = Field(None, ge=MIN_SIGMA_DEG, le=MAX_SIGMA_ELEVATION_DEG)
+    sigma_range_m: float | None = Field(None, ge=MIN_SIGMA_M, le=MAX_SIGMA_M)
+    sigma_toa_s: float | None = Field(None, ge=MIN_SIGMA_S, le=MAX_SIGMA_S)
 
     @model_validator(mode="after")
     def _sigmas_present(self):

@@ -10,11 +10,15 @@ from typing import Literal
 
 from pydantic import BaseModel, Field, model_validator
 
-from service.schemas import CotOptions, FeatureCollection, GeodeticPosition, LocalPosition, Position, Strict, Warning
+from service.schemas import (MAX_ABS_TIME_S, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions, FeatureCollection,
+                             GeodeticPosition, GeodeticPositionResult, LocalPosition, LocalPositionResult, Position,
+                             Strict, Warning)
 
 #: JavaScript's largest exact integer: a seq above it would be mangled by many JSON clients.
 MAX_SEQ = 2**53 - 1
 MAX_TTL_S = 366 * 86400.0
+#: Below a second a session would expire before its first post could reach it.
+MIN_TTL_S = 1.0
 MAX_EPOCHS_PER_POST = 10_000
 
 
@@ -23,7 +27,7 @@ class Observer(Strict):
 
 
 class Pulse(Strict):
-    period_s: float = Field(gt=0.0, le=10.0, description="pulse repetition period: the truth when period_known, "
+    period_s: float = Field(ge=1e-7, le=10.0, description="pulse repetition period: the truth when period_known, "
                                                          "else the initial estimate")
     period_known: bool = False
     pulses_per_observation: int = Field(ge=1, le=10**9, description="nominal pulses N between two reports "
@@ -31,10 +35,10 @@ class Pulse(Strict):
 
 
 class Noise(Strict):
-    sigma_azimuth_deg: float = Field(gt=0.0, lt=28.0, description="azimuth standard deviation")
-    sigma_elevation_deg: float = Field(gt=0.0, lt=28.0, description="elevation standard deviation")
-    sigma_azimuth_rate_deg_s: float = Field(gt=0.0, le=360.0, description="azimuth-rate standard deviation")
-    sigma_toa_s: float = Field(gt=0.0, le=1.0, description="standard deviation of one time of arrival")
+    sigma_azimuth_deg: float = Field(ge=MIN_SIGMA_DEG, lt=28.0, description="azimuth standard deviation")
+    sigma_elevation_deg: float = Field(ge=MIN_SIGMA_DEG, lt=28.0, description="elevation standard deviation")
+    sigma_azimuth_rate_deg_s: float = Field(ge=1e-9, le=360.0, description="azimuth-rate standard deviation")
+    sigma_toa_s: float = Field(ge=MIN_SIGMA_S, le=1.0, description="standard deviation of one time of arrival")
 
 
 class ProcessNoise(Strict):
@@ -57,7 +61,7 @@ class SessionCreate(Strict):
     pulse: Pulse
     noise: Noise
     process_noise: ProcessNoise = Field(default_factory=ProcessNoise)
-    ttl_s: float = Field(86400.0, gt=0.0, le=MAX_TTL_S,
+    ttl_s: float = Field(86400.0, ge=MIN_TTL_S, le=MAX_TTL_S,
                          description="idle lifetime: the session is deleted ttl_s after its last write "
                                      "(creation or a post that applied measurements)")
     cot: CotOptions | None = Field(None, description="CoT uid (default passive-locator-session-<id>: one uid per "
@@ -74,11 +78,12 @@ class SessionCreate(Strict):
 class Epoch(Strict):
     seq: int = Field(ge=0, le=MAX_SEQ, description="per-session sequence number; not above the last applied "
                                                    "one = a duplicate, acknowledged and not applied")
-    time_s: float = Field(description="observer time of the report; must increase with seq")
+    time_s: float = Field(ge=-MAX_ABS_TIME_S, le=MAX_ABS_TIME_S,
+                          description="observer time of the report; must increase with seq")
     azimuth_deg: float = Field(ge=-360.0, le=720.0, description="clockwise from true north")
     elevation_deg: float = Field(gt=-90.0, lt=90.0, description="above the observer's horizontal plane")
     azimuth_rate_deg_s: float = Field(ge=-1e5, le=1e5, description="rate of change of the azimuth")
-    toa_s: float = Field(description="time of arrival of the report's pulse, on any fixed clock epoch (only "
+    toa_s: float = Field(ge=-MAX_ABS_TIME_S, le=MAX_ABS_TIME_S, description="time of arrival of the report's pulse, on any fixed clock epoch (only "
                                      "differences are used; keep it small enough that float64 resolves sigma_toa_s)")
 
 
@@ -111,8 +116,8 @@ class SessionState(BaseModel):
     last_time_s: float | None = Field(description="time_s of that epoch")
     updates: int = Field(description="epochs applied")
     initialized: bool
-    position: GeodeticPosition | None = Field(description="emitter position; when the frame is wgs84")
-    position_local: LocalPosition | None = Field(description="emitter position: in the request's local plane, or "
+    position: GeodeticPositionResult | None = Field(description="emitter position; when the frame is wgs84")
+    position_local: LocalPositionResult | None = Field(description="emitter position: in the request's local plane, or "
                                                              "ENU metres at the observer when the frame is wgs84")
     velocity_enu_mps: list[float] | None = Field(description="[east, north, up] at the observer")
     range_m: float | None = Field(description="distance from the observer")

@@ -31,6 +31,7 @@ from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, Tim
 from service import schemas
 from service.problems import for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
+from service.limits import fix_within_limit
 
 _COMPONENT_NAMES = {int(Kind.AZIMUTH): "azimuth", int(Kind.ELEVATION): "elevation", int(Kind.RANGE): "range",
                     int(Kind.TOA): "toa"}
@@ -223,6 +224,7 @@ _SIGMA_TOA = _bounds(schemas.ToaMeasurement, "sigma_s")
 _TOLERANCE = _bounds(schemas.Options, "tolerance_m")
 _ITERATIONS = _bounds(schemas.Options, "max_iterations")
 _ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
+_MEASUREMENTS_MAX = schemas.MAX_FIX_MEASUREMENTS
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
                        if getattr(rule, "max_length", None) is not None)
 _ABSENT = object()
@@ -351,7 +353,8 @@ def _read(bodies: list):
                         raise _Reject
                     add_coordinates((position["east_m"], position["north_m"], position.get("up_m", 0.0)))
             measurements = body["measurements"]
-            if type(measurements) is not list or not 0 < len(measurements) <= 4096:
+            if type(measurements) is not list or not 0 < len(measurements) <= _MEASUREMENTS_MAX \
+                    or not fix_within_limit(len(ids), len(measurements)):
                 raise _Reject
             n_bearings = 0
             for i, m in enumerate(measurements):
@@ -400,15 +403,17 @@ def _read(bodies: list):
 def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
     """Rows of raw JSON numbers (flattened) as floats ``(R, width)``, and which rows hold only numbers.
 
-    A row with anything but a float or an int (a boolean, a string, null, an integer too large for a
-    float) is marked for the schema path.
+    JSON numbers convert as pydantic converts them; a row with anything else (a boolean, which the strict
+    schema refuses, a string, null, a list, a huge integer) is marked for the full path.
     """
-    table = np.array(flat) if flat else np.zeros(0)
-    if table.dtype.kind in "fi":
+    try:
+        table = np.array(flat) if flat and bool not in set(map(type, flat)) else None
+    except ValueError:  # a list where a number belongs: ragged
+        table = None
+    if table is not None and table.dtype.kind in "fiu":
         return table.astype(float, copy=False).reshape(-1, width), np.ones(len(flat) // width, dtype=bool)
     rows = [flat[i:i + width] for i in range(0, len(flat), width)]
-    good = np.array([all((type(v) is float or type(v) is int) and abs(v) < 1e300 for v in row) for row in rows],
-                    dtype=bool)
+    good = np.array([all(type(v) in (float, int) and abs(v) < 1e300 for v in row) for row in rows], dtype=bool)
     table = np.array([row if ok else [0.0] * width for row, ok in zip(rows, good)], dtype=float).reshape(-1, width)
     return table, good
 

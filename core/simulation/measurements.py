@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Callable
 
 import numpy as np
 
@@ -105,11 +106,20 @@ class MethodAccuracy:
     errors_enu_m: np.ndarray
 
 
+class EvaluationStopped(Exception):
+    """An evaluation stopped between chunks because its ``should_stop`` said so (deadline, cancellation)."""
+
+
 def evaluate(problem: Problem, target_enu_m, methods, trials: int, rng: np.random.Generator,
-             noise: str = "gaussian", options=None) -> dict[str, MethodAccuracy]:
+             noise: str = "gaussian", options=None, should_stop: Callable[[], bool] | None = None,
+             chunk_trials: int = 256) -> dict[str, MethodAccuracy]:
     """Monte Carlo RMSE, bias, efficiency and NEES of methods on one scenario.
 
     Every method sees the same noisy draws. ML-family methods run batched.
+    Trials run in chunks; between chunks (and between methods within one)
+    ``should_stop`` is asked, so a long evaluation can be abandoned within
+    one chunk of one method. The draws are those of one ``trials``-row draw
+    whatever the chunking (numpy's generators fill rows in order).
 
     Parameters
     ----------
@@ -121,33 +131,60 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, rng: np.rando
     rng : numpy.random.Generator
     noise : {"gaussian", "uniform"}
     options : SolveOptions, optional
+    should_stop : callable returning bool, optional
+        True = stop now (raises :class:`EvaluationStopped`).
+    chunk_trials : int
+        Trials per chunk.
+
+    Raises
+    ------
+    UnobservableGeometry
+        When the sensors do not determine the target.
+    EvaluationStopped
+        When ``should_stop`` returned True.
     """
     from core.crlb import information_at
     from core.estimators import SolveOptions, solve_batch
 
     options = options or SolveOptions()
     target = np.asarray(target_enu_m, dtype=float)
-    clean = true_values(problem, target)
-    draws = clean + draw_noise(rng, problem.sigmas, noise, size=trials)
-    noisy = [problem.with_values(v) for v in draws]
     information = information_at(problem, target)
     if not information.observable[0]:
         raise UnobservableGeometry("the scenario's sensors do not determine the target (singular information)")
     bound = information.covariance_enu_m2[0]
+    clean = true_values(problem, target)
+    errors_by_method: dict[str, list[np.ndarray]] = {method: [] for method in methods}
+    nees_by_method: dict[str, list[float]] = {method: [] for method in methods}
+
+    def check() -> None:
+        if should_stop is not None and should_stop():
+            raise EvaluationStopped("the evaluation was stopped")
+
+    for start in range(0, trials, max(1, chunk_trials)):
+        size = min(max(1, chunk_trials), trials - start)
+        check()
+        draws = clean + draw_noise(rng, problem.sigmas, noise, size=size)
+        noisy = [problem.with_values(v) for v in draws]
+        for method in methods:
+            check()
+            results = solve_batch(noisy, method, options)
+            fixes = [r for r in results if not isinstance(r, LocalizationError)]
+            errors = np.array([f.position_enu_m - target for f in fixes]).reshape(-1, 3)
+            errors_by_method[method].append(errors)
+            nees_by_method[method].extend(_nees(e, f.covariance_enu_m2) for e, f in zip(errors, fixes))
     out = {}
     for method in methods:
-        results = solve_batch(noisy, method, options)
-        fixes = [r for r in results if not isinstance(r, LocalizationError)]
-        errors = np.array([f.position_enu_m - target for f in fixes]).reshape(-1, 3)
-        nees = [_nees(e, f.covariance_enu_m2) for e, f in zip(errors, fixes)]
+        errors = np.concatenate(errors_by_method[method]) if errors_by_method[method] else np.zeros((0, 3))
+        nees = nees_by_method[method]
+        found = len(errors)
         out[method] = MethodAccuracy(
-            rmse_m=float(np.sqrt(np.mean(np.sum(errors**2, axis=1)))) if len(fixes) else float("nan"),
-            rmse_enu_m=np.sqrt(np.mean(errors**2, axis=0)) if len(fixes) else np.full(3, np.nan),
-            bias_enu_m=errors.mean(axis=0) if len(fixes) else np.full(3, np.nan),
+            rmse_m=float(np.sqrt(np.mean(np.sum(errors**2, axis=1)))) if found else float("nan"),
+            rmse_enu_m=np.sqrt(np.mean(errors**2, axis=0)) if found else np.full(3, np.nan),
+            bias_enu_m=errors.mean(axis=0) if found else np.full(3, np.nan),
             crlb_rmse_m=float(np.sqrt(np.trace(bound))),
-            efficiency=float(np.mean(np.sum(errors**2, axis=1)) / np.trace(bound)) if len(fixes) else float("nan"),
+            efficiency=float(np.mean(np.sum(errors**2, axis=1)) / np.trace(bound)) if found else float("nan"),
             nees_mean=float(np.mean(nees)) if nees else float("nan"),
-            failures=trials - len(fixes),
+            failures=trials - found,
             errors_enu_m=errors,
         )
     return out

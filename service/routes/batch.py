@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from service import schemas, tak
 from service.deps import OwnerDep, parse_json, request_id
 from service.renderings import batch_geojson
+from service.limits import check_batch
 from service.responses import JsonResponse
 from service.translate import fix_results
 
@@ -32,7 +33,8 @@ MAX_PROBLEMS = next(rule.max_length for rule in schemas.BatchRequest.model_field
 
 _ERRORS = {
     400: {"model": schemas.Problem, "description": "the body is not valid JSON"},
-    422: {"model": schemas.Problem, "description": "the body is not {\"problems\": [...]} with 1..10000 problems"},
+    422: {"model": schemas.Problem, "description": "the body is not {\"problems\": [...]} with 1..10000 problems, "
+                                                   "or the batch is over max_batch_cost (code over_limit)"},
 }
 
 
@@ -99,6 +101,7 @@ def _problems(raw: bytes) -> tuple[list, list]:
 def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonResponse:
     with gc_paused():
         problems, formats = _problems(raw)
+        check_batch(problems, request.app.state.settings.max_batch_cost)
         results = fix_results(problems, request_id(request))
         request.app.state.metrics.count("batch_problems_total", len(problems))
         request.app.state.metrics.batch_fixes(problems, results)

@@ -1,19 +1,37 @@
-"""Monte Carlo accuracy of methods on a scenario (planning and method choice)."""
+"""Monte Carlo accuracy of methods on a scenario (planning and method choice).
+
+The one long computation of the service. It is priced before it starts
+(``service.limits``: 422 ``over_limit`` above ``max_evaluation_cost``), runs
+on the app's CPU pool (never the threads or the loop that serve the probes),
+in chunks of trials that each ask whether to stop: at the request deadline
+(503 ``deadline_exceeded``), when the client disconnects, or when the server
+shuts down. A stopped evaluation stops using the CPU within one chunk.
+"""
 
 from __future__ import annotations
 
+import asyncio
 import math
+import threading
+import time
 
 import numpy as np
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
 
-from core.simulation.measurements import evaluate
+from core.simulation.measurements import EvaluationStopped, evaluate
 from service import schemas
 from service.deps import OwnerDep
+from service.limits import check_evaluation, method_weight
+from service.problems import ApiError
 from service.responses import JsonResponse
 from service.translate import crlb_problem
 
 router = APIRouter(prefix="/v1", tags=["evaluations"])
+
+#: Cost units (see service.limits) per chunk of trials: a chunk takes a few tenths of a second at most.
+CHUNK_UNITS = 2000
+#: How often the route looks for a disconnected client while the evaluation runs.
+POLL_S = 0.2
 
 
 def _finite(value):
@@ -25,12 +43,49 @@ def _finite(value):
 @router.post("/evaluations", operation_id="evaluations-create",
              summary="Monte Carlo RMSE, bias, efficiency and NEES of methods for a scenario",
              response_model=schemas.EvaluationResponse,
-             responses={422: {"model": schemas.Problem, "description": "invalid scenario"}})
-def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep) -> JsonResponse:
+             responses={422: {"model": schemas.Problem,
+                              "description": "invalid scenario, or over max_evaluation_cost (code over_limit)"},
+                        503: {"model": schemas.Problem,
+                              "description": "not finished within the request deadline (code deadline_exceeded)"}})
+async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep, http: Request) -> JsonResponse:
+    settings = http.app.state.settings
     problem, target = crlb_problem(request.scenario)
-    results = evaluate(problem, target, list(dict.fromkeys(request.methods)), request.trials,
-                       np.random.default_rng(request.seed), request.noise)
-    methods = {
+    methods = list(dict.fromkeys(request.methods))
+    rows = int(problem.kinds.size)
+    check_evaluation(request.trials, methods, rows, settings.max_evaluation_cost)
+    chunk = max(1, CHUNK_UNITS // (rows * max(method_weight(m) for m in methods)))
+    deadline = time.monotonic() + settings.request_deadline_s
+    cancelled = threading.Event()
+    stopping: threading.Event = http.app.state.stopping
+
+    def should_stop() -> bool:
+        return cancelled.is_set() or stopping.is_set() or time.monotonic() > deadline
+
+    def run():
+        return evaluate(problem, target, methods, request.trials, np.random.default_rng(request.seed), request.noise,
+                        should_stop=should_stop, chunk_trials=chunk)
+
+    future = asyncio.get_running_loop().run_in_executor(http.app.state.cpu_pool, run)
+    try:
+        while True:
+            done, _ = await asyncio.wait({future}, timeout=POLL_S)
+            if done:
+                break
+            if await http.is_disconnected():
+                cancelled.set()
+                future.cancel()
+                raise ApiError(499, "client_closed", "the client went away")
+        results = future.result()
+    except EvaluationStopped:
+        if time.monotonic() > deadline:
+            raise ApiError(503, "deadline_exceeded",
+                           f"the evaluation did not finish within request_deadline_s = {settings.request_deadline_s:g} s;"
+                           " ask for fewer trials or methods", headers={"Retry-After": "1"}) from None
+        raise ApiError(503, "shutting_down", "the server is shutting down; retry", headers={"Retry-After": "1"}) \
+            from None
+    finally:
+        cancelled.set()  # the request is over, whatever ended it (a cancelled task at shutdown too)
+    methods_out = {
         name: {
             "rmse_m": _finite(r.rmse_m),
             "rmse_enu_m": _finite(r.rmse_enu_m),
@@ -42,4 +97,5 @@ def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep) -> Js
         }
         for name, r in results.items()
     }
-    return JsonResponse({"methods": methods, "trials": request.trials, "seed": request.seed, "noise": request.noise})
+    return JsonResponse({"methods": methods_out, "trials": request.trials, "seed": request.seed,
+                         "noise": request.noise})

@@ -10,49 +10,20 @@ from fastapi import APIRouter, Depends, Header, Query, Request
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response, StreamingResponse
 
-from service import session_schemas as schemas
 from service import events, sessions, tak
+from service import session_schemas as schemas
 from service.deps import OwnerDep
-from service.responses import JsonResponse
 from service.problems import ApiError
+from service.responses import JsonResponse
 from service.schemas import Problem
-from service.stores import SessionStore
+from service.stores.guard import GuardedStore
 
 
-class _CountedStore:
-    """The app's store, counting the failures of its operations in the store-errors metric.
-
-    A failure is anything a store method raises other than an :class:`ApiError` below 500 (which is a
-    decision about the request, such as the 404/409/412 that a session change raises inside ``update``).
-    """
-
-    def __init__(self, store: SessionStore, metrics):
-        self._store, self._metrics = store, metrics
-
-    def __getattr__(self, name):
-        found = getattr(self._store, name)
-        if not callable(found) or name.startswith("_"):
-            return found
-
-        def counted(*args, **kwargs):
-            try:
-                return found(*args, **kwargs)
-            except ApiError as error:
-                if error.status >= 500:
-                    self._metrics.store_errors.labels(name).inc()
-                raise
-            except Exception:
-                self._metrics.store_errors.labels(name).inc()
-                raise
-
-        return counted
+async def get_store(request: Request) -> GuardedStore:
+    return request.app.state.store
 
 
-def get_store(request: Request) -> SessionStore:
-    return _CountedStore(request.app.state.store, request.app.state.metrics)  # type: ignore[return-value]
-
-
-StoreDep = Annotated[SessionStore, Depends(get_store)]
+StoreDep = Annotated[GuardedStore, Depends(get_store)]
 
 router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
@@ -60,8 +31,10 @@ _ETAG = {"ETag": {"description": "the session's version, quoted: send it back in
                   "schema": {"type": "string"}}}
 _NOT_FOUND = {404: {"model": Problem, "description": "no such session for this key (or it expired)"}}
 _INVALID = {422: {"model": Problem, "description": "invalid values, with the field path"}}
+_UNAVAILABLE = {503: {"model": Problem, "description": "the session store is unavailable, too slow, or could not "
+                                                       "serialise this write in time; retry after Retry-After",
+                      "headers": {"Retry-After": {"description": "seconds", "schema": {"type": "string"}}}}}
 _FORMATS = Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$", description="comma-separated renderings: cot, geojson")
-_BUSY = {503: {"model": Problem, "description": "the store could not serialise this write in time; retry"}}
 
 
 def _state_response(record, status_code: int = 200, body: dict | None = None, headers=None) -> JsonResponse:
@@ -73,30 +46,31 @@ def _state_response(record, status_code: int = 200, body: dict | None = None, he
              response_model=schemas.SessionState,
              responses={201: {"headers": {**_ETAG, "Location": {"description": "/v1/sessions/{id}",
                                                                  "schema": {"type": "string"}}}},
-                        **_INVALID})
-def create_session(body: schemas.SessionCreate, owner: OwnerDep, store: StoreDep, request: Request) -> JsonResponse:
-    record = sessions.create(store, owner, body)
+                        **_INVALID, **_UNAVAILABLE})
+async def create_session(body: schemas.SessionCreate, owner: OwnerDep, store: StoreDep,
+                         request: Request) -> JsonResponse:
+    record = await store.run(sessions.create, owner, body)
     request.app.state.metrics.count("sessions_created_total")
     return _state_response(record, 201, headers={"Location": f"/v1/sessions/{record.id}"})
 
 
 @router.get("", operation_id="sessions-list", summary="This key's live sessions, oldest first (paged)",
-            response_model=schemas.SessionList, responses=_INVALID)
-def list_sessions(owner: OwnerDep, store: StoreDep,
+            response_model=schemas.SessionList, responses={**_INVALID, **_UNAVAILABLE})
+async def list_sessions(owner: OwnerDep, store: StoreDep,
                   limit: Annotated[int, Query(ge=1, le=500, description="sessions per page")] = 50,
                   cursor: Annotated[str | None, Query(max_length=200,
                                                       description="next_cursor of the previous page")] = None,
                   ) -> JsonResponse:
-    records, next_cursor = sessions.page(store, owner, limit, cursor)
+    records, next_cursor = await store.run(sessions.page, owner, limit, cursor)
     return JsonResponse({"sessions": [sessions.state_body(r) for r in records], "next_cursor": next_cursor})
 
 
 @router.get("/{session_id}", operation_id="sessions-get", summary="A session's state",
-            response_model=schemas.SessionState, responses={200: {"headers": _ETAG}, **_NOT_FOUND, **_INVALID})
-def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
-                formats: Annotated[str | None, _FORMATS] = None,
-                ) -> JsonResponse:
-    record = sessions.get(store, owner, session_id)
+            response_model=schemas.SessionState,
+            responses={200: {"headers": _ETAG}, **_NOT_FOUND, **_INVALID, **_UNAVAILABLE})
+async def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
+                      formats: Annotated[str | None, _FORMATS] = None) -> JsonResponse:
+    record = await store.run(sessions.get, owner, session_id)
     return _state_response(record, body=sessions.rendered_state(record, formats.split(",") if formats else ()))
 
 
@@ -106,32 +80,31 @@ def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
              responses={200: {"headers": _ETAG}, **_NOT_FOUND,
                         409: {"model": Problem, "description": "a new epoch's time_s is not after the previous "
                                                                "one's; nothing of the batch was applied"},
-                        412: {"model": Problem, "description": "If-Match is stale"}, **_INVALID, **_BUSY})
-def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: OwnerDep, store: StoreDep,
+                        412: {"model": Problem, "description": "If-Match is stale"}, **_INVALID, **_UNAVAILABLE})
+async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: OwnerDep, store: StoreDep,
                       request: Request,
                       if_match: Annotated[str | None, Header(description='"<version>" from an ETag: apply only '
                                                                          "if the session is still at it")] = None,
                       ) -> JsonResponse:
-    outcome = sessions.post_measurements(store, owner, session_id, batch, if_match)
+    outcome = await store.run(sessions.post_measurements, owner, session_id, batch, if_match)
     metrics = request.app.state.metrics
     metrics.count("session_updates_total", 1 if outcome.applied else 0)
     metrics.count("session_epochs_applied_total", outcome.applied)
     metrics.count("session_epochs_duplicate_total", outcome.duplicates)
     body = {**sessions.state_body(outcome.record), "applied": outcome.applied, "duplicates": outcome.duplicates}
     if outcome.applied:
-        events.bus(request.app).publish(session_id, outcome.record.version)
+        await run_in_threadpool(events.bus(request.app).publish, session_id, outcome.record.version)
         metrics.count("events_published_total")
         tak.push_session(request.app, body, sessions.cot_options(outcome.record))
     return _state_response(outcome.record, body=body)
 
 
 @router.delete("/{session_id}", operation_id="sessions-delete", status_code=204, summary="End a session",
-               response_class=Response, responses=_NOT_FOUND)
-def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, request: Request) -> Response:
-    sessions.delete(store, owner, session_id)
-    events.bus(request.app).publish(session_id, 0)
+               response_class=Response, responses={**_NOT_FOUND, **_UNAVAILABLE})
+async def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, request: Request) -> Response:
+    await store.run(sessions.delete, owner, session_id)
+    await run_in_threadpool(events.bus(request.app).publish, session_id, 0)
     return Response(status_code=204)
-
 
 
 @router.get("/{session_id}/events", operation_id="sessions-events", summary="Server-sent events: the state after "
@@ -144,14 +117,13 @@ def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, request: R
                         "latest state, not every version in between. A `deleted` event ends the stream when "
                         "the session is deleted or expires; comments keep an idle connection open.",
             responses={200: {"description": "the event stream", "content": {"text/event-stream": {
-                "schema": {"type": "string"}}}}, **_NOT_FOUND})
-async def session_events(session_id: str, owner: OwnerDep, request: Request,
+                "schema": {"type": "string"}}}}, **_NOT_FOUND, **_UNAVAILABLE})
+async def session_events(session_id: str, owner: OwnerDep, store: StoreDep, request: Request,
                          formats: Annotated[str | None, _FORMATS] = None,
                          last_event_id: Annotated[str | None, Header(description="the id (version) of the last "
                                                                                  "event received")] = None,
                          ) -> StreamingResponse:
-    store = get_store(request)
-    record = await run_in_threadpool(sessions.get, store, owner, session_id)
+    record = await store.run(sessions.get, owner, session_id)
     wanted = formats.split(",") if formats else ()
     last = int(last_event_id) if last_event_id and last_event_id.strip().isdigit() else None
 
@@ -160,7 +132,7 @@ async def session_events(session_id: str, owner: OwnerDep, request: Request,
         subscription = events.bus(request.app).subscribe(session_id)
         try:
             await asyncio.wait_for(subscription.ready.wait(), 10.0)
-            record = await run_in_threadpool(store.get, owner, session_id) or record  # what came before listening
+            record = await store.run(lambda backend: backend.get(owner, session_id)) or record
             while True:
                 if last is None or record.version > last:
                     body = orjson.dumps(sessions.rendered_state(record, wanted), option=orjson.OPT_SERIALIZE_NUMPY)
@@ -170,7 +142,7 @@ async def session_events(session_id: str, owner: OwnerDep, request: Request,
                 if notice is None:
                     yield b": keep-alive\n\n"
                 try:
-                    record = await run_in_threadpool(sessions.get, store, owner, session_id)
+                    record = await store.run(sessions.get, owner, session_id)
                 except ApiError as error:
                     if error.status != 404:
                         raise

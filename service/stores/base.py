@@ -146,6 +146,10 @@ class SessionStore(ABC):
     def ping(self) -> None:
         """Raise if the backend is unreachable."""
 
+    def check(self) -> None:
+        """Raise unless the backend is reachable and takes writes (readiness); default: :meth:`ping`."""
+        self.ping()
+
     @abstractmethod
     def close(self) -> None:
         """Release connections."""

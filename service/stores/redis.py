@@ -27,6 +27,8 @@ import time
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 import redis
+from redis.backoff import NoBackoff
+from redis.retry import Retry
 
 from service.problems import ApiError
 from service.stores.base import Change, Clock, SessionRecord, SessionStore, next_version
@@ -85,13 +87,19 @@ class RedisStore(SessionStore):
         self._delete = client.register_script(_DELETE)
 
     @classmethod
-    def from_url(cls, url: str, clock: Clock | None = None) -> "RedisStore":
+    def from_url(cls, url: str, clock: Clock | None = None, timeout_s: float = 1.0) -> "RedisStore":
+        """Open a client (lazily: nothing connects yet).
+
+        ``timeout_s`` bounds a connect and each read: a dead or stopped Redis costs a call at most that
+        (no retries here: the caller's breaker decides what to do next).
+        """
         parts = urlsplit(url)
         query = parse_qsl(parts.query, keep_blank_values=True)
         prefix = next((value for name, value in query if name == "key_prefix"), DEFAULT_PREFIX)
         rest = urlencode([(name, value) for name, value in query if name != "key_prefix"])
-        client = redis.Redis.from_url(urlunsplit(parts._replace(query=rest)), socket_timeout=10.0,
-                                      socket_connect_timeout=5.0, health_check_interval=30)
+        client = redis.Redis.from_url(urlunsplit(parts._replace(query=rest)), socket_timeout=timeout_s,
+                                      socket_connect_timeout=timeout_s, health_check_interval=30,
+                                      retry=Retry(NoBackoff(), 0))
         return cls(client, prefix, clock)
 
     def _session_key(self, session_id: str) -> str:
@@ -179,6 +187,10 @@ class RedisStore(SessionStore):
 
     def ping(self) -> None:
         self.client.ping()
+
+    def check(self) -> None:
+        """A write that expires by itself: proves the server takes writes (not read-only, not out of memory)."""
+        self.client.set(f"{self.prefix}readyz", str(self.now()), px=10_000)
 
     def close(self) -> None:
         self.client.close()

@@ -17,9 +17,11 @@ connection) uses a single connection behind a lock instead.
 
 from __future__ import annotations
 
+import math
 import os
 import sqlite3
 import threading
+import time
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -36,6 +38,7 @@ CREATE TABLE IF NOT EXISTS sessions (
 ) WITHOUT ROWID;
 CREATE INDEX IF NOT EXISTS sessions_by_owner ON sessions (owner, id);
 CREATE INDEX IF NOT EXISTS sessions_by_expiry ON sessions (expires_at);
+CREATE TABLE IF NOT EXISTS readiness (id INTEGER PRIMARY KEY, checked_at REAL NOT NULL);
 """
 
 
@@ -54,8 +57,11 @@ class SqliteStore(SessionStore):
 
     kind = "sqlite"
 
-    def __init__(self, path: str, clock: Clock | None = None, busy_timeout_s: float = 30.0):
+    def __init__(self, path: str, clock: Clock | None = None, busy_timeout_s: float = 30.0,
+                 integrity_interval_s: float = 60.0):
         super().__init__(clock)
+        self.integrity_interval_s = integrity_interval_s
+        self._integrity_checked_at = -math.inf
         self.path = path
         self.memory = path == ":memory:"
         if not self.memory:
@@ -72,9 +78,14 @@ class SqliteStore(SessionStore):
                     db.execute(statement)
 
     @classmethod
-    def from_url(cls, url: str, clock: Clock | None = None) -> "SqliteStore":
-        """``sqlite:///relative/or/absolute/path`` (``sqlite:////abs`` also works), ``sqlite:///:memory:``."""
-        return cls(url.removeprefix("sqlite://").removeprefix("/") or ":memory:", clock)
+    def from_url(cls, url: str, clock: Clock | None = None, timeout_s: float = 30.0,
+                 integrity_interval_s: float = 60.0) -> "SqliteStore":
+        """``sqlite:///relative/or/absolute/path`` (``sqlite:////abs`` also works), ``sqlite:///:memory:``.
+
+        ``timeout_s`` is the busy timeout: how long a writer waits for another's lock (then 503).
+        """
+        return cls(url.removeprefix("sqlite://").removeprefix("/") or ":memory:", clock, timeout_s,
+                   integrity_interval_s)
 
     def _connect(self) -> sqlite3.Connection:
         db = sqlite3.connect(self.path, timeout=self.busy_timeout_s, isolation_level=None, check_same_thread=False)
@@ -148,6 +159,25 @@ class SqliteStore(SessionStore):
     def ping(self) -> None:
         with self._db() as db:
             db.execute("SELECT 1").fetchone()
+
+    def check(self) -> None:
+        """A committed write (a full disk or read-only file fails it), and ``PRAGMA quick_check`` at most
+        every ``integrity_interval_s`` (a corrupt page fails it).
+
+        Raises
+        ------
+        sqlite3.DatabaseError
+            When the write fails or the check finds damage.
+        """
+        with self._db() as db:
+            with _write(db):
+                db.execute("INSERT OR REPLACE INTO readiness (id, checked_at) VALUES (1, ?)", (self.now(),))
+            now = time.monotonic()
+            if now - self._integrity_checked_at >= self.integrity_interval_s:
+                verdict = [row[0] for row in db.execute("PRAGMA quick_check").fetchall()]
+                if verdict != ["ok"]:
+                    raise sqlite3.DatabaseError(f"integrity check failed: {'; '.join(verdict[:3])}")
+                self._integrity_checked_at = now
 
     def close(self) -> None:
         with self._registry_lock:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import math
 
@@ -11,6 +12,7 @@ import pytest
 
 from core import geodesy
 from service import schemas
+from service.settings import Settings
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request, look_angles_deg
 
 PROBLEM_JSON = "application/problem+json"
@@ -248,19 +250,33 @@ def test_unknown_route_is_problem_json(client):
     assert_problem(client.get("/v1/nothing"), 404)
 
 
-def test_api_keys(make_client):
-    secured = make_client(api_keys=["k1"])
-    assert_problem(secured.post("/v1/fixes", json=_good()), 401)
-    assert_problem(secured.post("/v1/fixes", json=_good(), headers={"authorization": "Bearer nope"}), 403)
-    assert secured.post("/v1/fixes", json=_good(), headers={"authorization": "Bearer k1"}).status_code == 200
+def test_api_keys(make_client, tmp_path):
+    digest = hashlib.sha256(b"k1").hexdigest()
+    other = tmp_path / "keys"
+    other.write_text(f"# the second key\n{hashlib.sha256(b'k2').hexdigest()}\n")
+    secured = make_client(api_key_hashes=f"{'0' * 64}, {digest.upper()}", api_key_hashes_file=str(other))
+    missing = assert_problem(secured.post("/v1/fixes", json=_good()), 401)
+    assert missing and secured.post("/v1/fixes", json=_good()).headers["www-authenticate"].startswith("Bearer")
+    wrong = secured.post("/v1/fixes", json=_good(), headers={"authorization": "Bearer nope"})
+    assert_problem(wrong, 401)
+    assert 'error="invalid_token"' in wrong.headers["www-authenticate"]
+    for key in ("k1", "k2"):
+        assert secured.post("/v1/fixes", json=_good(), headers={"authorization": f"Bearer {key}"}).status_code == 200
     assert secured.get("/healthz").status_code == 200
+
+
+def test_plain_keys_in_the_configuration_are_refused():
+    with pytest.raises(ValueError):
+        Settings(api_key_hashes="my-secret-key")
 
 
 def test_rate_limit(make_client):
     limited = make_client(rate_limit_per_s=0.001, rate_limit_burst=2)
-    codes = [limited.get("/healthz").status_code for _ in range(3)]
+    codes = [limited.get("/v1/sessions").status_code for _ in range(3)]
     assert codes == [200, 200, 429]
-    assert int(limited.get("/healthz").headers["retry-after"]) >= 1
+    assert int(limited.get("/v1/sessions").headers["retry-after"]) >= 1
+    assert [limited.get(probe).status_code for probe in ("/healthz", "/readyz", "/metrics") for _ in range(3)] \
+        == [200] * 9
 
 
 def test_operations(client):

@@ -64,12 +64,12 @@ def test_requests_latency_and_fixes_by_method_and_outcome(client):
 
 
 def test_store_errors_are_counted(client, monkeypatch):
-    store = client.app.state.store
+    backend = client.app.state.store.backend()
 
     def broken(*args, **kwargs):
         raise sqlite3.OperationalError("disk I/O error")
 
-    monkeypatch.setattr(store, "get", broken)
+    monkeypatch.setattr(backend, "get", broken)
     client.get("/v1/sessions/" + "0" * 32)
     assert sample(client.get("/metrics").text, "passive_locator_store_errors_total", operation="get") == 1
 

@@ -1,0 +1,80 @@
+"""The cost model: what one request may ask of the machine (422 ``over_limit`` naming the limit above it).
+
+Costs are in units of about one batched ML measurement row (~0.1 ms on the
+reference machine). Methods that the core solves one problem at a time cost
+about 25 times more per row than the batched ones (measured with
+``POST /v1/evaluations`` on a four-station scenario, 200 trials each:
+ml 0.11, ctls 0.14, angle_range 0.03 ms per row; ove 1.6, weighted_eove 1.5,
+ple3d 2.5, ws3d 2.6, los_intersection 2.0, eove 1.2, taylor_wls 2.6 ms).
+
+- evaluation: ``trials x sum over methods of weight x measurement rows``
+  (``max_evaluation_cost``);
+- batch: ``sum over problems of weight x measurements`` (``max_batch_cost``);
+- fix: ``stations x measurements`` (``max_fix_cost``), for a single fix and
+  for each problem of a batch (the largest fix the schema allows,
+  256 x 1024, is within 3 s and 300 MB).
+"""
+
+from __future__ import annotations
+
+import contextvars
+
+from service.problems import ApiError
+
+#: Methods the core solves batched (vectorised across problems and trials).
+BATCHED_METHODS = frozenset(("auto", "ml", "tls", "ctls", "angle_range"))
+UNBATCHED_WEIGHT = 25
+
+#: The ``max_fix_cost`` of the app serving this request (set per request by the middleware).
+fix_cost_limit: contextvars.ContextVar[int | None] = contextvars.ContextVar("fix_cost_limit", default=None)
+
+
+def method_weight(method) -> int:
+    return 1 if not isinstance(method, str) or method in BATCHED_METHODS else UNBATCHED_WEIGHT
+
+
+def over_limit(name: str, cost: int, limit: int, loc: list, what: str) -> ApiError:
+    detail = f"{what} costs {cost:,} units, over the limit {name} = {limit:,}; ask for less"
+    return ApiError(422, "over_limit", detail, [{"loc": loc, "msg": detail, "type": "over_limit"}])
+
+
+def evaluation_cost(trials: int, methods, rows: int) -> int:
+    return trials * rows * sum(method_weight(m) for m in methods)
+
+
+def check_evaluation(trials: int, methods, rows: int, limit: int) -> None:
+    cost = evaluation_cost(trials, methods, rows)
+    if cost > limit:
+        raise over_limit("max_evaluation_cost", cost, limit, ["trials"],
+                         f"{trials} trials x {len(methods)} methods x {rows} measurement rows")
+
+
+def batch_cost(problems: list) -> int:
+    """``sum of weight x measurements`` over parsed problem dicts (anything malformed costs 1)."""
+    total = 0
+    for body in problems:
+        if type(body) is dict:
+            measurements = body.get("measurements")
+            total += (len(measurements) if type(measurements) is list else 1) * method_weight(body.get("method"))
+        else:
+            total += 1
+    return total
+
+
+def check_batch(problems: list, limit: int) -> None:
+    cost = batch_cost(problems)
+    if cost > limit:
+        raise over_limit("max_batch_cost", cost, limit, ["problems"], f"a batch of {len(problems)} problems")
+
+
+def check_fix(stations: int, measurements: int) -> None:
+    """Raise ``ValueError`` (a validation error of the request) when a fix is over this app's ``max_fix_cost``."""
+    limit = fix_cost_limit.get()
+    if limit is not None and stations * measurements > limit:
+        raise ValueError(f"{stations} stations x {measurements} measurements = {stations * measurements:,}, "
+                         f"over the limit max_fix_cost = {limit:,}")
+
+
+def fix_within_limit(stations: int, measurements: int) -> bool:
+    limit = fix_cost_limit.get()
+    return limit is None or stations * measurements <= limit
