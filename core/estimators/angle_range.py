@@ -18,7 +18,7 @@ covariance); when the stations are so nearly at one height that the polar
 points are better, they are the coarse fix instead, with the warning
 ``coarse_polar_fallback``. Mixes without two azimuth lines or two range
 stations use the polar points, else the usual closed-form start
-(:func:`core.estimators.start.initial_position`). ``details["coarse"]``
+(:func:`core.estimators.starting_points.initial_position`). ``details["coarse"]``
 says which ran.
 
 Fine stage: maximum likelihood (batched Levenberg-Marquardt, section 3) over
@@ -38,7 +38,7 @@ from core.estimators.base import SolveOptions, register
 from core.estimators.result import Estimates, FixWarning
 from core.estimators.ml import estimate_from
 from core.estimators.orthogonal_vector import orthogonal_rows
-from core.estimators.start import fuse_points, initial_position, polar_points
+from core.estimators.starting_points import fuse_points, initial_position, polar_points
 from core.measurements import Kind
 from core.problem import Problem
 

@@ -52,7 +52,7 @@ from core.crlb import OBSERVABILITY_THRESHOLD
 from core.errors import InvalidInput, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import Estimate, SolveOptions, per_problem, register
 from core.estimators.result import FixWarning
-from core.estimators.orthogonal_vector import solve_orthogonal
+from core.estimators.orthogonal_vector import Normals, Weighting, solve_orthogonal
 from core.measurements import Kind, predict, residuals
 from core.problem import Problem
 
@@ -180,7 +180,7 @@ def _start(problem: Problem, name: str) -> tuple[np.ndarray, str]:
     if problem.initial_guess_enu_m is not None:
         return np.asarray(problem.initial_guess_enu_m, dtype=float), "initial_guess"
     has_elevation = bool(np.any(problem.kinds == Kind.ELEVATION))
-    position, _ = solve_orthogonal(problem, has_elevation, True, False, name)
+    position, _ = solve_orthogonal(problem, normals=Normals.BOTH, weighting=Weighting.UNIT, name=name)
     return position, "eove" if has_elevation else "pseudolinear"
 
 
