@@ -3,8 +3,7 @@
 LAPACK through ``np.linalg`` pays a fixed cost per matrix (tens of
 microseconds for an ``8 x 3`` SVD), which dominates when the matrices are
 tiny and there are thousands of them. :func:`jacobi_svd` computes the same
-factorisation by one-sided Jacobi rotations applied to every matrix of the
-stack at once, element-wise over the stack axes.
+factorisation with element-wise arithmetic over the whole stack at once.
 """
 
 from __future__ import annotations
@@ -17,44 +16,74 @@ JACOBI_TOLERANCE = 1e-15
 JACOBI_MAX_SWEEPS = 30
 
 
-def jacobi_svd(a):
-    """Singular value decomposition of a stack of matrices with few columns, ``a = (u s) v^T``.
+def jacobi_svd(a, rhs=None):
+    """Singular values and right singular vectors of a stack of matrices with few columns.
 
-    One-sided Jacobi (Hestenes): column pairs are rotated until every pair is
-    orthogonal; the column norms are then the singular values, accurate to
-    a few ulps of the largest (as LAPACK's). A matrix whose columns are
-    already orthogonal is left exactly as it is, so a matrix's result does
-    not depend on the others in the stack; zero rows (padding) change
-    nothing. The singular values are not sorted.
+    A tall matrix is first reduced to its ``C x C`` triangle by Householder
+    reflections (which also carry ``rhs`` along); the triangle's columns are
+    then rotated pairwise until orthogonal (one-sided Jacobi, Hestenes), and
+    their norms are the singular values, accurate to a few ulps of the
+    largest (as LAPACK's). Each matrix's arithmetic is its own (element-wise
+    over the stack, a pair already orthogonal is not rotated), so a matrix's
+    result does not depend on the others in the stack; zero rows (padding)
+    change nothing.
 
     Parameters
     ----------
     a : ndarray, shape (..., R, C)
         Any R (fewer rows than columns is allowed); C small (the cost is
         quadratic in C).
+    rhs : ndarray, shape (..., R, K), optional
+        Right-hand sides to project.
 
     Returns
     -------
-    scaled_u : ndarray, shape (..., R, C)
-        ``a v``: left singular vectors times their singular values.
     s : ndarray, shape (..., C)
-        Singular values, in the order of the columns of ``v`` (C of them even
-        when R < C: the extra ones are 0 to rounding).
+        Singular values, in the order of the columns of ``v``, not sorted (C
+        of them even when R < C: the extra ones are 0 to rounding).
     v : ndarray, shape (..., C, C)
         Right singular vectors as columns (orthonormal).
+    projected : ndarray, shape (..., C, K), or None
+        ``(a v)^T rhs``, i.e. ``s`` times the left singular vectors' components of ``rhs``;
+        the least-squares solution of ``a x = rhs`` is ``v (projected / s^2)``.
     """
     a = np.asarray(a, dtype=float)
-    width = a.shape[-1]
+    rows, width = a.shape[-2:]
     stack = a.shape[:-2]
     columns = list(np.moveaxis(a, (-1, -2), (0, 1)).copy())
+    sides = [] if rhs is None else list(np.moveaxis(np.asarray(rhs, dtype=float), (-1, -2), (0, 1)).copy())
+    if rows > width:
+        _householder(columns, sides)
+        columns = [x[:width] for x in columns]
+        sides = [y[:width] for y in sides]
     v = [[np.full(stack, float(i == j)) for j in range(width)] for i in range(width)]
     norms = [np.sum(x * x, axis=0) for x in columns]
     pairs = [(p, q) for p in range(width - 1) for q in range(p + 1, width)]
     with np.errstate(over="ignore"):  # a vanishing cosine overflows zeta to inf, which rightly gives t = 0
         _sweep(columns, v, norms, pairs)
-    scaled_u = np.moveaxis(np.stack(columns), (0, 1), (-1, -2))
+    s = np.sqrt(np.stack(norms, axis=-1))
     v_matrix = np.moveaxis(np.array(v), (0, 1), (-2, -1))
-    return scaled_u, np.sqrt(np.stack(norms, axis=-1)), v_matrix
+    if rhs is None:
+        return s, v_matrix, None
+    projected = np.array([[np.sum(x * y, axis=0) for y in sides] for x in columns])
+    return s, v_matrix, np.moveaxis(projected, (0, 1), (-2, -1))
+
+
+def _householder(columns, sides):
+    """Reduce column planes ``(R, ...)`` in place to upper-triangular form, applying the reflections to ``sides``."""
+    for k in range(len(columns)):
+        x = columns[k][k:]
+        norm = np.sqrt(np.sum(x * x, axis=0))
+        alpha = -np.copysign(norm, x[0])
+        reflector = x.copy()
+        reflector[0] -= alpha
+        length2 = np.sum(reflector * reflector, axis=0)
+        beta = np.where(length2 > 0, 2.0 / np.where(length2 > 0, length2, 1.0), 0.0)
+        for other in columns[k + 1:] + sides:
+            part = other[k:]
+            part -= (beta * np.sum(reflector * part, axis=0)) * reflector
+        x[0] = alpha
+        x[1:] = 0.0
 
 
 def _sweep(columns, v, norms, pairs):

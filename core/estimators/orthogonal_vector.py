@@ -41,6 +41,7 @@ from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeome
 from core.estimators.base import SolveOptions, register
 from core.estimators.result import Estimates
 from core.linalg import jacobi_svd
+from core.measurements import relative_position
 from core.problem import LinesOfSight, Problem, local_axes, onto_altitude
 
 #: Relative singular value below which the stacked rows are rank-deficient.
@@ -132,11 +133,11 @@ class _Rows:
         has_el = ~np.isnan(elevation)
         stations, rotations = batch.measurement_stations()
         vertical, horizontal = normal_vectors(np.where(is_line, batch.values, 0.0), np.where(has_el, elevation, 0.0))
-        local = np.concatenate([vertical, horizontal], axis=1)
         self.rotations = rotations
         self.stations = stations
-        self.rows = np.einsum("brji,brj->bri", np.concatenate([rotations, rotations], axis=1), local)
-        self.rhs = np.einsum("bri,bri->br", self.rows, np.concatenate([stations, stations], axis=1))
+        rows = [np.einsum("bmji,bmj->bmi", rotations, local) for local in (vertical, horizontal)]
+        self.rows = np.concatenate(rows, axis=1)
+        self.rhs = np.concatenate([np.einsum("bmi,bmi->bm", r, stations) for r in rows], axis=1)
         self.used = np.concatenate([has_el & (normals is not Normals.AZIMUTH_PLANE),
                                     is_line & (normals is not Normals.ELEVATION_PLANE)], axis=1)
         sigma = np.concatenate([sigma_elevation, np.where(is_line, batch.sigmas, np.nan)], axis=1)
@@ -144,8 +145,7 @@ class _Rows:
 
     def noise_scale(self, position_enu_m, rows=slice(None)):
         """Each row's noise per unit angle ``(B, 2M)`` at positions ``(B, 3)``: slant (``c``) or horizontal (``c'``)."""
-        seen = np.einsum("bmij,bmj->bmi", self.rotations[rows], position_enu_m[:, None, :] - self.stations[rows])
-        slant, horizontal = _distances(seen)
+        slant, horizontal = _distances(relative_position(position_enu_m, self.stations[rows], self.rotations[rows]))
         return np.concatenate([slant, horizontal], axis=1)
 
 
@@ -163,9 +163,9 @@ def _least_squares(rows, rhs, weights):
     solution : ndarray, shape (B, 3)
     singular : ndarray of bool, shape (B,)
     """
-    scaled_u, s, v = jacobi_svd(rows * weights[..., None])
+    s, v, projected = jacobi_svd(rows * weights[..., None], (rhs * weights)[..., None])
     singular = ~(s.min(axis=-1) > RANK_TOLERANCE * s.max(axis=-1))
-    coefficients = np.einsum("bri,br->bi", scaled_u, rhs * weights) / np.where(s > 0, s, np.inf) ** 2
+    coefficients = projected[..., 0] / np.where(s > 0, s, np.inf) ** 2
     return np.einsum("bij,bj->bi", v, coefficients), singular
 
 
@@ -271,12 +271,14 @@ def _propagated_covariance(eq: _Rows, k, position_enu_m, bound, batch: ProblemBa
         axes[c] = local_axes(position_enu_m[c], batch.origin[k[c]], batch.geodetic[k[c]])
         rows = np.einsum("bri,bji->brj", rows, axes)
         rows[c, :, 2] = 0.0
-    scaled_u, s, v = jacobi_svd(rows * weights[..., None])
+    s, v, _ = jacobi_svd(rows * weights[..., None])
     eigenvalues = s * s
     kept = eigenvalues > PINV_CUTOFF * eigenvalues.max(axis=-1, keepdims=True)
-    gain = v * np.where(kept, 1.0 / np.where(kept, eigenvalues, 1.0), 0.0)[:, None, :]
-    middle = np.einsum("bri,br,brj->bij", scaled_u, np.where(used, weights * noise_sd, 0.0) ** 2, scaled_u)
-    local = gain @ middle @ np.swapaxes(gain, -1, -2)
+    scaled = v * np.where(kept, 1.0 / np.where(kept, eigenvalues, 1.0), 0.0)[:, None, :]
+    gain = scaled @ np.swapaxes(v, -1, -2)
+    noisy_rows = rows * np.where(used, weights * weights * noise_sd, 0.0)[..., None]
+    middle = np.swapaxes(noisy_rows, -1, -2) @ noisy_rows
+    local = gain @ middle @ gain
     return np.swapaxes(axes, -1, -2) @ local @ axes
 
 

@@ -131,23 +131,19 @@ def bancroft(stations_enu_m, pseudoranges_m, weights, used):
     # The linear system is singular when the stations lie in a plane through the origin
     # (ground receivers of a local frame): solve from a point below their centroid instead.
     centroid = s.sum(axis=-2) / count[:, None]
-    _, spread, axes = jacobi_svd(np.where(used[..., None], s - centroid[:, None, :], 0.0))
+    spread, axes, _ = jacobi_svd(np.where(used[..., None], s - centroid[:, None, :], 0.0))
     normal = np.take_along_axis(axes, np.argmin(spread, axis=-1)[:, None, None], axis=-1)[..., 0]
     below = centroid - np.copysign(1.0, normal[:, 2])[:, None] * normal * np.maximum(spread.max(axis=-1), 1.0)[:, None]
     s = np.where(used[..., None], s - below[:, None, :], 0.0)
     m = np.concatenate([s, -rho[..., None]], axis=-1)
     half_norm = 0.5 * (np.sum(s * s, axis=-1) - rho * rho)
-    _, plain, _ = jacobi_svd(m)
+    plain, _, _ = jacobi_svd(m)
     rank_tolerance = plain.max(axis=-1) * np.maximum(count, 4) * np.finfo(float).eps
     singular = np.count_nonzero(plain > rank_tolerance[:, None], axis=-1) < 4
-    scaled_u, sv, v = jacobi_svd(m * w[..., None])
+    sv, v, projected = jacobi_svd(m * w[..., None], np.stack([w, w * half_norm], axis=-1))
     kept = sv > PINV_CUTOFF * sv.max(axis=-1, keepdims=True)
     inverse_s2 = np.where(kept, 1.0 / np.where(kept, sv, 1.0) ** 2, 0.0)
-
-    def pinv_times(y):
-        return np.einsum("bij,bj->bi", v, inverse_s2 * np.einsum("bri,br->bi", scaled_u, w * y))
-
-    u, vv = pinv_times(np.ones_like(rho)), pinv_times(half_norm)
+    u, vv = np.moveaxis(v @ (inverse_s2[..., None] * projected), -1, 0)
 
     def lorentz(a, b):
         return np.einsum("bi,bi->b", a[:, :3], b[:, :3]) - a[:, 3] * b[:, 3]
@@ -201,11 +197,11 @@ def trilaterate(stations_enu_m, ranges_m, used):
     a = np.where(others[..., None], 2.0 * (stations_enu_m - s0[:, None, :]), 0.0)
     b = np.where(others, (r0**2)[:, None] - ranges_m**2 + np.sum(stations_enu_m**2, axis=-1)
                  - np.sum(s0**2, axis=-1)[:, None], 0.0)
-    scaled_u, sv, v = jacobi_svd(a)
+    sv, v, projected = jacobi_svd(a, b[..., None])
     kept = sv > TRILATERATION_RANK_TOLERANCE * sv.max(axis=-1, keepdims=True)
     rank = np.count_nonzero(kept, axis=-1)
     inverse_s2 = np.where(kept, 1.0 / np.where(kept, sv, 1.0) ** 2, 0.0)
-    point = np.einsum("bij,bj->bi", v, inverse_s2 * np.einsum("bri,br->bi", scaled_u, b))
+    point = np.einsum("bij,bj->bi", v, inverse_s2 * projected[..., 0])
     normal = np.take_along_axis(v, np.argmin(sv, axis=-1)[:, None, None], axis=-1)[..., 0]
     normal = normal * np.copysign(1.0, normal[:, 2])[:, None]
     gap = r0**2 - np.sum((point - s0) ** 2, axis=-1)

@@ -156,16 +156,23 @@ def test_jacobi_svd_matches_lapack_and_ignores_zero_rows():
     a = rng.standard_normal((200, 7, 3))
     a[:20, :, 2] = 2.0 * a[:20, :, 0] + 1e-7 * a[:20, :, 1]  # nearly rank-deficient
     a[20:40, :, 2] = a[20:40, :, 0]  # rank-deficient
-    scaled_u, s, v = jacobi_svd(a)
+    rhs = rng.standard_normal((200, 7, 2))
+    s, v, projected = jacobi_svd(a, rhs)
     expected = np.linalg.svd(a, compute_uv=False)
     assert np.all(np.abs(-np.sort(-s, axis=-1) - expected) <= 1e-14 * expected[:, :1])
-    np.testing.assert_allclose(scaled_u @ np.swapaxes(v, -1, -2), a, atol=1e-13)
     np.testing.assert_allclose(np.swapaxes(v, -1, -2) @ v, np.broadcast_to(np.eye(3), v.shape), atol=1e-14)
-    padded = np.concatenate([a, np.zeros((200, 5, 3))], axis=1)
-    scaled_u_padded, s_padded, v_padded = jacobi_svd(padded)
-    np.testing.assert_array_equal(s_padded, s)
-    np.testing.assert_array_equal(v_padded, v)
-    _, s_wide, _ = jacobi_svd(a[:, :2])  # fewer rows than columns: the third singular value is 0
+    np.testing.assert_allclose(np.linalg.norm(a @ v, axis=-2), s, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(projected, np.swapaxes(a @ v, -1, -2) @ rhs, atol=1e-12)
+    full_rank = slice(40, None)
+    solution = v[full_rank] @ (projected[full_rank] / s[full_rank, :, None] ** 2)
+    reference = np.array([np.linalg.lstsq(m, y, rcond=None)[0] for m, y in zip(a[full_rank], rhs[full_rank])])
+    np.testing.assert_allclose(solution, reference, rtol=1e-10, atol=1e-12)
+    padded_s, padded_v, padded_projected = jacobi_svd(np.concatenate([a, np.zeros((200, 5, 3))], axis=1),
+                                                      np.concatenate([rhs, np.zeros((200, 5, 2))], axis=1))
+    np.testing.assert_array_equal(padded_s, s)
+    np.testing.assert_array_equal(padded_v, v)
+    np.testing.assert_array_equal(padded_projected, projected)
+    s_wide, _, _ = jacobi_svd(a[:, :2])  # fewer rows than columns: the third singular value is 0
     assert np.all(np.sort(s_wide, axis=-1)[:, 0] <= 1e-14 * s_wide.max(axis=-1))
 
 
