@@ -149,6 +149,11 @@ class _Rows:
         return np.concatenate([slant, horizontal], axis=1)
 
 
+def _where(mask):
+    """Indices of ``mask``; a slice when that is all of them (indexing by a slice does not copy)."""
+    return slice(None) if np.all(mask) else np.flatnonzero(mask)
+
+
 def _least_squares(rows, rhs, weights):
     """Weighted least squares of stacked systems by SVD, and which are rank-deficient.
 
@@ -214,16 +219,18 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
         return _least_squares(rows, rhs, weights)
 
     position = np.full((size, 3), np.nan)
-    k = np.flatnonzero(~failed)
+    every = np.arange(size)
+    k = _where(~failed)
     position[k], singular = solve(k, np.ones(eq.used[k].shape))
-    failed[k[singular]] = True
+    failed[every[k][singular]] = True
     for _ in range(2):
-        k = np.flatnonzero(~failed & (weighted | constrained))
-        if k.size == 0:
+        more = ~failed & (weighted | constrained)
+        if not np.any(more):
             break
+        k = _where(more)
         bound = constrained[k]
         if np.any(bound):
-            c = k[bound]
+            c = every[k][bound]
             on_surface = onto_altitude(position[c], altitude[c], batch.origin[c], batch.geodetic[c])
             up_axis[c] = local_axes(on_surface, batch.origin[c], batch.geodetic[c])[:, 2]
             up_rhs[c] = np.einsum("bi,bi->b", up_axis[c], on_surface)
@@ -232,18 +239,18 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
         else:
             weights = np.ones(eq.used[k].shape)
         position[k], singular = solve(k, weights)
-        failed[k[singular]] = True
+        failed[every[k][singular]] = True
     why = f"{name}: the lines of sight do not determine a point (parallel or too few independent lines)"
     for b in np.flatnonzero(failed):
         errors.setdefault(int(b), UnobservableGeometry(why))
     position[failed] = np.nan
 
-    k = np.flatnonzero(~failed)
     covariance = np.full((size, 3, 3), np.nan)
-    if k.size:
+    if not np.all(failed):
+        k = _where(~failed)
         bound = constrained[k]
         if np.any(bound):
-            c = k[bound]
+            c = every[k][bound]
             position[c] = onto_altitude(position[c], altitude[c], batch.origin[c], batch.geodetic[c])
         covariance[k] = _propagated_covariance(eq, k, position[k], bound, batch, weighted)
     return Estimates(position_enu_m=position, covariance_source="propagated", covariance_enu_m2=covariance,
@@ -265,10 +272,11 @@ def _propagated_covariance(eq: _Rows, k, position_enu_m, bound, batch: ProblemBa
     else:
         weights = used.astype(float)
     rows = eq.rows[k]
-    axes = np.broadcast_to(np.eye(3), (k.size, 3, 3)).copy()
+    axes = np.broadcast_to(np.eye(3), (position_enu_m.shape[0], 3, 3)).copy()
     if np.any(bound):
         c = np.flatnonzero(bound)
-        axes[c] = local_axes(position_enu_m[c], batch.origin[k[c]], batch.geodetic[k[c]])
+        problems = np.arange(batch.size)[k][c]
+        axes[c] = local_axes(position_enu_m[c], batch.origin[problems], batch.geodetic[problems])
         rows = np.einsum("bri,bji->brj", rows, axes)
         rows[c, :, 2] = 0.0
     s, v, _ = jacobi_svd(rows * weights[..., None])
