@@ -18,9 +18,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from core.angles import line_of_sight_enu
 from core.batch import AZIMUTH, RANGE, TOA, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
-from core.estimators.orthogonal_vector import Normals, Weighting, solve_orthogonal_batch
+from core.estimators.orthogonal_vector import Normals, Weighting, normal_vectors, solve_orthogonal_batch
 from core.linalg import jacobi_svd
 from core.problem import Problem
 
@@ -62,12 +63,10 @@ def station_polar_points(batch: ProblemBatch):
     safe_total = np.where(found, total, 1.0)
     range_m = np.where(found, weighted_sum, 1.0) / safe_total
     az, el = np.where(is_line, batch.values, 0.0), np.where(has_el, elevation, 0.0)
-    sin_az, cos_az, sin_el, cos_el = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
-    along = np.stack([cos_el * sin_az, cos_el * cos_az, sin_el], axis=-1)
-    across_az = np.stack([cos_az, -sin_az, np.zeros_like(az)], axis=-1)
-    across_el = np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1)
+    along = line_of_sight_enu(az, el)
+    across_el, across_az = normal_vectors(az, el)
     basis = np.stack([along, across_az, across_el], axis=-1)
-    sd = np.stack([np.sqrt(1.0 / safe_total), range_m * cos_el * batch.sigmas,
+    sd = np.stack([np.sqrt(1.0 / safe_total), range_m * np.cos(el) * batch.sigmas,
                    range_m * np.where(has_el, sigma_elevation, 1.0)], axis=-1)
     cov_local = (basis * np.square(np.maximum(sd, MIN_POLAR_SD_M))[..., None, :]) @ np.swapaxes(basis, -1, -2)
     stations, rotations = batch.measurement_stations()
