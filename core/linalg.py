@@ -57,7 +57,7 @@ def jacobi_svd(a, rhs=None):
         columns = [x[:width] for x in columns]
         sides = [y[:width] for y in sides]
     v = [[np.full(stack, float(i == j)) for j in range(width)] for i in range(width)]
-    norms = [np.sum(x * x, axis=0) for x in columns]
+    norms = [row_dot(x, x) for x in columns]
     pairs = [(p, q) for p in range(width - 1) for q in range(p + 1, width)]
     with np.errstate(over="ignore"):  # a vanishing cosine overflows zeta to inf, which rightly gives t = 0
         _sweep(columns, v, norms, pairs)
@@ -65,23 +65,37 @@ def jacobi_svd(a, rhs=None):
     v_matrix = np.moveaxis(np.array(v), (0, 1), (-2, -1))
     if rhs is None:
         return s, v_matrix, None
-    projected = np.array([[np.sum(x * y, axis=0) for y in sides] for x in columns])
+    projected = np.array([[row_dot(x, y) for y in sides] for x in columns])
     return s, v_matrix, np.moveaxis(projected, (0, 1), (-2, -1))
+
+
+def row_dot(x, y):
+    """``sum_r x[r] y[r]`` over the leading axis, added in row order.
+
+    ``np.sum`` adds a lone contiguous vector pairwise but the columns of a
+    stack one row at a time, so a matrix would round differently alone and
+    in a stack, and differently again with zero rows of padding; added in
+    row order, the bits are the same in every case.
+    """
+    total = x[0] * y[0]
+    for r in range(1, x.shape[0]):
+        total += x[r] * y[r]
+    return total
 
 
 def _householder(columns, sides):
     """Reduce column planes ``(R, ...)`` in place to upper-triangular form, applying the reflections to ``sides``."""
     for k in range(len(columns)):
         x = columns[k][k:]
-        norm = np.sqrt(np.sum(x * x, axis=0))
+        norm = np.sqrt(row_dot(x, x))
         alpha = -np.copysign(norm, x[0])
         reflector = x.copy()
         reflector[0] -= alpha
-        length2 = np.sum(reflector * reflector, axis=0)
+        length2 = row_dot(reflector, reflector)
         beta = np.where(length2 > 0, 2.0 / np.where(length2 > 0, length2, 1.0), 0.0)
         for other in columns[k + 1:] + sides:
             part = other[k:]
-            part -= (beta * np.sum(reflector * part, axis=0)) * reflector
+            part -= (beta * row_dot(reflector, part)) * reflector
         x[0] = alpha
         x[1:] = 0.0
 
@@ -92,7 +106,7 @@ def _sweep(columns, v, norms, pairs):
         rotated = False
         for p, q in pairs:
             xp, xq = columns[p], columns[q]
-            gamma = np.sum(xp * xq, axis=0)
+            gamma = row_dot(xp, xq)
             rotate = np.abs(gamma) > JACOBI_TOLERANCE * np.sqrt(norms[p] * norms[q])
             if not np.any(rotate):
                 continue
@@ -105,7 +119,25 @@ def _sweep(columns, v, norms, pairs):
             for row in v:
                 vp, vq = row[p], row[q]
                 row[p], row[q] = cos * vp - sin * vq, sin * vp + cos * vq
-            norms[p] = np.sum(columns[p] * columns[p], axis=0)
-            norms[q] = np.sum(columns[q] * columns[q], axis=0)
+            norms[p] = row_dot(columns[p], columns[p])
+            norms[q] = row_dot(columns[q], columns[q])
         if not rotated:
             return
+
+
+def last_dot(x, y):
+    """``sum_i x[..., i] y[..., i]`` over the (short) last axis, added in order; broadcasts.
+
+    ``np.einsum`` picks its inner loop by shape, so it can round a matrix
+    differently alone and in a stack; this cannot.
+    """
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
+    total = x[..., 0] * y[..., 0]
+    for i in range(1, x.shape[-1]):
+        total = total + x[..., i] * y[..., i]
+    return total
+
+
+def matvec(m, x):
+    """``m @ x`` for stacks of small matrices ``(..., I, J)`` and vectors ``(..., J)``, bit-stable as :func:`last_dot`."""
+    return last_dot(m, np.asarray(x)[..., None, :])

@@ -40,8 +40,7 @@ from core.batch import ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import SolveOptions, register
 from core.estimators.result import Estimates
-from core.linalg import jacobi_svd
-from core.measurements import relative_position
+from core.linalg import jacobi_svd, last_dot, matvec, row_dot
 from core.problem import LinesOfSight, Problem, local_axes, onto_altitude
 
 #: Relative singular value below which the stacked rows are rank-deficient.
@@ -114,8 +113,8 @@ def orthogonal_rows(los: LinesOfSight, use_vertical: bool = True, use_horizontal
     local = np.concatenate([a_vertical[k_vertical], a_horizontal[k_horizontal]]).reshape(-1, 3)
     line = np.concatenate([k_vertical, k_horizontal]).astype(int)
     vertical = np.arange(line.size) < k_vertical.size
-    rows = np.einsum("rji,rj->ri", los.rotations[line], local)
-    rhs = np.einsum("ri,ri->r", rows, los.origins_enu_m[line])
+    rows = matvec(np.swapaxes(los.rotations[line], -1, -2), local)
+    rhs = last_dot(rows, los.origins_enu_m[line])
     return rows, rhs, line, vertical
 
 
@@ -135,9 +134,10 @@ class _Rows:
         vertical, horizontal = normal_vectors(np.where(is_line, batch.values, 0.0), np.where(has_el, elevation, 0.0))
         self.rotations = rotations
         self.stations = stations
-        rows = [np.einsum("bmji,bmj->bmi", rotations, local) for local in (vertical, horizontal)]
+        to_common = np.swapaxes(rotations, -1, -2)
+        rows = [matvec(to_common, local) for local in (vertical, horizontal)]
         self.rows = np.concatenate(rows, axis=1)
-        self.rhs = np.concatenate([np.einsum("bmi,bmi->bm", r, stations) for r in rows], axis=1)
+        self.rhs = np.concatenate([last_dot(r, stations) for r in rows], axis=1)
         self.used = np.concatenate([has_el & (normals is not Normals.AZIMUTH_PLANE),
                                     is_line & (normals is not Normals.ELEVATION_PLANE)], axis=1)
         sigma = np.concatenate([sigma_elevation, np.where(is_line, batch.sigmas, np.nan)], axis=1)
@@ -145,7 +145,8 @@ class _Rows:
 
     def noise_scale(self, position_enu_m, rows=slice(None)):
         """Each row's noise per unit angle ``(B, 2M)`` at positions ``(B, 3)``: slant (``c``) or horizontal (``c'``)."""
-        slant, horizontal = _distances(relative_position(position_enu_m, self.stations[rows], self.rotations[rows]))
+        seen = matvec(self.rotations[rows], position_enu_m[:, None, :] - self.stations[rows])
+        slant, horizontal = _distances(seen)
         return np.concatenate([slant, horizontal], axis=1)
 
 
@@ -171,7 +172,7 @@ def _least_squares(rows, rhs, weights):
     s, v, projected = jacobi_svd(rows * weights[..., None], (rhs * weights)[..., None])
     singular = ~(s.min(axis=-1) > RANK_TOLERANCE * s.max(axis=-1))
     coefficients = projected[..., 0] / np.where(s > 0, s, np.inf) ** 2
-    return np.einsum("bij,bj->bi", v, coefficients), singular
+    return matvec(v, coefficients), singular
 
 
 def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str) -> Estimates:
@@ -233,7 +234,7 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
             c = every[k][bound]
             on_surface = onto_altitude(position[c], altitude[c], batch.origin[c], batch.geodetic[c])
             up_axis[c] = local_axes(on_surface, batch.origin[c], batch.geodetic[c])[:, 2]
-            up_rhs[c] = np.einsum("bi,bi->b", up_axis[c], on_surface)
+            up_rhs[c] = last_dot(up_axis[c], on_surface)
         if weighted:
             weights = 1.0 / (eq.sigma[k] * np.maximum(eq.noise_scale(position[k], k), MIN_DISTANCE_M))
         else:
@@ -277,15 +278,18 @@ def _propagated_covariance(eq: _Rows, k, position_enu_m, bound, batch: ProblemBa
         c = np.flatnonzero(bound)
         problems = np.arange(batch.size)[k][c]
         axes[c] = local_axes(position_enu_m[c], batch.origin[problems], batch.geodetic[problems])
-        rows = np.einsum("bri,bji->brj", rows, axes)
+        rows = matvec(axes[:, None], rows)
         rows[c, :, 2] = 0.0
     s, v, _ = jacobi_svd(rows * weights[..., None])
     eigenvalues = s * s
     kept = eigenvalues > PINV_CUTOFF * eigenvalues.max(axis=-1, keepdims=True)
     scaled = v * np.where(kept, 1.0 / np.where(kept, eigenvalues, 1.0), 0.0)[:, None, :]
     gain = scaled @ np.swapaxes(v, -1, -2)
-    noisy_rows = rows * np.where(used, weights * weights * noise_sd, 0.0)[..., None]
-    middle = np.swapaxes(noisy_rows, -1, -2) @ noisy_rows
+    noisy = np.moveaxis(rows * np.where(used, weights * weights * noise_sd, 0.0)[..., None], (-1, -2), (0, 1))
+    middle = np.empty_like(gain)
+    for i in range(3):
+        for j in range(i, 3):
+            middle[:, i, j] = middle[:, j, i] = row_dot(noisy[i], noisy[j])
     local = gain @ middle @ gain
     return np.swapaxes(axes, -1, -2) @ local @ axes
 

@@ -22,7 +22,7 @@ from core.angles import line_of_sight_enu
 from core.batch import AZIMUTH, RANGE, TOA, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.orthogonal_vector import Normals, Weighting, normal_vectors, solve_orthogonal_batch
-from core.linalg import jacobi_svd
+from core.linalg import jacobi_svd, last_dot, matvec
 from core.problem import Problem
 
 #: Smallest standard deviation (m) of a polar point along any axis.
@@ -71,7 +71,7 @@ def station_polar_points(batch: ProblemBatch):
     cov_local = (basis * np.square(np.maximum(sd, MIN_POLAR_SD_M))[..., None, :]) @ np.swapaxes(basis, -1, -2)
     stations, rotations = batch.measurement_stations()
     to_common = np.swapaxes(rotations, -1, -2)
-    points = stations + np.einsum("bmij,bmj->bmi", to_common, range_m[..., None] * along)
+    points = stations + matvec(to_common, range_m[..., None] * along)
     return points, to_common @ cov_local @ rotations, found
 
 
@@ -97,7 +97,7 @@ def fuse_points(points_enu_m, covariances_enu_m2, used=None):
     if used is not None:
         information = information * used[..., None, None]
     total = np.linalg.inv(information.sum(axis=-3))
-    return np.einsum("...ij,...j->...i", total, np.einsum("...pij,...pj->...i", information, points_enu_m)), total
+    return matvec(total, matvec(information, points_enu_m).sum(axis=-2)), total
 
 
 def polar_points(problem: Problem):
@@ -145,7 +145,7 @@ def bancroft(stations_enu_m, pseudoranges_m, weights, used):
     u, vv = np.moveaxis(v @ (inverse_s2[..., None] * projected), -1, 0)
 
     def lorentz(a, b):
-        return np.einsum("bi,bi->b", a[:, :3], b[:, :3]) - a[:, 3] * b[:, 3]
+        return last_dot(a[:, :3], b[:, :3]) - a[:, 3] * b[:, 3]
 
     qa, qb, qc = 0.5 * lorentz(u, u), lorentz(u, vv) - 1.0, 0.5 * lorentz(vv, vv)
     single = np.abs(qa) < 1e-300
@@ -200,7 +200,7 @@ def trilaterate(stations_enu_m, ranges_m, used):
     kept = sv > TRILATERATION_RANK_TOLERANCE * sv.max(axis=-1, keepdims=True)
     rank = np.count_nonzero(kept, axis=-1)
     inverse_s2 = np.where(kept, 1.0 / np.where(kept, sv, 1.0) ** 2, 0.0)
-    point = np.einsum("bij,bj->bi", v, inverse_s2 * projected[..., 0])
+    point = matvec(v, inverse_s2 * projected[..., 0])
     normal = np.take_along_axis(v, np.argmin(sv, axis=-1)[:, None, None], axis=-1)[..., 0]
     normal = normal * np.copysign(1.0, normal[:, 2])[:, None]
     gap = r0**2 - np.sum((point - s0) ** 2, axis=-1)

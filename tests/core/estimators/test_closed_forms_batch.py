@@ -215,3 +215,20 @@ def test_starts_are_exact_without_noise_and_each_as_alone():
             assert alone_failures[0].message == failures[b].message
         else:
             np.testing.assert_allclose(alone[0], positions[b], rtol=REL)
+
+
+@pytest.mark.parametrize("method", ["ove", "eove", "weighted_eove"])
+def test_a_problem_gets_the_same_bits_alone_and_padded_in_a_batch(method):
+    """Byte-equal responses need bit-equal fixes: neither the batch size nor zero padding may change rounding."""
+    problems = random_four_station_problems(6, 3) + [p for p in mixed_problems() if p.count(Kind.AZIMUTH) >= 3]
+    batch = ProblemBatch.from_problems(problems)
+    together = REGISTRY[method].estimate(batch, SolveOptions())
+    starts, _, _ = initial_positions(batch)
+    for b, problem in enumerate(problems):
+        alone = REGISTRY[method].estimate(ProblemBatch.from_problems([problem]), SolveOptions())
+        if b in together.errors:
+            assert 0 in alone.errors
+            continue
+        np.testing.assert_array_equal(alone.position_enu_m[0], together.position_enu_m[b])
+        np.testing.assert_array_equal(alone.covariance_enu_m2[0], together.covariance_enu_m2[b])
+        np.testing.assert_array_equal(initial_positions(ProblemBatch.from_problems([problem]))[0][0], starts[b])
