@@ -175,7 +175,8 @@ def _least_squares(rows, rhs, weights):
     return matvec(v, coefficients), singular
 
 
-def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str) -> Estimates:
+def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str,
+                           with_covariance: bool = True) -> Estimates:
     """Positions and propagated covariances of an orthogonal-vector estimator for every problem of a batch.
 
     Parameters
@@ -186,6 +187,8 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     weighting : Weighting
     name : str
         The method, for messages.
+    with_covariance : bool
+        False skips the propagated covariance (NaN), for a start.
 
     Returns
     -------
@@ -253,7 +256,8 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
         if np.any(bound):
             c = every[k][bound]
             position[c] = onto_altitude(position[c], altitude[c], batch.origin[c], batch.geodetic[c])
-        covariance[k] = _propagated_covariance(eq, k, position[k], bound, batch, weighted)
+        if with_covariance:
+            covariance[k] = _propagated_covariance(eq, k, position[k], bound, batch, weighted)
     return Estimates(position_enu_m=position, covariance_source="propagated", covariance_enu_m2=covariance,
                      errors=errors)
 

@@ -246,7 +246,7 @@ def initial_positions(batch: ProblemBatch):
     k = np.flatnonzero(pending & np.any(valid & (batch.kinds == AZIMUTH), axis=-1))
     if k.size:
         estimates = solve_orthogonal_batch(sub(k), normals=Normals.BOTH, weighting=Weighting.FIRST_ORDER,
-                                           name="weighted_eove")
+                                           name="weighted_eove", with_covariance=False)
         solved = np.ones(k.size, dtype=bool)
         for j, error in estimates.errors.items():
             solved[j] = False
