@@ -230,7 +230,7 @@ def scipy_row(problems: list, rounds: int = 10) -> Row:
 
     from core.estimators import SolveOptions
     from core.estimators.base import get_estimator
-    from core.estimators.start import initial_positions
+    from core.estimators.starting_points import initial_positions
     from core.measurements import Kind
     from service.translate import read_fix_requests
 

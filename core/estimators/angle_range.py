@@ -18,12 +18,12 @@ covariance); when the stations are so nearly at one height that the polar
 points are better, they are the coarse fix instead, with the warning
 ``coarse_polar_fallback``. Mixes without two azimuth lines or two range
 stations use the polar points, else the usual closed-form start
-(:func:`core.estimators.start.initial_position`). ``details["coarse"]``
+(:func:`core.estimators.starting_points.initial_position`). ``details["coarse"]``
 says which ran.
 
 The coarse stage runs over the whole batch at once; the per-station polar
 points and their fusion are computed here for the batch (a private copy of
-``core.estimators.start.polar_points`` / ``fuse_points`` until the batched
+``core.estimators.starting_points.polar_points`` / ``fuse_points`` until the batched
 starts take them over).
 
 Fine stage: maximum likelihood (batched Levenberg-Marquardt, section 3) over
@@ -43,7 +43,7 @@ from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators.base import SolveOptions, register
 from core.estimators.ml import estimate_from
 from core.estimators.result import Estimates, FixWarning
-from core.estimators.start import initial_position
+from core.estimators.starting_points import initial_position
 
 #: Relative eigenvalue below which the azimuth planes do not determine ``(x0, y0)``.
 RANK_TOLERANCE = 1e-9

@@ -26,7 +26,7 @@ from core.estimators.base import SolveOptions, register
 from core.estimators.finish import optimal_bias_m
 from core.estimators.result import Estimates
 from core.estimators.search import candidates
-from core.estimators.start import initial_positions
+from core.estimators.starting_points import initial_positions
 from core.measurements import MeasurementModel
 from core.problem import onto_altitude
 

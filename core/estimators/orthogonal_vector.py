@@ -1,4 +1,4 @@
-"""Orthogonal-vector estimators (paper 000): OVE, EOVE and weighted EOVE.
+"""Orthogonal-vector estimators (paper 000): OVE, EOVE and weighted EOVE, over a batch.
 
 Each line of sight ``i`` from station ``r_i`` gives, in the station's ENU,
 two unit vectors orthogonal to it:
@@ -14,29 +14,87 @@ its ``c'`` row. Weighted EOVE weights the rows by ``1 / (sigma_el r_i)`` and
 ``1 / (sigma_az rho_i)`` (``r_i`` slant and ``rho_i`` horizontal distance from
 a first pass): the row residuals are then ``-r_i d_el`` and ``-rho_i d_az`` to
 first order, so this is the small-noise BLUE and one Gauss-Newton step from
-the ML fix.
+the ML fix. A known altitude adds the local up row, weighted
+``ALTITUDE_ROW_WEIGHT`` times the strongest row, and the fix is put on the
+altitude surface.
+
+Every problem of a batch is solved at once: its rows are stacked into a
+``(B, R, 3)`` array (padding rows weigh zero) and each least-squares system
+is solved by its SVD (:func:`core.linalg.jacobi_svd`), which also judges
+rank per problem: a problem whose smallest singular value is below
+``RANK_TOLERANCE`` of its largest is unobservable.
 
 Covariance: first-order propagation of the angle noise through the (weighted)
-least squares, the sandwich ``G A^T W S W A G`` with ``G = (A^T W A)^-1`` and
-``S = diag(rho^2 sigma_az^2, r^2 sigma_el^2)`` evaluated at the estimate.
+least squares, the sandwich ``G A^T W S W A G`` with ``G = (A^T W A)^+`` and
+``S = diag(rho^2 sigma_az^2, r^2 sigma_el^2)`` evaluated at the estimate
+(over the local east/north axes when the altitude is known).
 """
 
 from __future__ import annotations
 
+from enum import Enum
+
 import numpy as np
 
-from core.errors import TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import ANGLES, Estimate, SolveOptions, per_problem, register
-from core.problem import LinesOfSight, Problem
+from core.batch import ProblemBatch
+from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
+from core.estimators.base import ANGLES, SolveOptions, register
+from core.estimators.result import Estimates
+from core.linalg import jacobi_svd, last_dot, matvec, row_dot
+from core.problem import LinesOfSight, Problem, local_axes, onto_altitude
 
 #: Relative singular value below which the stacked rows are rank-deficient.
 RANK_TOLERANCE = 1e-9
 #: Weight of the known-altitude row relative to the strongest bearing row.
 ALTITUDE_ROW_WEIGHT = 1e3
+#: Eigenvalues of the weighted normal matrix below this share of the largest are dropped from the
+#: propagated covariance (``np.linalg.pinv``'s default cut-off).
+PINV_CUTOFF = 1e-15
+#: Distances (m) are clamped to at least this in the row weights.
+MIN_DISTANCE_M = 1e-9
+
+
+class Normals(Enum):
+    """Which orthogonal-vector rows each line of sight contributes."""
+
+    #: ``c`` only, from lines with elevation (OVE).
+    ELEVATION_PLANE = "elevation_plane"
+    #: ``c`` where there is an elevation and ``c'`` always (EOVE).
+    BOTH = "both"
+    #: ``c'`` only: the vertical planes of the azimuths.
+    AZIMUTH_PLANE = "azimuth_plane"
+
+
+class Weighting(Enum):
+    """How the rows are weighted."""
+
+    #: Every row weighs 1 (one pass, three with a known altitude to re-take the up row).
+    UNIT = "unit"
+    #: Inverse first-order noise ``1 / (sigma r)`` from the previous pass (three passes).
+    FIRST_ORDER = "first_order"
+
+
+def normal_vectors(azimuth_rad, elevation_rad):
+    """The two unit vectors orthogonal to lines of sight, in the station's ENU.
+
+    Parameters
+    ----------
+    azimuth_rad, elevation_rad : ndarray, shape (...)
+        Elevation 0 for an azimuth-only line.
+
+    Returns
+    -------
+    vertical, horizontal : ndarray, shape (..., 3)
+        ``a`` (in the line's vertical plane) and ``a'`` (horizontal).
+    """
+    sin_az, cos_az, sin_el, cos_el = np.sin(azimuth_rad), np.cos(azimuth_rad), np.sin(elevation_rad), np.cos(elevation_rad)
+    vertical = np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1)
+    horizontal = np.stack([cos_az, -sin_az, np.zeros_like(sin_az)], axis=-1)
+    return vertical, horizontal
 
 
 def orthogonal_rows(los: LinesOfSight, use_vertical: bool = True, use_horizontal: bool = True):
-    """Stack the orthogonal-vector equations of lines of sight.
+    """Stack the orthogonal-vector equations of one problem's lines of sight.
 
     Returns
     -------
@@ -49,134 +107,235 @@ def orthogonal_rows(los: LinesOfSight, use_vertical: bool = True, use_horizontal
     vertical : ndarray of bool, shape (R,)
         True for a ``c`` (elevation) row, False for a ``c'`` (azimuth) row.
     """
-    az, el = los.azimuth_rad, np.where(los.has_elevation, los.elevation_rad, 0.0)
-    a_vertical = np.stack([-np.sin(el) * np.sin(az), -np.sin(el) * np.cos(az), np.cos(el)], axis=-1)
-    a_horizontal = np.stack([np.cos(az), -np.sin(az), np.zeros_like(az)], axis=-1)
-    parts = []
-    if use_vertical:
-        k = np.flatnonzero(los.has_elevation)
-        parts.append((a_vertical[k], k, True))
-    if use_horizontal:
-        k = np.arange(los.count)
-        parts.append((a_horizontal[k], k, False))
-    local = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3))
-    line = np.concatenate([p[1] for p in parts]).astype(int) if parts else np.zeros(0, int)
-    vertical = np.concatenate([np.full(p[1].size, p[2]) for p in parts]) if parts else np.zeros(0, bool)
-    rows = np.einsum("rji,rj->ri", los.rotations[line], local)
-    rhs = np.einsum("ri,ri->r", rows, los.origins_enu_m[line])
+    a_vertical, a_horizontal = normal_vectors(los.azimuth_rad, np.where(los.has_elevation, los.elevation_rad, 0.0))
+    k_vertical = np.flatnonzero(los.has_elevation) if use_vertical else np.zeros(0, int)
+    k_horizontal = np.arange(los.count) if use_horizontal else np.zeros(0, int)
+    local = np.concatenate([a_vertical[k_vertical], a_horizontal[k_horizontal]]).reshape(-1, 3)
+    line = np.concatenate([k_vertical, k_horizontal]).astype(int)
+    vertical = np.arange(line.size) < k_vertical.size
+    rows = matvec(np.swapaxes(los.rotations[line], -1, -2), local)
+    rhs = last_dot(rows, los.origins_enu_m[line])
     return rows, rhs, line, vertical
 
 
-def _distances(los: LinesOfSight, position_enu_m):
-    """Slant and horizontal distances ``(K,)`` from each line's station to a point."""
-    local = np.einsum("kij,kj->ki", los.rotations, position_enu_m - los.origins_enu_m)
-    horizontal = np.hypot(local[:, 0], local[:, 1])
-    return np.linalg.norm(local, axis=-1), horizontal
+def _distances(seen):
+    """Slant and horizontal distances ``(B, M)`` from station-ENU offsets ``(B, M, 3)``."""
+    horizontal = np.hypot(seen[..., 0], seen[..., 1])
+    return np.hypot(horizontal, seen[..., 2]), horizontal
 
 
-def _weighted_solve(rows, rhs, weights, what: str):
-    """Weighted least squares by SVD, refusing rank-deficient systems."""
-    a = rows * weights[:, None]
-    u, s, vt = np.linalg.svd(a, full_matrices=False)
-    if s.size < 3 or s[-1] <= RANK_TOLERANCE * s[0]:
-        raise UnobservableGeometry(what)
-    solution = vt.T @ ((u.T @ (rhs * weights)) / s)
-    gain = vt.T @ np.diag(1.0 / s**2) @ vt
-    return solution, gain
+class _Rows:
+    """The stacked equations of a batch: measurement ``m``'s ``c`` row at ``m``, its ``c'`` row at ``M + m``."""
+
+    def __init__(self, batch: ProblemBatch, normals: Normals):
+        is_line, elevation, sigma_elevation = batch.lines_of_sight()
+        has_el = ~np.isnan(elevation)
+        stations, rotations = batch.measurement_stations()
+        vertical, horizontal = normal_vectors(np.where(is_line, batch.values, 0.0), np.where(has_el, elevation, 0.0))
+        self.rotations = rotations
+        self.stations = stations
+        to_common = np.swapaxes(rotations, -1, -2)
+        rows = [matvec(to_common, local) for local in (vertical, horizontal)]
+        self.rows = np.concatenate(rows, axis=1)
+        self.rhs = np.concatenate([last_dot(r, stations) for r in rows], axis=1)
+        self.used = np.concatenate([has_el & (normals is not Normals.AZIMUTH_PLANE),
+                                    is_line & (normals is not Normals.ELEVATION_PLANE)], axis=1)
+        sigma = np.concatenate([sigma_elevation, np.where(is_line, batch.sigmas, np.nan)], axis=1)
+        self.sigma = np.where(np.isfinite(sigma), sigma, 1.0)
+
+    def noise_scale(self, position_enu_m, rows=slice(None)):
+        """Each row's noise per unit angle ``(B, 2M)`` at positions ``(B, 3)``: slant (``c``) or horizontal (``c'``)."""
+        seen = matvec(self.rotations[rows], position_enu_m[:, None, :] - self.stations[rows])
+        slant, horizontal = _distances(seen)
+        return np.concatenate([slant, horizontal], axis=1)
 
 
-def solve_orthogonal(problem: Problem, use_vertical: bool, use_horizontal: bool, weighted: bool, name: str):
-    """Position and propagated covariance of an orthogonal-vector estimator.
+def _where(mask):
+    """Indices of ``mask``; a slice when that is all of them (indexing by a slice does not copy)."""
+    return slice(None) if np.all(mask) else np.flatnonzero(mask)
+
+
+def _least_squares(rows, rhs, weights):
+    """Weighted least squares of stacked systems by SVD, and which are rank-deficient.
 
     Parameters
     ----------
-    problem : Problem
-    use_vertical, use_horizontal : bool
-        Which rows to stack (OVE: vertical only; EOVE: both).
-    weighted : bool
-        Weight rows by their inverse first-order noise (two passes).
+    rows : ndarray, shape (B, R, 3)
+    rhs, weights : ndarray, shape (B, R)
+        Zero weight on rows that do not count.
+
+    Returns
+    -------
+    solution : ndarray, shape (B, 3)
+    singular : ndarray of bool, shape (B,)
+    """
+    s, v, projected = jacobi_svd(rows * weights[..., None], (rhs * weights)[..., None])
+    singular = ~(s.min(axis=-1) > RANK_TOLERANCE * s.max(axis=-1))
+    coefficients = projected[..., 0] / np.where(s > 0, s, np.inf) ** 2
+    return matvec(v, coefficients), singular
+
+
+def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str,
+                           with_covariance: bool = True) -> Estimates:
+    """Positions and propagated covariances of an orthogonal-vector estimator for every problem of a batch.
+
+    Parameters
+    ----------
+    batch : ProblemBatch
+    normals : Normals
+        Which rows to stack (OVE: ``ELEVATION_PLANE``; EOVE: ``BOTH``).
+    weighting : Weighting
     name : str
-        For messages.
+        The method, for messages.
+    with_covariance : bool
+        False skips the propagated covariance (NaN), for a start.
+
+    Returns
+    -------
+    Estimates
+        ``covariance_source`` ``"propagated"``; a problem without rows
+        carries TooFewMeasurements, one whose rows are rank-deficient
+        UnobservableGeometry.
+    """
+    size = batch.size
+    eq = _Rows(batch, normals)
+    weighted = weighting is Weighting.FIRST_ORDER
+    errors: dict[int, LocalizationError] = {}
+    for b in np.flatnonzero(~np.any(eq.used, axis=-1)):
+        errors[int(b)] = TooFewMeasurements(f"{name} needs bearings")
+    failed = np.zeros(size, dtype=bool)
+    failed[list(errors)] = True
+
+    constrained = batch.constrained
+    altitude = np.where(constrained, batch.altitude_m, 0.0)
+    up_axis = np.zeros((size, 3))
+    up_axis[:, 2] = 1.0
+    up_rhs = altitude.copy()
+
+    def solve(k, weights):
+        weights = np.where(eq.used[k], weights, 0.0)
+        rows, rhs = eq.rows[k], eq.rhs[k]
+        if np.any(constrained[k]):
+            strong = ALTITUDE_ROW_WEIGHT * np.max(weights, axis=-1) * constrained[k]
+            rows = np.concatenate([rows, up_axis[k, None]], axis=1)
+            rhs = np.concatenate([rhs, up_rhs[k, None]], axis=1)
+            weights = np.concatenate([weights, strong[:, None]], axis=1)
+        return _least_squares(rows, rhs, weights)
+
+    position = np.full((size, 3), np.nan)
+    every = np.arange(size)
+    k = _where(~failed)
+    position[k], singular = solve(k, np.ones(eq.used[k].shape))
+    failed[every[k][singular]] = True
+    for _ in range(2):
+        more = ~failed & (weighted | constrained)
+        if not np.any(more):
+            break
+        k = _where(more)
+        bound = constrained[k]
+        if np.any(bound):
+            c = every[k][bound]
+            on_surface = onto_altitude(position[c], altitude[c], batch.origin[c], batch.geodetic[c])
+            up_axis[c] = local_axes(on_surface, batch.origin[c], batch.geodetic[c])[:, 2]
+            up_rhs[c] = last_dot(up_axis[c], on_surface)
+        if weighted:
+            weights = 1.0 / (eq.sigma[k] * np.maximum(eq.noise_scale(position[k], k), MIN_DISTANCE_M))
+        else:
+            weights = np.ones(eq.used[k].shape)
+        position[k], singular = solve(k, weights)
+        failed[every[k][singular]] = True
+    why = f"{name}: the lines of sight do not determine a point (parallel or too few independent lines)"
+    for b in np.flatnonzero(failed):
+        errors.setdefault(int(b), UnobservableGeometry(why))
+    position[failed] = np.nan
+
+    covariance = np.full((size, 3, 3), np.nan)
+    if not np.all(failed):
+        k = _where(~failed)
+        bound = constrained[k]
+        if np.any(bound):
+            c = every[k][bound]
+            position[c] = onto_altitude(position[c], altitude[c], batch.origin[c], batch.geodetic[c])
+        if with_covariance:
+            covariance[k] = _propagated_covariance(eq, k, position[k], bound, batch, weighted)
+    return Estimates(position_enu_m=position, covariance_source="propagated", covariance_enu_m2=covariance,
+                     errors=errors)
+
+
+def _propagated_covariance(eq: _Rows, k, position_enu_m, bound, batch: ProblemBatch, weighted: bool):
+    """First-order covariance ``(K, 3, 3)`` of problems ``k`` at their fixes (see the module docstring).
+
+    A problem with a known altitude is solved over its local east/north
+    axes: its rows are expressed in the local axes and the up column is
+    zeroed (a zero singular value, dropped like ``np.linalg.pinv`` drops it).
+    """
+    scale = eq.noise_scale(position_enu_m, k)
+    used = eq.used[k]
+    noise_sd = eq.sigma[k] * scale
+    if weighted:
+        weights = np.where(used, 1.0 / (eq.sigma[k] * np.maximum(scale, MIN_DISTANCE_M)), 0.0)
+    else:
+        weights = used.astype(float)
+    rows = eq.rows[k]
+    axes = np.broadcast_to(np.eye(3), (position_enu_m.shape[0], 3, 3)).copy()
+    if np.any(bound):
+        c = np.flatnonzero(bound)
+        problems = np.arange(batch.size)[k][c]
+        axes[c] = local_axes(position_enu_m[c], batch.origin[problems], batch.geodetic[problems])
+        rows = matvec(axes[:, None], rows)
+        rows[c, :, 2] = 0.0
+    s, v, _ = jacobi_svd(rows * weights[..., None])
+    eigenvalues = s * s
+    kept = eigenvalues > PINV_CUTOFF * eigenvalues.max(axis=-1, keepdims=True)
+    scaled = v * np.where(kept, 1.0 / np.where(kept, eigenvalues, 1.0), 0.0)[:, None, :]
+    gain = scaled @ np.swapaxes(v, -1, -2)
+    noisy = np.moveaxis(rows * np.where(used, weights * weights * noise_sd, 0.0)[..., None], (-1, -2), (0, 1))
+    middle = np.empty_like(gain)
+    for i in range(3):
+        for j in range(i, 3):
+            middle[:, i, j] = middle[:, j, i] = row_dot(noisy[i], noisy[j])
+    local = gain @ middle @ gain
+    return np.swapaxes(axes, -1, -2) @ local @ axes
+
+
+def solve_orthogonal(problem: Problem, *, normals: Normals, weighting: Weighting, name: str):
+    """One problem's fix by :func:`solve_orthogonal_batch` (a batch of one).
 
     Returns
     -------
     position_enu_m : ndarray, shape (3,)
     covariance_enu_m2 : ndarray, shape (3, 3)
+
+    Raises
+    ------
+    LocalizationError
+        As the batch reports it.
     """
-    los = problem.lines_of_sight()
-    rows, rhs, line, vertical = orthogonal_rows(los, use_vertical, use_horizontal)
-    if rows.shape[0] == 0:
-        raise TooFewMeasurements(f"{name} needs bearings")
-    sigma = np.where(vertical, los.sigma_elevation_rad[line], los.sigma_azimuth_rad[line])
-    sigma = np.where(np.isfinite(sigma), sigma, 1.0)
-    altitude = problem.altitude_m
-    why = f"{name}: the lines of sight do not determine a point (parallel or too few independent lines)"
-
-    def solve(weights, up_axis, up_rhs):
-        if altitude is None:
-            return _weighted_solve(rows, rhs, weights, why)
-        strong = ALTITUDE_ROW_WEIGHT * np.max(weights)
-        stacked = np.vstack([rows, up_axis])
-        return _weighted_solve(stacked, np.append(rhs, up_rhs), np.append(weights, strong), why)
-
-    up_axis, up_rhs = np.array([0.0, 0.0, 1.0]), 0.0 if altitude is None else altitude
-    position, _ = solve(np.ones(rows.shape[0]), up_axis, up_rhs)
-    passes = 3 if weighted or altitude is not None else 1
-    for _ in range(passes - 1):
-        if altitude is not None:
-            on_surface = problem.frame.onto_altitude(position, altitude)
-            up_axis = problem.frame.local_axes(on_surface)[2]
-            up_rhs = up_axis @ on_surface
-        if weighted:
-            slant, horizontal = _distances(los, position)
-            scale = np.where(vertical, slant[line], horizontal[line])
-            weights = 1.0 / (sigma * np.maximum(scale, 1e-9))
-        else:
-            weights = np.ones(rows.shape[0])
-        position, _ = solve(weights, up_axis, up_rhs)
-    if altitude is not None:
-        position = problem.frame.onto_altitude(position, altitude)
-
-    slant, horizontal = _distances(los, position)
-    noise_sd = sigma * np.where(vertical, slant[line], horizontal[line])
-    weights = 1.0 / (sigma * np.maximum(np.where(vertical, slant[line], horizontal[line]), 1e-9)) if weighted \
-        else np.ones(rows.shape[0])
-    if altitude is None:
-        a = rows
-    else:
-        axes = problem.frame.local_axes(position)
-        a = rows @ axes[:2].T
-    w2 = weights**2
-    gain = np.linalg.pinv(a.T @ (a * w2[:, None]))
-    middle = a.T @ (a * (w2**2 * noise_sd**2)[:, None])
-    covariance = gain @ middle @ gain
-    if altitude is not None:
-        covariance = axes[:2].T @ covariance @ axes[:2]
-    return position, covariance
+    result = solve_orthogonal_batch(ProblemBatch.from_problems([problem]), normals=normals, weighting=weighting,
+                                    name=name)
+    if result.errors:
+        raise result.errors[0]
+    return result.position_enu_m[0], result.covariance_enu_m2[0]
 
 
-def _ove(problem: Problem, options: SolveOptions) -> Estimate:
-    los = problem.lines_of_sight()
-    with_elevation = int(np.count_nonzero(los.has_elevation))
-    if with_elevation < 3:
-        raise TooFewMeasurements(
-            f"ove needs at least 3 lines of sight with elevation; got {with_elevation}", ("measurements",))
-    return Estimate(*solve_orthogonal(problem, True, False, False, "ove"))
+@register("ove", "orthogonal vector estimator: elevation-plane normals only, needs >= 3 lines of sight", uses=ANGLES)
+def ove(batch: ProblemBatch, options: SolveOptions) -> Estimates:
+    estimates = solve_orthogonal_batch(batch, normals=Normals.ELEVATION_PLANE, weighting=Weighting.UNIT, name="ove")
+    with_elevation = np.count_nonzero(~np.isnan(batch.lines_of_sight()[1]), axis=-1)
+    errors = dict(estimates.errors)
+    for b in np.flatnonzero(with_elevation < 3):
+        errors[int(b)] = TooFewMeasurements(
+            f"ove needs at least 3 lines of sight with elevation; got {int(with_elevation[b])}", ("measurements",))
+    return Estimates(position_enu_m=estimates.position_enu_m, covariance_source="propagated",
+                     covariance_enu_m2=estimates.covariance_enu_m2, errors=errors)
 
 
-def _eove(problem: Problem, options: SolveOptions) -> Estimate:
-    return Estimate(*solve_orthogonal(problem, True, True, False, "eove"))
+@register("eove", "extended orthogonal vector estimator: both normals per line of sight (paper 000)", uses=ANGLES)
+def eove(batch: ProblemBatch, options: SolveOptions) -> Estimates:
+    return solve_orthogonal_batch(batch, normals=Normals.BOTH, weighting=Weighting.UNIT, name="eove")
 
 
-def _weighted_eove(problem: Problem, options: SolveOptions) -> Estimate:
-    return Estimate(*solve_orthogonal(problem, True, True, True, "weighted_eove"))
-
-
-register("ove", "orthogonal vector estimator: elevation-plane normals only, needs >= 3 lines of sight", uses=ANGLES)(
-    per_problem(_ove, "propagated"))
-register("eove", "extended orthogonal vector estimator: both normals per line of sight (paper 000)", uses=ANGLES)(
-    per_problem(_eove, "propagated"))
-register("weighted_eove", "EOVE with rows weighted by their first-order noise: the small-noise BLUE",
-         uses=ANGLES)(
-    per_problem(_weighted_eove, "propagated"))
-
+@register("weighted_eove", "EOVE with rows weighted by their first-order noise: the small-noise BLUE",
+          uses=ANGLES)
+def weighted_eove(batch: ProblemBatch, options: SolveOptions) -> Estimates:
+    return solve_orthogonal_batch(batch, normals=Normals.BOTH, weighting=Weighting.FIRST_ORDER, name="weighted_eove")

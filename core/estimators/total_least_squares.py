@@ -73,7 +73,7 @@ from core.estimators.azimuth_lines import (
 )
 from core.estimators.base import Estimate, SolveOptions, per_problem, register
 from core.estimators.result import FixWarning
-from core.estimators.orthogonal_vector import solve_orthogonal
+from core.estimators.orthogonal_vector import Normals, Weighting, solve_orthogonal
 from core.measurements import Kind
 from core.problem import LinesOfSight, Problem
 
@@ -92,7 +92,7 @@ def _plane_passes(problem: Problem, name: str, solve_in_plane):
     """Solve in the tangent plane at the current point, move onto the surface, repeat."""
     los = azimuth_only_lines(problem, name)
     require_crossing(los, name)
-    position, _ = solve_orthogonal(problem, False, True, False, name)
+    position, _ = solve_orthogonal(problem, normals=Normals.AZIMUTH_PLANE, weighting=Weighting.UNIT, name=name)
     state = None
     for _ in range(PLANE_PASSES):
         plane = tangent_plane(problem, position, los.origins_enu_m)

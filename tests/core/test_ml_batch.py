@@ -12,8 +12,6 @@ from core.batch import ProblemBatch, build_problem_batch, size_groups
 from core.errors import LocalizationError
 from core.estimators import REGISTRY, SolveOptions, solve_batch
 from core.estimators.base import get_estimator
-from core.estimators.orthogonal_vector import solve_orthogonal
-from core.estimators.start import weighted_eove_batch
 from core.measurements import SPEED_OF_LIGHT_MPS, Kind
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
 from core.simulation.measurements import measure
@@ -115,15 +113,6 @@ def test_chunking_does_not_change_results(monkeypatch):
     chunked = get_estimator("ml").solve_batch(batch, SolveOptions())
     for b in range(batch.size):
         assert_same_fix(whole.fix(b), chunked.fix(b))
-
-
-def test_weighted_eove_batch_matches_the_one_problem_solver():
-    problems = [p for p in mixed_problems() if p.count(Kind.AZIMUTH) >= 2 and p.initial_guess_enu_m is None]
-    positions, solved = weighted_eove_batch(ProblemBatch.from_problems(problems))
-    assert solved.all()
-    for problem, position in zip(problems, positions):
-        expected, _ = solve_orthogonal(problem, True, True, True, "weighted_eove")
-        np.testing.assert_allclose(position, expected, rtol=1e-9, atol=1e-6)  # 1 micrometre
 
 
 def test_problem_batch_round_trip():
