@@ -30,10 +30,12 @@ From then on only this UKF runs.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
 from core.tracking.config import SPEED_OF_LIGHT_MPS as C
+from core.tracking import range_mixture
 from core.tracking.config import TrackerConfig
 from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRACTION, RangePseudoMeasurement,
                                      count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
@@ -53,6 +55,8 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
             mean, cov = range_prior_state(state.mean.tolist(), state.covariance, azimuth, elevation, config)
             return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, state.pulse_period_s,
                               freeze(np.array(mean)), symmetric(cov))
+        if config.joint_initial_range == "range_mixture" and state.stage == "velocity":
+            return _mixture_start(state, values, config)
         return TrackState(config.model, state.stage, state.updates + 1, time_s, toa_s, state.pulse_period_s,
                           state.mean, state.covariance)
     dt_s = time_s - state.time_s
@@ -63,6 +67,8 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
         warnings.append(("range_unobservable",
                          f"|azimuth rate| {abs(rate):.3g} rad/s is below {config.min_azimuth_rate_snr:g} sigma "
                          f"({config.sigma_azimuth_rate_rad_s:.3g} rad/s): near-radial motion"))
+    if state.stage == "mixture":
+        return _mixture_epoch(state, values, config, tuple(warnings))
 
     if state.stage == "velocity":
         mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt_s, q, (0,), False)
@@ -82,26 +88,145 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
         return TrackState(config.model, stage, state.updates + 1, time_s, toa_s, period_s, freeze(np.array(mean)),
                           symmetric(cov), None, tuple(warnings))
 
-    k = state.mean.shape[0] - 3
-    mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt_s, q, (3,), True)
+    result = joint_epoch(state.mean.tolist(), state.covariance, state.pulse_period_s, dt_s, dtoa_s, azimuth,
+                         elevation, rate, config)
+    return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, result.period_s,
+                      freeze(np.array(result.mean)), symmetric(result.cov), None, tuple(warnings) + result.warnings)
+
+
+def _mixture_start(state: TrackState, values, config: TrackerConfig) -> TrackState:
+    """The first epoch of ``joint_initial_range="range_mixture"``: one joint state per range sub-interval."""
+    time_s, azimuth, elevation, _, toa_s = values
+    step1_mean, step1_cov = state.mean.tolist(), state.covariance
+    middles, sigmas = range_mixture.component_ranges(config)
+    starts = [range_prior_state(step1_mean, step1_cov, azimuth, elevation, config, float(r), float(s))
+              for r, s in zip(middles, sigmas)]
+    weights = np.full(len(starts), 1.0 / len(starts))
+    means = np.array([m for m, _ in starts])
+    covariances = np.array([c for _, c in starts])
+    mean, cov = range_mixture.moments(weights, means, covariances)
+    return TrackState(config.model, "mixture", state.updates + 1, time_s, toa_s, state.pulse_period_s,
+                      freeze(mean), freeze(cov), None, (),
+                      range_mixture.components_of(weights, means, covariances))
+
+
+def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple) -> TrackState:
+    """One epoch of the Gaussian sum: every component updated with the same pulse count, reweighted by its
+    innovation density, pruned; a single survivor continues as the joint UKF (see :mod:`range_mixture`)."""
+    time_s, azimuth, elevation, rate, toa_s = values
+    dt_s, dtoa_s = time_s - state.time_s, toa_s - state.toa_s
     period_s = state.pulse_period_s
+    merged = state.mean.tolist()
+    predicted = [merged[i] + dt_s * merged[i + 3] for i in range(3)] + merged[3:]
+    count = pulse_count(predicted, period_s + (0.0 if config.period_known else merged[6] / C), dt_s, dtoa_s)
+    parts = state.components
+    results = [joint_epoch(m, p, period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count, fold_period=False)
+               for m, p in zip(parts.means.tolist(), parts.covariances)]
+    weights = range_mixture.reweighted(parts.weights, np.array([r.log_likelihood for r in results]))
+    if weights is None:
+        weights = parts.weights
+    dominant = results[int(np.argmax(weights))]
+    warnings = warnings + dominant.warnings
+    kept = range_mixture.pruned(weights)
+    if kept.size == 1:
+        mean, period_s = range_mixture.fold_period(dominant.mean, period_s, config.period_known)
+        return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s,
+                          freeze(np.array(mean)), symmetric(dominant.cov), None, warnings)
+    weights = weights[kept] / weights[kept].sum()
+    means = np.array([results[i].mean for i in kept])
+    covariances = np.array([results[i].cov for i in kept])
+    covariances = 0.5 * (covariances + np.swapaxes(covariances, 1, 2))
+    weights, means, covariances = range_mixture.merge_neighbours(weights, means, covariances)
+    mean, cov = range_mixture.moments(weights, means, covariances)
+    if weights.size == 1:
+        mean, period_s = range_mixture.fold_period(mean.tolist(), period_s, config.period_known)
+        return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s,
+                          freeze(np.array(mean)), symmetric(cov), None, warnings)
+    return TrackState(config.model, "mixture", state.updates + 1, time_s, toa_s, period_s, freeze(mean),
+                      freeze(cov), None, warnings, range_mixture.components_of(weights, means, covariances))
+
+
+class JointEpoch(NamedTuple):
+    """One epoch of the joint UKF on a tracking-stage state.
+
+    Attributes
+    ----------
+    mean : list of F floats
+    cov : ndarray, shape (F, F)
+        Symmetric to rounding.
+    period_s : float
+        Period estimate, the period error folded in (unless ``fold_period`` was False).
+    log_likelihood : float
+        ``-(nis + log det S) / 2`` of the update (the innovation density up to a constant that depends only
+        on the number of measurements), ``-inf`` when the update failed.
+    warnings : tuple of (str, str)
+    """
+
+    mean: list
+    cov: np.ndarray
+    period_s: float
+    log_likelihood: float
+    warnings: tuple
+
+
+def pulse_count(mean, period_s: float, dt_s: float, dtoa_s: float):
+    """Pulses between the reference TOA and this one from the predicted joint state ``mean``, whether the TOA
+    is usable, and the warnings that raises."""
     x, y, z, vx, vy, vz = mean[:6]
     r = math.sqrt(x * x + y * y + z * z)
     n_pulses, fraction = count_pulses(dtoa_s, period_s, dt_s * (x * vx + y * vy + z * vz) / r)
     use_toa = n_pulses >= 1 and abs(fraction) <= MAX_PULSE_COUNT_FRACTION
     if not use_toa:
-        warnings.append(("pulse_count_ambiguous",
-                         f"TOA difference {dtoa_s:.9g} s is {n_pulses + fraction:.3f} periods; TOA not used"))
-    elif abs(n_pulses * period_s - dt_s) > MAX_INTERVAL_MISMATCH * dt_s:
-        warnings.append(("pulse_count_mismatch",
-                         f"{n_pulses} pulses of {period_s:.9g} s between TOAs, but time_s advanced {dt_s:.6g} s"))
+        return n_pulses, False, (("pulse_count_ambiguous",
+                                  f"TOA difference {dtoa_s:.9g} s is {n_pulses + fraction:.3f} periods; TOA not used"),)
+    if abs(n_pulses * period_s - dt_s) > MAX_INTERVAL_MISMATCH * dt_s:
+        return n_pulses, True, (("pulse_count_mismatch", f"{n_pulses} pulses of {period_s:.9g} s between TOAs, "
+                                                         f"but time_s advanced {dt_s:.6g} s"),)
+    return n_pulses, True, ()
 
+
+def joint_epoch(mean, cov, period_s: float, dt_s: float, dtoa_s: float, azimuth: float, elevation: float,
+                rate: float, config: TrackerConfig, count=None, fold_period: bool = True) -> JointEpoch:
+    """Predict and update a joint state (layout in :mod:`core.tracking.state`) with one epoch.
+
+    Parameters
+    ----------
+    mean : list of F floats
+    cov : ndarray, shape (F, F)
+    period_s : float
+        Period the TOA difference is referred to; with an unknown period the state's ``period_error_m`` is
+        relative to it.
+    dt_s, dtoa_s : float
+        ``time_s`` and TOA intervals since the reference epoch.
+    azimuth, elevation, rate : float
+        This epoch's measurements (rad, rad/s).
+    config : TrackerConfig
+    count : tuple (n_pulses, use_toa, warnings), optional
+        The pulse count (from :func:`pulse_count`); by default from this state's prediction.
+    fold_period : bool
+        Fold the updated period error into the returned ``period_s`` (and zero it in the mean).
+
+    Returns
+    -------
+    JointEpoch
+    """
+    warnings = []
+    k = len(mean) - 3
+    mean, cov = constant_velocity_predict(mean, cov, dt_s, config.accel_sigma_mps2**2, (3,), True)
+    if count is None:
+        effective = period_s + (mean[6] / C if k == 5 else 0.0)
+        count = pulse_count(mean, effective, dt_s, dtoa_s)
+    n_pulses, use_toa, count_warnings = count
+    warnings += count_warnings
     measured = (azimuth, elevation, C * (dtoa_s - n_pulses * period_s) if use_toa else 0.0, rate)
+    log_likelihood = -math.inf
     try:
         chol, cov, repaired = cholesky_repaired(cov)
         if repaired:
             warnings.append(("covariance_repaired", "predicted covariance was not positive definite"))
-        new_mean, new_cov, nis = joint_update(mean, cov, chol, measured, n_pulses, period_s, use_toa, config)
+        new_mean, new_cov, nis, log_det = joint_update(mean, cov, chol, measured, n_pulses, period_s, use_toa,
+                                                       config)
+        log_likelihood = -0.5 * (nis + log_det)
     except (np.linalg.LinAlgError, ArithmeticError, ValueError) as error:
         new_mean, new_cov = [math.nan], np.full(1, math.nan)
         nis = 0.0
@@ -115,18 +240,19 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
         if repaired:
             warnings.append(("covariance_repaired", "updated covariance was not positive definite"))
         mean, cov = new_mean, new_cov
-        if k == 5:
+        if k == 5 and fold_period:
             period_s = period_s + mean[6] / C
             mean[6] = 0.0
     else:
         if not any(code == "numerical_failure" for code, _ in warnings):
             warnings.append(("numerical_failure", "the update was not finite and was skipped"))
         mean, cov = fresh_toa_reference(mean, cov, config)
-    return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s, freeze(np.array(mean)),
-                      symmetric(cov), None, tuple(warnings))
+        log_likelihood = -math.inf
+    return JointEpoch(mean, cov, period_s, log_likelihood, tuple(warnings))
 
 
-def range_prior_state(mean, cov, azimuth_rad: float, elevation_rad: float, config: TrackerConfig):
+def range_prior_state(mean, cov, azimuth_rad: float, elevation_rad: float, config: TrackerConfig,
+                      range_m: float | None = None, range_sigma_m: float | None = None):
     """The direct joint UKF's first state: a range prior along the measured angles (``joint_initial_range="prior"``).
 
     Position ``r0 u(B, E)`` with covariance ``sigma_r^2 u u^T + r0^2 (sigma_B^2
@@ -143,6 +269,8 @@ def range_prior_state(mean, cov, azimuth_rad: float, elevation_rad: float, confi
         The step-1 prior (:func:`core.tracking.kinematic.kinematic_prior`).
     azimuth_rad, elevation_rad : float
     config : TrackerConfig
+    range_m, range_sigma_m : float, optional
+        The range prior; ``config.range_prior_m`` and ``config.range_prior_sigma_m`` by default.
 
     Returns
     -------
@@ -150,11 +278,12 @@ def range_prior_state(mean, cov, azimuth_rad: float, elevation_rad: float, confi
     cov : ndarray, shape (3 + K, 3 + K)
     """
     los, d_az, d_el = line_of_sight_derivatives(azimuth_rad, elevation_rad)
-    r = config.range_prior_m
+    r = config.range_prior_m if range_m is None else range_m
+    sigma = config.range_prior_sigma_m if range_sigma_m is None else range_sigma_m
     u, a, e = np.array(los), np.array(d_az), np.array(d_el)
     k = len(mean)
     new_cov = np.zeros((3 + k, 3 + k))
-    new_cov[:3, :3] = (config.range_prior_sigma_m**2 * np.outer(u, u)
+    new_cov[:3, :3] = (sigma**2 * np.outer(u, u)
                        + r * r * (config.sigma_azimuth_rad**2 * np.outer(a, a)
                                   + config.sigma_elevation_rad**2 * np.outer(e, e)))
     new_cov[3:, 3:] = cov
@@ -193,6 +322,8 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
     nis : float
         Normalised innovation squared (chi-square with 4, or 3 without the
         TOA, degrees of freedom when the model holds).
+    log_det : float
+        ``log det S`` of the innovation covariance.
     """
     f = len(mean)
     spread = math.sqrt(f)
@@ -250,6 +381,7 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
     v_t = whitening.dot(cross_cov.T)
     t = whitening.dot(innovation)
     nis = float(t.dot(t))
+    log_det = -2.0 * float(np.log(np.diagonal(whitening)).sum())
     x = list(mean)
     p = cov.copy()
     if use_toa:
@@ -262,7 +394,7 @@ def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_
     p -= v_t.T.dot(v_t)
     if not use_toa:
         x, p = fresh_toa_reference(x, p, config)
-    return x, p, nis
+    return x, p, nis, log_det
 
 
 _DIRECTIONS: dict = {}

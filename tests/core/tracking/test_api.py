@@ -64,6 +64,8 @@ def test_unknown_model_raises_invalid_input_naming_the_field():
     ("range_prior_m", 0.0),
     ("range_prior_sigma_m", -1.0),
     ("range_prior_sigma_m", math.inf),
+    ("range_min_m", 0.0),
+    ("range_max_m", 5e3),
 ])
 def test_bad_config_values_raise_invalid_input_naming_the_field(field, value):
     fields = {**paper_config("velocity_kinematic", True).to_dict(), field: value}
@@ -149,6 +151,7 @@ def test_from_dict_refuses_a_state_with_a_bad_field():
     ("velocity_kinematic", {}, {"velocity", "tracking"}),
     ("joint_ukf", {"joint_initial_range": "kinematic"}, {"velocity", "tracking"}),
     ("joint_ukf", {"joint_initial_range": "prior"}, {"tracking"}),
+    ("joint_ukf", {"joint_initial_range": "range_mixture"}, {"mixture", "tracking"}),
 ])
 def test_state_round_trips_through_json_exactly_at_every_stage(model, changes, stages):
     """The prior-seeded joint UKF tracks from its first epoch: it has no velocity stage after new_state."""
@@ -171,8 +174,8 @@ def test_the_direct_joint_ukf_starts_from_the_range_prior():
     """joint_initial_range="prior" (the paper's baseline, on the raw measurements alone): after the first
     epoch the position is range_prior_m along the measured angles, with range_prior_sigma_m along the line of
     sight and r sigma_angle across it; the velocity is zero with velocity_prior_sigma_mps. The default is the
-    kinematic start (see TrackerConfig)."""
-    assert paper_config("joint_ukf", True).joint_initial_range == "kinematic"
+    range-mixture start (see TrackerConfig)."""
+    assert paper_config("joint_ukf", True).joint_initial_range == "range_mixture"
     config = paper_config("joint_ukf", True, joint_initial_range="prior")
     assert (config.range_prior_m, config.range_prior_sigma_m) == (DEFAULT_RANGE_PRIOR_M, DEFAULT_RANGE_PRIOR_SIGMA_M)
     epoch = simulate_emitter(paper_001_scenario(epochs=1), np.random.default_rng(1)).epochs[0]
