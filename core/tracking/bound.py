@@ -146,14 +146,16 @@ def prior_information(config: TrackerConfig) -> np.ndarray:
     return np.diag(diagonal)
 
 
-def session_transition(config: TrackerConfig, dt_s: float, n_pulses: int) -> tuple[np.ndarray, np.ndarray]:
-    """``F`` and ``Q`` ``(n, n)`` of the session state over ``dt_s`` (``n_pulses`` pulses)."""
+def session_transition(config: TrackerConfig, dt_s: float, n_pulses: int,
+                       accel_sigma_mps2: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``F`` and ``Q`` ``(n, n)`` of the session state over ``dt_s`` (``n_pulses`` pulses); the acceleration
+    noise is ``config.accel_sigma_mps2`` unless ``accel_sigma_mps2`` is given."""
     n = state_size(config)
     transition = np.eye(n)
     transition[(0, 1, 2), (3, 4, 5)] = dt_s
     if n == 8:
         transition[6, 7] = n_pulses
-    q = config.accel_sigma_mps2**2
+    q = (config.accel_sigma_mps2 if accel_sigma_mps2 is None else accel_sigma_mps2) ** 2
     noise = np.zeros((n, n))
     for i in range(3):
         noise[i, i] = q * dt_s**3 / 3.0
@@ -193,7 +195,7 @@ def measurement_weights(config: TrackerConfig) -> np.ndarray:
                            C * config.sigma_toa_s]) ** 2
 
 
-def session_pcrb(states_enu, emission_times_s, config: TrackerConfig) -> PosteriorBound:
+def session_pcrb(states_enu, emission_times_s, config: TrackerConfig, accel_sigmas_mps2=None) -> PosteriorBound:
     """The PCRB of the session model along truths drawn from it.
 
     Parameters
@@ -205,6 +207,9 @@ def session_pcrb(states_enu, emission_times_s, config: TrackerConfig) -> Posteri
         Emission time of each reported pulse (s); gaps allowed.
     config : TrackerConfig
         Noise sigmas, ``accel_sigma_mps2``, ``period_s``, ``period_known`` and the priors.
+    accel_sigmas_mps2 : array_like, shape (K - 1,), optional
+        The truth's acceleration noise over each interval (a target switching between quiet and
+        manoeuvring legs), instead of ``config.accel_sigma_mps2``.
 
     Returns
     -------
@@ -218,7 +223,10 @@ def session_pcrb(states_enu, emission_times_s, config: TrackerConfig) -> Posteri
     weighted = jacobian * measurement_weights(config)[:, None]
     measurement = np.einsum("rkmi,rkmj->kij", weighted, jacobian) / states.shape[0]
     steps = np.diff(times)
-    pairs = [session_transition(config, float(dt), int(round(dt / config.period_s))) for dt in steps]
+    if accel_sigmas_mps2 is None:
+        accel_sigmas_mps2 = np.full(steps.size, config.accel_sigma_mps2)
+    pairs = [session_transition(config, float(dt), int(round(dt / config.period_s)), float(a))
+             for dt, a in zip(steps, accel_sigmas_mps2)]
     n = state_size(config)
     transitions = np.array([f for f, _ in pairs]).reshape(-1, n, n)
     noises = np.array([q for _, q in pairs]).reshape(-1, n, n)

@@ -35,6 +35,11 @@ DEFAULT_RANGE_PRIOR_SIGMA_M = 50e3
 DEFAULT_RANGE_MIN_M = 10e3
 DEFAULT_RANGE_MAX_M = 400e3
 
+#: Default mean time the target stays in one process-noise mode of the IMM (s).
+DEFAULT_IMM_MEAN_SOJOURN_S = 120.0
+#: Number of process-noise levels an IMM may have.
+IMM_LEVELS = (2, 4)
+
 #: Default prior standard deviation of the period, as a fraction of ``period_s``, when the period is unknown.
 DEFAULT_PERIOD_PRIOR_FRACTION = 1e-4
 
@@ -160,6 +165,8 @@ class TrackerConfig:
     range_prior_sigma_m: float = DEFAULT_RANGE_PRIOR_SIGMA_M
     range_min_m: float = DEFAULT_RANGE_MIN_M
     range_max_m: float = DEFAULT_RANGE_MAX_M
+    imm_accel_sigmas_mps2: tuple[float, ...] | None = None
+    imm_mean_sojourn_s: float = DEFAULT_IMM_MEAN_SOJOURN_S
 
     def __post_init__(self):
         if not isinstance(self.model, str) or self.model not in MODELS:
@@ -188,6 +195,22 @@ class TrackerConfig:
             object.__setattr__(self, name, float(getattr(self, name)))
         if self.period_prior_sigma_s is not None:
             object.__setattr__(self, "period_prior_sigma_s", float(self.period_prior_sigma_s))
+        _check_real("imm_mean_sojourn_s", self.imm_mean_sojourn_s, minimum=0.0, strict=True)
+        object.__setattr__(self, "imm_mean_sojourn_s", float(self.imm_mean_sojourn_s))
+        if self.imm_accel_sigmas_mps2 is not None:
+            levels = self.imm_accel_sigmas_mps2
+            if (isinstance(levels, (str, bytes)) or not hasattr(levels, "__len__")
+                    or not IMM_LEVELS[0] <= len(levels) <= IMM_LEVELS[1]):
+                raise InvalidInput(f"imm_accel_sigmas_mps2 must list {IMM_LEVELS[0]} to {IMM_LEVELS[1]} levels",
+                                   ("imm_accel_sigmas_mps2",))
+            for level in levels:
+                _check_real("imm_accel_sigmas_mps2", level, minimum=0.0, strict=False)
+            levels = tuple(float(level) for level in levels)
+            if any(b <= a for a, b in zip(levels, levels[1:])):
+                raise InvalidInput("imm_accel_sigmas_mps2 must increase", ("imm_accel_sigmas_mps2",))
+            if self.model != "joint_ukf":
+                raise InvalidInput("imm_accel_sigmas_mps2 needs the joint_ukf model", ("imm_accel_sigmas_mps2",))
+            object.__setattr__(self, "imm_accel_sigmas_mps2", levels)
         if not self.range_max_m > self.range_min_m:
             raise InvalidInput("range_max_m must be above range_min_m", ("range_max_m",))
         if self.max_initial_range_fraction >= 1.0:

@@ -35,7 +35,7 @@ from typing import NamedTuple
 import numpy as np
 
 from core.tracking.config import SPEED_OF_LIGHT_MPS as C
-from core.tracking import range_mixture
+from core.tracking import imm, range_mixture
 from core.tracking.config import TrackerConfig
 from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRACTION, RangePseudoMeasurement,
                                      count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
@@ -69,6 +69,8 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
                          f"({config.sigma_azimuth_rate_rad_s:.3g} rad/s): near-radial motion"))
     if state.stage == "mixture":
         return _mixture_epoch(state, values, config, tuple(warnings))
+    if config.imm_accel_sigmas_mps2 is not None and state.stage in ("tracking", "imm"):
+        return _imm_epoch(state, values, config, tuple(warnings))
 
     if state.stage == "velocity":
         mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt_s, q, (0,), False)
@@ -94,13 +96,20 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
                       freeze(np.array(result.mean)), symmetric(result.cov), None, tuple(warnings) + result.warnings)
 
 
+def _levels(config: TrackerConfig) -> tuple[float, ...]:
+    """The acceleration-noise level of each mode: the IMM's, or the one level."""
+    return config.imm_accel_sigmas_mps2 or (config.accel_sigma_mps2,)
+
+
 def _mixture_start(state: TrackState, values, config: TrackerConfig) -> TrackState:
-    """The first epoch of ``joint_initial_range="range_mixture"``: one joint state per range sub-interval."""
+    """The first epoch of ``joint_initial_range="range_mixture"``: one joint state per range sub-interval
+    (and per IMM mode, when there are modes); components are stored range-major."""
     time_s, azimuth, elevation, _, toa_s = values
     step1_mean, step1_cov = state.mean.tolist(), state.covariance
     middles, sigmas = range_mixture.component_ranges(config)
+    modes = len(_levels(config))
     starts = [range_prior_state(step1_mean, step1_cov, azimuth, elevation, config, float(r), float(s))
-              for r, s in zip(middles, sigmas)]
+              for r, s in zip(middles, sigmas) for _ in range(modes)]
     weights = np.full(len(starts), 1.0 / len(starts))
     means = np.array([m for m, _ in starts])
     covariances = np.array([c for _, c in starts])
@@ -111,32 +120,60 @@ def _mixture_start(state: TrackState, values, config: TrackerConfig) -> TrackSta
 
 
 def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple) -> TrackState:
-    """One epoch of the Gaussian sum: every component updated with the same pulse count, reweighted by its
-    innovation density, pruned; a single survivor continues as the joint UKF (see :mod:`range_mixture`)."""
+    """One epoch of the Gaussian sum: (with IMM modes, the modes of each range component mixed first) every
+    component updated with the same pulse count, reweighted by its innovation density, range components
+    pruned and merged; a single survivor continues as the joint UKF or the IMM (see :mod:`range_mixture`)."""
     time_s, azimuth, elevation, rate, toa_s = values
     dt_s, dtoa_s = time_s - state.time_s, toa_s - state.toa_s
     period_s = state.pulse_period_s
+    levels = _levels(config)
+    modes = len(levels)
     merged = state.mean.tolist()
     predicted = [merged[i] + dt_s * merged[i + 3] for i in range(3)] + merged[3:]
     count = pulse_count(predicted, period_s + (0.0 if config.period_known else merged[6] / C), dt_s, dtoa_s)
     parts = state.components
-    results = [joint_epoch(m, p, period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count, fold_period=False)
-               for m, p in zip(parts.means.tolist(), parts.covariances)]
-    weights = range_mixture.reweighted(parts.weights, np.array([r.log_likelihood for r in results]))
-    if weights is None:
-        weights = parts.weights
-    dominant = results[int(np.argmax(weights))]
-    warnings = warnings + dominant.warnings
-    kept = range_mixture.pruned(weights)
-    if kept.size == 1:
-        mean, period_s = range_mixture.fold_period(dominant.mean, period_s, config.period_known)
-        return TrackState(config.model, "tracking", state.updates + 1, time_s, toa_s, period_s,
-                          freeze(np.array(mean)), symmetric(dominant.cov), None, warnings)
-    weights = weights[kept] / weights[kept].sum()
-    means = np.array([results[i].mean for i in kept])
-    covariances = np.array([results[i].cov for i in kept])
-    covariances = 0.5 * (covariances + np.swapaxes(covariances, 1, 2))
+    size = parts.means.shape[1]
+    weights = parts.weights.reshape(-1, modes)
+    means = parts.means.reshape(-1, modes, size)
+    covariances = parts.covariances.reshape(-1, modes, size, size)
+    if modes > 1:
+        switching = imm.switching_matrix(modes, dt_s, config.imm_mean_sojourn_s)
+        starts, priors = [], []
+        for w, m, p in zip(weights, means, covariances):
+            total = w.sum()
+            prior, mixed = imm.mixed(w / total, m, p, switching)
+            priors.append(total * prior)
+            starts += mixed
+        prior_weights = np.concatenate(priors)
+    else:
+        starts, prior_weights = list(zip(means[:, 0], covariances[:, 0])), weights[:, 0]
+    results = [joint_epoch(m.tolist(), p, period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count,
+                           fold_period=False, accel_sigma_mps2=levels[i % modes])
+               for i, (m, p) in enumerate(starts)]
+    posterior = range_mixture.reweighted(prior_weights, np.array([r.log_likelihood for r in results]))
+    if posterior is None:
+        posterior = prior_weights
+    warnings = warnings + results[int(np.argmax(posterior))].warnings
+    weights = posterior.reshape(-1, modes)
+    kept = range_mixture.pruned(weights.sum(axis=1))
+    weights = np.array([imm.floored(w) * w.sum() for w in weights[kept]]) if modes > 1 else weights[kept]
+    weights = weights / weights.sum()
+    means = np.array([r.mean for r in results]).reshape(-1, modes, size)[kept]
+    covariances = np.array([r.cov for r in results]).reshape(-1, modes, size, size)[kept]
+    covariances = 0.5 * (covariances + np.swapaxes(covariances, -1, -2))
     weights, means, covariances = range_mixture.merge_neighbours(weights, means, covariances)
+    if weights.shape[0] == 1 and modes > 1:
+        weights = imm.floored(weights[0] / weights[0].sum())
+        means, covariances = means[0], covariances[0]
+        if not config.period_known:
+            shared = float(weights @ means[:, 6])
+            period_s += shared / C
+            means[:, 6] -= shared
+        mean, cov = range_mixture.moments(weights, means, covariances)
+        return TrackState(config.model, "imm", state.updates + 1, time_s, toa_s, period_s, freeze(mean),
+                          freeze(cov), None, warnings, range_mixture.components_of(weights, means, covariances))
+    weights, means = weights.reshape(-1), means.reshape(-1, size)
+    covariances = covariances.reshape(-1, size, size)
     mean, cov = range_mixture.moments(weights, means, covariances)
     if weights.size == 1:
         mean, period_s = range_mixture.fold_period(mean.tolist(), period_s, config.period_known)
@@ -144,6 +181,42 @@ def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: t
                           freeze(np.array(mean)), symmetric(cov), None, warnings)
     return TrackState(config.model, "mixture", state.updates + 1, time_s, toa_s, period_s, freeze(mean),
                       freeze(cov), None, warnings, range_mixture.components_of(weights, means, covariances))
+
+
+def _imm_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple) -> TrackState:
+    """One cycle of the interacting multiple model over ``config.imm_accel_sigmas_mps2``: mix, predict and
+    update each mode with the same pulse count, update the mode probabilities, combine."""
+    time_s, azimuth, elevation, rate, toa_s = values
+    dt_s, dtoa_s = time_s - state.time_s, toa_s - state.toa_s
+    period_s = state.pulse_period_s
+    levels = config.imm_accel_sigmas_mps2
+    if state.stage == "tracking":
+        parts = imm.uniform_modes(state.mean, state.covariance, len(levels))
+    else:
+        parts = state.components
+    prior, mixed = imm.mixed(parts.weights, parts.means, parts.covariances,
+                             imm.switching_matrix(len(levels), dt_s, config.imm_mean_sojourn_s))
+    merged = state.mean.tolist()
+    predicted = [merged[i] + dt_s * merged[i + 3] for i in range(3)] + merged[3:]
+    count = pulse_count(predicted, period_s + (0.0 if config.period_known else merged[6] / C), dt_s, dtoa_s)
+    results = [joint_epoch(m.tolist(), p, period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count,
+                           fold_period=False, accel_sigma_mps2=level)
+               for (m, p), level in zip(mixed, levels)]
+    weights = range_mixture.reweighted(prior, np.array([r.log_likelihood for r in results]))
+    if weights is None:
+        weights = prior
+    weights = imm.floored(weights)
+    warnings = warnings + results[int(np.argmax(weights))].warnings
+    means = np.array([r.mean for r in results])
+    covariances = np.array([r.cov for r in results])
+    covariances = 0.5 * (covariances + np.swapaxes(covariances, 1, 2))
+    if not config.period_known:
+        shared = float(weights @ means[:, 6])
+        period_s += shared / C
+        means[:, 6] -= shared
+    mean, cov = range_mixture.moments(weights, means, covariances)
+    return TrackState(config.model, "imm", state.updates + 1, time_s, toa_s, period_s, freeze(mean), freeze(cov),
+                      None, warnings, range_mixture.components_of(weights, means, covariances))
 
 
 class JointEpoch(NamedTuple):
@@ -186,7 +259,8 @@ def pulse_count(mean, period_s: float, dt_s: float, dtoa_s: float):
 
 
 def joint_epoch(mean, cov, period_s: float, dt_s: float, dtoa_s: float, azimuth: float, elevation: float,
-                rate: float, config: TrackerConfig, count=None, fold_period: bool = True) -> JointEpoch:
+                rate: float, config: TrackerConfig, count=None, fold_period: bool = True,
+                accel_sigma_mps2: float | None = None) -> JointEpoch:
     """Predict and update a joint state (layout in :mod:`core.tracking.state`) with one epoch.
 
     Parameters
@@ -205,6 +279,8 @@ def joint_epoch(mean, cov, period_s: float, dt_s: float, dtoa_s: float, azimuth:
         The pulse count (from :func:`pulse_count`); by default from this state's prediction.
     fold_period : bool
         Fold the updated period error into the returned ``period_s`` (and zero it in the mean).
+    accel_sigma_mps2 : float, optional
+        The acceleration noise of the prediction; ``config.accel_sigma_mps2`` by default.
 
     Returns
     -------
@@ -212,7 +288,8 @@ def joint_epoch(mean, cov, period_s: float, dt_s: float, dtoa_s: float, azimuth:
     """
     warnings = []
     k = len(mean) - 3
-    mean, cov = constant_velocity_predict(mean, cov, dt_s, config.accel_sigma_mps2**2, (3,), True)
+    accel = config.accel_sigma_mps2 if accel_sigma_mps2 is None else accel_sigma_mps2
+    mean, cov = constant_velocity_predict(mean, cov, dt_s, accel * accel, (3,), True)
     if count is None:
         effective = period_s + (mean[6] / C if k == 5 else 0.0)
         count = pulse_count(mean, effective, dt_s, dtoa_s)

@@ -93,27 +93,50 @@ def merge_neighbours(weights: np.ndarray, means: np.ndarray, covariances: np.nda
     The cost of replacing components ``i`` and ``j`` by their moments ``(w_ij, m_ij, P_ij)`` is Runnalls'
     (2007) upper bound on the Kullback-Leibler discrimination it introduces,
     ``(w_ij log det P_ij - w_i log det P_i - w_j log det P_j) / 2``: zero for identical components,
-    growing with their separation relative to their own spread.
+    growing with their separation relative to their own spread. With modes (an IMM in each range
+    component) the cost is that of the range components' moments, and a merge merges mode with mode.
+
+    Parameters
+    ----------
+    weights : ndarray, shape (R,) or (R, S)
+        Per range component (and mode), summing to one.
+    means : ndarray, shape (R, F) or (R, S, F)
+    covariances : ndarray, shape (R, F, F) or (R, S, F, F)
 
     Returns
     -------
-    weights : ndarray, shape (M',)
-    means : ndarray, shape (M', F)
-    covariances : ndarray, shape (M', F, F)
+    weights, means, covariances
+        As given, with ``R`` possibly smaller.
     """
+    flat = weights.ndim == 1
+    if flat:
+        weights, means, covariances = weights[:, None], means[:, None], covariances[:, None]
     weights, means, covariances = list(weights), list(means), list(covariances)
     while len(weights) > 1:
-        pairs = [_merged(weights[i:i + 2], means[i:i + 2], covariances[i:i + 2]) for i in range(len(weights) - 1)]
-        own = np.linalg.slogdet(np.array(covariances))[1] * np.array(weights)
-        costs = [0.5 * (w * np.linalg.slogdet(p)[1] - own[i] - own[i + 1]) for i, (w, _, p) in enumerate(pairs)]
+        totals = [float(w.sum()) for w in weights]
+        own = [moments(w / t, m, p) for w, t, m, p in zip(weights, totals, means, covariances)]
+        own_cost = [t * np.linalg.slogdet(p)[1] for t, (_, p) in zip(totals, own)]
+        costs = []
+        for i in range(len(weights) - 1):
+            _, _, p = _merged(totals[i:i + 2], [own[i][0], own[i + 1][0]], [own[i][1], own[i + 1][1]])
+            costs.append(0.5 * ((totals[i] + totals[i + 1]) * np.linalg.slogdet(p)[1] - own_cost[i] - own_cost[i + 1]))
         best = int(np.argmin(costs))
         if not costs[best] < MERGE_COST:
             break
-        weights[best:best + 2], means[best:best + 2], covariances[best:best + 2] = ([pairs[best][k]] for k in range(3))
-    return np.array(weights), np.array(means), np.array(covariances)
+        modes = [_merged(weights[best][:, None][s].tolist() + weights[best + 1][:, None][s].tolist(),
+                         [means[best][s], means[best + 1][s]], [covariances[best][s], covariances[best + 1][s]])
+                 for s in range(weights[best].size)]
+        weights[best:best + 2] = [np.array([w for w, _, _ in modes])]
+        means[best:best + 2] = [np.array([m for _, m, _ in modes])]
+        covariances[best:best + 2] = [np.array([p for _, _, p in modes])]
+    weights, means, covariances = np.array(weights), np.array(means), np.array(covariances)
+    if flat:
+        return weights[:, 0], means[:, 0], covariances[:, 0]
+    return weights, means, covariances
 
 
 def _merged(weights, means, covariances):
-    total = weights[0] + weights[1]
-    mean, cov = moments(np.array(weights) / total, np.array(means), np.array(covariances))
+    weights = np.ravel(weights)
+    total = float(weights.sum())
+    mean, cov = moments(weights / total, np.array(means), np.array(covariances))
     return total, mean, cov

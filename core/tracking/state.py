@@ -11,12 +11,15 @@ velocity_     ``"tracking"``        ``[x, y, z, vx, vy, vz]`` (step 3) followed 
 kinematic                           K step-1 components above
 joint_ukf     ``"tracking"``        ``[x, y, z, vx, vy, vz, (period_error_m), toa_noise_m]``
 joint_ukf     ``"mixture"``         as ``"tracking"``: the moments of ``components``
+joint_ukf     ``"imm"``             as ``"tracking"``: the moments of ``components``
 ============  ====================  ===================================================
 
 In the ``"mixture"`` stage (``joint_ukf`` started over a range interval, see
 :mod:`core.tracking.range_mixture`) ``components`` holds the Gaussian sum,
 each component a joint state as above whose ``period_error_m`` stays relative
-to ``pulse_period_s`` (it is folded in when the sum collapses to one).
+to ``pulse_period_s`` (it is folded in when the sum collapses to one). In the
+``"imm"`` stage (``TrackerConfig.imm_accel_sigmas_mps2``) ``components`` holds
+one joint state per process-noise mode, its weight the mode probability.
 
 ``period_error_m`` is ``c`` times the error of ``pulse_period_s`` (present
 only when the period is unknown; it is folded into ``pulse_period_s`` after
@@ -43,7 +46,7 @@ from core.tracking.config import MODELS
 #: Version of the :meth:`TrackState.to_dict` layout.
 STATE_FORMAT = 1
 
-STAGES = ("velocity", "mixture", "tracking")
+STAGES = ("velocity", "mixture", "tracking", "imm")
 
 #: Warning codes a state may carry, with what each means.
 WARNING_CODES = {
@@ -91,7 +94,7 @@ class TrackState:
     warnings : tuple of (str, str)
         ``(code, message)`` raised by the last step (or batch); codes in :data:`WARNING_CODES`.
     components : Components or None
-        The Gaussian sum of the ``"mixture"`` stage; None otherwise.
+        The Gaussian sum of the ``"mixture"`` stage, the modes of the ``"imm"`` stage; None otherwise.
     """
 
     model: str
@@ -155,7 +158,7 @@ class TrackState:
     def to_dict(self) -> dict:
         """Plain JSON-able data (str, int, float, None, lists); exact inverse of :meth:`from_dict`.
 
-        ``components`` appears only in the ``"mixture"`` stage (a state stored before it existed has none)."""
+        ``components`` appears only in the ``"mixture"`` and ``"imm"`` stages (a state stored before it existed has none)."""
         data = {
             "format": STATE_FORMAT,
             "model": self.model,
@@ -207,8 +210,9 @@ class TrackState:
                 isinstance(w, (list, tuple)) and len(w) == 2 and all(isinstance(s, str) for s in w) for w in warnings):
             raise InvalidInput("tracker state warnings must be a list of [code, message]", ("warnings",))
         components = _components(data.get("components"), mean.size)
-        if (stage == "mixture") != (components is not None):
-            raise InvalidInput("tracker state components must be given in the mixture stage only", ("components",))
+        if (stage in ("mixture", "imm")) != (components is not None):
+            raise InvalidInput("tracker state components must be given in the mixture and imm stages only",
+                               ("components",))
         return cls(model, stage, updates, _real(data, "time_s"), _real(data, "toa_s"), pulse_period_s, mean,
                    covariance, _real(data, "last_range_measurement_m"),
                    tuple((code, message) for code, message in warnings), components)
