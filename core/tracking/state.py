@@ -147,6 +147,11 @@ class TrackState:
         return float(np.sqrt(max(u @ self.covariance[:3, :3] @ u, 0.0)))
 
     @property
+    def mode_probabilities(self) -> list[float] | None:
+        """Probability of each process-noise level in the ``"imm"`` stage, else None."""
+        return self.components.weights.tolist() if self.stage == "imm" else None
+
+    @property
     def kinematic_velocity_enu_mps(self) -> np.ndarray | None:
         """The step-1 velocity estimate ``(3,)`` (m/s), when that filter runs."""
         if self.stage == "velocity":
