@@ -29,27 +29,29 @@ def switching_matrix(modes: int, dt_s: float, mean_sojourn_s: float) -> np.ndarr
 
 
 def mixed(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray, switching: np.ndarray):
-    """The IMM mixing step.
+    """The IMM mixing step, for one set of modes or a batch of them (leading axes).
 
     Parameters
     ----------
-    weights : ndarray, shape (M,)
-        Mode probabilities after the last epoch.
-    means : ndarray, shape (M, F)
-    covariances : ndarray, shape (M, F, F)
+    weights : ndarray, shape (..., M)
+        Mode probabilities after the last epoch (summing to one, or to the batch member's total weight).
+    means : ndarray, shape (..., M, F)
+    covariances : ndarray, shape (..., M, F, F)
     switching : ndarray, shape (M, M)
         ``switching[i, j]``: probability of going from mode ``i`` to ``j`` over the interval.
 
     Returns
     -------
-    prior : ndarray, shape (M,)
+    prior : ndarray, shape (..., M)
         Predicted mode probabilities ``c_j = sum_i switching[i, j] weights[i]``.
-    mixed : list of M (mean (F,), covariance (F, F))
+    means, covariances : ndarray, shape (..., M, F) and (..., M, F, F)
         Each mode's start: the moments of the modes weighted by ``switching[i, j] weights[i] / c_j``.
     """
-    joint = weights[:, None] * switching
-    prior = joint.sum(axis=0)
-    return prior, [moments(joint[:, j] / prior[j], means, covariances) for j in range(prior.size)]
+    joint = weights[..., :, None] * switching
+    prior = joint.sum(axis=-2)
+    mixing = np.swapaxes(joint / prior[..., None, :], -1, -2)
+    mean, cov = moments(mixing, means[..., None, :, :], covariances[..., None, :, :, :])
+    return prior, mean, cov
 
 
 def uniform_modes(mean: np.ndarray, cov: np.ndarray, modes: int) -> Components:

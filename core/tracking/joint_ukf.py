@@ -137,16 +137,11 @@ def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: t
     means = parts.means.reshape(-1, modes, size)
     covariances = parts.covariances.reshape(-1, modes, size, size)
     if modes > 1:
-        switching = imm.switching_matrix(modes, dt_s, config.imm_mean_sojourn_s)
-        starts, priors = [], []
-        for w, m, p in zip(weights, means, covariances):
-            total = w.sum()
-            prior, mixed = imm.mixed(w / total, m, p, switching)
-            priors.append(total * prior)
-            starts += mixed
-        prior_weights = np.concatenate(priors)
+        prior, start_means, start_covs = imm.mixed(weights, means, covariances,
+                                                   imm.switching_matrix(modes, dt_s, config.imm_mean_sojourn_s))
+        starts, prior_weights = zip(start_means.reshape(-1, size), start_covs.reshape(-1, size, size)), prior.ravel()
     else:
-        starts, prior_weights = list(zip(means[:, 0], covariances[:, 0])), weights[:, 0]
+        starts, prior_weights = zip(means[:, 0], covariances[:, 0]), weights[:, 0]
     results = [joint_epoch(m.tolist(), p, period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count,
                            fold_period=False, accel_sigma_mps2=levels[i % modes])
                for i, (m, p) in enumerate(starts)]
@@ -194,14 +189,14 @@ def _imm_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple
         parts = imm.uniform_modes(state.mean, state.covariance, len(levels))
     else:
         parts = state.components
-    prior, mixed = imm.mixed(parts.weights, parts.means, parts.covariances,
-                             imm.switching_matrix(len(levels), dt_s, config.imm_mean_sojourn_s))
+    prior, start_means, start_covs = imm.mixed(parts.weights, parts.means, parts.covariances,
+                                               imm.switching_matrix(len(levels), dt_s, config.imm_mean_sojourn_s))
     merged = state.mean.tolist()
     predicted = [merged[i] + dt_s * merged[i + 3] for i in range(3)] + merged[3:]
     count = pulse_count(predicted, period_s + (0.0 if config.period_known else merged[6] / C), dt_s, dtoa_s)
     results = [joint_epoch(m.tolist(), p, period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count,
                            fold_period=False, accel_sigma_mps2=level)
-               for (m, p), level in zip(mixed, levels)]
+               for m, p, level in zip(start_means, start_covs, levels)]
     weights = range_mixture.reweighted(prior, np.array([r.log_likelihood for r in results]))
     if weights is None:
         weights = prior

@@ -50,11 +50,13 @@ def relative_sigma(ratio: float) -> float:
 
 
 def moments(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean ``(F,)`` and covariance ``(F, F)`` of a Gaussian sum (``weights`` summing to one)."""
-    mean = weights @ means
-    spread = means - mean
-    cov = np.einsum("m,mij->ij", weights, covariances) + (spread * weights[:, None]).T @ spread
-    return mean, 0.5 * (cov + cov.T)
+    """Mean ``(..., F)`` and covariance ``(..., F, F)`` of Gaussian sums over the axis before the components'
+    (``weights`` ``(..., M)`` summing to one along the last axis)."""
+    mean = np.einsum("...m,...mi->...i", weights, means)
+    spread = means - mean[..., None, :]
+    cov = (np.einsum("...m,...mij->...ij", weights, covariances)
+           + np.einsum("...mi,...mj->...ij", spread * weights[..., None], spread))
+    return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
 
 
 def components_of(weights, means, covariances) -> Components:
@@ -111,32 +113,27 @@ def merge_neighbours(weights: np.ndarray, means: np.ndarray, covariances: np.nda
     flat = weights.ndim == 1
     if flat:
         weights, means, covariances = weights[:, None], means[:, None], covariances[:, None]
-    weights, means, covariances = list(weights), list(means), list(covariances)
-    while len(weights) > 1:
-        totals = [float(w.sum()) for w in weights]
-        own = [moments(w / t, m, p) for w, t, m, p in zip(weights, totals, means, covariances)]
-        own_cost = [t * np.linalg.slogdet(p)[1] for t, (_, p) in zip(totals, own)]
-        costs = []
-        for i in range(len(weights) - 1):
-            _, _, p = _merged(totals[i:i + 2], [own[i][0], own[i + 1][0]], [own[i][1], own[i + 1][1]])
-            costs.append(0.5 * ((totals[i] + totals[i + 1]) * np.linalg.slogdet(p)[1] - own_cost[i] - own_cost[i + 1]))
+    while weights.shape[0] > 1:
+        totals = weights.sum(axis=1)
+        own_mean, own_cov = moments(weights / totals[:, None], means, covariances)
+        pair_weights = np.stack((totals[:-1], totals[1:]), axis=1)
+        pair_totals = pair_weights.sum(axis=1)
+        _, pair_cov = moments(pair_weights / pair_totals[:, None], np.stack((own_mean[:-1], own_mean[1:]), axis=1),
+                              np.stack((own_cov[:-1], own_cov[1:]), axis=1))
+        own_cost = totals * np.linalg.slogdet(own_cov)[1]
+        costs = 0.5 * (pair_totals * np.linalg.slogdet(pair_cov)[1] - own_cost[:-1] - own_cost[1:])
         best = int(np.argmin(costs))
         if not costs[best] < MERGE_COST:
             break
-        modes = [_merged(weights[best][:, None][s].tolist() + weights[best + 1][:, None][s].tolist(),
-                         [means[best][s], means[best + 1][s]], [covariances[best][s], covariances[best + 1][s]])
-                 for s in range(weights[best].size)]
-        weights[best:best + 2] = [np.array([w for w, _, _ in modes])]
-        means[best:best + 2] = [np.array([m for _, m, _ in modes])]
-        covariances[best:best + 2] = [np.array([p for _, _, p in modes])]
-    weights, means, covariances = np.array(weights), np.array(means), np.array(covariances)
+        pair = slice(best, best + 2)
+        total = weights[pair].sum(axis=0)
+        mean, cov = moments((weights[pair] / total).T, np.swapaxes(means[pair], 0, 1),
+                            np.swapaxes(covariances[pair], 0, 1))
+        weights = np.concatenate((weights[:best], total[None], weights[best + 2:]))
+        means = np.concatenate((means[:best], mean[None], means[best + 2:]))
+        covariances = np.concatenate((covariances[:best], cov[None], covariances[best + 2:]))
     if flat:
         return weights[:, 0], means[:, 0], covariances[:, 0]
     return weights, means, covariances
 
 
-def _merged(weights, means, covariances):
-    weights = np.ravel(weights)
-    total = float(weights.sum())
-    mean, cov = moments(weights / total, np.array(means), np.array(covariances))
-    return total, mean, cov

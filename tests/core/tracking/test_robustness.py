@@ -259,3 +259,27 @@ def test_a_step_3_update_that_is_not_finite_leaves_step_1_applied(monkeypatch):
     for epoch in track.epochs[61:]:
         held = step(held, epoch, config)
         assert_healthy(held)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model, changes", [
+    ("velocity_kinematic", {}),
+    ("joint_ukf", {}),
+    ("joint_ukf", {"imm_accel_sigmas_mps2": (0.05, 1.0)}),
+])
+def test_ten_thousand_steps_keep_every_covariance_symmetric_positive_definite(model, changes):
+    """10,000 reports (a random-acceleration emitter starting on paper 001's track, flying out to some
+    3000 km): every covariance the state holds, and every component's, is exactly symmetric and has a
+    Cholesky factor."""
+    config = paper_config(model, False, accel_sigma_mps2=0.05, **changes)
+    track = simulate_emitter(paper_001_scenario(epochs=10_000, accel_sigma_mps2=0.05), np.random.default_rng(9))
+    state = new_state(config)
+    for epoch in track.epochs:
+        state = step(state, epoch, config)
+        covariances = [state.covariance]
+        if state.components is not None:
+            covariances += list(state.components.covariances)
+        for cov in covariances:
+            assert np.array_equal(cov, cov.T)
+            np.linalg.cholesky(cov)
+    assert state.initialized and state.updates == 10_000
