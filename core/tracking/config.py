@@ -17,7 +17,8 @@ SPEED_OF_LIGHT_MPS = 299_792_458.0
 #: Filter models a session may run, with what each is.
 MODELS = {
     "velocity_kinematic": "paper 001: velocity KF from TOA differences, range from the azimuth rate, UKF on position",
-    "joint_ukf": "baseline: one UKF on position, velocity and period error fed with the raw measurements",
+    "joint_ukf": "one UKF on position, velocity and period error fed with the raw measurements (paper 001's "
+                 "baseline), started over a range interval; the sessions' default: at the posterior CRLB",
 }
 
 #: How ``velocity_kinematic`` treats the errors of successive range pseudo-measurements.

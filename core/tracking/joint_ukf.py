@@ -1,4 +1,4 @@
-"""The baseline of paper 001: one UKF on the full state with the raw measurements.
+"""One UKF on the full state with the raw measurements: paper 001's baseline, and the sessions' default.
 
 State ``[x, y, z (m), vx, vy, vz (m/s), period_error_m, toa_noise_m]``
 (``period_error_m``, ``c`` times the period error, only when the period is
@@ -19,12 +19,19 @@ strongly nonlinear map.
   epoch, the measured angles and a wide range prior (:func:`range_prior_state`);
   the filter then learns the range from the azimuth rate and the TOA
   differences through its velocity.
-- ``"kinematic"`` (the default): bootstrapped like the velocity method (steps 1-2
+- ``"kinematic"``: bootstrapped like the velocity method (steps 1-2
   until the first usable pseudo-range), so both models start from the same
   estimate at the same epoch and the comparison is of the filters after it.
   The joint UKF then borrows the velocity method's range to start with.
+- ``"range_mixture"`` (the default): at the first epoch, one such UKF per
+  range sub-interval of ``range_min_m`` .. ``range_max_m``, a Gaussian sum
+  reweighted by each update's innovation density, pruned and merged
+  (:mod:`core.tracking.range_mixture`; stage ``"mixture"``) until one is left.
 
-From then on only this UKF runs.
+From then on one UKF runs (:func:`joint_epoch`), or, with
+``TrackerConfig.imm_accel_sigmas_mps2``, an IMM of them over those
+process-noise levels (:mod:`core.tracking.imm`; stage ``"imm"``; during the
+range mixture each range component carries the modes).
 """
 
 from __future__ import annotations
