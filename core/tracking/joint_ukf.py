@@ -49,7 +49,7 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
                                      line_of_sight_derivatives, range_pseudo_measurement)
 from core.tracking.state import TrackState, freeze, symmetric
 from core.tracking.unscented import (NIS_LIMIT, TWO_PI, cholesky_repaired, constant_velocity_predict,
-                                     inverse_cholesky)
+                                     inverse_cholesky, transition)
 
 _WITHOUT_TOA = np.array([0, 1, 3])
 
@@ -144,14 +144,13 @@ def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: t
     means = parts.means.reshape(-1, modes, size)
     covariances = parts.covariances.reshape(-1, modes, size, size)
     if modes > 1:
-        prior, start_means, start_covs = imm.mixed(weights, means, covariances,
-                                                   imm.switching_matrix(modes, dt_s, config.imm_mean_sojourn_s))
-        starts, prior_weights = zip(start_means.reshape(-1, size), start_covs.reshape(-1, size, size)), prior.ravel()
+        prior, means, covariances = imm.mixed(weights, means, covariances,
+                                              imm.switching_matrix(modes, dt_s, config.imm_mean_sojourn_s))
+        prior_weights = prior.ravel()
     else:
-        starts, prior_weights = zip(means[:, 0], covariances[:, 0]), weights[:, 0]
-    results = [joint_epoch(m.tolist(), p, period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count,
-                           fold_period=False, accel_sigma_mps2=levels[i % modes])
-               for i, (m, p) in enumerate(starts)]
+        prior_weights = weights[:, 0]
+    results = joint_epochs(means.reshape(-1, size), covariances.reshape(-1, size, size), levels * weights.shape[0],
+                           period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count)
     posterior = range_mixture.reweighted(prior_weights, np.array([r.log_likelihood for r in results]))
     if posterior is None:
         posterior = prior_weights
@@ -201,9 +200,8 @@ def _imm_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple
     merged = state.mean.tolist()
     predicted = [merged[i] + dt_s * merged[i + 3] for i in range(3)] + merged[3:]
     count = pulse_count(predicted, period_s + (0.0 if config.period_known else merged[6] / C), dt_s, dtoa_s)
-    results = [joint_epoch(m.tolist(), p, period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count,
-                           fold_period=False, accel_sigma_mps2=level)
-               for m, p, level in zip(start_means, start_covs, levels)]
+    results = joint_epochs(start_means, start_covs, levels, period_s, dt_s, dtoa_s, azimuth, elevation, rate,
+                           config, count)
     weights = range_mixture.reweighted(prior, np.array([r.log_likelihood for r in results]))
     if weights is None:
         weights = prior
@@ -523,3 +521,100 @@ def _measurement_model(points, n_pulses: int, interval_s: float, has_period_erro
         out[2] += n_pulses * points[6]
     out[3] = (position[1] * points[3] - position[0] * points[4]) / rho2
     return out
+
+
+def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, period_s: float, dt_s: float,
+                 dtoa_s: float, azimuth: float, elevation: float, rate: float, config: TrackerConfig, count):
+    """:func:`joint_epoch` for ``M`` joint states at once (the components of a mixture or an IMM), with one
+    pulse count and the period error left unfolded; the same arithmetic in batched form.
+
+    Parameters
+    ----------
+    means : ndarray, shape (M, F)
+    covariances : ndarray, shape (M, F, F)
+    accel_sigmas_mps2 : sequence of M floats
+        Each state's acceleration noise.
+    period_s, dt_s, dtoa_s, azimuth, elevation, rate, config
+        As :func:`joint_epoch`.
+    count : tuple (n_pulses, use_toa, warnings)
+        From :func:`pulse_count`.
+
+    Returns
+    -------
+    list of JointEpoch
+        One per state (``period_s`` unchanged).
+    """
+    m, f = means.shape
+    n_pulses, use_toa, count_warnings = count
+    phis, noises = zip(*(transition(f, (3,), True, dt_s, a * a) for a in accel_sigmas_mps2))
+    phi = phis[0]
+    cov = np.matmul(np.matmul(phi, covariances), phi.T) + np.array(noises)
+    mean = means.copy()
+    mean[:, :3] += dt_s * mean[:, 3:6]
+    warnings = [list(count_warnings) for _ in range(m)]
+    try:
+        chol = np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        chol = np.empty_like(cov)
+        for i in range(m):
+            chol[i], cov[i], repaired = cholesky_repaired(cov[i])
+            if repaired:
+                warnings[i].append(("covariance_repaired", "predicted covariance was not positive definite"))
+    interval_s = n_pulses * period_s
+    spread, weight = math.sqrt(f), 1.0 / (2 * f)
+    points = np.matmul(chol, _sigma_directions(f)) + mean[:, :, None]
+    columns = np.concatenate((points.transpose(1, 0, 2).reshape(f, -1), mean.T), axis=1)
+    modelled = _measurement_model(columns, n_pulses, interval_s, f == 8)
+    rows = slice(None) if use_toa else _WITHOUT_TOA
+    predicted = modelled[rows, :m * 2 * f].reshape(-1, m, 2 * f).transpose(1, 0, 2)
+    centre = modelled[rows, m * 2 * f:].T
+    deviation = predicted - centre[:, :, None]
+    deviation[:, 0] = np.remainder(deviation[:, 0] + math.pi, TWO_PI) - math.pi
+    measured = np.array((azimuth, elevation, C * (dtoa_s - interval_s), rate) if use_toa else
+                        (azimuth, elevation, rate))
+    innovation = measured - centre
+    innovation[:, 0] = np.remainder(innovation[:, 0] + math.pi, TWO_PI) - math.pi
+    mean_deviation = deviation.mean(axis=2)
+    centred = deviation - mean_deviation[:, :, None]
+    innovation_cov = np.matmul(centred, centred.transpose(0, 2, 1)) * weight + _noise(config, use_toa)
+    cross_cov = np.matmul(chol, (deviation[:, :, :f] - deviation[:, :, f:]).transpose(0, 2, 1)) * (spread * weight)
+    var_toa = (C * config.sigma_toa_s) ** 2
+    # The last state becomes the new TOA's noise: with a usable TOA it enters the TOA row additively; without,
+    # it is a fresh independent noise (zero covariance with everything).
+    cross_cov[:, f - 1] = (0.0, 0.0, var_toa, 0.0) if use_toa else 0.0
+    innovation -= mean_deviation
+    predicted_mean, predicted_cov = mean.copy(), cov.copy()
+    results = []
+    for i in range(m):
+        try:
+            whitening = np.array(inverse_cholesky(innovation_cov[i].tolist()))
+        except np.linalg.LinAlgError as error:
+            x, p = fresh_toa_reference(predicted_mean[i].tolist(), predicted_cov[i], config)
+            results.append(JointEpoch(x, p, period_s, -math.inf, tuple(warnings[i]) + (
+                ("numerical_failure", f"the update failed ({error})"),)))
+            continue
+        v_t = whitening.dot(cross_cov[i].T)
+        t = whitening.dot(innovation[i])
+        nis = float(t.dot(t))
+        log_det = -2.0 * float(np.log(np.diagonal(whitening)).sum())
+        x, p = mean[i], cov[i]
+        x[f - 1] = 0.0
+        p[f - 1] = 0.0
+        p[:, f - 1] = 0.0
+        p[f - 1, f - 1] = var_toa
+        x += t.dot(v_t)
+        p -= v_t.T.dot(v_t)
+        dof = 4 if use_toa else 3
+        if nis > NIS_LIMIT[dof]:
+            warnings[i].append(("innovation_outlier", f"normalised innovation squared {nis:.1f} on {dof} degrees "
+                                                      "of freedom: a manoeuvre or a bad measurement"))
+        if not math.isfinite(float(x.sum()) + float(p.sum())):
+            x, p = fresh_toa_reference(predicted_mean[i].tolist(), predicted_cov[i], config)
+            results.append(JointEpoch(x, p, period_s, -math.inf, tuple(warnings[i]) + (
+                ("numerical_failure", "the update was not finite and was skipped"),)))
+            continue
+        _, p, repaired = cholesky_repaired(p)
+        if repaired:
+            warnings[i].append(("covariance_repaired", "updated covariance was not positive definite"))
+        results.append(JointEpoch(x.tolist(), p, period_s, -0.5 * (nis + log_det), tuple(warnings[i])))
+    return results

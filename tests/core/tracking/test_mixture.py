@@ -11,6 +11,7 @@ import pytest
 from core.errors import InvalidInput
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import TrackState, new_state, step
+from core.tracking.joint_ukf import joint_epoch, joint_epochs, pulse_count
 from core.tracking.range_mixture import (MERGE_COST, RANGE_RATIO, component_ranges, merge_neighbours, moments,
                                          relative_sigma)
 from tests.core.tracking.scenarios import paper_config
@@ -113,3 +114,34 @@ def test_a_stored_state_refuses_components_outside_the_mixture_stage():
     broken["components"]["weights"][0] = -1.0
     with pytest.raises(InvalidInput):
         TrackState.from_dict(broken)
+
+
+@pytest.mark.parametrize("period_known", [True, False])
+@pytest.mark.parametrize("use_toa", [True, False])
+def test_the_batched_update_equals_one_joint_epoch_per_component(period_known, use_toa):
+    """joint_epochs (what the mixture and the IMM run) against joint_epoch on each component alone, with
+    each component's own acceleration level, with and without a usable TOA."""
+    config = paper_config("joint_ukf", period_known, accel_sigma_mps2=0.05, imm_accel_sigmas_mps2=(0.05, 1.0))
+    track = simulate_emitter(paper_001_scenario(epochs=8, accel_sigma_mps2=0.05), np.random.default_rng(1))
+    state = new_state(config)
+    for epoch in track.epochs[:6]:
+        state = step(state, epoch, config)
+    epoch, parts = track.epochs[6], state.components
+    dt, dtoa = epoch.time_s - state.time_s, epoch.toa_s - state.toa_s
+    merged = state.mean.tolist()
+    predicted = [merged[i] + dt * merged[i + 3] for i in range(3)] + merged[3:]
+    count = pulse_count(predicted, state.pulse_period_s, dt, dtoa) if use_toa else (1000, False, ())
+    assert count[1] == use_toa
+    levels = [0.05, 1.0] * (parts.weights.size // 2)
+    measured = (epoch.azimuth_rad, epoch.elevation_rad, epoch.azimuth_rate_rad_s)
+    batch = joint_epochs(parts.means, parts.covariances, levels, state.pulse_period_s, dt, dtoa, *measured, config,
+                         count)
+    for i, (mean, cov) in enumerate(zip(parts.means.tolist(), parts.covariances)):
+        one = joint_epoch(mean, cov, state.pulse_period_s, dt, dtoa, *measured, config, count, fold_period=False,
+                          accel_sigma_mps2=levels[i])
+        scale = np.sqrt(np.diag(one.cov))
+        np.testing.assert_allclose(np.array(batch[i].mean) / scale, np.array(one.mean) / scale, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch[i].cov / np.outer(scale, scale), one.cov / np.outer(scale, scale), rtol=0,
+                                   atol=1e-12)
+        assert batch[i].log_likelihood == pytest.approx(one.log_likelihood, rel=1e-12, abs=1e-12)
+        assert batch[i].warnings == one.warnings
