@@ -66,12 +66,38 @@ def test_unknown_model_raises_invalid_input_naming_the_field():
     ("range_prior_sigma_m", math.inf),
     ("range_min_m", 0.0),
     ("range_max_m", 5e3),
+    ("imm_accel_sigmas_mps2", (0.5,)),
+    ("imm_accel_sigmas_mps2", (0.5, 0.1)),
+    ("imm_accel_sigmas_mps2", (0.1, 0.2, 0.3, 0.4, 0.5)),
+    ("imm_accel_sigmas_mps2", (0.1, math.nan)),
+    ("imm_accel_sigmas_mps2", "0.1,1"),
+    ("imm_mean_sojourn_s", 0.0),
 ])
 def test_bad_config_values_raise_invalid_input_naming_the_field(field, value):
     fields = {**paper_config("velocity_kinematic", True).to_dict(), field: value}
     with pytest.raises(InvalidInput) as raised:
         TrackerConfig(**fields)
     assert raised.value.loc == (field,)
+
+
+def test_an_imm_needs_the_joint_model():
+    with pytest.raises(InvalidInput) as raised:
+        paper_config("velocity_kinematic", True, imm_accel_sigmas_mps2=(0.05, 1.0))
+    assert raised.value.loc == ("imm_accel_sigmas_mps2",)
+
+
+def test_imm_config_round_trips_through_json_and_reports_mode_probabilities():
+    config = paper_config("joint_ukf", False, imm_accel_sigmas_mps2=[0.05, 1.0])
+    assert config.imm_accel_sigmas_mps2 == (0.05, 1.0)
+    assert TrackerConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+    track = simulate_emitter(paper_001_scenario(epochs=120, accel_sigma_mps2=0.05), np.random.default_rng(6))
+    state = new_state(config)
+    for epoch in track.epochs:
+        state = step(state, epoch, config)
+        assert (state.mode_probabilities is None) == (state.stage != "imm")
+    assert state.stage == "imm"
+    assert len(state.mode_probabilities) == 2 and sum(state.mode_probabilities) == pytest.approx(1.0)
+    assert state.mode_probabilities[0] > 0.5  # the quiet level, on a quiet target
 
 
 def test_config_round_trips_through_json():
