@@ -48,8 +48,9 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
                                      count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
                                      line_of_sight_derivatives, range_pseudo_measurement)
 from core.tracking.state import TrackState, freeze, symmetric
-from core.tracking.unscented import (NIS_LIMIT, TWO_PI, cholesky_repaired, constant_velocity_predict,
-                                     inverse_cholesky, transition)
+from core.tracking.linalg import cholesky_repaired, inverse_cholesky
+from core.tracking.motion import constant_velocity_predict, transition
+from core.tracking.unscented import NIS_LIMIT, TWO_PI
 
 _WITHOUT_TOA = np.array([0, 1, 3])
 

@@ -42,6 +42,7 @@ import numpy as np
 
 from core.errors import InvalidInput
 from core.tracking.config import MODELS
+from core.tracking.linalg import symmetrized
 
 #: Version of the :meth:`TrackState.to_dict` layout.
 STATE_FORMAT = 1
@@ -277,10 +278,9 @@ def freeze(array: np.ndarray) -> np.ndarray:
 
 
 def symmetric(cov: np.ndarray) -> np.ndarray:
-    """``(cov + cov^T) / 2`` as a new read-only array: exactly symmetric (the filters' updates are symmetric
+    """:func:`core.tracking.linalg.symmetrized` as a new read-only array (the filters' updates are symmetric
     only to rounding; this is done once per step)."""
-    out = np.add(cov, cov.T, order="C")
-    out *= 0.5
+    out = symmetrized(cov)
     out.flags.writeable = False
     return out
 
