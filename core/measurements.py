@@ -194,3 +194,35 @@ def residuals(measured, predicted, kinds):
     raw = np.asarray(measured) - predicted
     is_angle = (kinds == Kind.AZIMUTH) | (kinds == Kind.ELEVATION)
     return np.where(is_angle, wrap_to_pi(raw), raw)
+
+
+def azimuth_rate(position_enu_m, velocity_enu_mps):
+    """Rate of change of the azimuth of a moving target seen from a fixed station at the origin, and its
+    Jacobian (ALGORITHMS.md sections 2 and 6).
+
+    ``Bdot = (n v_e - e v_n) / rho^2`` with ``(e, n, u)`` the position and
+    ``rho^2 = e^2 + n^2`` (floored like :func:`predict`'s azimuth).
+
+    Parameters
+    ----------
+    position_enu_m : ndarray, shape (..., 3)
+        Target relative to the station, in the station's ENU.
+    velocity_enu_mps : ndarray, shape (..., 3)
+        Target velocity relative to the station.
+
+    Returns
+    -------
+    rate_rad_s : ndarray, shape (...)
+    jacobian : ndarray, shape (..., 6)
+        Derivatives w.r.t. ``(e, n, u, v_e, v_n, v_u)``.
+    """
+    p = np.asarray(position_enu_m, dtype=float)
+    v = np.asarray(velocity_enu_mps, dtype=float)
+    e, n = p[..., 0], p[..., 1]
+    ve, vn = v[..., 0], v[..., 1]
+    rho2 = np.maximum(e * e + n * n, MIN_HORIZONTAL_DISTANCE_M**2)
+    rate = (n * ve - e * vn) / rho2
+    zero = np.zeros_like(rate)
+    jacobian = np.stack([(-vn - 2.0 * e * rate) / rho2, (ve - 2.0 * n * rate) / rho2, zero,
+                         n / rho2, -e / rho2, zero], axis=-1)
+    return rate, jacobian

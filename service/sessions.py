@@ -41,6 +41,8 @@ _CONFIG_LOC = {
     "sigma_azimuth_rate_rad_s": ("noise", "sigma_azimuth_rate_deg_s"),
     "sigma_toa_s": ("noise", "sigma_toa_s"),
     "accel_sigma_mps2": ("process_noise", "accel_sigma_mps2"),
+    "imm_accel_sigmas_mps2": ("process_noise", "imm_accel_sigmas_mps2"),
+    "imm_mean_sojourn_s": ("process_noise", "imm_mean_sojourn_s"),
 }
 
 #: Core epoch field -> request field.
@@ -77,6 +79,8 @@ def tracker_config(request: schemas.SessionCreate) -> TrackerConfig:
             sigma_azimuth_rate_rad_s=math.radians(request.noise.sigma_azimuth_rate_deg_s),
             sigma_toa_s=request.noise.sigma_toa_s,
             accel_sigma_mps2=request.process_noise.accel_sigma_mps2,
+            imm_accel_sigmas_mps2=request.process_noise.imm_accel_sigmas_mps2,
+            imm_mean_sojourn_s=request.process_noise.imm_mean_sojourn_s,
         )
     except LocalizationError as error:
         field = error.loc[0] if error.loc else None
@@ -124,6 +128,7 @@ def state_body(record: SessionRecord) -> dict:
         "pulse_period_s": state.pulse_period_s,
         "covariance_enu": None,
         "warnings": [{"code": code, "message": message} for code, message in state.warnings],
+        "mode_probabilities": state.mode_probabilities,
         "created_at": _timestamp(record.created_at),
         "updated_at": _timestamp(record.updated_at),
         "expires_at": _timestamp(record.expires_at),

@@ -42,6 +42,10 @@ class EmitterScenario:
         Measurement noise standard deviations.
     accel_sigma_mps2 : float
         Acceleration noise intensity (0: exactly constant velocity).
+    accel_sigma_by_interval_mps2 : tuple of float or None
+        Per report interval (``epochs - 1`` values), the intensity over that
+        interval instead of ``accel_sigma_mps2``: a target that switches
+        between quiet and manoeuvring legs.
     toa_offset_s : float
         TOA clock reading at emission time 0 (TOAs are large numbers, as in practice).
     time_offset_s : float
@@ -65,6 +69,7 @@ class EmitterScenario:
     sigma_azimuth_rate_rad_s: float = 2e-4
     sigma_toa_s: float = 10e-9
     accel_sigma_mps2: float = 0.0
+    accel_sigma_by_interval_mps2: tuple[float, ...] | None = None
     toa_offset_s: float = 500.0
     time_offset_s: float = 0.0
     missed_epochs: tuple[int, ...] = ()
@@ -123,11 +128,15 @@ def true_states(scenario: EmitterScenario, rng: np.random.Generator) -> np.ndarr
         v1 = np.asarray(scenario.velocity_after_turn_enu_mps, dtype=float)
         states[turn:, :3] = states[turn - 1, :3] + (t[turn:, None] - t[turn - 1]) * v1
         states[turn:, 3:] = v1
-    if scenario.accel_sigma_mps2 > 0.0 and k > 1:
+    sigmas = scenario.accel_sigma_by_interval_mps2
+    if sigmas is None:
+        sigmas = (scenario.accel_sigma_mps2,) * max(k - 1, 0)
+    if len(sigmas) != max(k - 1, 0):
+        raise ValueError("accel_sigma_by_interval_mps2 needs one value per report interval (epochs - 1)")
+    if max(sigmas, default=0.0) > 0.0 and k > 1:
         dt = scenario.interval_s
-        q = scenario.accel_sigma_mps2**2
-        chol = np.linalg.cholesky(q * np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]))
-        kicks = np.einsum("ij,kaj->kai", chol, rng.standard_normal((k - 1, 3, 2)))
+        unit = np.linalg.cholesky(np.array([[dt**3 / 3.0, dt**2 / 2.0], [dt**2 / 2.0, dt]]))
+        kicks = np.einsum("ij,kaj->kai", unit, rng.standard_normal((k - 1, 3, 2))) * np.asarray(sigmas)[:, None, None]
         for i in range(1, k):
             velocity = states[i - 1, 3:] if i != turn else states[i, 3:]
             states[i, :3] = states[i - 1, :3] + dt * velocity + kicks[i - 1, :, 0]

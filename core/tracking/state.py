@@ -10,7 +10,16 @@ any           ``"velocity"``        ``[vx, vy, vz, (period_error_m), toa_noise_m
 velocity_     ``"tracking"``        ``[x, y, z, vx, vy, vz]`` (step 3) followed by the
 kinematic                           K step-1 components above
 joint_ukf     ``"tracking"``        ``[x, y, z, vx, vy, vz, (period_error_m), toa_noise_m]``
+joint_ukf     ``"mixture"``         as ``"tracking"``: the moments of ``components``
+joint_ukf     ``"imm"``             as ``"tracking"``: the moments of ``components``
 ============  ====================  ===================================================
+
+In the ``"mixture"`` stage (``joint_ukf`` started over a range interval, see
+:mod:`core.tracking.range_mixture`) ``components`` holds the Gaussian sum,
+each component a joint state as above whose ``period_error_m`` stays relative
+to ``pulse_period_s`` (it is folded in when the sum collapses to one). In the
+``"imm"`` stage (``TrackerConfig.imm_accel_sigmas_mps2``) ``components`` holds
+one joint state per process-noise mode, its weight the mode probability.
 
 ``period_error_m`` is ``c`` times the error of ``pulse_period_s`` (present
 only when the period is unknown; it is folded into ``pulse_period_s`` after
@@ -33,11 +42,12 @@ import numpy as np
 
 from core.errors import InvalidInput
 from core.tracking.config import MODELS
+from core.tracking.linalg import symmetrized
 
 #: Version of the :meth:`TrackState.to_dict` layout.
 STATE_FORMAT = 1
 
-STAGES = ("velocity", "tracking")
+STAGES = ("velocity", "mixture", "tracking", "imm")
 
 #: Warning codes a state may carry, with what each means.
 WARNING_CODES = {
@@ -84,6 +94,8 @@ class TrackState:
         The last range pseudo-measurement (``velocity_kinematic``), for diagnostics.
     warnings : tuple of (str, str)
         ``(code, message)`` raised by the last step (or batch); codes in :data:`WARNING_CODES`.
+    components : Components or None
+        The Gaussian sum of the ``"mixture"`` stage, the modes of the ``"imm"`` stage; None otherwise.
     """
 
     model: str
@@ -96,31 +108,32 @@ class TrackState:
     covariance: np.ndarray
     last_range_measurement_m: float | None = None
     warnings: tuple[tuple[str, str], ...] = ()
+    components: "Components | None" = None
 
     @property
     def initialized(self) -> bool:
         """True once the filter has a position."""
-        return self.stage == "tracking"
+        return self.stage != "velocity"
 
     @property
     def position_enu_m(self) -> np.ndarray | None:
         """Emitter position ``(3,)`` in the observer's ENU (m), None before initialisation."""
-        return self.mean[:3].copy() if self.stage == "tracking" else None
+        return self.mean[:3].copy() if self.initialized else None
 
     @property
     def velocity_enu_mps(self) -> np.ndarray | None:
         """Emitter velocity ``(3,)`` in the observer's ENU (m/s), None before initialisation."""
-        return self.mean[3:6].copy() if self.stage == "tracking" else None
+        return self.mean[3:6].copy() if self.initialized else None
 
     @property
     def covariance_enu(self) -> np.ndarray | None:
         """Covariance ``(6, 6)`` of ``[position (m), velocity (m/s)]`` in ENU, None before initialisation."""
-        return self.covariance[:6, :6].copy() if self.stage == "tracking" else None
+        return self.covariance[:6, :6].copy() if self.initialized else None
 
     @property
     def range_m(self) -> float | None:
         """Estimated range from the observer (m), None before initialisation."""
-        if self.stage != "tracking":
+        if not self.initialized:
             return None
         x, y, z = self.mean[:3].tolist()
         return math.sqrt(x * x + y * y + z * z)
@@ -128,11 +141,16 @@ class TrackState:
     @property
     def range_sigma_m(self) -> float | None:
         """Standard deviation of :attr:`range_m` (m), to first order."""
-        if self.stage != "tracking":
+        if not self.initialized:
             return None
         p = self.mean[:3]
         u = p / np.linalg.norm(p)
         return float(np.sqrt(max(u @ self.covariance[:3, :3] @ u, 0.0)))
+
+    @property
+    def mode_probabilities(self) -> list[float] | None:
+        """Probability of each process-noise level in the ``"imm"`` stage, else None."""
+        return self.components.weights.tolist() if self.stage == "imm" else None
 
     @property
     def kinematic_velocity_enu_mps(self) -> np.ndarray | None:
@@ -144,8 +162,10 @@ class TrackState:
         return None
 
     def to_dict(self) -> dict:
-        """Plain JSON-able data (str, int, float, None, lists); exact inverse of :meth:`from_dict`."""
-        return {
+        """Plain JSON-able data (str, int, float, None, lists); exact inverse of :meth:`from_dict`.
+
+        ``components`` appears only in the ``"mixture"`` and ``"imm"`` stages (a state stored before it existed has none)."""
+        data = {
             "format": STATE_FORMAT,
             "model": self.model,
             "stage": self.stage,
@@ -158,6 +178,11 @@ class TrackState:
             "last_range_measurement_m": self.last_range_measurement_m,
             "warnings": [[code, message] for code, message in self.warnings],
         }
+        if self.components is not None:
+            data["components"] = {"weights": self.components.weights.tolist(),
+                                  "means": self.components.means.tolist(),
+                                  "covariances": self.components.covariances.tolist()}
+        return data
 
     @classmethod
     def from_dict(cls, data: dict) -> "TrackState":
@@ -190,9 +215,13 @@ class TrackState:
         if not isinstance(warnings, list) or not all(
                 isinstance(w, (list, tuple)) and len(w) == 2 and all(isinstance(s, str) for s in w) for w in warnings):
             raise InvalidInput("tracker state warnings must be a list of [code, message]", ("warnings",))
+        components = _components(data.get("components"), mean.size)
+        if (stage in ("mixture", "imm")) != (components is not None):
+            raise InvalidInput("tracker state components must be given in the mixture and imm stages only",
+                               ("components",))
         return cls(model, stage, updates, _real(data, "time_s"), _real(data, "toa_s"), pulse_period_s, mean,
                    covariance, _real(data, "last_range_measurement_m"),
-                   tuple((code, message) for code, message in warnings))
+                   tuple((code, message) for code, message in warnings), components)
 
     def __eq__(self, other):
         if not isinstance(other, TrackState):
@@ -200,6 +229,37 @@ class TrackState:
         return self.to_dict() == other.to_dict()
 
     __hash__ = None
+
+
+@dataclass(frozen=True, eq=False)
+class Components:
+    """A Gaussian sum of joint states.
+
+    Attributes
+    ----------
+    weights : ndarray, shape (M,)
+        Positive, summing to one.
+    means : ndarray, shape (M, F)
+    covariances : ndarray, shape (M, F, F)
+    """
+
+    weights: np.ndarray
+    means: np.ndarray
+    covariances: np.ndarray
+
+
+def _components(value, size: int) -> Components | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict) or set(value) != {"weights", "means", "covariances"}:
+        raise InvalidInput("tracker state components must hold weights, means and covariances", ("components",))
+    weights, means, covariances = (_finite_array(value[key], "components") for key in
+                                   ("weights", "means", "covariances"))
+    m = weights.shape[0]
+    if (weights.ndim != 1 or means.shape != (m, size) or covariances.shape != (m, size, size)
+            or not np.all(weights > 0.0)):
+        raise InvalidInput("tracker state components do not match the state", ("components",))
+    return Components(weights, means, covariances)
 
 
 def frozen_array(values) -> np.ndarray:
@@ -218,10 +278,9 @@ def freeze(array: np.ndarray) -> np.ndarray:
 
 
 def symmetric(cov: np.ndarray) -> np.ndarray:
-    """``(cov + cov^T) / 2`` as a new read-only array: exactly symmetric (the filters' updates are symmetric
+    """:func:`core.tracking.linalg.symmetrized` as a new read-only array (the filters' updates are symmetric
     only to rounding; this is done once per step)."""
-    out = np.add(cov, cov.T, order="C")
-    out *= 0.5
+    out = symmetrized(cov)
     out.flags.writeable = False
     return out
 

@@ -44,8 +44,9 @@ from core.tracking.kinematic import (RangePseudoMeasurement, ToaUpdate, fresh_to
                                      initial_position_state, kinematic_epoch, line_of_sight_derivatives,
                                      range_from_velocity, range_pseudo_measurement, toa_update, usable_pulse_count)
 from core.tracking.state import TrackState, freeze, symmetric
-from core.tracking.unscented import (NIS_LIMIT, consider_downdate, constant_velocity_predict, polar_transform,
-                                     polar_update, repaired_block)
+from core.tracking.linalg import repaired_block
+from core.tracking.motion import constant_velocity_predict
+from core.tracking.unscented import NIS_LIMIT, consider_downdate, polar_transform, polar_update
 
 
 def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:

@@ -192,7 +192,63 @@ def speed(repeats: int = 7) -> None:
             print(f"  ratio {name} / filterpy 8x4: {seconds / eight_s:.3f}  (/ 6x3: {seconds / six_s:.3f})")
 
 
+#: Filters compared against the PCRB: label, model, config changes.
+BOUND_FILTERS = (
+    ("joint_ukf range_mixture (dflt)", "joint_ukf", {}),
+    ("joint_ukf kinematic start", "joint_ukf", {"joint_initial_range": "kinematic"}),
+    ("joint_ukf prior 150+-50 km", "joint_ukf", {"joint_initial_range": "prior"}),
+    ("velocity_kinematic", "velocity_kinematic", {}),
+)
+#: The switching target: quiet 70 s, manoeuvring 40 s, quiet 50 s, manoeuvring 40 s (m/s^2).
+QUIET_MPS2, MANOEUVRE_MPS2 = 0.05, 1.0
+SWITCHING_SCHEDULE = (QUIET_MPS2,) * 70 + (MANOEUVRE_MPS2,) * 40 + (QUIET_MPS2,) * 50 + (MANOEUVRE_MPS2,) * 40
+
+
+def bound(runs: int, block: int = 50) -> None:
+    """Ratio of the position RMSE over the last 50 reports to the PCRB, and the mean position NEES, on truths
+    drawn from the filter's model, in blocks of ``block`` runs (seeds 30000 + 100 b), then pooled."""
+    from tests.core.tracking.scenarios import against_bound
+
+    blocks = max(1, runs // block)
+    print(f"\nAgainst the PCRB: {blocks} x {block} runs, truth with the filter's acceleration noise, last 50 of "
+          "200 reports; ratio = RMSE / PCRB (per block, pooled), position NEES (3 dof) mean")
+    for q in (0.05, 0.5):
+        for label, model, extra in BOUND_FILTERS:
+            for known in (True, False):
+                config = paper_config(model, known, accel_sigma_mps2=q, **extra)
+                results = [against_bound(config, paper_001_scenario(accel_sigma_mps2=q), block, 30000 + 100 * b)
+                           for b in range(blocks)]
+                ratios = [r.ratio(slice(-50, None)) for r in results]
+                pooled = np.sqrt(np.mean(np.square(ratios)))
+                nees = [float(np.nanmean(r.nees[:, -50:])) for r in results]
+                print(f"q={q:<4} {label:31s} {'known  ' if known else 'unknown'}  ratio "
+                      + " ".join(f"{x:5.2f}" for x in ratios) + f"  pooled {pooled:5.2f}   NEES "
+                      + " ".join(f"{x:5.2f}" for x in nees), flush=True)
+
+
+def switching(runs: int) -> None:
+    """The IMM and the single-level joint UKFs on the switching target, against the PCRB of the true model."""
+    from tests.core.tracking.scenarios import against_bound
+
+    scenario = paper_001_scenario(accel_sigma_by_interval_mps2=SWITCHING_SCHEDULE)
+    print(f"\nSwitching target ({runs} runs, seeds 40000+): quiet {QUIET_MPS2} / manoeuvring {MANOEUVRE_MPS2} m/s^2 "
+          "legs of 70/40/50/40 s; RMSE from 60 s on over the PCRB of the true switching model")
+    filters = (("IMM (0.05, 1), sojourn 120 s", {"accel_sigma_mps2": MANOEUVRE_MPS2,
+                                                  "imm_accel_sigmas_mps2": (QUIET_MPS2, MANOEUVRE_MPS2)}),
+               ("single level 0.05", {"accel_sigma_mps2": QUIET_MPS2}),
+               ("single level 1.0", {"accel_sigma_mps2": MANOEUVRE_MPS2}))
+    for label, changes in filters:
+        result = against_bound(paper_config("joint_ukf", True, **changes), scenario, runs, 40000)
+        legs = [result.ratio(slice(a, b)) for a, b in ((60, 70), (70, 110), (110, 160), (160, 201))]
+        print(f"  {label:30s} ratio {result.ratio(slice(60, None)):5.2f} (legs " + " ".join(f"{x:.2f}" for x in legs)
+              + f")  position NEES {np.nanmean(result.nees[:, 60:]):5.2f}", flush=True)
+
+
 if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "bound":
+        bound(int(sys.argv[2]) if len(sys.argv) > 2 else 200)
+        switching(int(sys.argv[3]) if len(sys.argv) > 3 else 40)
+        sys.exit()
     n_runs = int(sys.argv[1]) if len(sys.argv) > 1 else 100
     accuracy(n_runs)
     consistency(n_runs)

@@ -115,3 +115,54 @@ def run_monte_carlo(config: TrackerConfig, scenario: EmitterScenario, runs: int,
     nees[ready] = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
     min_eigenvalues[ready] = np.linalg.eigvalsh(cov / (d[:, :, None] * d[:, None, :]))[:, 0]
     return MonteCarlo(times, ranges, np.linalg.norm(errors[..., :3], axis=-1), errors, nees, min_eigenvalues, sigmas)
+
+
+@dataclass
+class AgainstBound:
+    """A filter's position errors over runs next to the PCRB of the truth's model.
+
+    Attributes
+    ----------
+    squared_errors_m2 : ndarray, shape (R, K)
+        ``|p_hat - p|^2``; NaN before initialisation.
+    nees : ndarray, shape (R, K)
+        Position NEES (3 degrees of freedom).
+    bound_m2 : ndarray, shape (K,)
+        Trace of the PCRB's position block.
+    """
+
+    squared_errors_m2: np.ndarray
+    nees: np.ndarray
+    bound_m2: np.ndarray
+
+    def ratio(self, window: slice) -> float:
+        """RMSE over runs and the epochs of ``window`` over the PCRB's RMS there."""
+        return float(np.sqrt(np.mean(self.squared_errors_m2[:, window]) / np.mean(self.bound_m2[window])))
+
+    def mean_nees(self, window: slice) -> np.ndarray:
+        """Per epoch of ``window``, the mean position NEES over runs."""
+        return self.nees[:, window].mean(axis=0)
+
+
+def against_bound(config: TrackerConfig, scenario: EmitterScenario, runs: int, seed: int) -> AgainstBound:
+    """Run ``config`` on ``runs`` draws of ``scenario`` (seeds ``seed + r``) next to the PCRB of the
+    scenario's own model (its acceleration noise, per interval when it has a schedule)."""
+    from core.tracking.bound import session_pcrb
+
+    tracks = [simulate_emitter(scenario, np.random.default_rng(seed + r)) for r in range(runs)]
+    states = np.array([t.states_enu for t in tracks])
+    sigmas = scenario.accel_sigma_by_interval_mps2
+    if sigmas is None:
+        sigmas = (scenario.accel_sigma_mps2,) * (scenario.epochs - 1)
+    bound = session_pcrb(states, tracks[0].emission_times_s, config, np.array(sigmas))
+    squared = np.full(states.shape[:2], np.nan)
+    nees = np.full(states.shape[:2], np.nan)
+    for r, track in enumerate(tracks):
+        state = new_state(config)
+        for i, epoch in enumerate(track.epochs):
+            state = step(state, epoch, config)
+            if state.initialized:
+                error = state.mean[:3] - track.states_enu[i, :3]
+                squared[r, i] = error @ error
+                nees[r, i] = error @ np.linalg.solve(state.covariance[:3, :3], error)
+    return AgainstBound(squared, nees, bound.position_rmse_m**2)

@@ -64,12 +64,40 @@ def test_unknown_model_raises_invalid_input_naming_the_field():
     ("range_prior_m", 0.0),
     ("range_prior_sigma_m", -1.0),
     ("range_prior_sigma_m", math.inf),
+    ("range_min_m", 0.0),
+    ("range_max_m", 5e3),
+    ("imm_accel_sigmas_mps2", (0.5,)),
+    ("imm_accel_sigmas_mps2", (0.5, 0.1)),
+    ("imm_accel_sigmas_mps2", (0.1, 0.2, 0.3, 0.4, 0.5)),
+    ("imm_accel_sigmas_mps2", (0.1, math.nan)),
+    ("imm_accel_sigmas_mps2", "0.1,1"),
+    ("imm_mean_sojourn_s", 0.0),
 ])
 def test_bad_config_values_raise_invalid_input_naming_the_field(field, value):
     fields = {**paper_config("velocity_kinematic", True).to_dict(), field: value}
     with pytest.raises(InvalidInput) as raised:
         TrackerConfig(**fields)
     assert raised.value.loc == (field,)
+
+
+def test_an_imm_needs_the_joint_model():
+    with pytest.raises(InvalidInput) as raised:
+        paper_config("velocity_kinematic", True, imm_accel_sigmas_mps2=(0.05, 1.0))
+    assert raised.value.loc == ("imm_accel_sigmas_mps2",)
+
+
+def test_imm_config_round_trips_through_json_and_reports_mode_probabilities():
+    config = paper_config("joint_ukf", False, imm_accel_sigmas_mps2=[0.05, 1.0])
+    assert config.imm_accel_sigmas_mps2 == (0.05, 1.0)
+    assert TrackerConfig.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+    track = simulate_emitter(paper_001_scenario(epochs=120, accel_sigma_mps2=0.05), np.random.default_rng(6))
+    state = new_state(config)
+    for epoch in track.epochs:
+        state = step(state, epoch, config)
+        assert (state.mode_probabilities is None) == (state.stage != "imm")
+    assert state.stage == "imm"
+    assert len(state.mode_probabilities) == 2 and sum(state.mode_probabilities) == pytest.approx(1.0)
+    assert state.mode_probabilities[0] > 0.5  # the quiet level, on a quiet target
 
 
 def test_config_round_trips_through_json():
@@ -149,6 +177,7 @@ def test_from_dict_refuses_a_state_with_a_bad_field():
     ("velocity_kinematic", {}, {"velocity", "tracking"}),
     ("joint_ukf", {"joint_initial_range": "kinematic"}, {"velocity", "tracking"}),
     ("joint_ukf", {"joint_initial_range": "prior"}, {"tracking"}),
+    ("joint_ukf", {"joint_initial_range": "range_mixture"}, {"mixture", "tracking"}),
 ])
 def test_state_round_trips_through_json_exactly_at_every_stage(model, changes, stages):
     """The prior-seeded joint UKF tracks from its first epoch: it has no velocity stage after new_state."""
@@ -171,8 +200,8 @@ def test_the_direct_joint_ukf_starts_from_the_range_prior():
     """joint_initial_range="prior" (the paper's baseline, on the raw measurements alone): after the first
     epoch the position is range_prior_m along the measured angles, with range_prior_sigma_m along the line of
     sight and r sigma_angle across it; the velocity is zero with velocity_prior_sigma_mps. The default is the
-    kinematic start (see TrackerConfig)."""
-    assert paper_config("joint_ukf", True).joint_initial_range == "kinematic"
+    range-mixture start (see TrackerConfig)."""
+    assert paper_config("joint_ukf", True).joint_initial_range == "range_mixture"
     config = paper_config("joint_ukf", True, joint_initial_range="prior")
     assert (config.range_prior_m, config.range_prior_sigma_m) == (DEFAULT_RANGE_PRIOR_M, DEFAULT_RANGE_PRIOR_SIGMA_M)
     epoch = simulate_emitter(paper_001_scenario(epochs=1), np.random.default_rng(1)).epochs[0]

@@ -9,7 +9,8 @@ Three filters: ``velocity_kinematic`` (the paper's method), the direct joint UKF
 (``joint_ukf`` with ``joint_initial_range="prior"``: the paper's baseline, which has no range to start
 from but a prior: by default 150 km +- 50 km, the middle of a detection range of the order of 300 km),
 and the same joint UKF started from velocity_kinematic's first range (``joint_initial_range="kinematic"``,
-the default).
+the default before the range-mixture start; tests/core/tracking/test_at_the_bound.py measures that one, the
+default now, against the posterior CRLB).
 
 What the paper claims and what holds here:
 

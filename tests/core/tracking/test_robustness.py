@@ -259,3 +259,28 @@ def test_a_step_3_update_that_is_not_finite_leaves_step_1_applied(monkeypatch):
     for epoch in track.epochs[61:]:
         held = step(held, epoch, config)
         assert_healthy(held)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("changes", [{}, {"imm_accel_sigmas_mps2": (0.05, 1.0)}], ids=["range_mixture", "imm"])
+def test_ten_thousand_steps_of_the_mixture_and_the_imm_keep_every_covariance_positive_definite(changes):
+    """The joint UKF's range-mixture start (the default) and its IMM over 10,000 reports (a random-acceleration
+    emitter from paper 001's start, flying out to some 3000 km): the state's covariance and every component's
+    is exactly symmetric and has a Cholesky factor, and the state is healthy as above at every step
+    (velocity_kinematic and the other joint starts: the test above)."""
+    config = paper_config("joint_ukf", False, accel_sigma_mps2=0.05, **changes)
+    track = simulate_emitter(paper_001_scenario(epochs=10_000, accel_sigma_mps2=0.05), np.random.default_rng(9))
+    state = new_state(config)
+    stages = set()
+    for epoch in track.epochs:
+        state = step(state, epoch, config)
+        assert_healthy(state)
+        stages.add(state.stage)
+        covariances = [state.covariance]
+        if state.components is not None:
+            covariances += list(state.components.covariances)
+        for cov in covariances:
+            assert np.array_equal(cov, cov.T)
+            np.linalg.cholesky(cov)
+    assert stages == ({"mixture", "imm"} if changes else {"mixture", "tracking"})
+    assert state.updates == 10_000

@@ -1,0 +1,139 @@
+"""The joint UKF started over a range interval: a range-parameterised Gaussian sum (Peach 1995).
+
+A fixed observer's angles say where the emitter is seen, not how far; the range is learnt from the TOA
+differences (the radial acceleration ``r Bdot^2`` of a constant-velocity emitter) through a strongly
+nonlinear map. One Gaussian over ``[range_min_m, range_max_m]`` would be far too wide for the unscented
+transform (and a prior in the middle converges slowly and overconfidently when the emitter is much
+nearer). Instead the interval is split geometrically into ``M`` sub-intervals of ratio at most
+:data:`RANGE_RATIO`; each carries a joint UKF started at its middle range with a standard deviation that
+covers it (relative width :func:`relative_sigma`). All run on the same epochs with the same pulse count;
+each weight is multiplied by its update's innovation density. Components whose weight falls below
+:data:`MIN_WEIGHT` are dropped; when one is left the session continues as the single joint UKF
+(stage ``"tracking"``). Until then the state reports the sum's mean and covariance.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from core.tracking.config import SPEED_OF_LIGHT_MPS as C
+from core.tracking.config import TrackerConfig
+from core.tracking.state import Components, frozen_array
+
+#: Largest ratio of the far to the near end of one component's range interval.
+RANGE_RATIO = 1.5
+#: Components below this weight are dropped (after renormalising).
+MIN_WEIGHT = 1e-3
+#: Neighbouring components are merged when that costs less than this (see :func:`merge_neighbours`).
+MERGE_COST = 0.2
+
+
+def component_ranges(config: TrackerConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Middle ranges ``(M,)`` and standard deviations ``(M,)`` (m) of the components.
+
+    The sub-interval ``[a, a rho]`` is uniform in range around its geometric middle ``a sqrt(rho)``; its
+    standard deviation ``a (rho - 1) / sqrt(12)``, i.e. ``(sqrt(rho) - 1 / sqrt(rho)) / sqrt(12)`` of the
+    middle, is each component's.
+    """
+    span = config.range_max_m / config.range_min_m
+    count = max(1, math.ceil(math.log(span) / math.log(RANGE_RATIO) - 1e-9))
+    ratio = span ** (1.0 / count)
+    middles = config.range_min_m * ratio ** (np.arange(count) + 0.5)
+    return middles, middles * relative_sigma(ratio)
+
+
+def relative_sigma(ratio: float) -> float:
+    """Standard deviation over the middle range of a uniform range interval of ``ratio``."""
+    return (math.sqrt(ratio) - 1.0 / math.sqrt(ratio)) / math.sqrt(12.0)
+
+
+def moments(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean ``(..., F)`` and covariance ``(..., F, F)`` of Gaussian sums over the axis before the components'
+    (``weights`` ``(..., M)`` summing to one along the last axis)."""
+    mean = np.einsum("...m,...mi->...i", weights, means)
+    spread = means - mean[..., None, :]
+    cov = (np.einsum("...m,...mij->...ij", weights, covariances)
+           + np.einsum("...mi,...mj->...ij", spread * weights[..., None], spread))
+    return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
+
+
+def components_of(weights, means, covariances) -> Components:
+    """Frozen :class:`Components` from lists or arrays."""
+    return Components(frozen_array(weights), frozen_array(means), frozen_array(covariances))
+
+
+def reweighted(weights: np.ndarray, log_likelihoods: np.ndarray) -> np.ndarray:
+    """Posterior weights ``(M,)`` (zero for a failed update's ``-inf``), or None when every update failed."""
+    finite = np.isfinite(log_likelihoods)
+    if not finite.any():
+        return None
+    log_w = np.where(finite, np.log(weights) + np.where(finite, log_likelihoods, 0.0), -np.inf)
+    w = np.exp(log_w - log_w.max())
+    return w / w.sum()
+
+
+def pruned(weights: np.ndarray) -> np.ndarray:
+    """Indices of the components kept (weight at least :data:`MIN_WEIGHT`)."""
+    return np.flatnonzero(weights >= MIN_WEIGHT)
+
+
+def fold_period(mean, period_s: float, period_known: bool):
+    """``(mean, period_s)`` with an unknown period's error folded into ``period_s``."""
+    mean = list(mean)
+    if not period_known:
+        period_s = period_s + mean[6] / C
+        mean[6] = 0.0
+    return mean, period_s
+
+
+def merge_neighbours(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray):
+    """Merge neighbouring components (in range order) while the cheapest merge costs less than
+    :data:`MERGE_COST`.
+
+    The cost of replacing components ``i`` and ``j`` by their moments ``(w_ij, m_ij, P_ij)`` is Runnalls'
+    (2007) upper bound on the Kullback-Leibler discrimination it introduces,
+    ``(w_ij log det P_ij - w_i log det P_i - w_j log det P_j) / 2``: zero for identical components,
+    growing with their separation relative to their own spread. With modes (an IMM in each range
+    component) the cost is that of the range components' moments, and a merge merges mode with mode.
+
+    Parameters
+    ----------
+    weights : ndarray, shape (R,) or (R, S)
+        Per range component (and mode), summing to one.
+    means : ndarray, shape (R, F) or (R, S, F)
+    covariances : ndarray, shape (R, F, F) or (R, S, F, F)
+
+    Returns
+    -------
+    weights, means, covariances
+        As given, with ``R`` possibly smaller.
+    """
+    flat = weights.ndim == 1
+    if flat:
+        weights, means, covariances = weights[:, None], means[:, None], covariances[:, None]
+    while weights.shape[0] > 1:
+        totals = weights.sum(axis=1)
+        own_mean, own_cov = moments(weights / totals[:, None], means, covariances)
+        pair_weights = np.stack((totals[:-1], totals[1:]), axis=1)
+        pair_totals = pair_weights.sum(axis=1)
+        _, pair_cov = moments(pair_weights / pair_totals[:, None], np.stack((own_mean[:-1], own_mean[1:]), axis=1),
+                              np.stack((own_cov[:-1], own_cov[1:]), axis=1))
+        own_cost = totals * np.linalg.slogdet(own_cov)[1]
+        costs = 0.5 * (pair_totals * np.linalg.slogdet(pair_cov)[1] - own_cost[:-1] - own_cost[1:])
+        best = int(np.argmin(costs))
+        if not costs[best] < MERGE_COST:
+            break
+        pair = slice(best, best + 2)
+        total = weights[pair].sum(axis=0)
+        mean, cov = moments((weights[pair] / total).T, np.swapaxes(means[pair], 0, 1),
+                            np.swapaxes(covariances[pair], 0, 1))
+        weights = np.concatenate((weights[:best], total[None], weights[best + 2:]))
+        means = np.concatenate((means[:best], mean[None], means[best + 2:]))
+        covariances = np.concatenate((covariances[:best], cov[None], covariances[best + 2:]))
+    if flat:
+        return weights[:, 0], means[:, 0], covariances[:, 0]
+    return weights, means, covariances
+
+
