@@ -15,7 +15,7 @@ finisher, like everything else a fix reports).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,7 +24,7 @@ from core.crlb import batch_information, normal_matrix, parameterisation
 from core.errors import LocalizationError
 from core.estimators.base import SolveOptions, register
 from core.estimators.finish import optimal_bias_m
-from core.estimators.result import Estimates
+from core.estimators.result import Estimates, FixWarning
 from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
 from core.measurements import MeasurementModel
@@ -222,42 +222,65 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
     )
 
 
-def searched_starts(batch: ProblemBatch, options: SolveOptions) -> np.ndarray:
-    """Starts ``(B, 3)`` where no closed form applies: ML from every candidate of
+#: A second solution whose cost is within this of the best (chi-square units) makes the fix ambiguous.
+AMBIGUITY_COST = 4.0
+
+
+def searched_starts(batch: ProblemBatch, options: SolveOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Starts where no closed form applies: ML from every candidate of
     :func:`core.estimators.search.candidates`, the lowest final cost where the information is regular kept
     (an iterate that ran off to where the measurements say nothing may fit better, and is no fix).
 
-    NaN rows where no candidate gave a finite solution.
+    Returns
+    -------
+    starts : ndarray, shape (B, 3)
+        NaN rows where no candidate gave a regular solution.
+    rival : ndarray, shape (B, 3)
+        Another regular solution, farther than 1 % of its distance from the stations (and 100 m) from the
+        best, whose cost is within ``AMBIGUITY_COST`` of it (e.g. the second crossing of a line of sight
+        with a hyperboloid when the measurements leave no degree of freedom); NaN rows where none.
     """
     points = candidates(batch)
     size, count = points.shape[:2]
     tried = np.repeat(np.arange(size), count)
     flat = points.reshape(-1, 3)
     finite = np.all(np.isfinite(flat), axis=-1)
-    out = np.full((size, 3), np.nan)
+    out, rival = np.full((size, 3), np.nan), np.full((size, 3), np.nan)
     if not np.any(finite):
-        return out
+        return out, rival
     tried, flat = tried[finite], flat[finite]
     expanded = batch.take(tried)
     solution = levenberg_marquardt(expanded, flat, options.max_iterations, options.tolerance_m)
-    finite = np.all(np.isfinite(solution.position_enu_m), axis=-1)
-    observable = batch_information(expanded, np.where(finite[:, None], solution.position_enu_m, 0.0)).observable
+    position = solution.position_enu_m
+    finite = np.all(np.isfinite(position), axis=-1)
+    observable = batch_information(expanded, np.where(finite[:, None], position, 0.0)).observable
     cost = np.where(finite & observable, solution.cost, np.inf)
     order = np.lexsort((cost, tried))
     first = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
     good = np.isfinite(cost[first])
-    out[tried[first][good]] = solution.position_enu_m[first][good]
-    return out
+    out[tried[first][good]] = position[first][good]
+    best = out[tried]
+    scale = np.linalg.norm(best - expanded.stations_enu_m[:, 0], axis=-1)
+    apart = np.linalg.norm(np.nan_to_num(position) - best, axis=-1) > np.maximum(0.01 * scale, 100.0)
+    close = np.isfinite(cost) & apart & (cost <= cost[first][np.searchsorted(tried[first], tried)] + AMBIGUITY_COST)
+    for k in np.flatnonzero(close)[::-1]:
+        rival[tried[k]] = position[k]
+    return out, rival
 
 
 @register("ml", "maximum likelihood (Levenberg-Marquardt) over any mix of measurements; the reference")
 def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     starts, names, failures = initial_positions(batch)
+    warnings: list[tuple] = [()] * batch.size
     if failures:
         rows = np.array(sorted(failures))
-        found = searched_starts(batch.take(rows), options)
+        found, rival = searched_starts(batch.take(rows), options)
         ok = np.all(np.isfinite(found), axis=-1)
-        for b, position in zip(rows[ok].tolist(), found[ok]):
+        for b, position, other in zip(rows[ok].tolist(), found[ok], rival[ok]):
             starts[b], names[b] = position, "search"
             del failures[b]
-    return estimate_from(batch, starts, options, names, failures)
+            if np.all(np.isfinite(other)):
+                warnings[b] = (FixWarning("ambiguous_solution", "another point fits the measurements as well, at "
+                                          f"({other[0]:.0f}, {other[1]:.0f}, {other[2]:.0f}) m in the common frame: "
+                                          "add a measurement to tell them apart"),)
+    return replace(estimate_from(batch, starts, options, names, failures), warnings=warnings)

@@ -31,6 +31,7 @@ WARNING_CODES = {
     "coarse_polar_fallback": "stations at one height: the coarse fix used per-station polar points",
     "start_fallback": "the closed-form start failed; a fallback start was used",
     "measurement_excluded": "outlier exclusion removed this measurement from the fit (named in the message)",
+    "ambiguous_solution": "another point fits the measurements as well (named in the message)",
     "measurements_unused": "the method does not use some kinds of the given measurements (named in the message)",
 }
 
