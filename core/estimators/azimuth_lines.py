@@ -174,30 +174,37 @@ def _point_chi2(lines: Lines, normals_enu, weights) -> np.ndarray:
     Weighted pseudolinear start, then Gauss-Newton steps; the best point seen counts.
     """
     up = lines.mean_origin()[:, 2]
-    rhs = np.einsum("bki,bki->bk", normals_enu, lines.origins_enu_m) - normals_enu[..., 2] * up[:, None]
-    rows = normals_enu[..., :2] * weights[..., None]
-    gram = np.einsum("bki,bkj->bij", rows, rows)
-    point = np.concatenate([solve_2x2(gram, np.einsum("bki,bk->bi", rows, rhs * weights)), up[:, None]], axis=-1)
+    rhs = np.sum(normals_enu * lines.origins_enu_m, axis=-1) - normals_enu[..., 2] * up[:, None]
+    point = np.concatenate([_weighted_fit(normals_enu[..., 0], normals_enu[..., 1], rhs, weights), up[:, None]], -1)
+    east_axis, north_axis = lines.rotations[..., 0, :], lines.rotations[..., 1, :]
     best = np.full(lines.mask.shape[0], np.inf)
     active = np.ones_like(best, dtype=bool)
     for _ in range(POINT_FIT_STEPS):
-        local = np.einsum("bkij,bkj->bki", lines.rotations, point[:, None, :] - lines.origins_enu_m)
-        horizontal2 = np.maximum(local[..., 0] ** 2 + local[..., 1] ** 2, 1e-18)
-        miss = 0.5 * np.angle(np.exp(2j * (lines.azimuth_rad - np.arctan2(local[..., 0], local[..., 1]))))
+        delta = point[:, None, :] - lines.origins_enu_m
+        east, north = np.sum(east_axis * delta, axis=-1), np.sum(north_axis * delta, axis=-1)
+        horizontal2 = np.maximum(east**2 + north**2, 1e-18)
+        twice = 2.0 * (lines.azimuth_rad - np.arctan2(east, north))
+        miss = 0.5 * np.arctan2(np.sin(twice), np.cos(twice))
         chi2 = np.sum((miss * weights) ** 2, axis=-1)
         improved = chi2 < best * (1.0 - 1e-9)
-        stopping = active & ~improved
-        best = np.where(stopping, np.minimum(best, chi2), best)
+        best = np.where(active & ~improved, np.minimum(best, chi2), best)
         active &= improved
         if not np.any(active):
             break
         best = np.where(active, chi2, best)
-        gradient_local = np.stack([local[..., 1], -local[..., 0], np.zeros_like(miss)], axis=-1) / horizontal2[..., None]
-        jacobian = np.einsum("bki,bkij->bkj", gradient_local, lines.rotations)[..., :2] * weights[..., None]
-        normal = np.einsum("bki,bkj->bij", jacobian, jacobian)
-        step = solve_2x2(normal, np.einsum("bki,bk->bi", jacobian, miss * weights))
+        jacobian = (north[..., None] * east_axis - east[..., None] * north_axis) / horizontal2[..., None]
+        step = _weighted_fit(jacobian[..., 0], jacobian[..., 1], miss, weights)
         point[:, :2] += np.where(active[:, None], step, 0.0)
     return best
+
+
+def _weighted_fit(column0, column1, rhs, weights):
+    """Weighted least squares ``(B, 2)`` of ``[column0 column1] x = rhs``, all ``(B, K)``, by its normal equations."""
+    w2 = weights * weights
+    a00, a11 = np.sum(w2 * column0 * column0, -1), np.sum(w2 * column1 * column1, -1)
+    a01 = np.sum(w2 * column0 * column1, -1)
+    normal = np.stack([np.stack([a00, a01], -1), np.stack([a01, a11], -1)], -2)
+    return solve_2x2(normal, np.stack([np.sum(w2 * column0 * rhs, -1), np.sum(w2 * column1 * rhs, -1)], -1))
 
 
 def crossing_errors(lines: Lines, name: str) -> dict[int, LocalizationError]:

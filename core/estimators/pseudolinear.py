@@ -62,14 +62,17 @@ def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weigh
     """Run the two stages to their fixed point, with the derivatives w.r.t. every angle.
 
     The angles are ``P = 2K`` parameters: each line's azimuth, then each
-    line's elevation.
+    line's elevation. A term of line k that depends on its own angle only
+    lands in that angle's slot directly, so a pass works on ``(B, K)`` and
+    ``(B, P)`` arrays.
 
     Parameters
     ----------
     lines : Lines
     horizontal_weights, height_weights : ndarray, shape (B, K)
         Zero on padding (and, for heights, on lines without elevation).
-    d_horizontal_weights, d_height_weights : ndarray, shape (B, K, P)
+    d_horizontal_weights, d_height_weights : ndarray, shape (B, K, P), or None
+        None where the weights do not depend on the angles.
 
     Returns
     -------
@@ -80,21 +83,29 @@ def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weigh
     d_horizontal : ndarray, shape (B, K, P)
     """
     size, k = lines.mask.shape
-    own_az = np.concatenate([np.eye(k), np.zeros((k, k))], axis=1)
-    own_el = np.concatenate([np.zeros((k, k)), np.eye(k)], axis=1)
+    zeros = np.zeros((size, k))
+
+    def slots(azimuth_part, elevation_part=zeros):
+        return np.concatenate([azimuth_part, elevation_part], axis=-1)
+
     rotations, origins = lines.rotations, lines.origins_enu_m
     az, el = lines.azimuth_rad, lines.elevation_rad
     sin_az, cos_az = np.sin(az), np.cos(az)
     normals, along = azimuth_normals(lines)
-    rhs = np.einsum("bki,bki->bk", normals, origins)
-    d_rhs = -np.einsum("bki,bki->bk", along, origins)[..., None] * own_az
-    d_normals = -along[..., None] * own_az[:, None, :]
+    n0, n1, n2 = normals[..., 0], normals[..., 1], normals[..., 2]
+    h0, h1, h2 = along[..., 0], along[..., 1], along[..., 2]
+    rhs = np.sum(normals * origins, axis=-1)
+    along_rhs = np.sum(along * origins, axis=-1)
     hw, dhw = horizontal_weights, d_horizontal_weights
-    flat = normals[..., :2] * hw[..., None]
-    d_flat = d_normals[..., :2, :] * hw[..., None, None] + normals[..., :2, None] * dhw[..., None, :]
-    gram = np.einsum("bki,bkj->bij", flat, flat)
-    d_gram = np.einsum("bkip,bkj->bijp", d_flat, flat)
-    d_gram = d_gram + np.swapaxes(d_gram, 1, 2)
+    hw2 = hw * hw
+    g00, g01, g11 = np.sum(n0 * n0 * hw2, -1), np.sum(n0 * n1 * hw2, -1), np.sum(n1 * n1 * hw2, -1)
+    gram = np.stack([np.stack([g00, g01], -1), np.stack([g01, g11], -1)], -2)
+    dg00, dg01, dg11 = slots(-2 * h0 * n0 * hw2), slots(-(h0 * n1 + n0 * h1) * hw2), slots(-2 * h1 * n1 * hw2)
+    if dhw is not None:
+        dg00 = dg00 + _contract(2 * n0 * n0 * hw, dhw)
+        dg01 = dg01 + _contract(2 * n0 * n1 * hw, dhw)
+        dg11 = dg11 + _contract(2 * n1 * n1 * hw, dhw)
+    c0, c1 = np.sum(n0 * n2 * hw2, -1), np.sum(n1 * n2 * hw2, -1)
 
     constrained = lines.constrained
     free = ~constrained
@@ -102,54 +113,65 @@ def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weigh
     d_up = np.zeros((size, 2 * k))
     # stage 2's heights: z_s + d_i (R_i^T [sin az, cos az, tan el])_z
     slope = rotations[..., 0, 2] * sin_az + rotations[..., 1, 2] * cos_az + rotations[..., 2, 2] * np.tan(el)
-    d_slope = ((rotations[..., 0, 2] * cos_az - rotations[..., 1, 2] * sin_az)[..., None] * own_az
-               + (rotations[..., 2, 2] / np.cos(el) ** 2 * lines.has_elevation)[..., None] * own_el)
+    d_slope_az = rotations[..., 0, 2] * cos_az - rotations[..., 1, 2] * sin_az
+    d_slope_el = rotations[..., 2, 2] / np.cos(el) ** 2 * lines.has_elevation
     vw, dvw = height_weights, d_height_weights
     vw_total = np.sum(vw, axis=-1)
     vw_total = np.where(vw_total > 0, vw_total, 1.0)
     foot_rows = np.flatnonzero(constrained)
     foot_lines = lines.take(foot_rows) if foot_rows.size else None
+    any_free = bool(np.any(free))
     for _ in range(PASSES):
-        residual = rhs - normals[..., 2] * up[:, None]
+        residual = rhs - n2 * up[:, None]
         data = residual * hw
-        d_data = ((d_rhs - d_normals[..., 2, :] * up[:, None, None] - normals[..., 2, None] * d_up[:, None, :])
-                  * hw[..., None] + residual[..., None] * dhw)
-        right = np.einsum("bki,bk->bi", flat, data)
-        d_right = np.einsum("bkip,bk->bip", d_flat, data) + np.einsum("bki,bkp->bip", flat, d_data)
-        east_north = solve_2x2(gram, right)
-        d_east_north = solve_2x2(gram, d_right - np.einsum("bijp,bj->bip", d_gram, east_north))
+        own = (h2 * up[:, None] - along_rhs) * hw
+        right0, right1 = np.sum(n0 * hw * data, -1), np.sum(n1 * hw * data, -1)
+        d_right0 = slots(-h0 * hw * data + n0 * hw * own) - c0[:, None] * d_up
+        d_right1 = slots(-h1 * hw * data + n1 * hw * own) - c1[:, None] * d_up
+        if dhw is not None:
+            d_right0 = d_right0 + _contract(2 * n0 * residual * hw, dhw)
+            d_right1 = d_right1 + _contract(2 * n1 * residual * hw, dhw)
+        east_north = solve_2x2(gram, np.stack([right0, right1], -1))
+        east, north = east_north[:, 0, None], east_north[:, 1, None]
+        d_east_north = solve_2x2(gram, np.stack([d_right0 - dg00 * east - dg01 * north,
+                                                 d_right1 - dg01 * east - dg11 * north], 1))
         candidate = np.concatenate([east_north, up[:, None]], axis=-1)
         d_candidate = np.concatenate([d_east_north, d_up[:, None, :]], axis=1)
-        local, d_local = _local(lines, candidate, d_candidate)
-        horizontal = np.hypot(local[..., 0], local[..., 1])
-        d_horizontal = _d_hypot(local, d_local, horizontal)
-        heights = origins[..., 2] + horizontal * slope
-        d_heights = d_horizontal * slope[..., None] + horizontal[..., None] * d_slope
-        new_up = np.sum(vw * heights, axis=-1) / vw_total
-        d_new_up = (np.einsum("bkp,bk->bp", dvw, heights) + np.einsum("bk,bkp->bp", vw, d_heights)
-                    - new_up[:, None] * np.sum(dvw, axis=1)) / vw_total[:, None]
-        up = np.where(free, new_up, up)
-        d_up = np.where(free[:, None], d_new_up, d_up)
+        if any_free:
+            horizontal, gradient = _horizontal(lines, candidate)
+            heights = origins[..., 2] + horizontal * slope
+            new_up = np.sum(vw * heights, axis=-1) / vw_total
+            toward = np.sum((vw * slope)[..., None] * gradient, axis=1)
+            d_new_up = (np.einsum("bi,bip->bp", toward, d_candidate)
+                        + slots(vw * horizontal * d_slope_az, vw * horizontal * d_slope_el))
+            if dvw is not None:
+                d_new_up = d_new_up + _contract(heights - new_up[:, None], dvw)
+            up = np.where(free, new_up, up)
+            d_up = np.where(free[:, None], d_new_up / vw_total[:, None], d_up)
         if foot_lines is not None:
             c = candidate[foot_rows]
             up[foot_rows] = foot_lines.onto_altitude(c)[:, 2]
             d_up[foot_rows] = np.einsum("bi,bip->bp", _foot_gradient(foot_lines, c), d_candidate[foot_rows])
     position = np.concatenate([east_north, up[:, None]], axis=-1)
     d_position = np.concatenate([d_east_north, d_up[:, None, :]], axis=1)
-    local, d_local = _local(lines, position, d_position)
-    horizontal = np.hypot(local[..., 0], local[..., 1])
-    return position, d_position, horizontal, _d_hypot(local, d_local, horizontal)
+    horizontal, gradient = _horizontal(lines, position)
+    return position, d_position, horizontal, np.matmul(gradient, d_position)
 
 
-def _local(lines: Lines, position_enu_m, d_position):
-    """Points in each line's station frame ``(B, K, 3)`` and their derivatives ``(B, K, 3, P)``."""
-    local = np.einsum("bkij,bkj->bki", lines.rotations, position_enu_m[:, None, :] - lines.origins_enu_m)
-    return local, np.einsum("bkij,bjp->bkip", lines.rotations, d_position)
+def _contract(per_line, d_per_line):
+    """``sum_k x_k dy_k`` ``(B, P)`` of ``x`` ``(B, K)`` and ``dy`` ``(B, K, P)``."""
+    return np.matmul(per_line[:, None, :], d_per_line)[:, 0]
 
 
-def _d_hypot(local, d_local, horizontal):
-    safe = np.where(horizontal > 0, horizontal, 1.0)
-    return (local[..., 0, None] * d_local[..., 0, :] + local[..., 1, None] * d_local[..., 1, :]) / safe[..., None]
+def _horizontal(lines: Lines, position_enu_m):
+    """Horizontal distance ``(B, K)`` of points from each line's station (in its frame) and its gradient ``(B, K, 3)``."""
+    delta = position_enu_m[:, None, :] - lines.origins_enu_m
+    rotations = lines.rotations
+    east = np.sum(rotations[..., 0, :] * delta, axis=-1)
+    north = np.sum(rotations[..., 1, :] * delta, axis=-1)
+    horizontal = np.hypot(east, north)
+    safe = np.where(horizontal > 0, horizontal, 1.0)[..., None]
+    return horizontal, (east[..., None] * rotations[..., 0, :] + north[..., None] * rotations[..., 1, :]) / safe
 
 
 def pseudolinear_positions(lines: Lines, weighted: bool):
@@ -169,9 +191,8 @@ def pseudolinear_positions(lines: Lines, weighted: bool):
     mask = lines.mask
     size, k = mask.shape
     ones = mask.astype(float)
-    no_change = np.zeros((size, k, 2 * k))
     height_ones = ones * lines.has_elevation
-    position, d_position, horizontal, d_horizontal = _stages(lines, ones, no_change, height_ones, no_change)
+    position, d_position, horizontal, d_horizontal = _stages(lines, ones, None, height_ones, None)
     if weighted:
         near = horizontal < 1e-9
         distance = np.where(near, 1e-9, horizontal)
@@ -185,7 +206,7 @@ def pseudolinear_positions(lines: Lines, weighted: bool):
         position, d_position, _, _ = _stages(lines, hw, dhw, vw, dvw)
     elevation_variance = np.where(lines.has_elevation & ~lines.constrained[:, None], lines.sigma_elevation_rad**2, 0)
     variance = np.concatenate([np.where(mask, lines.sigma_azimuth_rad**2, 0.0), elevation_variance], axis=-1)
-    covariance = np.einsum("bip,bp,bjp->bij", d_position, variance, d_position)
+    covariance = np.matmul(d_position * variance[:, None, :], np.swapaxes(d_position, -1, -2))
     return position, covariance
 
 
