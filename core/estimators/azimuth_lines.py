@@ -207,6 +207,14 @@ def _weighted_fit(column0, column1, rhs, weights):
     return solve_2x2(normal, np.stack([np.sum(w2 * column0 * rhs, -1), np.sum(w2 * column1 * rhs, -1)], -1))
 
 
+def _eigenvalues_2x2(rows) -> np.ndarray:
+    """Eigenvalues ``(B, 2)``, ascending, of ``sum_k x_k x_k^T`` for rows ``(B, K, 2)``."""
+    a, c = np.sum(rows[..., 0] ** 2, -1), np.sum(rows[..., 1] ** 2, -1)
+    b = np.sum(rows[..., 0] * rows[..., 1], -1)
+    mean, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
+    return np.stack([mean - radius, mean + radius], axis=-1)
+
+
 def crossing_errors(lines: Lines, name: str) -> dict[int, LocalizationError]:
     """Refuse azimuth lines that do not cross in the horizontal plane.
 
@@ -244,7 +252,7 @@ def crossing_errors(lines: Lines, name: str) -> dict[int, LocalizationError]:
     mask = lines.mask
     normals, _ = azimuth_normals(lines)
     flat = normals[..., :2] / np.linalg.norm(normals[..., :2], axis=-1, keepdims=True) * mask[..., None]
-    eigenvalues = np.linalg.eigvalsh(np.einsum("bki,bkj->bij", flat, flat))
+    eigenvalues = _eigenvalues_2x2(flat)
     rank_deficient = (eigenvalues[:, 0] <= RANK_TOLERANCE * eigenvalues[:, -1]) & (count >= 2)
     spread_rad = np.sqrt(np.maximum(eigenvalues[:, 0], 0.0) / np.maximum(count, 1))
     sigma = lines.sigma_azimuth_rad
@@ -256,7 +264,7 @@ def crossing_errors(lines: Lines, name: str) -> dict[int, LocalizationError]:
         part = lines.take(rows)
         weights = np.where(part.mask, 1.0 / part.sigma_azimuth_rad, 0.0)
         weighted = flat[rows] * weights[..., None]
-        parallel = np.linalg.eigvalsh(np.einsum("bki,bkj->bij", weighted, weighted))[:, 0]
+        parallel = _eigenvalues_2x2(weighted)[:, 0]
         gain[rows] = parallel - _point_chi2(part, normals[rows], weights)
     refused = rank_deficient | (tested & (gain < threshold))
     for b in np.flatnonzero(refused).tolist():
@@ -372,9 +380,10 @@ def azimuth_equations(lines: Lines, plane: TangentPlane) -> AzimuthEquations:
     normals, horizontal = azimuth_normals(lines)
     mask = lines.mask
     relative = lines.origins_enu_m - plane.centre_enu_m[:, None, :]
+    axes_t = np.swapaxes(plane.axes_enu, -1, -2)[:, None]
     return AzimuthEquations(
-        rows=np.einsum("bki,bji->bkj", normals, plane.axes_enu) * mask[..., None],
-        rhs=np.einsum("bki,bki->bk", normals, relative) * mask,
-        along_rows=np.einsum("bki,bji->bkj", horizontal, plane.axes_enu) * mask[..., None],
-        along_rhs=np.einsum("bki,bki->bk", horizontal, relative) * mask,
+        rows=np.matmul(normals[..., None, :], axes_t)[..., 0, :] * mask[..., None],
+        rhs=np.sum(normals * relative, axis=-1) * mask,
+        along_rows=np.matmul(horizontal[..., None, :], axes_t)[..., 0, :] * mask[..., None],
+        along_rhs=np.sum(horizontal * relative, axis=-1) * mask,
     )

@@ -164,7 +164,7 @@ def _contract(per_line, d_per_line):
 
 
 def _horizontal(lines: Lines, position_enu_m):
-    """Horizontal distance ``(B, K)`` of points from each line's station (in its frame) and its gradient ``(B, K, 3)``."""
+    """Horizontal distance ``(B, K)`` of points from each line's station (its frame) and its gradient ``(B, K, 3)``."""
     delta = position_enu_m[:, None, :] - lines.origins_enu_m
     rotations = lines.rotations
     east = np.sum(rotations[..., 0, :] * delta, axis=-1)

@@ -213,29 +213,55 @@ def _take(equations: AzimuthEquations, rows) -> AzimuthEquations:
                             equations.along_rhs[rows])
 
 
+def _residuals(equations: AzimuthEquations, plane_m, weights):
+    """``e`` and ``rho`` ``(B, K)`` at plane coordinates ``(B, 2)`` (``rho`` 1 on padding)."""
+    q0, q1 = plane_m[:, 0, None], plane_m[:, 1, None]
+    a, d = equations.rows, equations.along_rows
+    e = a[..., 0] * q0 + a[..., 1] * q1 - equations.rhs
+    rho = d[..., 0] * q0 + d[..., 1] * q1 - equations.along_rhs
+    return e, np.where(weights > 0, rho, 1.0)
+
+
 def _ctls_cost(equations: AzimuthEquations, plane_m, weights):
-    e = np.einsum("bki,bi->bk", equations.rows, plane_m) - equations.rhs
-    rho = np.einsum("bki,bi->bk", equations.along_rows, plane_m) - equations.along_rhs
-    f = e / np.where(weights > 0, rho, 1.0)
+    e, rho = _residuals(equations, plane_m, weights)
+    f = e / rho
     return np.sum(weights * f * f, axis=-1)
 
 
 def _ctls_terms(equations: AzimuthEquations, plane_m, weights):
-    """CTLS cost, gradient, Hessian and Gauss-Newton matrix at plane coordinates ``(B, 2)``."""
-    a, d = equations.rows, equations.along_rows
-    e = np.einsum("bki,bi->bk", a, plane_m) - equations.rhs
-    rho = np.einsum("bki,bi->bk", d, plane_m) - equations.along_rhs
-    rho = np.where(weights > 0, rho, 1.0)
+    """CTLS cost, gradient, Hessian and Gauss-Newton matrix at plane coordinates ``(B, 2)``.
+
+    Returns
+    -------
+    cost : ndarray, shape (B,)
+    gradient : ndarray, shape (B, 2)
+    hessian, gauss_newton : ndarray, shape (B, 2, 2)
+    f : ndarray, shape (B, K)
+        ``e / rho``.
+    grad_f : ndarray, shape (B, K, 2)
+    """
+    e, rho = _residuals(equations, plane_m, weights)
+    a0, a1 = equations.rows[..., 0], equations.rows[..., 1]
+    d0, d1 = equations.along_rows[..., 0], equations.along_rows[..., 1]
     f = e / rho
-    grad_f = (a * rho[..., None] - d * e[..., None]) / rho[..., None] ** 2
-    cost = np.sum(weights * f * f, axis=-1)
-    gradient = 2.0 * np.einsum("bk,bki->bi", weights * f, grad_f)
-    gauss_newton = 2.0 * np.einsum("bki,bk,bkj->bij", grad_f, weights, grad_f)
-    ad = np.einsum("bki,bkj->bkij", a, d)
-    hess_f = (-(ad + np.swapaxes(ad, -1, -2)) / rho[..., None, None] ** 2
-              + 2.0 * (e / rho**3)[..., None, None] * np.einsum("bki,bkj->bkij", d, d))
-    hessian = gauss_newton + 2.0 * np.einsum("bk,bkij->bij", weights * f, hess_f)
-    return cost, gradient, hessian, gauss_newton, f, grad_f
+    rho2 = rho * rho
+    g0, g1 = (a0 * rho - d0 * e) / rho2, (a1 * rho - d1 * e) / rho2
+    wf = weights * f
+    cost = np.sum(wf * f, axis=-1)
+    gradient = 2.0 * np.stack([np.sum(wf * g0, -1), np.sum(wf * g1, -1)], -1)
+    wg0, wg1 = weights * g0, weights * g1
+    gn00, gn01, gn11 = 2.0 * np.sum(wg0 * g0, -1), 2.0 * np.sum(wg0 * g1, -1), 2.0 * np.sum(wg1 * g1, -1)
+    curvature = 2.0 * e / (rho2 * rho)
+    h00 = np.sum(wf * (-2.0 * a0 * d0 / rho2 + curvature * d0 * d0), -1)
+    h01 = np.sum(wf * (-(a0 * d1 + a1 * d0) / rho2 + curvature * d0 * d1), -1)
+    h11 = np.sum(wf * (-2.0 * a1 * d1 / rho2 + curvature * d1 * d1), -1)
+
+    def matrix(m00, m01, m11):
+        return np.stack([np.stack([m00, m01], -1), np.stack([m01, m11], -1)], -2)
+
+    gauss_newton = matrix(gn00, gn01, gn11)
+    hessian = matrix(gn00 + 2.0 * h00, gn01 + 2.0 * h01, gn11 + 2.0 * h11)
+    return cost, gradient, hessian, gauss_newton, f, np.stack([g0, g1], -1)
 
 
 def _positive_definite(matrix) -> np.ndarray:
