@@ -210,7 +210,7 @@ def pseudolinear_positions(lines: Lines, weighted: bool):
     return position, covariance
 
 
-def _refusals(batch: ProblemBatch, lines: Lines, name: str) -> dict[int, LocalizationError]:
+def _refusals(lines: Lines, name: str) -> dict[int, LocalizationError]:
     errors = crossing_errors(lines, name)
     for b in np.flatnonzero(~lines.constrained & ~np.any(lines.has_elevation, axis=-1)).tolist():
         errors.setdefault(b, TooFewMeasurements(
@@ -221,7 +221,7 @@ def _refusals(batch: ProblemBatch, lines: Lines, name: str) -> dict[int, Localiz
 
 def _estimate(batch: ProblemBatch, name: str, weighted: bool) -> Estimates:
     lines = Lines.of(batch)
-    errors = _refusals(batch, lines, name)
+    errors = _refusals(lines, name)
     size = batch.size
     position = np.full((size, 3), np.nan)
     covariance = np.full((size, 3, 3), np.nan)
