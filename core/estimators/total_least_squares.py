@@ -355,26 +355,30 @@ def _projected_passes(basis_cos, basis_sin, azimuth_rad, weights_sqrt, max_passe
         The set reached the threshold.
     """
     count = azimuth_rad.shape[0]
-    azimuth = np.array(azimuth_rad, dtype=float)
+    azimuth = np.asarray(azimuth_rad, dtype=float)
     null_vectors = np.zeros((count, 3))
     passes = np.zeros(count, dtype=int)
     done = np.zeros(count, dtype=bool)
     running = np.arange(count)
-    divisor = np.where(weights_sqrt > 0, weights_sqrt, 1.0)
+    bc, bs, w, az, limit = basis_cos, basis_sin, weights_sqrt[..., None], azimuth, max_passes
+    divisor = np.where(w > 0, w, 1.0)
     for number in range(1, int(np.max(max_passes, initial=0)) + 1):
-        bc, bs, w = basis_cos[running], basis_sin[running], weights_sqrt[running]
-        az = azimuth[running]
         c, sn = np.cos(az)[..., None], np.sin(az)[..., None]
-        matrix = (c * bc + sn * bs) * w[..., None]
-        u, s, vt = np.linalg.svd(matrix, full_matrices=False)
-        reached = s[:, -1] / np.linalg.norm(s, axis=-1) < PROJECTED_THRESHOLD
-        null_vectors[running], passes[running], done[running] = vt[:, -1, :], number, reached
-        going = ~((number == max_passes[running]) | (reached & (not frozen)))
+        matrix = (c * bc + sn * bs) * w
+        eigenvalues, vectors = np.linalg.eigh(np.matmul(np.swapaxes(matrix, -1, -2), matrix))
+        smallest = vectors[..., 0]
+        frobenius2 = np.sum(matrix * matrix, axis=(-2, -1))
+        reached = np.sqrt(np.maximum(eigenvalues[:, 0], 0.0) / frobenius2) < PROJECTED_THRESHOLD
+        null_vectors[running], passes[running], done[running] = smallest, number, reached
+        going = ~((number == limit) | (reached & (not frozen)))
         if not np.any(going):
             break
-        running, matrix, u, s, vt = running[going], matrix[going], u[going], s[going], vt[going]
-        bc, bs, az = bc[going], bs[going], az[going]
-        target = (matrix - s[:, -1, None, None] * u[:, :, -1:] * vt[:, -1:, :]) / divisor[running][..., None]
+        if not np.all(going):
+            running, matrix, smallest, limit = running[going], matrix[going], smallest[going], limit[going]
+            bc, bs, az, w, divisor = bc[going], bs[going], az[going], w[going], divisor[going]
+        # the rank-2 approximation M (I - v v^T), v the smallest right singular vector
+        reduced = matrix - np.sum(matrix * smallest[:, None, :], axis=-1)[..., None] * smallest[:, None, :]
+        target = reduced / divisor
         for _ in range(ROW_PROJECTION_STEPS):
             c, sn = np.cos(az)[..., None], np.sin(az)[..., None]
             row = c * bc + sn * bs
@@ -385,7 +389,6 @@ def _projected_passes(basis_cos, basis_sin, azimuth_rad, weights_sqrt, max_passe
             second = slope2 - np.einsum("bki,bki->bk", row, gap)
             denominator = np.where(second > 0, second, slope2)
             az = az - first / np.where(denominator != 0, denominator, 1.0)
-        azimuth[running] = az
     return null_vectors, passes, done
 
 
