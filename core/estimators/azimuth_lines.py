@@ -1,4 +1,4 @@
-"""Azimuth lines of sight as linear equations, shared by the pseudolinear estimators.
+"""Azimuth lines of sight as linear equations, shared by the pseudolinear estimators, for a whole batch.
 
 An azimuth ``az`` measured at station ``r_i`` puts the target in the vertical
 plane of the line of sight, whose normal in the station's ENU is
@@ -19,19 +19,23 @@ Every pseudolinear method here also shares the test for the geometry they
 cannot handle: azimuth lines that are parallel in the horizontal plane
 within their noise (the stations' ground track in line with the target's
 ground point).
+
+Everything works on :class:`Lines`, the lines of sight of B problems packed
+to K lines each (``mask`` marks the real ones); a function that can refuse a
+problem returns ``{row: LocalizationError}`` instead of raising.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from core.errors import InvalidInput, TooFewMeasurements, UnobservableGeometry
+from core.batch import ELEVATION, RANGE, TOA, ProblemBatch
+from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.measurements import Kind
-from core.problem import LinesOfSight, Problem
+from core.problem import local_axes, onto_altitude
 
 #: Probability with which azimuth lines from a truly collinear geometry are
 #: recognised as such: the crossing test rejects collinearity only when the
@@ -41,59 +45,177 @@ COLLINEAR_CONFIDENCE = 0.99
 RANK_TOLERANCE = 1e-9
 #: Gauss-Newton steps of the point fit in the crossing test.
 POINT_FIT_STEPS = 10
-#: Step (rad) of the central differences in :func:`propagate_by_differences`.
-DIFFERENCE_STEP_RAD = 1e-6
 
 
-def azimuth_normals(los: LinesOfSight):
-    """Normals of the azimuth planes and horizontal line-of-sight directions.
+@dataclass(frozen=True)
+class Lines:
+    """The lines of sight of B problems, packed to K per problem in request order.
 
-    Parameters
+    Attributes
     ----------
-    los : LinesOfSight
+    mask : ndarray of bool, shape (B, K)
+        True on real lines; padding holds an identity rotation, zero angles and unit sigmas.
+    count : ndarray of int, shape (B,)
+    origins_enu_m : ndarray, shape (B, K, 3)
+    rotations : ndarray, shape (B, K, 3, 3)
+        Station ENU <- common ENU.
+    azimuth_rad : ndarray, shape (B, K)
+    elevation_rad : ndarray, shape (B, K)
+        0 where the bearing has no elevation.
+    has_elevation : ndarray of bool, shape (B, K)
+    sigma_azimuth_rad, sigma_elevation_rad : ndarray, shape (B, K)
+        NaN where not given (1 on padding).
+    altitude_m : ndarray, shape (B,)
+        NaN where unconstrained.
+    origin : ndarray, shape (B, 3)
+    geodetic : ndarray of bool, shape (B,)
+    """
+
+    mask: np.ndarray
+    count: np.ndarray
+    origins_enu_m: np.ndarray
+    rotations: np.ndarray
+    azimuth_rad: np.ndarray
+    elevation_rad: np.ndarray
+    has_elevation: np.ndarray
+    sigma_azimuth_rad: np.ndarray
+    sigma_elevation_rad: np.ndarray
+    altitude_m: np.ndarray
+    origin: np.ndarray
+    geodetic: np.ndarray
+
+    @classmethod
+    def of(cls, batch: ProblemBatch) -> "Lines":
+        """The packed lines of sight of a batch (from :meth:`ProblemBatch.lines_of_sight`)."""
+        is_line, elevation, sigma_elevation = batch.lines_of_sight()
+        count = np.count_nonzero(is_line, axis=-1)
+        # at least 3, so that the SVD of a 2-line TLS matrix [A | b] (K x 3) includes its null vector
+        width = max(int(count.max(initial=0)), 3)
+        order = np.argsort(~is_line, axis=-1, kind="stable")[:, :width]
+        order = np.pad(order, ((0, 0), (0, width - order.shape[1])))
+        rows = np.arange(batch.size)[:, None]
+        mask = np.arange(width) < count[:, None]
+        stations, rotations = batch.measurement_stations()
+
+        def packed(values, fill):
+            return np.where(mask, values[rows, order], fill)
+
+        elevation = packed(elevation, np.nan)
+        has_elevation = ~np.isnan(elevation)
+        return cls(
+            mask=mask,
+            count=count,
+            origins_enu_m=np.where(mask[..., None], stations[rows, order], 0.0),
+            rotations=np.where(mask[..., None, None], rotations[rows, order], np.eye(3)),
+            azimuth_rad=packed(batch.values, 0.0),
+            elevation_rad=np.where(has_elevation, elevation, 0.0),
+            has_elevation=has_elevation,
+            sigma_azimuth_rad=packed(batch.sigmas, 1.0),
+            sigma_elevation_rad=np.where(has_elevation, packed(sigma_elevation, 1.0), 1.0),
+            altitude_m=batch.altitude_m,
+            origin=batch.origin,
+            geodetic=batch.geodetic,
+        )
+
+    @property
+    def constrained(self) -> np.ndarray:
+        return ~np.isnan(self.altitude_m)
+
+    def take(self, rows) -> "Lines":
+        """The lines of the problems ``rows``."""
+        return Lines(**{name: getattr(self, name)[rows] for name in self.__dataclass_fields__})
+
+    def mean_origin(self) -> np.ndarray:
+        """Mean station position ``(B, 3)`` over each problem's lines."""
+        return np.sum(self.origins_enu_m, axis=1) / np.maximum(self.count, 1)[:, None]
+
+    def onto_altitude(self, position_enu_m) -> np.ndarray:
+        """Points ``(B, ..., 3)`` moved onto each problem's known altitude."""
+        extra = np.ndim(position_enu_m) - 2
+        index = (slice(None),) + (None,) * extra
+        return onto_altitude(position_enu_m, self.altitude_m[index], self.origin[index], self.geodetic[index])
+
+
+def azimuth_normals(lines: Lines):
+    """Normals of the azimuth planes and horizontal line-of-sight directions.
 
     Returns
     -------
-    normals_enu : ndarray, shape (K, 3)
+    normals_enu : ndarray, shape (B, K, 3)
         ``n_i``: unit normal of line i's vertical plane, common frame.
-    horizontal_enu : ndarray, shape (K, 3)
+    horizontal_enu : ndarray, shape (B, K, 3)
         ``h_i``: unit horizontal line-of-sight direction (station's
         horizontal plane), common frame; ``d n_i / d az_i = -h_i``.
     """
-    az = los.azimuth_rad
-    zero = np.zeros_like(az)
-    normal_local = np.stack([np.cos(az), -np.sin(az), zero], axis=-1)
-    horizontal_local = np.stack([np.sin(az), np.cos(az), zero], axis=-1)
-    to_common = np.swapaxes(los.rotations, -1, -2)
-    return (np.einsum("kij,kj->ki", to_common, normal_local),
-            np.einsum("kij,kj->ki", to_common, horizontal_local))
+    az = lines.azimuth_rad[..., None]
+    east, north = lines.rotations[..., 0, :], lines.rotations[..., 1, :]
+    return np.cos(az) * east - np.sin(az) * north, np.sin(az) * east + np.cos(az) * north
 
 
-def _point_chi2(los: LinesOfSight, normals_enu, weights) -> float:
-    """Smallest chi-square of the azimuths, as undirected lines, through one horizontal point.
+def solve_2x2(matrix, right):
+    """Solutions ``(B, 2, ...)`` of 2x2 systems ``(B, 2, 2)`` (a singular one gives inf or NaN, not an exception)."""
+    a, b, c, d = matrix[:, 0, 0], matrix[:, 0, 1], matrix[:, 1, 0], matrix[:, 1, 1]
+    extra = (slice(None),) + (None,) * (np.ndim(right) - 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse_det = 1.0 / (a * d - b * c)
+        x0 = (d[extra] * right[:, 0] - b[extra] * right[:, 1]) * inverse_det[extra]
+        x1 = (a[extra] * right[:, 1] - c[extra] * right[:, 0]) * inverse_det[extra]
+    return np.stack([x0, x1], axis=1)
+
+
+def inverse_2x2(matrix):
+    """Inverses ``(B, 2, 2)`` of 2x2 matrices."""
+    return solve_2x2(matrix, np.broadcast_to(np.eye(2), matrix.shape))
+
+
+def _point_chi2(lines: Lines, normals_enu, weights) -> np.ndarray:
+    """Smallest chi-square ``(B,)`` of the azimuths, as undirected lines, through one horizontal point.
 
     Weighted pseudolinear start, then Gauss-Newton steps; the best point seen counts.
     """
-    up = float(np.mean(los.origins_enu_m[:, 2]))
-    rhs = np.einsum("ki,ki->k", normals_enu, los.origins_enu_m) - normals_enu[:, 2] * up
-    point = np.append(np.linalg.lstsq(normals_enu[:, :2] * weights[:, None], rhs * weights, rcond=None)[0], up)
-    best = np.inf
+    up = lines.mean_origin()[:, 2]
+    rhs = np.sum(normals_enu * lines.origins_enu_m, axis=-1) - normals_enu[..., 2] * up[:, None]
+    point = np.concatenate([_weighted_fit(normals_enu[..., 0], normals_enu[..., 1], rhs, weights), up[:, None]], -1)
+    east_axis, north_axis = lines.rotations[..., 0, :], lines.rotations[..., 1, :]
+    best = np.full(lines.mask.shape[0], np.inf)
+    active = np.ones_like(best, dtype=bool)
     for _ in range(POINT_FIT_STEPS):
-        local = np.einsum("kij,kj->ki", los.rotations, point - los.origins_enu_m)
-        horizontal2 = np.maximum(local[:, 0] ** 2 + local[:, 1] ** 2, 1e-18)
-        miss = 0.5 * np.angle(np.exp(2j * (los.azimuth_rad - np.arctan2(local[:, 0], local[:, 1]))))
-        chi2 = float(np.sum((miss * weights) ** 2))
-        if not chi2 < best * (1.0 - 1e-9):
-            best = min(best, chi2)
+        delta = point[:, None, :] - lines.origins_enu_m
+        east, north = np.sum(east_axis * delta, axis=-1), np.sum(north_axis * delta, axis=-1)
+        horizontal2 = np.maximum(east**2 + north**2, 1e-18)
+        twice = 2.0 * (lines.azimuth_rad - np.arctan2(east, north))
+        miss = 0.5 * np.arctan2(np.sin(twice), np.cos(twice))
+        chi2 = np.sum((miss * weights) ** 2, axis=-1)
+        improved = chi2 < best * (1.0 - 1e-9)
+        best = np.where(active & ~improved, np.minimum(best, chi2), best)
+        active &= improved
+        if not np.any(active):
             break
-        best = chi2
-        gradient_local = np.stack([local[:, 1], -local[:, 0], np.zeros(los.count)], axis=-1) / horizontal2[:, None]
-        jacobian = np.einsum("ki,kij->kj", gradient_local, los.rotations)[:, :2] * weights[:, None]
-        point[:2] += np.linalg.lstsq(jacobian, miss * weights, rcond=None)[0]
+        best = np.where(active, chi2, best)
+        jacobian = (north[..., None] * east_axis - east[..., None] * north_axis) / horizontal2[..., None]
+        step = _weighted_fit(jacobian[..., 0], jacobian[..., 1], miss, weights)
+        point[:, :2] += np.where(active[:, None], step, 0.0)
     return best
 
 
-def require_crossing(los: LinesOfSight, name: str) -> None:
+def _weighted_fit(column0, column1, rhs, weights):
+    """Weighted least squares ``(B, 2)`` of ``[column0 column1] x = rhs``, all ``(B, K)``, by its normal equations."""
+    w2 = weights * weights
+    a00, a11 = np.sum(w2 * column0 * column0, -1), np.sum(w2 * column1 * column1, -1)
+    a01 = np.sum(w2 * column0 * column1, -1)
+    normal = np.stack([np.stack([a00, a01], -1), np.stack([a01, a11], -1)], -2)
+    return solve_2x2(normal, np.stack([np.sum(w2 * column0 * rhs, -1), np.sum(w2 * column1 * rhs, -1)], -1))
+
+
+def _eigenvalues_2x2(rows) -> np.ndarray:
+    """Eigenvalues ``(B, 2)``, ascending, of ``sum_k x_k x_k^T`` for rows ``(B, K, 2)``."""
+    a, c = np.sum(rows[..., 0] ** 2, -1), np.sum(rows[..., 1] ** 2, -1)
+    b = np.sum(rows[..., 0] * rows[..., 1], -1)
+    mean, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
+    return np.stack([mean - radius, mean + radius], axis=-1)
+
+
+def crossing_errors(lines: Lines, name: str) -> dict[int, LocalizationError]:
     """Refuse azimuth lines that do not cross in the horizontal plane.
 
     Two hypotheses for the measured azimuths: all lines parallel to one
@@ -110,79 +232,92 @@ def require_crossing(los: LinesOfSight, name: str) -> None:
 
     Parameters
     ----------
-    los : LinesOfSight
+    lines : Lines
         Azimuth sigmas NaN where unknown.
     name : str
         The method, for messages.
 
-    Raises
-    ------
-    TooFewMeasurements
-        With fewer than 2 azimuth lines.
-    UnobservableGeometry
-        When the lines are parallel in the horizontal plane within the noise.
+    Returns
+    -------
+    dict of int to LocalizationError
+        ``TooFewMeasurements`` with fewer than 2 azimuth lines,
+        ``UnobservableGeometry`` when the lines are parallel in the horizontal
+        plane within the noise.
     """
-    count = los.count
-    if count < 2:
-        raise TooFewMeasurements(f"{name} needs azimuths on at least 2 lines of sight; got {count}",
-                                 ("measurements",))
-    normals, _ = azimuth_normals(los)
-    flat = normals[:, :2] / np.linalg.norm(normals[:, :2], axis=-1, keepdims=True)
-    eigenvalues = np.linalg.eigvalsh(flat.T @ flat)
-    rank_deficient = eigenvalues[0] <= RANK_TOLERANCE * eigenvalues[-1]
-    spread_rad = np.sqrt(max(eigenvalues[0], 0.0) / count)
-    sigma = los.sigma_azimuth_rad
-    gain = threshold = None
-    if np.all(np.isfinite(sigma)) and not rank_deficient:
-        weighted = flat / sigma[:, None]
-        parallel = float(np.linalg.eigvalsh(weighted.T @ weighted)[0])
-        point = _point_chi2(los, normals, 1.0 / sigma)
-        gain = parallel - point
-        threshold = float(chi2_distribution.ppf(COLLINEAR_CONFIDENCE, 1))
-    if rank_deficient or (gain is not None and gain < threshold):
-        noise = (f"; a common point fits the azimuths better than parallel lines by only chi2 {gain:.2f}, below "
+    errors: dict[int, LocalizationError] = {}
+    count = lines.count
+    for b in np.flatnonzero(count < 2).tolist():
+        errors[b] = TooFewMeasurements(f"{name} needs azimuths on at least 2 lines of sight; got {int(count[b])}",
+                                       ("measurements",))
+    mask = lines.mask
+    normals, _ = azimuth_normals(lines)
+    flat = normals[..., :2] / np.linalg.norm(normals[..., :2], axis=-1, keepdims=True) * mask[..., None]
+    eigenvalues = _eigenvalues_2x2(flat)
+    rank_deficient = (eigenvalues[:, 0] <= RANK_TOLERANCE * eigenvalues[:, -1]) & (count >= 2)
+    spread_rad = np.sqrt(np.maximum(eigenvalues[:, 0], 0.0) / np.maximum(count, 1))
+    sigma = lines.sigma_azimuth_rad
+    tested = np.all(np.isfinite(sigma), axis=-1) & ~rank_deficient & (count >= 2)
+    gain = np.full(count.shape, np.nan)
+    threshold = float(chi2_distribution.ppf(COLLINEAR_CONFIDENCE, 1))
+    rows = np.flatnonzero(tested)
+    if rows.size:
+        part = lines.take(rows)
+        weights = np.where(part.mask, 1.0 / part.sigma_azimuth_rad, 0.0)
+        weighted = flat[rows] * weights[..., None]
+        parallel = _eigenvalues_2x2(weighted)[:, 0]
+        gain[rows] = parallel - _point_chi2(part, normals[rows], weights)
+    refused = rank_deficient | (tested & (gain < threshold))
+    for b in np.flatnonzero(refused).tolist():
+        noise = (f"; a common point fits the azimuths better than parallel lines by only chi2 {gain[b]:.2f}, below "
                  f"the {COLLINEAR_CONFIDENCE:.0%} quantile {threshold:.2f} of what noise alone gives"
-                 if gain is not None else "")
-        raise UnobservableGeometry(
-            f"{name}: collinear horizontal geometry: the {count} azimuth lines of sight are parallel in the "
-            f"horizontal plane (rms spread {np.rad2deg(spread_rad):.3f} deg{noise}), i.e. the stations' ground "
+                 if tested[b] else "")
+        errors[b] = UnobservableGeometry(
+            f"{name}: collinear horizontal geometry: the {int(count[b])} azimuth lines of sight are parallel in the "
+            f"horizontal plane (rms spread {np.rad2deg(spread_rad[b]):.3f} deg{noise}), i.e. the stations' ground "
             "track is in line with the target's ground point, so the azimuths cannot intersect; "
             "eove or ml use the elevations and can")
+    return errors
 
 
-def azimuth_only_lines(problem: Problem, name: str) -> LinesOfSight:
-    """The lines of sight of an azimuth-only method that needs a known target altitude.
+def azimuth_only_errors(batch: ProblemBatch, name: str) -> dict[int, LocalizationError]:
+    """Refusals of an azimuth-only method that needs a known target altitude.
 
-    Raises
-    ------
-    TooFewMeasurements
-        Without ``problem.altitude_m``.
-    InvalidInput
-        With measurements other than bearings.
+    Returns
+    -------
+    dict of int to LocalizationError
+        ``TooFewMeasurements`` without an altitude, ``InvalidInput`` naming the
+        first measurement other than a bearing.
     """
-    if problem.altitude_m is None:
-        raise TooFewMeasurements(
+    errors: dict[int, LocalizationError] = {}
+    for b in np.flatnonzero(~batch.constrained).tolist():
+        errors[b] = TooFewMeasurements(
             f"{name} locates from azimuths only, which do not determine the target's height: give the "
             "target altitude (constraints.altitude_m); with elevations use eove, taylor_wls or ml",
             ("constraints", "altitude_m"))
-    other = np.flatnonzero((problem.kinds == Kind.RANGE) | (problem.kinds == Kind.TOA))
-    if other.size:
-        raise InvalidInput(
-            f"{name} uses bearings only; measurement {int(problem.source_index[other[0]])} is a "
-            f"{Kind(problem.kinds[other[0]]).name.lower()}: use ml for a mix",
-            ("measurements", int(problem.source_index[other[0]])))
-    return problem.lines_of_sight()
+    other = batch.valid & ((batch.kinds == RANGE) | (batch.kinds == TOA))
+    for b in np.flatnonzero(batch.constrained & np.any(other, axis=-1)).tolist():
+        m = int(np.flatnonzero(other[b])[0])
+        source = int(batch.source_index[b, m])
+        errors[b] = InvalidInput(
+            f"{name} uses bearings only; measurement {source} is a {Kind(batch.kinds[b, m]).name.lower()}: "
+            "use ml for a mix", ("measurements", source))
+    return errors
+
+
+def has_elevations(batch: ProblemBatch) -> np.ndarray:
+    """``(B,)``: some bearing carries an elevation."""
+    return np.any(batch.valid & (batch.kinds == ELEVATION), axis=-1)
 
 
 @dataclass(frozen=True)
 class TangentPlane:
-    """Two coordinates on a plane tangent to the target's altitude surface.
+    """Two coordinates on planes tangent to the targets' altitude surfaces, one per problem.
 
     Attributes
     ----------
-    centre_enu_m : ndarray, shape (3,)
+    centre_enu_m : ndarray, shape (B, 3)
         Where ``q = 0`` lies: the foot of the stations' centroid on the plane.
-    axes_enu : ndarray, shape (2, 3)
+    axes_enu : ndarray, shape (B, 2, 3)
         Local east and north unit vectors of the surface, common frame.
     """
 
@@ -190,24 +325,36 @@ class TangentPlane:
     axes_enu: np.ndarray
 
     def point(self, plane_m) -> np.ndarray:
-        """Common-frame point ``(3,)`` of plane coordinates ``(2,)`` (metres)."""
-        return self.centre_enu_m + np.asarray(plane_m) @ self.axes_enu
+        """Common-frame points ``(B, 3)`` of plane coordinates ``(B, 2)`` (metres)."""
+        return self.centre_enu_m + np.einsum("bi,bij->bj", plane_m, self.axes_enu)
 
     def coordinates(self, position_enu_m) -> np.ndarray:
-        """Plane coordinates ``(2,)`` of the foot of a point."""
-        return self.axes_enu @ (np.asarray(position_enu_m) - self.centre_enu_m)
+        """Plane coordinates ``(B, ..., 2)`` of the feet of points ``(B, ..., 3)``."""
+        extra = (slice(None),) + (None,) * (np.ndim(position_enu_m) - 2)
+        relative = position_enu_m - self.centre_enu_m[extra]
+        return np.einsum("bij,b...j->b...i", self.axes_enu, relative)
+
+    def to_common(self, covariance_plane_m2) -> np.ndarray:
+        """Plane covariances ``(B, 2, 2)`` as common-frame covariances ``(B, 3, 3)``."""
+        return np.einsum("bki,bkl,blj->bij", self.axes_enu, covariance_plane_m2, self.axes_enu)
 
 
-def tangent_plane(problem: Problem, position_enu_m, stations_enu_m) -> TangentPlane:
-    """The plane tangent to the altitude surface at a point, centred under the stations."""
-    axes = problem.frame.local_axes(np.asarray(position_enu_m, dtype=float))[:2]
-    offset = np.mean(stations_enu_m, axis=0) - position_enu_m
-    return TangentPlane(position_enu_m + (axes @ offset) @ axes, axes)
+def tangent_plane(lines: Lines, position_enu_m) -> TangentPlane:
+    """The planes tangent to the altitude surfaces at points ``(B, 3)``, centred under the stations."""
+    axes = local_axes(position_enu_m, lines.origin, lines.geodetic)[:, :2]
+    offset = lines.mean_origin() - position_enu_m
+    return TangentPlane(position_enu_m + np.einsum("bi,bij->bj", np.einsum("bij,bj->bi", axes, offset), axes), axes)
+
+
+def plane_spread_m(lines: Lines, plane: TangentPlane) -> np.ndarray:
+    """RMS distance ``(B,)`` of the stations from the plane's centre (at least 1 m)."""
+    offsets = plane.coordinates(lines.origins_enu_m) * lines.mask[..., None]
+    return np.maximum(np.sqrt(np.sum(offsets**2, axis=(1, 2)) / np.maximum(lines.count, 1)), 1.0)
 
 
 @dataclass(frozen=True)
 class AzimuthEquations:
-    """Azimuth lines as equations in tangent-plane coordinates.
+    """Azimuth lines as equations in tangent-plane coordinates (zero rows on padding).
 
     ``e_i(q) = A_i . q - b_i = n_i . (p(q) - r_i)`` is the signed distance of
     the plane point from line i's vertical plane, and
@@ -216,9 +363,9 @@ class AzimuthEquations:
 
     Attributes
     ----------
-    rows, along_rows : ndarray, shape (K, 2)
+    rows, along_rows : ndarray, shape (B, K, 2)
         ``A`` and ``D``.
-    rhs, along_rhs : ndarray, shape (K,)
+    rhs, along_rhs : ndarray, shape (B, K)
         ``b`` and ``d`` (metres).
     """
 
@@ -228,45 +375,15 @@ class AzimuthEquations:
     along_rhs: np.ndarray
 
 
-def azimuth_equations(los: LinesOfSight, plane: TangentPlane) -> AzimuthEquations:
+def azimuth_equations(lines: Lines, plane: TangentPlane) -> AzimuthEquations:
     """Write every azimuth line as a linear equation in the plane's coordinates."""
-    normals, horizontal = azimuth_normals(los)
-    relative = los.origins_enu_m - plane.centre_enu_m
+    normals, horizontal = azimuth_normals(lines)
+    mask = lines.mask
+    relative = lines.origins_enu_m - plane.centre_enu_m[:, None, :]
+    axes_t = np.swapaxes(plane.axes_enu, -1, -2)[:, None]
     return AzimuthEquations(
-        rows=normals @ plane.axes_enu.T,
-        rhs=np.einsum("ki,ki->k", normals, relative),
-        along_rows=horizontal @ plane.axes_enu.T,
-        along_rhs=np.einsum("ki,ki->k", horizontal, relative),
+        rows=np.matmul(normals[..., None, :], axes_t)[..., 0, :] * mask[..., None],
+        rhs=np.sum(normals * relative, axis=-1) * mask,
+        along_rows=np.matmul(horizontal[..., None, :], axes_t)[..., 0, :] * mask[..., None],
+        along_rhs=np.sum(horizontal * relative, axis=-1) * mask,
     )
-
-
-def propagate_by_differences(problem: Problem, position_of_values: Callable[[np.ndarray], np.ndarray],
-                             rows=None) -> np.ndarray:
-    """First-order covariance of an estimator by central differences in its inputs.
-
-    ``C = G diag(sigma^2) G^T`` with ``G = d position / d measurement``; for
-    a closed form this is the first-order propagation of the measurement
-    noise through the estimator (evaluated at the measured values).
-
-    Parameters
-    ----------
-    problem : Problem
-    position_of_values : callable
-        Measured values ``(M,)`` (problem units) -> position ``(3,)``.
-    rows : ndarray of int, optional
-        Measurements the estimator reads; default every angle with a sigma.
-
-    Returns
-    -------
-    ndarray, shape (3, 3)
-    """
-    if rows is None:
-        is_angle = (problem.kinds == Kind.AZIMUTH) | (problem.kinds == Kind.ELEVATION)
-        rows = np.flatnonzero(is_angle & np.isfinite(problem.sigmas))
-    gain = np.zeros((3, rows.size))
-    for column, row in enumerate(rows):
-        plus, minus = problem.values.copy(), problem.values.copy()
-        plus[row] += DIFFERENCE_STEP_RAD
-        minus[row] -= DIFFERENCE_STEP_RAD
-        gain[:, column] = (position_of_values(plus) - position_of_values(minus)) / (2 * DIFFERENCE_STEP_RAD)
-    return (gain * problem.sigmas[rows] ** 2) @ gain.T

@@ -25,6 +25,8 @@ from core.problem import Problem
 ALL_KINDS = frozenset(Kind)
 #: The kinds of a bearing.
 ANGLES = frozenset((Kind.AZIMUTH, Kind.ELEVATION))
+#: Azimuths alone.
+AZIMUTHS = frozenset((Kind.AZIMUTH,))
 
 
 @dataclass(frozen=True)

@@ -32,7 +32,7 @@ from core.angles import line_of_sight_derivatives, line_of_sight_enu, station_to
 from core.batch import AZIMUTH, ELEVATION, RANGE, TOA, ProblemBatch
 from core.crlb import invert_information, normal_matrix, parameterisation
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import SolveOptions, register
+from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates, FixWarning
 from core.measurements import MeasurementModel
 
@@ -396,5 +396,6 @@ def _intersect(batch: ProblemBatch) -> Estimates:
 
 
 register("los_intersection",
-         "common-perpendicular line-of-sight intersection, pairwise WLS fusion and an extended-WLS pass (paper 002)")(
+         "common-perpendicular line-of-sight intersection, pairwise WLS fusion and an extended-WLS pass (paper 002)",
+         uses=ANGLES)(
     intersect_lines_of_sight)

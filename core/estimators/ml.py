@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.special import chdtrc
 
 from core.batch import TOA, ProblemBatch
 from core.crlb import batch_information, normal_matrix, parameterisation
@@ -184,8 +185,21 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     return Solution(x_all, bias_all, iterations_all, converged_all, cost_all)
 
 
-def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, start_names, failures) -> Estimates:
-    """ML estimates of a batch from given starts, in cache-sized chunks (results do not depend on the chunking).
+def iterate(batch: ProblemBatch, starts_enu_m, options: SolveOptions) -> Solution:
+    """:func:`levenberg_marquardt` in cache-sized chunks (results do not depend on the chunking)."""
+    starts = np.asarray(starts_enu_m, dtype=float)
+    rows = max(CHUNK_MIN_PROBLEMS, CHUNK_ENTRIES // max(batch.kinds.shape[1], 1))
+    if rows >= batch.size:
+        return levenberg_marquardt(batch, starts, options.max_iterations, options.tolerance_m)
+    parts = [levenberg_marquardt(batch.take(np.arange(first, min(first + rows, batch.size))),
+                                 starts[first:first + rows], options.max_iterations, options.tolerance_m)
+             for first in range(0, batch.size, rows)]
+    return Solution(*(np.concatenate([getattr(p, f) for p in parts]) for f in Solution.__dataclass_fields__))
+
+
+def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, start_names, failures,
+                  solution: Solution | None = None) -> Estimates:
+    """ML estimates of a batch from given starts.
 
     Parameters
     ----------
@@ -197,6 +211,8 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
         Reported as ``details["start"]``.
     failures : dict of int to LocalizationError
         Problems with no start.
+    solution : Solution, optional
+        The iteration from these starts, when already run.
     """
     starts = np.array(starts_enu_m, dtype=float)
     missing = ~np.all(np.isfinite(starts), axis=-1)
@@ -204,13 +220,7 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
     for b in np.flatnonzero(missing):
         errors.setdefault(int(b), LocalizationError("no starting point for this geometry"))
     starts[missing] = batch.stations_enu_m[missing, 0] + [0.0, 0.0, 1.0]
-    rows = max(CHUNK_MIN_PROBLEMS, CHUNK_ENTRIES // max(batch.kinds.shape[1], 1))
-    parts = []
-    for first in range(0, batch.size, rows):
-        chosen = slice(first, min(first + rows, batch.size))
-        part = batch if rows >= batch.size else batch.take(np.arange(batch.size)[chosen])
-        parts.append(levenberg_marquardt(part, starts[chosen], options.max_iterations, options.tolerance_m))
-    solution = Solution(*(np.concatenate([getattr(p, f) for p in parts]) for f in Solution.__dataclass_fields__))
+    solution = solution or iterate(batch, starts, options)
     return Estimates(
         position_enu_m=solution.position_enu_m,
         covariance_source="information",
@@ -236,9 +246,10 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions) -> tuple[np.ndar
     starts : ndarray, shape (B, 3)
         NaN rows where no candidate gave a regular solution.
     rival : ndarray, shape (B, 3)
-        Another regular solution, farther than 1 % of its distance from the stations (and 100 m) from the
-        best, whose cost is within ``AMBIGUITY_COST`` of it (e.g. the second crossing of a line of sight
-        with a hyperboloid when the measurements leave no degree of freedom); NaN rows where none.
+        Another regular solution, distinct from the best (farther than ten iteration tolerances), whose
+        cost is within ``AMBIGUITY_COST`` of it (the second crossing of a line of sight with a hyperboloid,
+        the mirror of coplanar stations, when the measurements leave no degree of freedom to tell them
+        apart); NaN rows where none.
     """
     points = candidates(batch)
     size, count = points.shape[:2]
@@ -261,26 +272,48 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions) -> tuple[np.ndar
     out[tried[first][good]] = position[first][good]
     best = out[tried]
     scale = np.linalg.norm(best - expanded.stations_enu_m[:, 0], axis=-1)
-    apart = np.linalg.norm(np.nan_to_num(position) - best, axis=-1) > np.maximum(0.01 * scale, 100.0)
+    apart = np.linalg.norm(np.nan_to_num(position) - best, axis=-1) > np.maximum(10.0 * options.tolerance_m,
+                                                                                1e-7 * scale)
     close = np.isfinite(cost) & apart & (cost <= cost[first][np.searchsorted(tried[first], tried)] + AMBIGUITY_COST)
     for k in np.flatnonzero(close)[::-1]:
         rival[tried[k]] = position[k]
     return out, rival
 
 
+#: A fit from the closed-form start whose chi-square has a p-value below this is retried from the search.
+IMPLAUSIBLE_P = 1e-9
+
+
 @register("ml", "maximum likelihood (Levenberg-Marquardt) over any mix of measurements; the reference")
 def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
+    """ML from the closed-form start for the mix; where there is none, or the fit from it did not converge
+    or is implausible (chi-square p below ``IMPLAUSIBLE_P``: the start sat in another basin), ML from the
+    geometry's candidates too, keeping the lower cost."""
     starts, names, failures = initial_positions(batch)
+    missing = ~np.all(np.isfinite(starts), axis=-1)
+    solution = iterate(batch, np.where(missing[:, None], batch.stations_enu_m[:, 0] + [0.0, 0.0, 1.0], starts),
+                       options)
+    dof = np.count_nonzero(batch.valid & np.isfinite(batch.sigmas), axis=-1) - (
+        np.where(batch.constrained, 2, 3) + batch.has_toa)
+    implausible = chdtrc(np.maximum(dof, 1), solution.cost) < IMPLAUSIBLE_P
+    retry = missing | ~solution.converged | implausible
     warnings: list[tuple] = [()] * batch.size
-    if failures:
-        rows = np.array(sorted(failures))
+    if np.any(retry):
+        rows = np.flatnonzero(retry)
         found, rival = searched_starts(batch.take(rows), options)
         ok = np.all(np.isfinite(found), axis=-1)
-        for b, position, other in zip(rows[ok].tolist(), found[ok], rival[ok]):
-            starts[b], names[b] = position, "search"
-            del failures[b]
-            if np.all(np.isfinite(other)):
+        again = iterate(batch.take(rows[ok]), found[ok], options) if np.any(ok) else None
+        for j, b in enumerate(rows[ok].tolist()):
+            if missing[b] or again.cost[j] < solution.cost[b]:
+                starts[b], names[b] = found[ok][j], "search"
+                failures.pop(b, None)
+                missing[b] = False
+                for name in Solution.__dataclass_fields__:
+                    getattr(solution, name)[b] = getattr(again, name)[j]
+            if np.all(np.isfinite(rival[ok][j])):
+                other = rival[ok][j]
                 warnings[b] = (FixWarning("ambiguous_solution", "another point fits the measurements as well, at "
                                           f"({other[0]:.0f}, {other[1]:.0f}, {other[2]:.0f}) m in the common frame: "
                                           "add a measurement to tell them apart"),)
-    return replace(estimate_from(batch, starts, options, names, failures), warnings=warnings)
+    estimates = estimate_from(batch, starts, options, names, failures, solution)
+    return replace(estimates, warnings=warnings)

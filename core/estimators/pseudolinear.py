@@ -20,156 +20,232 @@ spread over the earth radius times tan(el)). A known target altitude replaces
 stage 2 (the elevations are then not used).
 
 Both fail, by construction, when the azimuth lines are parallel in the
-horizontal plane (target above a straight station track): they raise
-:class:`~core.errors.UnobservableGeometry` saying so, using the test of
-:func:`core.estimators.azimuth_lines.require_crossing`.
+horizontal plane (target above a straight station track): they refuse the
+problem with :class:`~core.errors.UnobservableGeometry` saying so, using the
+test of :func:`core.estimators.azimuth_lines.crossing_errors`.
 
-Covariance: first-order propagation of the angle noise through the estimator,
-by central differences of the whole two-stage computation (weights included).
+Covariance: first-order propagation of the angle noise through the whole
+two-stage computation (weights and passes included), ``C = G diag(sigma^2) G^T``
+with ``G = d position / d angles`` carried exactly alongside the passes
+(forward-mode differentiation; the foot on a known altitude surface is
+differentiated by central differences of 10 m, which the surface's curvature
+makes exact to about 1e-12).
+
+Every problem of a batch runs at once: the passes are a fixed number of
+vectorised steps over the batch.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from core.errors import TooFewMeasurements
-from core.estimators.azimuth_lines import DIFFERENCE_STEP_RAD, require_crossing
-from core.estimators.base import Estimate, SolveOptions, per_problem, register
-from core.problem import Problem
+from core.batch import ProblemBatch
+from core.errors import LocalizationError, TooFewMeasurements
+from core.estimators.azimuth_lines import Lines, azimuth_normals, crossing_errors, has_elevations, solve_2x2
+from core.estimators.base import ANGLES, SolveOptions, register
+from core.estimators.result import Estimates
 
 #: Horizontal/height passes; fixed so that the estimator is one smooth map of the data.
 PASSES = 6
+#: Step (m) of the central differences of the foot on the altitude surface.
+FOOT_STEP_M = 10.0
 
 
-def _stages(problem: Problem, los, azimuth_rad, elevation_rad, horizontal_weights, height_weights):
-    """Run the two stages to their fixed point, for a batch of angle sets.
+def _foot_gradient(lines: Lines, candidate_enu_m) -> np.ndarray:
+    """Gradient ``(B, 3)`` of the up coordinate of the foot on the altitude surface w.r.t. the point."""
+    offsets = FOOT_STEP_M * np.concatenate([np.eye(3), -np.eye(3)])
+    feet = lines.onto_altitude(candidate_enu_m[:, None, :] + offsets)[..., 2]
+    return (feet[:, :3] - feet[:, 3:]) / (2 * FOOT_STEP_M)
+
+
+def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weights, d_height_weights):
+    """Run the two stages to their fixed point, with the derivatives w.r.t. every angle.
+
+    The angles are ``P = 2K`` parameters: each line's azimuth, then each
+    line's elevation. A term of line k that depends on its own angle only
+    lands in that angle's slot directly, so a pass works on ``(B, K)`` and
+    ``(B, P)`` arrays.
 
     Parameters
     ----------
-    problem : Problem
-    los : LinesOfSight
-        Stations, rotations and which lines have an elevation.
-    azimuth_rad, elevation_rad : ndarray, shape (B, K)
+    lines : Lines
     horizontal_weights, height_weights : ndarray, shape (B, K)
+        Zero on padding (and, for heights, on lines without elevation).
+    d_horizontal_weights, d_height_weights : ndarray, shape (B, K, P), or None
+        None where the weights do not depend on the angles.
 
     Returns
     -------
     position_enu_m : ndarray, shape (B, 3)
+    d_position : ndarray, shape (B, 3, P)
     horizontal_m : ndarray, shape (B, K)
-        Horizontal distance of the fix from each line's station, in the
-        station's frame.
+        Horizontal distance of the fix from each line's station, in the station's frame.
+    d_horizontal : ndarray, shape (B, K, P)
     """
-    zero = np.zeros_like(azimuth_rad)
-    normal_local = np.stack([np.cos(azimuth_rad), -np.sin(azimuth_rad), zero], axis=-1)
-    normals = np.einsum("kji,bkj->bki", los.rotations, normal_local)
-    rhs = np.einsum("bki,ki->bk", normals, los.origins_enu_m)
-    flat = normals[..., :2] * horizontal_weights[..., None]
-    has_elevation = los.has_elevation
-    altitude = problem.altitude_m
-    batch = azimuth_rad.shape[0]
-    up = np.full(batch, np.mean(los.origins_enu_m[:, 2]) if altitude is None else float(altitude))
-    tan_el = np.tan(np.where(has_elevation, elevation_rad, 0.0))
-    sin_az, cos_az = np.sin(azimuth_rad), np.cos(azimuth_rad)
-    gram = np.einsum("bki,bkj->bij", flat, flat)
+    size, k = lines.mask.shape
+    zeros = np.zeros((size, k))
+
+    def slots(azimuth_part, elevation_part=zeros):
+        return np.concatenate([azimuth_part, elevation_part], axis=-1)
+
+    rotations, origins = lines.rotations, lines.origins_enu_m
+    az, el = lines.azimuth_rad, lines.elevation_rad
+    sin_az, cos_az = np.sin(az), np.cos(az)
+    normals, along = azimuth_normals(lines)
+    n0, n1, n2 = normals[..., 0], normals[..., 1], normals[..., 2]
+    h0, h1, h2 = along[..., 0], along[..., 1], along[..., 2]
+    rhs = np.sum(normals * origins, axis=-1)
+    along_rhs = np.sum(along * origins, axis=-1)
+    hw, dhw = horizontal_weights, d_horizontal_weights
+    hw2 = hw * hw
+    g00, g01, g11 = np.sum(n0 * n0 * hw2, -1), np.sum(n0 * n1 * hw2, -1), np.sum(n1 * n1 * hw2, -1)
+    gram = np.stack([np.stack([g00, g01], -1), np.stack([g01, g11], -1)], -2)
+    dg00, dg01, dg11 = slots(-2 * h0 * n0 * hw2), slots(-(h0 * n1 + n0 * h1) * hw2), slots(-2 * h1 * n1 * hw2)
+    if dhw is not None:
+        dg00 = dg00 + _contract(2 * n0 * n0 * hw, dhw)
+        dg01 = dg01 + _contract(2 * n0 * n1 * hw, dhw)
+        dg11 = dg11 + _contract(2 * n1 * n1 * hw, dhw)
+    c0, c1 = np.sum(n0 * n2 * hw2, -1), np.sum(n1 * n2 * hw2, -1)
+
+    constrained = lines.constrained
+    free = ~constrained
+    up = np.where(constrained, lines.altitude_m, lines.mean_origin()[:, 2])
+    d_up = np.zeros((size, 2 * k))
+    # stage 2's heights: z_s + d_i (R_i^T [sin az, cos az, tan el])_z
+    slope = rotations[..., 0, 2] * sin_az + rotations[..., 1, 2] * cos_az + rotations[..., 2, 2] * np.tan(el)
+    d_slope_az = rotations[..., 0, 2] * cos_az - rotations[..., 1, 2] * sin_az
+    d_slope_el = rotations[..., 2, 2] / np.cos(el) ** 2 * lines.has_elevation
+    vw, dvw = height_weights, d_height_weights
+    vw_total = np.sum(vw, axis=-1)
+    vw_total = np.where(vw_total > 0, vw_total, 1.0)
+    foot_rows = np.flatnonzero(constrained)
+    foot_lines = lines.take(foot_rows) if foot_rows.size else None
+    any_free = bool(np.any(free))
     for _ in range(PASSES):
-        data = (rhs - normals[..., 2] * up[:, None]) * horizontal_weights
-        east_north = np.linalg.solve(gram, np.einsum("bki,bk->bi", flat, data)[..., None])[..., 0]
+        residual = rhs - n2 * up[:, None]
+        data = residual * hw
+        own = (h2 * up[:, None] - along_rhs) * hw
+        right0, right1 = np.sum(n0 * hw * data, -1), np.sum(n1 * hw * data, -1)
+        d_right0 = slots(-h0 * hw * data + n0 * hw * own) - c0[:, None] * d_up
+        d_right1 = slots(-h1 * hw * data + n1 * hw * own) - c1[:, None] * d_up
+        if dhw is not None:
+            d_right0 = d_right0 + _contract(2 * n0 * residual * hw, dhw)
+            d_right1 = d_right1 + _contract(2 * n1 * residual * hw, dhw)
+        east_north = solve_2x2(gram, np.stack([right0, right1], -1))
+        east, north = east_north[:, 0, None], east_north[:, 1, None]
+        d_east_north = solve_2x2(gram, np.stack([d_right0 - dg00 * east - dg01 * north,
+                                                 d_right1 - dg01 * east - dg11 * north], 1))
         candidate = np.concatenate([east_north, up[:, None]], axis=-1)
-        if altitude is not None:
-            up = problem.frame.onto_altitude(candidate, altitude)[:, 2]
-            continue
-        local = np.einsum("kij,bkj->bki", los.rotations, candidate[:, None, :] - los.origins_enu_m)
-        horizontal = np.hypot(local[..., 0], local[..., 1])
-        along_local = np.stack([horizontal * sin_az, horizontal * cos_az, horizontal * tan_el], axis=-1)
-        heights = los.origins_enu_m[:, 2] + np.einsum("kji,bkj->bki", los.rotations, along_local)[..., 2]
-        w = height_weights * has_elevation
-        up = np.sum(w * heights, axis=-1) / np.sum(w, axis=-1)
+        d_candidate = np.concatenate([d_east_north, d_up[:, None, :]], axis=1)
+        if any_free:
+            horizontal, gradient = _horizontal(lines, candidate)
+            heights = origins[..., 2] + horizontal * slope
+            new_up = np.sum(vw * heights, axis=-1) / vw_total
+            toward = np.sum((vw * slope)[..., None] * gradient, axis=1)
+            d_new_up = (np.einsum("bi,bip->bp", toward, d_candidate)
+                        + slots(vw * horizontal * d_slope_az, vw * horizontal * d_slope_el))
+            if dvw is not None:
+                d_new_up = d_new_up + _contract(heights - new_up[:, None], dvw)
+            up = np.where(free, new_up, up)
+            d_up = np.where(free[:, None], d_new_up / vw_total[:, None], d_up)
+        if foot_lines is not None:
+            c = candidate[foot_rows]
+            up[foot_rows] = foot_lines.onto_altitude(c)[:, 2]
+            d_up[foot_rows] = np.einsum("bi,bip->bp", _foot_gradient(foot_lines, c), d_candidate[foot_rows])
     position = np.concatenate([east_north, up[:, None]], axis=-1)
-    local = np.einsum("kij,bkj->bki", los.rotations, position[:, None, :] - los.origins_enu_m)
-    return position, np.hypot(local[..., 0], local[..., 1])
+    d_position = np.concatenate([d_east_north, d_up[:, None, :]], axis=1)
+    horizontal, gradient = _horizontal(lines, position)
+    return position, d_position, horizontal, np.matmul(gradient, d_position)
 
 
-def pseudolinear_positions(problem: Problem, weighted: bool, azimuth_rad=None, elevation_rad=None) -> np.ndarray:
-    """Positions of PLE (``weighted=False``) or WS3D (``weighted=True``) for a batch of angle sets.
+def _contract(per_line, d_per_line):
+    """``sum_k x_k dy_k`` ``(B, P)`` of ``x`` ``(B, K)`` and ``dy`` ``(B, K, P)``."""
+    return np.matmul(per_line[:, None, :], d_per_line)[:, 0]
+
+
+def _horizontal(lines: Lines, position_enu_m):
+    """Horizontal distance ``(B, K)`` of points from each line's station (its frame) and its gradient ``(B, K, 3)``."""
+    delta = position_enu_m[:, None, :] - lines.origins_enu_m
+    rotations = lines.rotations
+    east = np.sum(rotations[..., 0, :] * delta, axis=-1)
+    north = np.sum(rotations[..., 1, :] * delta, axis=-1)
+    horizontal = np.hypot(east, north)
+    safe = np.where(horizontal > 0, horizontal, 1.0)[..., None]
+    return horizontal, (east[..., None] * rotations[..., 0, :] + north[..., None] * rotations[..., 1, :]) / safe
+
+
+def pseudolinear_positions(lines: Lines, weighted: bool):
+    """Positions of PLE (``weighted=False``) or WS3D (``weighted=True``) and their first-order covariances.
 
     Parameters
     ----------
-    problem : Problem
+    lines : Lines
+        Problems that pass :func:`_refusals`.
     weighted : bool
-    azimuth_rad, elevation_rad : ndarray, shape (B, K), optional
-        Angles per line of sight (default the problem's, ``B = 1``).
 
     Returns
     -------
-    ndarray, shape (B, 3)
+    position_enu_m : ndarray, shape (B, 3)
+    covariance_enu_m2 : ndarray, shape (B, 3, 3)
     """
-    los = problem.lines_of_sight()
-    az = los.azimuth_rad[None] if azimuth_rad is None else np.asarray(azimuth_rad)
-    el = los.elevation_rad[None] if elevation_rad is None else np.asarray(elevation_rad)
-    ones = np.ones_like(az)
-    position, horizontal = _stages(problem, los, az, el, ones, ones)
-    if not weighted:
-        return position
-    distance = np.maximum(horizontal, 1e-9)
-    cos_el = np.cos(np.where(los.has_elevation, el, 0.0))
-    horizontal_weights = 1.0 / (los.sigma_azimuth_rad * distance)
-    height_weights = cos_el**4 / (np.where(los.has_elevation, los.sigma_elevation_rad, 1.0) * distance) ** 2
-    return _stages(problem, los, az, el, horizontal_weights, height_weights)[0]
+    mask = lines.mask
+    size, k = mask.shape
+    ones = mask.astype(float)
+    height_ones = ones * lines.has_elevation
+    position, d_position, horizontal, d_horizontal = _stages(lines, ones, None, height_ones, None)
+    if weighted:
+        near = horizontal < 1e-9
+        distance = np.where(near, 1e-9, horizontal)
+        d_distance = np.where(near[..., None], 0.0, d_horizontal)
+        hw = ones / (lines.sigma_azimuth_rad * distance)
+        dhw = -(hw / distance)[..., None] * d_distance
+        cos_el = np.cos(lines.elevation_rad)
+        vw = height_ones * cos_el**4 / (lines.sigma_elevation_rad * distance) ** 2
+        own_el = np.concatenate([np.zeros((k, k)), np.eye(k)], axis=1)
+        dvw = -(2 * vw / distance)[..., None] * d_distance - (4 * np.tan(lines.elevation_rad) * vw)[..., None] * own_el
+        position, d_position, _, _ = _stages(lines, hw, dhw, vw, dvw)
+    elevation_variance = np.where(lines.has_elevation & ~lines.constrained[:, None], lines.sigma_elevation_rad**2, 0)
+    variance = np.concatenate([np.where(mask, lines.sigma_azimuth_rad**2, 0.0), elevation_variance], axis=-1)
+    covariance = np.matmul(d_position * variance[:, None, :], np.swapaxes(d_position, -1, -2))
+    return position, covariance
 
 
-def _covariance(problem: Problem, weighted: bool) -> np.ndarray:
-    """First-order propagation by central differences over every angle the estimator reads."""
-    los = problem.lines_of_sight()
-    count = los.count
-    step = DIFFERENCE_STEP_RAD * np.eye(count)
-    az, el = los.azimuth_rad[None], los.elevation_rad[None]
-    sets_az = [az + step, az - step]
-    sets_el = [np.repeat(el, count, 0)] * 2
-    sigmas = [los.sigma_azimuth_rad]
-    if problem.altitude_m is None:
-        lines = np.flatnonzero(los.has_elevation)
-        sets_az += [np.repeat(az, lines.size, 0)] * 2
-        sets_el += [el + step[lines], el - step[lines]]
-        sigmas.append(los.sigma_elevation_rad[lines])
-    positions = pseudolinear_positions(problem, weighted, np.concatenate(sets_az), np.concatenate(sets_el))
-    sizes = [count] + ([lines.size] if len(sigmas) == 2 else [])
-    gains, offset = [], 0
-    for size in sizes:
-        plus = positions[offset:offset + size]
-        minus = positions[offset + size:offset + 2 * size]
-        gains.append((plus - minus) / (2 * DIFFERENCE_STEP_RAD))
-        offset += 2 * size
-    gain = np.concatenate(gains)
-    variance = np.concatenate(sigmas) ** 2
-    return (gain * variance[:, None]).T @ gain
-
-
-def _fix(problem: Problem, weighted: bool):
-    name = "ws3d" if weighted else "ple3d"
-    los = problem.lines_of_sight()
-    require_crossing(los, name)
-    if problem.altitude_m is None and not np.any(los.has_elevation):
-        raise TooFewMeasurements(
+def _refusals(lines: Lines, name: str) -> dict[int, LocalizationError]:
+    errors = crossing_errors(lines, name)
+    for b in np.flatnonzero(~lines.constrained & ~np.any(lines.has_elevation, axis=-1)).tolist():
+        errors.setdefault(b, TooFewMeasurements(
             f"{name} takes the height from elevations: give an elevation on at least one line of sight, "
-            "or the target altitude (constraints.altitude_m)", ("measurements",))
-    position = pseudolinear_positions(problem, weighted)[0]
-    details = {"passes": PASSES}
-    if problem.altitude_m is not None and np.any(los.has_elevation):
-        details["unused_measurements"] = "elevations: the known altitude gives the height"
-    return Estimate(position, _covariance(problem, weighted), details=details)
+            "or the target altitude (constraints.altitude_m)", ("measurements",)))
+    return errors
 
 
-def _ple3d(problem: Problem, options: SolveOptions) -> Estimate:
+def _estimate(batch: ProblemBatch, name: str, weighted: bool) -> Estimates:
+    lines = Lines.of(batch)
+    errors = _refusals(lines, name)
+    size = batch.size
+    position = np.full((size, 3), np.nan)
+    covariance = np.full((size, 3, 3), np.nan)
+    ok = np.ones(size, dtype=bool)
+    ok[list(errors)] = False
+    rows = np.flatnonzero(ok)
+    if rows.size:
+        position[rows], covariance[rows] = pseudolinear_positions(lines.take(rows), weighted)
+    unused = batch.constrained & has_elevations(batch)
+    details = [{"passes": PASSES, **({"unused_measurements": "elevations: the known altitude gives the height"}
+                                    if unused[b] else {})} for b in range(size)]
+    return Estimates(position_enu_m=position, covariance_source="propagated", covariance_enu_m2=covariance,
+                     errors=errors, details=details)
+
+
+@register("ple3d", "3D pseudolinear estimator: horizontal Stansfield from azimuths, then mean height from "
+                   "elevations; fails above a straight station track", uses=ANGLES)
+def ple3d(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     """3D PLE (Dogancay & Ibal 2005); see the module docstring."""
-    return _fix(problem, weighted=False)
+    return _estimate(batch, "ple3d", weighted=False)
 
 
-def _ws3d(problem: Problem, options: SolveOptions) -> Estimate:
+@register("ws3d", "weighted Stansfield in 3D: PLE with inverse-variance weights from a first pass; "
+                  "fails above a straight station track", uses=ANGLES)
+def ws3d(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     """WS3D (Adib & Douglas 2018, as rendered in ALGORITHMS.md); see the module docstring."""
-    return _fix(problem, weighted=True)
-
-
-register("ple3d", "3D pseudolinear estimator: horizontal Stansfield from azimuths, then mean height from "
-                  "elevations; fails above a straight station track")(per_problem(_ple3d, "propagated"))
-register("ws3d", "weighted Stansfield in 3D: PLE with inverse-variance weights from a first pass; "
-                 "fails above a straight station track")(per_problem(_ws3d, "propagated"))
+    return _estimate(batch, "ws3d", weighted=True)

@@ -56,7 +56,7 @@ import numpy as np
 from core.batch import AZIMUTH, ELEVATION, ProblemBatch
 from core.crlb import OBSERVABILITY_THRESHOLD
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import SolveOptions, get_estimator, register
+from core.estimators.base import ANGLES, SolveOptions, get_estimator, register
 from core.estimators.result import Estimates, FixWarning
 from core.measurements import Kind, MeasurementModel
 from core.problem import local_axes
@@ -294,7 +294,7 @@ def _starts(batch: ProblemBatch, rows, options: SolveOptions):
 
 
 @register("taylor_wls", "iterative Taylor-series WLS that estimates each bearing's error (paper 004); "
-                        "estimates an unknown bearing sigma", needs_sigmas=False)
+                        "estimates an unknown bearing sigma", needs_sigmas=False, uses=ANGLES)
 def taylor_wls(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     """Taylor-series WLS fixes with estimated bearing errors; see the module docstring.
 

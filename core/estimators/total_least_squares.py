@@ -53,6 +53,11 @@ Covariance (``covariance_source``):
   projection passes in the final plane, with the pass count frozen at the one
   the data needed (all perturbed azimuth sets run as one batch).
 
+The start is the EOVE fix on the altitude surface (the pseudolinear least
+squares), taken from the registry. Every problem of a batch runs at once: the
+plane passes, Newton iterations, step halvings and projection passes are a
+fixed or bounded number of vectorised steps over the problems still running.
+
 The bearing errors these methods imply are the conventional ones (measured
 minus the azimuth of the fix), i.e. the azimuth ``residuals`` of the fix;
 the patent compares its own estimates with those.
@@ -60,22 +65,27 @@ the patent compares its own estimates with those.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from core.errors import InvalidInput, UnobservableGeometry
+from core.batch import ProblemBatch
+from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.azimuth_lines import (
     AzimuthEquations,
+    Lines,
+    TangentPlane,
     azimuth_equations,
-    azimuth_only_lines,
-    DIFFERENCE_STEP_RAD,
-    require_crossing,
+    azimuth_only_errors,
+    crossing_errors,
+    has_elevations,
+    inverse_2x2,
+    plane_spread_m,
+    solve_2x2,
     tangent_plane,
 )
-from core.estimators.base import Estimate, SolveOptions, per_problem, register
-from core.estimators.result import FixWarning
-from core.estimators.orthogonal_vector import Normals, Weighting, solve_orthogonal
-from core.measurements import Kind
-from core.problem import LinesOfSight, Problem
+from core.estimators.base import AZIMUTHS, SolveOptions, get_estimator, register
+from core.estimators.result import Estimates, FixWarning
 
 #: Re-takes of the tangent plane at the solution (exact on the ellipsoid after two).
 PLANE_PASSES = 3
@@ -85,256 +95,369 @@ PROJECTED_THRESHOLD = 1e-4
 ROW_PROJECTION_STEPS = 3
 #: Step halvings the Newton CTLS tries before it gives up on a step.
 MAX_HALVINGS = 30
+#: Step (rad) of the central differences of the projected CTLS covariance.
+DIFFERENCE_STEP_RAD = 1e-6
 CTLS_VARIANTS = ("newton", "projected")
 
 
-def _plane_passes(problem: Problem, name: str, solve_in_plane):
-    """Solve in the tangent plane at the current point, move onto the surface, repeat."""
-    los = azimuth_only_lines(problem, name)
-    require_crossing(los, name)
-    position, _ = solve_orthogonal(problem, normals=Normals.AZIMUTH_PLANE, weighting=Weighting.UNIT, name=name)
-    state = None
-    for _ in range(PLANE_PASSES):
-        plane = tangent_plane(problem, position, los.origins_enu_m)
-        equations = azimuth_equations(los, plane)
-        plane_m, state = solve_in_plane(los, plane, equations, plane.coordinates(position), state)
-        position = problem.frame.onto_altitude(plane.point(plane_m), problem.altitude_m)
-    return position, plane, equations, plane_m, state
+class _Solution:
+    """Problems of a batch that passed the refusals, carried through the plane passes.
 
-
-def _scaled_matrix(equations: AzimuthEquations, spread_m: float):
-    return np.column_stack([equations.rows, equations.rhs / spread_m])
-
-
-def _spread_m(los: LinesOfSight, plane) -> float:
-    offsets = np.array([plane.coordinates(r) for r in los.origins_enu_m])
-    return max(float(np.sqrt(np.mean(np.sum(offsets**2, axis=1)))), 1.0)
-
-
-def _null_vector_point(v, spread_m, name):
-    if abs(v[2]) < 1e-12 * np.linalg.norm(v):
-        raise UnobservableGeometry(f"{name}: the total-least-squares solution lies at infinity "
-                                   "(the azimuth lines are parallel)")
-    return -spread_m * v[:2] / v[2]
-
-
-def tls_position(problem: Problem):
-    """TLS fix and its first-order covariance.
-
-    Returns
-    -------
-    position_enu_m : ndarray, shape (3,)
-    covariance_enu_m2 : ndarray, shape (3, 3)
+    ``rows`` index the batch; every other array is over ``rows``. ``alive``
+    turns False when a problem fails in a pass (its error is in ``errors``).
     """
-    name = "tls"
 
-    def solve_in_plane(los, plane, equations, _current, _state):
-        spread = _spread_m(los, plane)
+    def __init__(self, batch: ProblemBatch, name: str, options: SolveOptions):
+        self.name = name
+        self.errors: dict[int, LocalizationError] = azimuth_only_errors(batch, name)
+        lines = Lines.of(batch)
+        for b, error in crossing_errors(lines, name).items():
+            self.errors.setdefault(b, error)
+        rows = np.setdiff1d(np.arange(batch.size), list(self.errors))
+        position = np.zeros((0, 3))
+        if rows.size:
+            start = get_estimator("eove").estimate(batch.take(rows), replace(options, variant=None))
+            self.errors.update({int(rows[j]): error for j, error in start.errors.items()})
+            kept = np.setdiff1d(np.arange(rows.size), list(start.errors))
+            rows, position = rows[kept], np.asarray(start.position_enu_m)[kept]
+        self.rows = rows
+        self.lines = lines.take(rows)
+        self.position = position
+        self.alive = np.ones(rows.size, dtype=bool)
+
+    def fail(self, failed, message: str) -> None:
+        for j in np.flatnonzero(failed & self.alive).tolist():
+            self.errors.setdefault(int(self.rows[j]), UnobservableGeometry(message))
+        self.alive &= ~failed
+
+    def null_vector_points(self, v, spread_m):
+        """Plane points ``(..., 2)`` of homogeneous null vectors ``(..., 3)``; True where one lies at infinity."""
+        at_infinity = ~(np.abs(v[..., 2]) >= 1e-12 * np.linalg.norm(v, axis=-1))
+        scale = np.expand_dims(spread_m, tuple(range(1, v.ndim - 1))) if v.ndim > 2 else spread_m
+        with np.errstate(divide="ignore", invalid="ignore"):
+            points = -scale[..., None] * v[..., :2] / np.where(at_infinity, 1.0, v[..., 2])[..., None]
+        return points, at_infinity
+
+    def passes(self, solve_in_plane):
+        """Solve in the tangent plane at the current point, move onto the surface, repeat.
+
+        ``solve_in_plane(plane, equations, current_m, state) -> (plane_m, state, at_infinity)``.
+        """
+        state = None
+        for _ in range(PLANE_PASSES):
+            plane = tangent_plane(self.lines, self.position)
+            equations = azimuth_equations(self.lines, plane)
+            current = plane.coordinates(self.position)
+            plane_m, state, at_infinity = solve_in_plane(plane, equations, current, state)
+            self.fail(at_infinity, f"{self.name}: the total-least-squares solution lies at infinity "
+                                   "(the azimuth lines are parallel)")
+            plane_m = np.where(self.alive[:, None], plane_m, current)
+            self.position = self.lines.onto_altitude(plane.point(plane_m))
+        return plane, equations, plane_m, state
+
+    def estimates(self, batch: ProblemBatch, covariance_plane_m2, plane: TangentPlane, details, **per_row) -> Estimates:
+        """Estimates of the whole batch; ``per_row`` arrays over ``rows`` go into the same-named fields."""
+        size = batch.size
+        position = np.full((size, 3), np.nan)
+        covariance = np.full((size, 3, 3), np.nan)
+        alive = self.rows[self.alive]
+        position[alive] = self.position[self.alive]
+        covariance[alive] = plane.to_common(covariance_plane_m2)[self.alive]
+        fields = {}
+        for name, (values, fill) in per_row.items():
+            full = np.full(size, fill, dtype=np.asarray(values).dtype)
+            full[self.rows] = values
+            fields[name] = full
+        errors = {b: self.errors[b] for b in sorted(self.errors)}
+        return Estimates(position_enu_m=position, covariance_source="propagated", covariance_enu_m2=covariance,
+                         errors=errors, details=details, **fields)
+
+
+def _variance(lines: Lines) -> np.ndarray:
+    return np.where(lines.mask, lines.sigma_azimuth_rad, 0.0) ** 2
+
+
+def _scaled_matrix(equations: AzimuthEquations, spread_m):
+    return np.concatenate([equations.rows, (equations.rhs / spread_m[:, None])[..., None]], axis=-1)
+
+
+def _tls(batch: ProblemBatch, options: SolveOptions):
+    """TLS fixes and their first-order covariances, as a :class:`_Solution` and plane covariances."""
+    run = _Solution(batch, "tls", options)
+
+    def solve_in_plane(plane, equations, _current, _state):
+        spread = plane_spread_m(run.lines, plane)
         matrix = _scaled_matrix(equations, spread)
-        _, _, vt = np.linalg.svd(matrix, full_matrices=False)
-        return _null_vector_point(vt[-1], spread, name), (matrix, spread)
+        _, _, vt = np.linalg.svd(matrix)
+        points, at_infinity = run.null_vector_points(vt[:, -1], spread)
+        return points, (matrix, spread), at_infinity
 
-    position, plane, equations, plane_m, (matrix, spread) = _plane_passes(problem, name, solve_in_plane)
-    los = problem.lines_of_sight()
-    eigenvalues, vectors = np.linalg.eigh(matrix.T @ matrix)
-    v = vectors[:, 0]
-    derivative_rows = -np.column_stack([equations.along_rows, equations.along_rhs / spread])
-    ds_v = derivative_rows * (matrix @ v)[:, None] + matrix * (derivative_rows @ v)[:, None]
-    resolvent = vectors[:, 1:] / (eigenvalues[1:] - eigenvalues[0])
-    dv = -(ds_v @ resolvent) @ vectors[:, 1:].T
-    d_plane = -spread * (dv[:, :2] * v[2] - v[:2] * dv[:, 2:3]) / v[2] ** 2
-    covariance_plane = (d_plane * los.sigma_azimuth_rad[:, None] ** 2).T @ d_plane
-    return position, plane.axes_enu.T @ covariance_plane @ plane.axes_enu
+    plane, equations, _, (matrix, spread) = run.passes(solve_in_plane)
+    eigenvalues, vectors = np.linalg.eigh(np.einsum("bki,bkj->bij", matrix, matrix))
+    v = vectors[..., 0]
+    derivative_rows = -np.concatenate([equations.along_rows, (equations.along_rhs / spread[:, None])[..., None]],
+                                      axis=-1)
+    ds_v = (derivative_rows * np.einsum("bki,bi->bk", matrix, v)[..., None]
+            + matrix * np.einsum("bki,bi->bk", derivative_rows, v)[..., None])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        resolvent = vectors[..., 1:] / (eigenvalues[:, 1:] - eigenvalues[:, :1])[:, None, :]
+        dv = -np.einsum("bki,bij,blj->bkl", ds_v, resolvent, vectors[..., 1:])
+        v2 = v[:, 2, None, None]
+        d_plane = -spread[:, None, None] * (dv[..., :2] * v2 - v[:, None, :2] * dv[..., 2:3]) / v2**2
+    covariance_plane = np.einsum("bki,bk,bkj->bij", d_plane, _variance(run.lines), d_plane)
+    return run, plane, covariance_plane
+
+
+def _take(equations: AzimuthEquations, rows) -> AzimuthEquations:
+    return AzimuthEquations(equations.rows[rows], equations.rhs[rows], equations.along_rows[rows],
+                            equations.along_rhs[rows])
+
+
+def _residuals(equations: AzimuthEquations, plane_m, weights):
+    """``e`` and ``rho`` ``(B, K)`` at plane coordinates ``(B, 2)`` (``rho`` 1 on padding)."""
+    q0, q1 = plane_m[:, 0, None], plane_m[:, 1, None]
+    a, d = equations.rows, equations.along_rows
+    e = a[..., 0] * q0 + a[..., 1] * q1 - equations.rhs
+    rho = d[..., 0] * q0 + d[..., 1] * q1 - equations.along_rhs
+    return e, np.where(weights > 0, rho, 1.0)
+
+
+def _ctls_cost(equations: AzimuthEquations, plane_m, weights):
+    e, rho = _residuals(equations, plane_m, weights)
+    f = e / rho
+    return np.sum(weights * f * f, axis=-1)
 
 
 def _ctls_terms(equations: AzimuthEquations, plane_m, weights):
-    """CTLS cost, gradient, Hessian and Gauss-Newton matrix at plane coordinates."""
-    a, d = equations.rows, equations.along_rows
-    e = a @ plane_m - equations.rhs
-    rho = d @ plane_m - equations.along_rhs
-    f = e / rho
-    grad_f = (a * rho[:, None] - d * e[:, None]) / rho[:, None] ** 2
-    cost = float(np.sum(weights * f * f))
-    gradient = 2.0 * (weights * f) @ grad_f
-    gauss_newton = 2.0 * (grad_f * weights[:, None]).T @ grad_f
-    ad = np.einsum("ki,kj->kij", a, d)
-    hess_f = -(ad + np.swapaxes(ad, 1, 2)) / rho[:, None, None] ** 2 \
-        + 2.0 * (e / rho**3)[:, None, None] * np.einsum("ki,kj->kij", d, d)
-    hessian = gauss_newton + 2.0 * np.einsum("k,kij->ij", weights * f, hess_f)
-    return cost, gradient, hessian, gauss_newton, f, grad_f
-
-
-def newton_ctls_position(problem: Problem, options: SolveOptions):
-    """First-derivative (Newton) CTLS fix; see the module docstring.
+    """CTLS cost, gradient, Hessian and Gauss-Newton matrix at plane coordinates ``(B, 2)``.
 
     Returns
     -------
-    position_enu_m : ndarray, shape (3,)
-    covariance_enu_m2 : ndarray, shape (3, 3)
-    converged : bool
-    iterations : int
+    cost : ndarray, shape (B,)
+    gradient : ndarray, shape (B, 2)
+    hessian, gauss_newton : ndarray, shape (B, 2, 2)
+    f : ndarray, shape (B, K)
+        ``e / rho``.
+    grad_f : ndarray, shape (B, K, 2)
     """
-    name = "ctls"
-    los = problem.lines_of_sight()
-    weights = 1.0 / los.sigma_azimuth_rad**2
+    e, rho = _residuals(equations, plane_m, weights)
+    a0, a1 = equations.rows[..., 0], equations.rows[..., 1]
+    d0, d1 = equations.along_rows[..., 0], equations.along_rows[..., 1]
+    f = e / rho
+    rho2 = rho * rho
+    g0, g1 = (a0 * rho - d0 * e) / rho2, (a1 * rho - d1 * e) / rho2
+    wf = weights * f
+    cost = np.sum(wf * f, axis=-1)
+    gradient = 2.0 * np.stack([np.sum(wf * g0, -1), np.sum(wf * g1, -1)], -1)
+    wg0, wg1 = weights * g0, weights * g1
+    gn00, gn01, gn11 = 2.0 * np.sum(wg0 * g0, -1), 2.0 * np.sum(wg0 * g1, -1), 2.0 * np.sum(wg1 * g1, -1)
+    curvature = 2.0 * e / (rho2 * rho)
+    h00 = np.sum(wf * (-2.0 * a0 * d0 / rho2 + curvature * d0 * d0), -1)
+    h01 = np.sum(wf * (-(a0 * d1 + a1 * d0) / rho2 + curvature * d0 * d1), -1)
+    h11 = np.sum(wf * (-2.0 * a1 * d1 / rho2 + curvature * d1 * d1), -1)
 
-    def solve_in_plane(_los, _plane, equations, current, state):
-        iterations, converged = (0, False) if state is None else state
-        q = current
+    def matrix(m00, m01, m11):
+        return np.stack([np.stack([m00, m01], -1), np.stack([m01, m11], -1)], -2)
+
+    gauss_newton = matrix(gn00, gn01, gn11)
+    hessian = matrix(gn00 + 2.0 * h00, gn01 + 2.0 * h01, gn11 + 2.0 * h11)
+    return cost, gradient, hessian, gauss_newton, f, np.stack([g0, g1], -1)
+
+
+def _positive_definite(matrix) -> np.ndarray:
+    """``(B,)``: the 2x2 matrices pass a Cholesky factorisation (lower triangle, as LAPACK reads it)."""
+    h00, h10, h11 = matrix[:, 0, 0], matrix[:, 1, 0], matrix[:, 1, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        l10 = h10 / np.sqrt(h00)
+        return (h00 > 0) & (h11 - l10 * l10 > 0)
+
+
+def _newton_ctls(batch: ProblemBatch, options: SolveOptions):
+    """First-derivative (Newton) CTLS fixes; see the module docstring."""
+    run = _Solution(batch, "ctls", options)
+    weights = np.where(run.lines.mask, 1.0 / run.lines.sigma_azimuth_rad**2, 0.0)
+    tolerance = options.tolerance_m
+
+    def solve_in_plane(_plane, equations, current, state):
+        iterations = np.zeros(current.shape[0], dtype=int) if state is None else state[0]
+        converged = np.zeros(current.shape[0], dtype=bool)
+        q = current.copy()
         cost, gradient, hessian, gauss_newton, _, _ = _ctls_terms(equations, q, weights)
-        converged = False
+        active = run.alive.copy()
         for _ in range(options.max_iterations):
-            try:
-                np.linalg.cholesky(hessian)
-                matrix = hessian
-            except np.linalg.LinAlgError:
-                matrix = gauss_newton
-            step = -np.linalg.solve(matrix, gradient)
+            rows = np.flatnonzero(active)
+            if rows.size == 0:
+                break
+            part, w = _take(equations, rows), weights[rows]
+            matrix = np.where(_positive_definite(hessian[rows])[:, None, None], hessian[rows], gauss_newton[rows])
+            step = -solve_2x2(matrix, gradient[rows])
+            accepted = np.zeros(rows.size, dtype=bool)
             for _ in range(MAX_HALVINGS):
-                candidate = q + step
-                new = _ctls_terms(equations, candidate, weights)
-                if np.isfinite(new[0]) and new[0] <= cost * (1 + 1e-12) + 1e-300:
+                pending = np.flatnonzero(~accepted)
+                if pending.size == 0:
                     break
-                step = 0.5 * step
-            else:
-                break
-            iterations += 1
-            q = candidate
-            cost, gradient, hessian, gauss_newton, _, _ = new
-            if np.linalg.norm(step) < options.tolerance_m:
-                converged = True
-                break
-        return q, (iterations, converged)
+                with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                    trial = _ctls_cost(_take(part, pending), q[rows[pending]] + step[pending], w[pending])
+                good = np.isfinite(trial) & (trial <= cost[rows[pending]] * (1 + 1e-12) + 1e-300)
+                accepted[pending[good]] = True
+                step[pending[~good]] *= 0.5
+            active[rows[~accepted]] = False
+            moved = rows[accepted]
+            step = step[accepted]
+            iterations[moved] += 1
+            q[moved] = q[moved] + step
+            cost[moved], gradient[moved], hessian[moved], gauss_newton[moved], _, _ = _ctls_terms(
+                _take(equations, moved), q[moved], weights[moved])
+            small = np.linalg.norm(step, axis=-1) < tolerance
+            converged[moved[small]] = True
+            active[moved[small]] = False
+        return q, (iterations, converged), np.zeros(q.shape[0], dtype=bool)
 
-    position, plane, equations, plane_m, (iterations, converged) = _plane_passes(problem, name, solve_in_plane)
+    plane, equations, plane_m, (iterations, converged) = run.passes(solve_in_plane)
     _, _, hessian, _, f, grad_f = _ctls_terms(equations, plane_m, weights)
-    inverse = np.linalg.inv(hessian)
-    gain = 2.0 * (weights * (1.0 + 3.0 * f * f))[:, None] * grad_f @ inverse
-    covariance_plane = (gain * los.sigma_azimuth_rad[:, None] ** 2).T @ gain
-    return position, plane.axes_enu.T @ covariance_plane @ plane.axes_enu, converged, iterations
+    gain = 2.0 * (weights * (1.0 + 3.0 * f * f))[..., None] * np.einsum("bki,bij->bkj", grad_f, inverse_2x2(hessian))
+    covariance_plane = np.einsum("bki,bk,bkj->bij", gain, _variance(run.lines), gain)
+    return run, plane, covariance_plane, iterations, converged
 
 
-def _row_basis(los: LinesOfSight, plane, spread_m):
-    """Rows an azimuth ``g`` can produce: ``cos g U_i + sin g V_i``, each ``(K, 3)``."""
-    to_common = np.swapaxes(los.rotations, -1, -2)
-    east, north = to_common[:, :, 0], to_common[:, :, 1]
-    relative = los.origins_enu_m - plane.centre_enu_m
+def _row_basis(lines: Lines, plane: TangentPlane, spread_m):
+    """Rows an azimuth ``g`` can produce: ``cos g U_i + sin g V_i``, each ``(B, K, 3)`` (zero on padding)."""
+    relative = lines.origins_enu_m - plane.centre_enu_m[:, None, :]
+    mask = lines.mask[..., None]
 
     def row(vector):
-        return np.column_stack([vector @ plane.axes_enu.T, np.einsum("ki,ki->k", vector, relative) / spread_m])
+        return np.concatenate([np.einsum("bki,bji->bkj", vector, plane.axes_enu),
+                               (np.einsum("bki,bki->bk", vector, relative) / spread_m[:, None])[..., None]],
+                              axis=-1) * mask
 
-    return row(east), -row(north)
+    return row(lines.rotations[..., 0, :]), -row(lines.rotations[..., 1, :])
 
 
-def _projected_passes(basis_cos, basis_sin, azimuth_rad, weights_sqrt, max_passes: int, frozen: bool):
-    """Alternating projections for a batch of azimuth sets.
+def _projected_passes(basis_cos, basis_sin, azimuth_rad, weights_sqrt, max_passes, frozen: bool):
+    """Alternating projections for S azimuth sets, each with its own basis.
 
     Parameters
     ----------
-    basis_cos, basis_sin : ndarray, shape (K, 3)
-    azimuth_rad : ndarray, shape (B, K)
+    basis_cos, basis_sin : ndarray, shape (S, K, 3)
+    azimuth_rad : ndarray, shape (S, K)
         Measured azimuths (each set is projected independently).
-    weights_sqrt : ndarray, shape (K,)
-    max_passes : int
+    weights_sqrt : ndarray, shape (S, K)
+        Zero on padding.
+    max_passes : ndarray of int, shape (S,)
     frozen : bool
         Run exactly ``max_passes`` passes instead of stopping at the threshold.
 
     Returns
     -------
-    null_vectors : ndarray, shape (B, 3)
-    passes : int
-    converged : bool
-        Every set reached the threshold.
+    null_vectors : ndarray, shape (S, 3)
+    passes : ndarray of int, shape (S,)
+    converged : ndarray of bool, shape (S,)
+        The set reached the threshold.
     """
-    azimuth = np.array(azimuth_rad, dtype=float)
-    done = False
-    for passes in range(1, max_passes + 1):
-        c, sn = np.cos(azimuth)[..., None], np.sin(azimuth)[..., None]
-        matrix = (c * basis_cos + sn * basis_sin) * weights_sqrt[:, None]
-        u, s, vt = np.linalg.svd(matrix, full_matrices=False)
-        done = bool(np.all(s[:, -1] / np.linalg.norm(s, axis=-1) < PROJECTED_THRESHOLD))
-        if passes == max_passes or (done and not frozen):
+    count = azimuth_rad.shape[0]
+    azimuth = np.asarray(azimuth_rad, dtype=float)
+    null_vectors = np.zeros((count, 3))
+    passes = np.zeros(count, dtype=int)
+    done = np.zeros(count, dtype=bool)
+    running = np.arange(count)
+    bc, bs, w, az, limit = basis_cos, basis_sin, weights_sqrt[..., None], azimuth, max_passes
+    divisor = np.where(w > 0, w, 1.0)
+    for number in range(1, int(np.max(max_passes, initial=0)) + 1):
+        c, sn = np.cos(az)[..., None], np.sin(az)[..., None]
+        matrix = (c * bc + sn * bs) * w
+        eigenvalues, vectors = np.linalg.eigh(np.matmul(np.swapaxes(matrix, -1, -2), matrix))
+        smallest = vectors[..., 0]
+        frobenius2 = np.sum(matrix * matrix, axis=(-2, -1))
+        reached = np.sqrt(np.maximum(eigenvalues[:, 0], 0.0) / frobenius2) < PROJECTED_THRESHOLD
+        null_vectors[running], passes[running], done[running] = smallest, number, reached
+        going = ~((number == limit) | (reached & (not frozen)))
+        if not np.any(going):
             break
-        target = (matrix - s[:, -1, None, None] * u[:, :, -1:] * vt[:, -1:, :]) / weights_sqrt[:, None]
+        if not np.all(going):
+            running, matrix, smallest, limit = running[going], matrix[going], smallest[going], limit[going]
+            bc, bs, az, w, divisor = bc[going], bs[going], az[going], w[going], divisor[going]
+        # the rank-2 approximation M (I - v v^T), v the smallest right singular vector
+        reduced = matrix - np.sum(matrix * smallest[:, None, :], axis=-1)[..., None] * smallest[:, None, :]
+        target = reduced / divisor
         for _ in range(ROW_PROJECTION_STEPS):
-            c, sn = np.cos(azimuth)[..., None], np.sin(azimuth)[..., None]
-            row = c * basis_cos + sn * basis_sin
-            slope = -sn * basis_cos + c * basis_sin
+            c, sn = np.cos(az)[..., None], np.sin(az)[..., None]
+            row = c * bc + sn * bs
+            slope = -sn * bc + c * bs
             gap = row - target
             first = np.einsum("bki,bki->bk", slope, gap)
             slope2 = np.einsum("bki,bki->bk", slope, slope)
             second = slope2 - np.einsum("bki,bki->bk", row, gap)
-            azimuth = azimuth - first / np.where(second > 0, second, slope2)
-    return vt[:, -1, :], passes, done
+            denominator = np.where(second > 0, second, slope2)
+            az = az - first / np.where(denominator != 0, denominator, 1.0)
+    return null_vectors, passes, done
 
 
-def projected_ctls_position(problem: Problem, options: SolveOptions):
-    """Projected CTLS fix and its first-order covariance; see the module docstring.
+def _projected_ctls(batch: ProblemBatch, options: SolveOptions):
+    """Projected CTLS fixes and their first-order covariances; see the module docstring."""
+    run = _Solution(batch, "ctls", options)
+    lines = run.lines
+    inverse_sigma = np.where(lines.mask, 1.0 / lines.sigma_azimuth_rad, 0.0)
+    weights_sqrt = inverse_sigma / (np.sum(inverse_sigma, axis=-1) / np.maximum(lines.count, 1))[:, None]
+    allowed = np.full(lines.count.size, options.max_iterations)
 
-    Returns
-    -------
-    position_enu_m : ndarray, shape (3,)
-    covariance_enu_m2 : ndarray, shape (3, 3)
-    passes : int
-        Projection passes of the last plane.
-    converged : bool
-    """
-    name = "ctls"
-    los = problem.lines_of_sight()
-    weights_sqrt = 1.0 / los.sigma_azimuth_rad
-    weights_sqrt = weights_sqrt / np.mean(weights_sqrt)
+    def solve_in_plane(plane, _equations, _current, _state):
+        spread = plane_spread_m(lines, plane)
+        basis = _row_basis(lines, plane, spread)
+        v, used, converged = _projected_passes(*basis, lines.azimuth_rad, weights_sqrt, allowed, False)
+        points, at_infinity = run.null_vector_points(v, spread)
+        return points, (used, converged, basis, spread), at_infinity
 
-    def solve_in_plane(_los, plane, _equations, _current, _state):
-        spread = _spread_m(los, plane)
-        basis = _row_basis(los, plane, spread)
-        v, used, converged = _projected_passes(*basis, los.azimuth_rad[None], weights_sqrt,
-                                               options.max_iterations, False)
-        return _null_vector_point(v[0], spread, name), (used, converged, basis, spread)
+    plane, _, _, (used, converged, basis, spread) = run.passes(solve_in_plane)
+    size, k = lines.mask.shape
+    step = DIFFERENCE_STEP_RAD * np.eye(k)
+    perturbed = np.concatenate([lines.azimuth_rad[:, None, :] + step, lines.azimuth_rad[:, None, :] - step], axis=1)
+    sets = 2 * k
 
-    position, plane, _, _, (used, converged, basis, spread) = _plane_passes(problem, name, solve_in_plane)
-    count = los.count
-    step = DIFFERENCE_STEP_RAD * np.eye(count)
-    perturbed = np.concatenate([los.azimuth_rad + step, los.azimuth_rad - step])
-    v, _, _ = _projected_passes(*basis, perturbed, weights_sqrt, used, True)
-    plane_m = np.array([_null_vector_point(row, spread, name) for row in v])
-    gain = (plane_m[:count] - plane_m[count:]) / (2 * DIFFERENCE_STEP_RAD)
-    covariance_plane = (gain * los.sigma_azimuth_rad[:, None] ** 2).T @ gain
-    return position, plane.axes_enu.T @ covariance_plane @ plane.axes_enu, used, converged
+    def each_set(values):
+        return np.repeat(values, sets, axis=0)
+
+    v, _, _ = _projected_passes(each_set(basis[0]), each_set(basis[1]), perturbed.reshape(size * sets, k),
+                                each_set(weights_sqrt), each_set(np.where(run.alive, used, 0)), True)
+    points, at_infinity = run.null_vector_points(v.reshape(size, sets, 3), spread)
+    run.fail(np.any(at_infinity & run.alive[:, None], axis=-1),
+             "ctls: the total-least-squares solution lies at infinity (the azimuth lines are parallel)")
+    gain = (points[:, :k] - points[:, k:]) / (2 * DIFFERENCE_STEP_RAD)
+    with np.errstate(invalid="ignore"):
+        covariance_plane = np.einsum("bki,bk,bkj->bij", gain, _variance(lines), gain)
+    return run, plane, covariance_plane, used, converged
 
 
-def _tls(problem: Problem, options: SolveOptions) -> Estimate:
+def _details(batch: ProblemBatch, **first) -> list[dict]:
+    unused = has_elevations(batch)
+    base = {"bearing_errors": "conventional: the azimuth residuals at the fix"}
+    with_unused = {**base, "unused_measurements": "elevations: an azimuth-only method with the altitude known"}
+    return [{**first, **(with_unused if unused[b] else base)} for b in range(batch.size)]
+
+
+@register("tls", "total least squares on the azimuth pseudolinear equations (azimuth-only, known altitude)",
+          uses=AZIMUTHS)
+def tls(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     """TLS baseline of paper 004; see the module docstring."""
-    position, covariance = tls_position(problem)
-    return Estimate(position, covariance, details=_details(problem))
+    run, plane, covariance_plane = _tls(batch, options)
+    return run.estimates(batch, covariance_plane, plane, _details(batch))
 
 
-def _ctls(problem: Problem, options: SolveOptions) -> Estimate:
+@register("ctls", "constrained total least squares on the azimuth equations (azimuth-only, known altitude); "
+                  "variant newton (default) or projected", variants=CTLS_VARIANTS, uses=AZIMUTHS)
+def ctls(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     """CTLS baselines of paper 004; ``options.variant`` in {"newton", "projected"}, default newton."""
     variant = options.variant or "newton"
-    if variant not in CTLS_VARIANTS:
-        raise InvalidInput(f"ctls variant must be one of {', '.join(CTLS_VARIANTS)}; got {variant!r}",
-                           ("options", "variant"))
-    warnings = []
+    details = _details(batch, variant=variant)
     if variant == "newton":
-        position, covariance, converged, iterations = newton_ctls_position(problem, options)
-    else:
-        position, covariance, iterations, converged = projected_ctls_position(problem, options)
-        if not converged:
-            warnings.append(FixWarning(
-                "not_converged", f"projected CTLS: normalised reduced-rank error still above {PROJECTED_THRESHOLD:g} "
-                                 f"after {iterations} passes; the last pass is returned"))
-    return Estimate(position, covariance, converged=converged, iterations=iterations, warnings=tuple(warnings),
-                    details={"variant": variant, **_details(problem)})
-
-
-register("tls", "total least squares on the azimuth pseudolinear equations (azimuth-only, known altitude)")(
-    per_problem(_tls, "propagated"))
-register("ctls", "constrained total least squares on the azimuth equations (azimuth-only, known altitude); "
-                 "variant newton (default) or projected", variants=CTLS_VARIANTS)(per_problem(_ctls, "propagated"))
-
-
-def _details(problem: Problem) -> dict:
-    details = {"bearing_errors": "conventional: the azimuth residuals at the fix"}
-    if problem.count(Kind.ELEVATION):
-        details["unused_measurements"] = "elevations: an azimuth-only method with the altitude known"
-    return details
+        run, plane, covariance_plane, iterations, converged = _newton_ctls(batch, options)
+        return run.estimates(batch, covariance_plane, plane, details, converged=(converged, True),
+                             iterations=(iterations, 0))
+    run, plane, covariance_plane, passes, converged = _projected_ctls(batch, options)
+    warnings: list[tuple] = [()] * batch.size
+    for j in np.flatnonzero(run.alive & ~converged).tolist():
+        warnings[int(run.rows[j])] = (FixWarning(
+            "not_converged", f"projected CTLS: normalised reduced-rank error still above {PROJECTED_THRESHOLD:g} "
+                             f"after {int(passes[j])} passes; the last pass is returned"),)
+    estimates = run.estimates(batch, covariance_plane, plane, details, converged=(converged, True),
+                              iterations=(passes, 0))
+    return replace(estimates, warnings=warnings)

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from core.errors import InvalidInput
 from core.estimators import SolveOptions, solve
-from core.estimators.azimuth_lines import propagate_by_differences
-from core.estimators.total_least_squares import newton_ctls_position, tls_position
 from core.measurements import Kind, predict, residuals
 from core.problem import LocalPoint, build_problem
 from core.simulation.measurements import evaluate
@@ -101,26 +101,57 @@ def test_taylor_wls_uses_elevations_in_3d_without_an_altitude():
     assert np.all(np.isfinite(fix.details["estimated_elevation_errors_rad"]))
 
 
-def test_taylor_wls_refuses_ranges():
-    with pytest.raises(InvalidInput, match="bearings only"):
-        solve(sc.generic_angle_range().problem(), "taylor_wls")
+def test_taylor_wls_leaves_ranges_out_of_its_fit_and_says_so():
+    problem = sc.generic_angle_range().problem()
+    fix = solve(problem, "taylor_wls")
+    ranges = problem.kinds == Kind.RANGE
+    assert ranges.any() and not fix.used[ranges].any() and fix.used[~ranges].all()
+    assert fix.dof == np.count_nonzero(~ranges) - 3
+    assert "measurements_unused" in {w.code for w in fix.warnings}
+
+
+def propagated_by_differences(problem, method, options=None, rows=None):
+    """``G diag(sigma^2) G^T`` with ``G`` the central differences of the fix in the angles ``rows``."""
+    if rows is None:
+        rows = np.flatnonzero((problem.kinds == Kind.AZIMUTH) | (problem.kinds == Kind.ELEVATION))
+    step = 1e-6
+    gain = np.zeros((3, rows.size))
+    for column, row in enumerate(rows):
+        plus, minus = problem.values.copy(), problem.values.copy()
+        plus[row] += step
+        minus[row] -= step
+        gain[:, column] = (solve(problem.with_values(plus), method, options).position_enu_m
+                           - solve(problem.with_values(minus), method, options).position_enu_m) / (2 * step)
+    return (gain * problem.sigmas[rows] ** 2) @ gain.T
 
 
 def test_tls_covariance_is_the_first_order_propagation():
     problem = sc.paper_004(3.0).problem(np.random.default_rng(6))
-    _, covariance = tls_position(problem)
-    rows = np.flatnonzero(problem.kinds == Kind.AZIMUTH)
-    numeric = propagate_by_differences(problem, lambda v: tls_position(problem.with_values(v))[0], rows)
+    covariance = solve(problem, "tls").covariance_enu_m2
+    numeric = propagated_by_differences(problem, "tls")
     np.testing.assert_allclose(covariance, numeric, rtol=1e-4, atol=1e-6 * np.trace(numeric))
 
 
 def test_newton_ctls_covariance_is_the_first_order_propagation():
     problem = sc.generic_azimuth_only(1.0).problem(np.random.default_rng(6))
-    tight = SolveOptions(tolerance_m=1e-9, max_iterations=100)
-    _, covariance, converged, _ = newton_ctls_position(problem, tight)
-    assert converged
-    numeric = propagate_by_differences(problem, lambda v: newton_ctls_position(problem.with_values(v), tight)[0])
-    np.testing.assert_allclose(covariance, numeric, rtol=1e-4, atol=1e-6 * np.trace(numeric))
+    tight = SolveOptions(tolerance_m=1e-9, max_iterations=100, variant="newton")
+    fix = solve(problem, "ctls", tight)
+    assert fix.converged
+    numeric = propagated_by_differences(problem, "ctls", tight)
+    np.testing.assert_allclose(fix.covariance_enu_m2, numeric, rtol=1e-4, atol=1e-6 * np.trace(numeric))
+
+
+@pytest.mark.parametrize("method", ["ple3d", "ws3d"])
+@pytest.mark.parametrize("altitude", [False, True], ids=["3d", "known-altitude"])
+def test_pseudolinear_covariance_is_the_first_order_propagation(method, altitude):
+    """The analytic derivative through the passes (and the foot on the altitude surface) against differences."""
+    scene = sc.generic_3d(1.0)
+    if altitude:
+        scene = replace(scene, altitude_m=scene.target.alt_m)
+    problem = scene.problem(np.random.default_rng(9))
+    covariance = solve(problem, method).covariance_enu_m2
+    numeric = propagated_by_differences(problem, method)
+    np.testing.assert_allclose(covariance, numeric, rtol=1e-5, atol=1e-7 * np.trace(numeric))
 
 
 def test_ctls_defaults_to_newton():
