@@ -7,7 +7,7 @@ default. Units are in the names; angles are degrees.
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal, Union, get_args
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Discriminator, Field, StrictBool, Tag, model_validator
 
@@ -126,6 +126,8 @@ class ToaMeasurement(Strict):
 Measurement = Annotated[Union[BearingMeasurement, RangeMeasurement, ToaMeasurement], Field(discriminator="type")]
 
 Method = Literal[tuple(["auto", *sorted(REGISTRY)])]  # type: ignore[valid-type]
+#: The API method names.
+METHODS = frozenset(get_args(Method))
 
 
 class Constraints(Strict):

@@ -288,7 +288,7 @@ IMPLAUSIBLE_P = 1e-9
 def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     """ML from the closed-form start for the mix; where there is none, or the fit from it did not converge
     or is implausible (chi-square p below ``IMPLAUSIBLE_P``: the start sat in another basin), ML from the
-    geometry's candidates too, keeping the lower cost."""
+    geometry's candidates too, keeping the lower cost when that fit is plausible itself."""
     starts, names, failures = initial_positions(batch)
     missing = ~np.all(np.isfinite(starts), axis=-1)
     solution = iterate(batch, np.where(missing[:, None], batch.stations_enu_m[:, 0] + [0.0, 0.0, 1.0], starts),
@@ -304,7 +304,8 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
         ok = np.all(np.isfinite(found), axis=-1)
         again = iterate(batch.take(rows[ok]), found[ok], options) if np.any(ok) else None
         for j, b in enumerate(rows[ok].tolist()):
-            if missing[b] or again.cost[j] < solution.cost[b]:
+            plausible = chdtrc(max(int(dof[b]), 1), again.cost[j]) >= IMPLAUSIBLE_P
+            if plausible and (missing[b] or again.cost[j] < solution.cost[b]):
                 starts[b], names[b] = found[ok][j], "search"
                 failures.pop(b, None)
                 missing[b] = False

@@ -42,7 +42,8 @@ async def create_fix(body: JsonBody, http: Request, owner: str = Depends(_owner_
             tak.push_fix(http.app, fix, problem_renderings(body))
         return JsonResponse(fix)
     error = result["error"]
-    http.app.state.metrics.fix(body.get("method", "auto") if type(body) is dict else "auto", error["code"])
+    method = body.get("method", "auto") if type(body) is dict else "auto"
+    http.app.state.metrics.fix(method if type(method) is str and method in schemas.METHODS else "invalid", error["code"])
     return Response(orjson.dumps(error), status_code=error["status"], media_type=MEDIA_TYPE)
 
 
