@@ -27,6 +27,7 @@ from core.crlb import information_at
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import FixBatch, SolveOptions, solve_many
 from core.measurements import Kind
+from core.simulation.measurements import EvaluationStopped, evaluate
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from service import schemas
 from service.problems import for_request, localization_problem, problem_body, validation_errors
@@ -118,6 +119,32 @@ def crlb_response(request: schemas.CrlbRequest) -> dict:
         raise UnobservableGeometry("these sensors do not determine the target position (singular information)")
     bound = info.covariance_enu_m2[0]
     return {"crlb_enu_m2": bound.tolist(), "error": error_dict(error_summary(bound))}
+
+
+def _finite(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist() if np.all(np.isfinite(value)) else None
+    return value if math.isfinite(value) else None
+
+
+def evaluation_body(request: schemas.EvaluationRequest, problem: Problem, target_enu_m, methods, should_stop,
+                    chunk_trials: int) -> dict:
+    """The response body of a Monte Carlo evaluation (raises EvaluationStopped when ``should_stop`` says so)."""
+    results = evaluate(problem, target_enu_m, methods, request.trials, np.random.default_rng(request.seed),
+                       request.noise, should_stop=should_stop, chunk_trials=chunk_trials)
+    methods_out = {
+        name: {
+            "rmse_m": _finite(r.rmse_m),
+            "rmse_enu_m": _finite(r.rmse_enu_m),
+            "bias_enu_m": _finite(r.bias_enu_m),
+            "crlb_rmse_m": r.crlb_rmse_m,
+            "efficiency": _finite(r.efficiency),
+            "nees_mean": _finite(r.nees_mean),
+            "failures": r.failures,
+        }
+        for name, r in results.items()
+    }
+    return {"methods": methods_out, "trials": request.trials, "seed": request.seed, "noise": request.noise}
 
 
 def error_dict(summary, i: int = 0) -> dict:

@@ -11,20 +11,17 @@ shuts down. A stopped evaluation stops using the CPU within one chunk.
 from __future__ import annotations
 
 import asyncio
-import math
 import threading
 import time
 
-import numpy as np
 from fastapi import APIRouter, Request
 
-from core.simulation.measurements import EvaluationStopped, evaluate
 from service import schemas
 from service.deps import OwnerDep
 from service.limits import check_evaluation, method_weight
 from service.problems import ApiError
 from service.responses import JsonResponse
-from service.translate import crlb_problem
+from service.translate import EvaluationStopped, crlb_problem, evaluation_body
 
 router = APIRouter(prefix="/v1", tags=["evaluations"])
 
@@ -32,12 +29,6 @@ router = APIRouter(prefix="/v1", tags=["evaluations"])
 CHUNK_UNITS = 2000
 #: How often the route looks for a disconnected client while the evaluation runs.
 POLL_S = 0.2
-
-
-def _finite(value):
-    if isinstance(value, np.ndarray):
-        return value.tolist() if np.all(np.isfinite(value)) else None
-    return value if math.isfinite(value) else None
 
 
 @router.post("/evaluations", operation_id="evaluations-create",
@@ -62,8 +53,7 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
         return cancelled.is_set() or stopping.is_set() or time.monotonic() > deadline
 
     def run():
-        return evaluate(problem, target, methods, request.trials, np.random.default_rng(request.seed), request.noise,
-                        should_stop=should_stop, chunk_trials=chunk)
+        return evaluation_body(request, problem, target, methods, should_stop, chunk)
 
     future = asyncio.get_running_loop().run_in_executor(http.app.state.cpu_pool, run)
     try:
@@ -75,7 +65,7 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
                 cancelled.set()
                 future.cancel()
                 raise ApiError(499, "client_closed", "the client went away")
-        results = future.result()
+        body = future.result()
     except EvaluationStopped:
         if time.monotonic() > deadline:
             raise ApiError(503, "deadline_exceeded",
@@ -85,17 +75,4 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
             from None
     finally:
         cancelled.set()  # the request is over, whatever ended it (a cancelled task at shutdown too)
-    methods_out = {
-        name: {
-            "rmse_m": _finite(r.rmse_m),
-            "rmse_enu_m": _finite(r.rmse_enu_m),
-            "bias_enu_m": _finite(r.bias_enu_m),
-            "crlb_rmse_m": r.crlb_rmse_m,
-            "efficiency": _finite(r.efficiency),
-            "nees_mean": _finite(r.nees_mean),
-            "failures": r.failures,
-        }
-        for name, r in results.items()
-    }
-    return JsonResponse({"methods": methods_out, "trials": request.trials, "seed": request.seed,
-                         "noise": request.noise})
+    return JsonResponse(body)
