@@ -3,7 +3,9 @@
 # (scripts/container_smoke.sh says how to make one without registry access).
 # podman/buildah: build with `--format docker`; the OCI default format drops HEALTHCHECK.
 FROM python:3.11-slim AS build
-ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1
+# numba keeps its compiled kernels here (the venv is not writable at run time); filled below, so a
+# container starts warm when it runs on the build's CPU model and compiles once at start otherwise.
+ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1 NUMBA_CACHE_DIR=/tmp/numba-cache
 WORKDIR /src
 RUN python -m venv /opt/venv
 # Dependencies first, read from pyproject.toml itself (no second list to drift from it) and pinned to the
@@ -19,6 +21,7 @@ COPY service ./service
 # The runtime needs no installer: pip and setuptools leave the venv once it is complete and checked; nor
 # numpy's and scipy's own test suites (about 50 MB).
 RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check \
+    && /opt/venv/bin/python -c "import core.linalg; core.linalg.compile_kernels()" \
     && find /opt/venv/lib/python3*/site-packages/numpy /opt/venv/lib/python3*/site-packages/scipy \
         -type d -name tests -prune -exec rm -rf {} + \
     && (/opt/venv/bin/pip uninstall --yes --quiet setuptools wheel || true) \
@@ -36,9 +39,10 @@ RUN groupadd --system --gid 10001 locator \
     && useradd --system --uid 10001 --gid 10001 --home-dir /app --no-create-home --shell /usr/sbin/nologin locator \
     && mkdir -p /app/var && chown 10001:10001 /app/var
 COPY --from=build /opt/venv /opt/venv
+COPY --from=build --chown=10001:10001 /tmp/numba-cache /tmp/numba-cache
 WORKDIR /app
 USER 10001:10001
-ENV PATH=/opt/venv/bin:$PATH PASSIVE_LOCATOR_STORE=sqlite:////app/var/sessions.db
+ENV PATH=/opt/venv/bin:$PATH PASSIVE_LOCATOR_STORE=sqlite:////app/var/sessions.db NUMBA_CACHE_DIR=/tmp/numba-cache
 VOLUME ["/app/var"]
 EXPOSE 8080
 HEALTHCHECK --interval=30s --timeout=3s --start-period=10s CMD python -c "import urllib.request,sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8080/healthz').status == 200 else 1)"

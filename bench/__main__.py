@@ -1,4 +1,4 @@
-"""``python -m bench``: the performance table of issue 6, printed and written to ``bench/results.md``.
+"""``python -m bench``: the performance table of issues 6 and 9, printed and written to ``bench/results.md``.
 
 Every row measures its subject next to its yardstick in the same run (the
 machine is shared and noisy: only same-run ratios mean anything). HTTP rows
@@ -73,7 +73,7 @@ def _guarded(number: int, what: str, target: str, run) -> bench_rows.Row | list:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short runs (2 s, 2,000 problems): a smoke test")
-    parser.add_argument("--rows", default="1,2,3,4,5,6", help="which rows to run (comma-separated)")
+    parser.add_argument("--rows", default="1,2,3,4,5,6,7", help="which rows to run (comma-separated)")
     parser.add_argument("--duration", type=float, default=None, help="seconds per load run (default 10)")
     parser.add_argument("--batch", type=int, default=None, help="problems in the batch row (default 10,000)")
     parser.add_argument("--output", type=Path, default=RESULTS)
@@ -90,25 +90,26 @@ def main(argv=None) -> int:
     if wanted & {1, 2, 3}:
         with serve() as url:
             if 1 in wanted:
-                print("row 1: single fix over HTTP ...", flush=True)
-                results.append(_guarded(1, "single ML fix over HTTP", ">= 0.60x echo, p99 <= 10 ms",
-                                        lambda: bench_rows.single_fix_row(url, load, duration)))
+                for connections in (1, 16):
+                    print(f"row 1: single fix over HTTP, c={connections} ...", flush=True)
+                    target = ">= 0.5x healthz" if connections == 1 else ">= 0.6x healthz"
+                    results.append(_guarded(1, f"single ML fix over HTTP, c={connections}", target,
+                                            lambda: bench_rows.single_fix_row(url, load, duration, connections)))
             if wanted & {2, 3}:
-                print(f"row 2: batch of {size:,} over HTTP ...", flush=True)
-                out = _guarded(2, f"batch of {size:,} fixes over HTTP", ">= 20,000 fixes/s",
-                               lambda: bench_rows.batch_row(url, size))
-                if isinstance(out, tuple):
-                    row, core_s, problems = out
-                else:
-                    row = out
-                if 2 in wanted:
-                    results.append(row)
-    if 3 in wanted:
-        print("row 3: scipy.optimize.least_squares one by one ...", flush=True)
-        if problems is None:
-            results.append(bench_rows.unavailable(3, "scipy one by one", ">= 100x", "row 2 did not run"))
-        else:
-            results.append(_guarded(3, "scipy one by one", ">= 100x", lambda: bench_rows.scipy_row(problems)))
+                methods = ("ml",) + (bench_rows.CLOSED_FORMS if 2 in wanted else ())
+                for method in methods:
+                    print(f"row 2: batch of {size:,} {method} fixes over HTTP ...", flush=True)
+                    out = _guarded(2, f"batch of {size:,} {method} fixes over HTTP",
+                                   ">= 25,000 fixes/s" if method == "ml" else ">= 20,000 fixes/s",
+                                   lambda: bench_rows.batch_row(url, size, method))
+                    if isinstance(out, tuple):
+                        row, batch_core_s, batch_problems = out
+                        if method == "ml":
+                            core_s, problems = batch_core_s, batch_problems
+                    else:
+                        row = out
+                    if 2 in wanted:
+                        results.append(row)
     if 4 in wanted:
         print("row 4: session epochs over HTTP ...", flush=True)
         results.extend(_guarded(4, "session epochs/s over HTTP", "-",
@@ -120,6 +121,9 @@ def main(argv=None) -> int:
     if 6 in wanted:
         print("row 6: paper 002 grid ...", flush=True)
         results.append(_guarded(6, "paper 002 grid", "<= 10 s", bench_rows.paper_002_row))
+    if 7 in wanted:
+        print("row 7: one fix in core, one call per problem ...", flush=True)
+        results.append(_guarded(7, "one 4-station ML fix in core", "<= 50 us", bench_rows.core_single_row))
     results = [r for item in results for r in (item if isinstance(item, list) else [item])]
     results.sort(key=lambda r: r.number)
 
@@ -129,7 +133,7 @@ def main(argv=None) -> int:
     notes = [f"- row {r.number}: {note}" for r in results for note in r.notes]
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     text = "\n".join([
-        "# Benchmark results (issue 6)",
+        "# Benchmark results (issues 6 and 9)",
         "",
         f"`make bench` (`python -m bench{' ' + ' '.join(argv or sys.argv[1:]) if (argv or sys.argv[1:]) else ''}`)"
         f", {stamp}.",

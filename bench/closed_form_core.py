@@ -17,7 +17,7 @@ import numpy as np
 from bench.scenarios import four_station_requests
 from core.estimators import SolveOptions
 from core.estimators.base import get_estimator
-from service.translate import to_problem_batch
+from service.translate import read_fix_requests
 
 
 def _median_s(run, repeats: int) -> float:
@@ -36,8 +36,9 @@ def main(argv=None) -> int:
         repeats, argv = int(argv[1]), argv[2:]
     size = int(argv[0]) if argv else 10_000
     methods = argv[1:] or ["weighted_eove", "eove"]
-    _, _, _, batch, rest = to_problem_batch(four_station_requests(size, np.random.default_rng(22)))
-    assert not rest and batch.size == size
+    read = read_fix_requests(four_station_requests(size, np.random.default_rng(22)))
+    batch = read.batch
+    assert not read.errors and batch.size == size
     options = SolveOptions()
     gc.collect()
     gc.freeze()

@@ -96,12 +96,13 @@ def _single_phase_times(count: int = 300) -> dict[str, float]:
     return {k: v / count * 1e6 for k, v in totals.items()}
 
 
-def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections: int = 16, rounds: int = 5) -> Row:
-    """Row 1: /v1/fixes against /bench/echo (same body) and /healthz, interleaved in rounds on one server.
+def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections: int, rounds: int = 5) -> Row:
+    """Row 1: /v1/fixes against ``GET /healthz`` (and /bench/echo, same body), interleaved in rounds on one server.
 
-    Each route gets ``duration_s`` in all, as ``rounds`` runs taken in turn (echo, fix, healthz, echo, ...),
+    Each route gets ``duration_s`` in all, as ``rounds`` runs taken in turn (healthz, fix, echo, healthz, ...),
     so a burst of load from elsewhere on the machine hits all three alike.
     """
+    target = 0.5 if connections == 1 else 0.6
     body = orjson.dumps(four_station_requests(1, np.random.default_rng(11))[0])
     connection = _connection(url)
     for path in ("/v1/fixes", "/bench/echo"):
@@ -114,29 +115,65 @@ def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections
     each = max(1, int(duration_s // rounds))
     runs = {"echo": [], "fix": [], "healthz": []}
     for _ in range(rounds):
-        runs["echo"].append(load.run(f"{url}/bench/echo", each, connections, body))
-        runs["fix"].append(load.run(f"{url}/v1/fixes", each, connections, body))
         runs["healthz"].append(load.run(f"{url}/healthz", each, connections))
+        runs["fix"].append(load.run(f"{url}/v1/fixes", each, connections, body))
+        runs["echo"].append(load.run(f"{url}/bench/echo", each, connections, body))
     (fix_rps, fix_p50, fix_p99, fix_fail), (echo_rps, echo_p50, echo_p99, echo_fail), \
         (health_rps, health_p50, health_p99, health_fail) = (_combined(runs[k]) for k in ("fix", "echo", "healthz"))
-    ratio = fix_rps / echo_rps
-    per_round = [f.requests_per_s / e.requests_per_s for f, e in zip(runs["fix"], runs["echo"])]
-    met_ratio, met_p99 = ratio >= 0.60, fix_p99 <= 10.0
-    verdict = "met" if met_ratio and met_p99 else "missed: " + "; ".join(
-        part for part, ok in ((f"{ratio:.2f}x of echo is {0.60 / ratio:.1f}x short of 0.60x", met_ratio),
-                              (f"p99 {fix_p99:.1f} ms is {fix_p99 / 10.0:.1f}x the 10 ms", met_p99)) if not ok)
+    ratio = fix_rps / health_rps
+    per_round = [f.requests_per_s / h.requests_per_s for f, h in zip(runs["fix"], runs["healthz"])]
+    verdict = "met" if ratio >= target else f"missed: {ratio:.2f}x of healthz is {target / ratio:.1f}x short of {target}x"
     return Row(
         1, f"single ML fix over HTTP (4 stations, 1 worker, c={connections}, {duration_s:g} s per route "
            f"in {rounds} interleaved rounds)",
         f"{fix_rps:,.0f} req/s, p50 {fix_p50:.1f} ms, p99 {fix_p99:.1f} ms",
-        f"echo {echo_rps:,.0f} req/s (p50 {echo_p50:.1f}, p99 {echo_p99:.1f} ms); "
         f"healthz {health_rps:,.0f} req/s (p50 {health_p50:.1f}, p99 {health_p99:.1f} ms)",
-        f"{ratio:.2f}x echo", ">= 0.60x echo, p99 <= 10 ms", verdict,
-        [f"body {len(body)} bytes; load generator {runs['fix'][0].generator}; non-2xx or socket errors: "
-         f"{fix_fail + echo_fail + health_fail}; fix/echo per round: " + ", ".join(f"{r:.2f}" for r in per_round)
-         + "; p50 is the median of the rounds' p50, p99 the worst round's p99",
-         "one fix's server-side work in this process (us): "
-         + "; ".join(f"{k} {v:.0f}" for k, v in _single_phase_times().items())])
+        f"{ratio:.2f}x healthz", f">= {target}x healthz", verdict,
+        [f"c={connections}: body {len(body)} bytes; load generator {runs['fix'][0].generator}; non-2xx or socket "
+         f"errors: {fix_fail + echo_fail + health_fail}; fix/healthz per round: "
+         + ", ".join(f"{r:.2f}" for r in per_round)
+         + f"; the same body to /bench/echo (parse and return): {echo_rps:,.0f} req/s (fix/echo {fix_rps / echo_rps:.2f}x)"]
+        + ([] if connections != 1 else [
+            "one fix's server-side work in this process (us): "
+            + "; ".join(f"{k} {v:.0f}" for k, v in _single_phase_times().items())]))
+
+
+def core_single_row(count: int = 300, rounds: int = 5) -> Row:
+    """Row 7: one four-station ML fix in core, one call per problem, reading the request included.
+
+    Each call reads the request's stations and bearings into the common frame (exact geodesy) and solves
+    it as a batch of one (start, LM, finish with CRLB, residuals and warnings): what ``POST /v1/fixes`` costs
+    apart from HTTP and JSON.
+    """
+    from core.accuracy import error_summary
+    from core.estimators import solve_many
+    from service.translate import read_fix_requests
+
+    requests = four_station_requests(count, np.random.default_rng(13))
+    error_summary(np.eye(3))
+
+    def one(request):
+        read = read_fix_requests([request])
+        return solve_many(read.batch, read.methods, read.options)
+
+    for request in requests[:20]:
+        one(request)
+    per_fix, build = [], []
+    for _ in range(rounds):
+        t = time.perf_counter()
+        for request in requests:
+            one(request)
+        per_fix.append((time.perf_counter() - t) / count * 1e6)
+        t = time.perf_counter()
+        for request in requests:
+            read_fix_requests([request])
+        build.append((time.perf_counter() - t) / count * 1e6)
+    us = float(np.median(per_fix))
+    verdict = "met" if us <= 50 else f"missed: {us:,.0f} us is {us / 50:.0f}x the 50 us"
+    return Row(7, "one 4-station ML fix in core, one call per problem (reading the request into the frame included)",
+               f"{us:,.0f} us per fix (median of {rounds} rounds of {count})",
+               f"of which reading/building {float(np.median(build)):,.0f} us", "-", "<= 50 us", verdict,
+               ["rounds (us per fix): " + ", ".join(f"{x:,.0f}" for x in per_fix)])
 
 
 def _phase_times(problems: list) -> dict[str, float]:
@@ -173,13 +210,20 @@ def _phase_times(problems: list) -> dict[str, float]:
     return times
 
 
-def batch_row(url: str, size: int, repeats: int = 5) -> tuple[Row, float, list]:
-    """Row 2: one POST of ``size`` four-station problems, end to end; and the core's own time per fix."""
+#: The closed forms of the batch row (issue 9's list), each measured like ML.
+CLOSED_FORMS = ("weighted_eove", "eove", "los_intersection", "ple3d", "ws3d", "angle_range", "tls", "ctls",
+                "taylor_wls")
+
+
+def batch_row(url: str, size: int, method: str = "ml", repeats: int = 3) -> tuple[Row, float, list]:
+    """Row 2: one POST of ``size`` four-station problems for ``method``, to the last byte of the answer."""
     from core.estimators import SolveOptions
     from core.estimators.base import get_estimator
     from service.translate import read_fix_requests
 
-    problems = four_station_requests(size, np.random.default_rng(22))
+    target = 25_000 if method == "ml" else 20_000
+    problems = four_station_requests(size, np.random.default_rng(22), method=method,
+                                     with_range=method == "angle_range")
     body = orjson.dumps({"problems": problems})
     connection = _connection(url)
     status, data = _post(connection, "/v1/fixes/batch", body)
@@ -201,22 +245,22 @@ def batch_row(url: str, size: int, repeats: int = 5) -> tuple[Row, float, list]:
     gc.freeze()
     for _ in range(repeats):
         t = time.perf_counter()
-        get_estimator("ml").solve_batch(batch, SolveOptions())
+        get_estimator(method).solve_batch(batch, SolveOptions())
         core_runs.append(time.perf_counter() - t)
     gc.unfreeze()
     core_s = float(np.median(core_runs))
-    phases = _phase_times(problems)
     rate = size / http_s
-    verdict = "met" if rate >= 20_000 else f"missed: {rate:,.0f}/s is {1 - rate / 20_000:.0%} short of 20,000/s"
-    notes = [f"request {len(body) / 1e6:.1f} MB, response {len(data) / 1e6:.1f} MB; {ok}/{size} ok; "
-             f"HTTP times (s) of {repeats} posts: " + ", ".join(f"{e:.3f}" for e in elapsed),
-             "server-side phases of the same batch in this process, on one thread (the route overlaps the core "
-             "and the summaries of later parts with the bodies of earlier ones on two threads) (s): "
-             + "; ".join(f"{k} {v:.3f}" for k, v in phases.items())]
-    row = Row(2, f"batch of {size:,} four-station ML fixes over HTTP (one POST)",
+    verdict = "met" if rate >= target else f"missed: {rate:,.0f}/s is {1 - rate / target:.0%} short of {target:,}/s"
+    notes = [f"{method}: request {len(body) / 1e6:.1f} MB, response {len(data) / 1e6:.1f} MB; {ok}/{size} ok; "
+             f"HTTP times (s) of {repeats} posts: " + ", ".join(f"{e:.3f}" for e in elapsed)]
+    if method == "ml":
+        notes.append("server-side phases of the same batch in this process, on one thread (the route overlaps "
+                     "the core and the summaries of later parts with the bodies of earlier ones on two threads) (s): "
+                     + "; ".join(f"{k} {v:.3f}" for k, v in _phase_times(problems).items()))
+    row = Row(2, f"batch of {size:,} four-station `{method}` fixes over HTTP (one POST)",
               f"{rate:,.0f} fixes/s end to end ({http_s:.3f} s per POST)",
-              f"core only: {core_s / size * 1e6:.1f} us per fix ({size / core_s:,.0f} fixes/s)",
-              f"core is {core_s / http_s:.0%} of HTTP", ">= 20,000 fixes/s", verdict, notes)
+              f"core only (estimate + finish): {core_s / size * 1e6:.1f} us per fix ({size / core_s:,.0f} fixes/s)",
+              f"core is {core_s / http_s:.0%} of HTTP", f">= {target:,} fixes/s", verdict, notes)
     return row, core_s, problems
 
 

@@ -16,7 +16,12 @@ from core import geodesy
 SIGMA_DEG = 0.5
 
 
-def four_station_requests(count: int, rng: np.random.Generator, method: str = "ml") -> list[dict]:
+#: Relative sigma of the range a request carries with ``with_range``.
+RANGE_SIGMA = 0.01
+
+
+def four_station_requests(count: int, rng: np.random.Generator, method: str = "ml",
+                          with_range: bool = False) -> list[dict]:
     """``count`` FixRequest bodies: four stations within ~40 km, a target 20-60 km away.
 
     Parameters
@@ -24,6 +29,8 @@ def four_station_requests(count: int, rng: np.random.Generator, method: str = "m
     count : int
     rng : numpy.random.Generator
     method : str
+    with_range : bool
+        Add a range from the first station (sigma ``RANGE_SIGMA`` of it), as ``angle_range`` needs.
 
     Returns
     -------
@@ -48,6 +55,8 @@ def four_station_requests(count: int, rng: np.random.Generator, method: str = "m
                                 2 * np.pi))
     elevation = np.degrees(np.arctan2(seen[..., 2], np.hypot(seen[..., 0], seen[..., 1]))
                            + sigma * rng.standard_normal((count, 4)))
+    ranges = np.linalg.norm(seen[:, 0], axis=-1)
+    ranges = ranges * (1 + RANGE_SIGMA * rng.standard_normal(count)) if with_range else ranges
     requests = []
     for b in range(count):
         stations, measurements = [], []
@@ -59,5 +68,8 @@ def four_station_requests(count: int, rng: np.random.Generator, method: str = "m
             measurements.append({"type": "bearing", "station_id": sid, "azimuth_deg": float(azimuth[b, s]),
                                  "elevation_deg": float(elevation[b, s]), "sigma_azimuth_deg": SIGMA_DEG,
                                  "sigma_elevation_deg": SIGMA_DEG})
+        if with_range:
+            measurements.append({"type": "range", "station_id": "rx-1", "range_m": float(ranges[b]),
+                                 "sigma_m": RANGE_SIGMA * float(ranges[b])})
         requests.append({"frame": "wgs84", "stations": stations, "measurements": measurements, "method": method})
     return requests

@@ -7,6 +7,7 @@ level, so tests build as many apps as they like with different settings.
 
 from __future__ import annotations
 
+import asyncio
 import importlib.metadata
 import logging
 import threading
@@ -15,6 +16,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
+from core.linalg import compile_kernels
 from service import logs, openapi, problems, web
 from service.coalesce import Coalescer
 from service.metrics import InFlight, Metrics
@@ -66,6 +68,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.fix_coalescer = Coalescer()
         app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
         app.state.stopping = threading.Event()
+        await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, compile_kernels)
         try:
             await store.run(lambda backend: None)  # open now when we can; a store that is down opens later
         except problems.ApiError as error:

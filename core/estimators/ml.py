@@ -260,18 +260,22 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions) -> tuple[np.ndar
     if not np.any(finite):
         return out, rival
     tried, flat = tried[finite], flat[finite]
-    expanded = batch.take(tried)
-    solution = levenberg_marquardt(expanded, flat, options.max_iterations, options.tolerance_m)
-    position = solution.position_enu_m
-    finite = np.all(np.isfinite(position), axis=-1)
-    observable = batch_information(expanded, np.where(finite[:, None], position, 0.0)).observable
-    cost = np.where(finite & observable, solution.cost, np.inf)
+    position, cost = np.empty_like(flat), np.full(tried.size, np.inf)
+    step = max(1, CHUNK_ENTRIES // max(batch.kinds.shape[1], 1))  # memory: candidates x measurements
+    for first in range(0, tried.size, step):
+        part = slice(first, first + step)
+        expanded = batch.take(tried[part])
+        solution = levenberg_marquardt(expanded, flat[part], options.max_iterations, options.tolerance_m)
+        position[part] = solution.position_enu_m
+        finite = np.all(np.isfinite(position[part]), axis=-1)
+        observable = batch_information(expanded, np.where(finite[:, None], position[part], 0.0)).observable
+        cost[part] = np.where(finite & observable, solution.cost, np.inf)
     order = np.lexsort((cost, tried))
     first = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
     good = np.isfinite(cost[first])
     out[tried[first][good]] = position[first][good]
     best = out[tried]
-    scale = np.linalg.norm(best - expanded.stations_enu_m[:, 0], axis=-1)
+    scale = np.linalg.norm(best - batch.stations_enu_m[tried, 0], axis=-1)
     apart = np.linalg.norm(np.nan_to_num(position) - best, axis=-1) > np.maximum(10.0 * options.tolerance_m,
                                                                                 1e-7 * scale)
     close = np.isfinite(cost) & apart & (cost <= cost[first][np.searchsorted(tried[first], tried)] + AMBIGUITY_COST)

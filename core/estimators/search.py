@@ -57,6 +57,11 @@ def candidates(batch: ProblemBatch) -> np.ndarray:
     size = batch.size
     stations, rotations = batch.measurement_stations()
     is_line, elevation, _ = batch.lines_of_sight()
+    # One line per station: repeated looks from a station point the same way (to within their noise).
+    rows = np.arange(is_line.shape[1])
+    earlier = (batch.station_index[:, :, None] == batch.station_index[:, None, :]) & is_line[:, None, :] \
+        & (rows[None, :] < rows[:, None])
+    is_line = is_line & ~np.any(earlier, axis=-1)
     constrained = batch.constrained
     fan = np.concatenate([[np.nan], FAN_ELEVATIONS_RAD])
     # Along each line of sight: (B, M lines, E elevations, D distances); the measured elevation where given.
