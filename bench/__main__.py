@@ -110,6 +110,12 @@ def main(argv=None) -> int:
                         row = out
                     if 2 in wanted:
                         results.append(row)
+    if 3 in wanted:
+        print("row 3: scipy.optimize.least_squares one by one ...", flush=True)
+        if problems is None:
+            results.append(bench_rows.unavailable(3, "scipy one by one", ">= 100x", "row 2 did not run"))
+        else:
+            results.append(_guarded(3, "scipy one by one", ">= 100x", lambda: bench_rows.scipy_row(problems)))
     if 4 in wanted:
         print("row 4: session epochs over HTTP ...", flush=True)
         results.extend(_guarded(4, "session epochs/s over HTTP", "-",

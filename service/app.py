@@ -17,7 +17,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from core.linalg import compile_kernels
-from service import logs, openapi, problems, web
+from service import logs, openapi, problems, tak, web
 from service.coalesce import Coalescer
 from service.metrics import InFlight, Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
@@ -78,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             app.state.stopping.set()  # long computations stop at their next chunk
             app.state.cpu_pool.shutdown(wait=False, cancel_futures=True)
+            tak.close(app)
             store.close()
 
     app = FastAPI(

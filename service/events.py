@@ -18,7 +18,6 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
-from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 import orjson
 
@@ -110,9 +109,9 @@ class RedisBus:
 
     def __init__(self, store, url: str, metrics=None):
         self.store, self.metrics = store, metrics
-        parts = urlsplit(url)
-        rest = urlencode([(k, v) for k, v in parse_qsl(parts.query, keep_blank_values=True) if k != "key_prefix"])
-        self.url = urlunsplit(parts._replace(query=rest))
+        from service.stores.redis import split_url
+
+        self.url, _ = split_url(url)
         self._async_client = None
 
     def channel(self, session_id: str) -> str:

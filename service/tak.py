@@ -139,6 +139,13 @@ def feed(app) -> TakFeed | None:
     return found
 
 
+def close(app, timeout_s: float = 2.0) -> None:
+    """Stop the app's TAK sender thread, if one was made (at shutdown: queued events not yet sent are dropped)."""
+    found = getattr(app.state, "tak_feed", None)
+    if found:
+        found.close(timeout_s)
+
+
 def push(app, event: str | None) -> None:
     """Queue a CoT event for the app's TAK feed, if it has one."""
     target = feed(app)

@@ -59,6 +59,15 @@ return 1
 """
 
 
+def split_url(url: str) -> tuple[str, str]:
+    """A store URL's Redis client URL and its key prefix (our own ``key_prefix`` query parameter, removed)."""
+    parts = urlsplit(url)
+    query = parse_qsl(parts.query, keep_blank_values=True)
+    prefix = next((value for name, value in query if name == "key_prefix"), DEFAULT_PREFIX)
+    rest = urlencode([(name, value) for name, value in query if name != "key_prefix"])
+    return urlunsplit(parts._replace(query=rest)), prefix
+
+
 class RedisStore(SessionStore):
     """Sessions in Redis.
 
@@ -93,11 +102,8 @@ class RedisStore(SessionStore):
         ``timeout_s`` bounds a connect and each read: a dead or stopped Redis costs a call at most that
         (no retries here: the caller's breaker decides what to do next).
         """
-        parts = urlsplit(url)
-        query = parse_qsl(parts.query, keep_blank_values=True)
-        prefix = next((value for name, value in query if name == "key_prefix"), DEFAULT_PREFIX)
-        rest = urlencode([(name, value) for name, value in query if name != "key_prefix"])
-        client = redis.Redis.from_url(urlunsplit(parts._replace(query=rest)), socket_timeout=timeout_s,
+        client_url, prefix = split_url(url)
+        client = redis.Redis.from_url(client_url, socket_timeout=timeout_s,
                                       socket_connect_timeout=timeout_s, health_check_interval=30,
                                       retry=Retry(NoBackoff(), 0))
         return cls(client, prefix, clock)

@@ -196,6 +196,23 @@ def test_tak_feed_sends_fixes_with_cot_options_and_session_updates(monkeypatch, 
         listener.close()
 
 
+def test_the_tak_sender_thread_stops_when_the_app_shuts_down(monkeypatch, tmp_path):
+    listener = Listener()
+    monkeypatch.setenv("PASSIVE_LOCATOR_TAK_URL", f"tcp://127.0.0.1:{listener.port}")
+    try:
+        with TestClient(create_app(Settings(store=f"sqlite:///{tmp_path}/s.db"))) as client:
+            fix = bearing_request(STATIONS_300KM, TARGET, cot={"uid": "tak-1"})
+            assert client.post("/v1/fixes", json=fix).status_code == 200
+            listener.events(1)
+            assert any(t.name == "tak-feed" and t.is_alive() for t in threading.enumerate())
+        deadline = time.monotonic() + 3.0
+        while any(t.name == "tak-feed" and t.is_alive() for t in threading.enumerate()):
+            assert time.monotonic() < deadline, "the TAK sender thread outlived the app"
+            time.sleep(0.02)
+    finally:
+        listener.close()
+
+
 def test_tak_queue_drops_are_counted_and_never_block(monkeypatch, tmp_path):
     with socket.socket() as s:  # a port nobody listens on: every connection attempt fails
         s.bind(("127.0.0.1", 0))
