@@ -2,9 +2,10 @@
 # Make a stand-in for the Dockerfile's base image (python:3.11-slim) in podman's local storage, from Debian
 # bookworm's own packages, for machines that reach Debian's mirror but not a container registry. See
 # scripts/container_smoke.sh for how the stand-in differs from the official image. Does nothing when an image
-# of that name is already there. Run as root (debootstrap and podman import need it).
+# of that name is already there. Installs podman (Debian's) when it is missing. Run as root (debootstrap and podman import need it).
 set -euo pipefail
 BASE=${BASE:-docker.io/library/python:3.11-slim}
+command -v podman >/dev/null || { apt-get update -qq && apt-get install -y -qq podman >/dev/null; }
 podman image exists "$BASE" && { echo "== base $BASE present"; exit 0; }
 if timeout 60 podman pull -q "$BASE" >/dev/null 2>&1; then echo "== pulled $BASE"; exit 0; fi
 command -v debootstrap >/dev/null || { apt-get update -qq && apt-get install -y -qq debootstrap >/dev/null; }
