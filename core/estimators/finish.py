@@ -137,8 +137,10 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     excluded = np.zeros_like(present) if excluded is None else excluded & present
     unused = present & ~valid & ~excluded
     own = estimates.warnings or [()] * size
-    flagged = ~converged | ill | inefficient | outlier | mismatch | collinear | np.any(behind | zenith, axis=-1)
-    flagged |= np.any(unused | excluded, axis=-1)
+    any_behind, any_zenith = np.any(behind, axis=-1), np.any(zenith, axis=-1)
+    any_excluded, any_unused = np.any(excluded, axis=-1), np.any(unused, axis=-1)
+    flagged = ~converged | ill | inefficient | outlier | mismatch | collinear | any_behind | any_zenith
+    flagged |= any_unused | any_excluded
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
     for b in np.flatnonzero(flagged & ~failed):
         found = list(own[b])
@@ -154,14 +156,14 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
                 "inefficient_method",
                 f"{method}'s covariance is {ratio:.0f} x the CRLB in this geometry "
                 "(its equations are nearly degenerate here); ml or weighted_eove reach the bound"))
-        if np.any(behind[b]):
+        if any_behind[b]:
             found.append(FixWarning("behind_station",
                                     f"the fix is behind the line of sight of {_station_list(batch, b, behind[b])}"))
         if collinear[b]:
             found.append(FixWarning(
                 "collinear_geometry",
                 f"lines of sight to the fix span only {np.rad2deg(spread[b]):.2f} deg: range is poorly determined"))
-        if np.any(zenith[b]):
+        if any_zenith[b]:
             found.append(FixWarning("azimuth_undefined",
                                     f"the fix is at the zenith of {_station_list(batch, b, zenith[b])}"))
         if outlier[b]:
@@ -176,10 +178,11 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
                 "sigma_mismatch",
                 f"chi2 = {chi2[b]:.1f} on {dof[b]} dof (p = {p_value[b]:.1e}): residuals are "
                 f"{sigma_scale[b]:.2f} x what the stated sigmas allow"))
-        for source in sorted(set(batch.source_index[b, excluded[b]].tolist())):
-            found.append(FixWarning("measurement_excluded",
-                                    f"measurement {source} failed the consistency test and was excluded"))
-        if np.any(unused[b]):
+        if any_excluded[b]:
+            for source in sorted(set(batch.source_index[b, excluded[b]].tolist())):
+                found.append(FixWarning("measurement_excluded",
+                                        f"measurement {source} failed the consistency test and was excluded"))
+        if any_unused[b]:
             kinds = sorted({Kind(k).name.lower() for k in batch.kinds[b, unused[b]].tolist()})
             found.append(FixWarning(
                 "measurements_unused",
