@@ -108,7 +108,8 @@ def reference_sigma_m(jacobian, weights):
     with np.errstate(invalid="ignore", over="ignore"):
         information = weights * np.sum(jacobian[:, :3] ** 2, axis=1)
     usable = (weights > 0) & np.isfinite(information) & (information > 0)
-    total = np.sum(np.where(usable, information, 0.0), axis=-1)
+    # sequential (cumsum), so that padding a problem with more zero-weight rows cannot change the rounding
+    total = np.cumsum(np.where(usable, information, 0.0), axis=-1)[..., -1]
     count = np.count_nonzero(usable, axis=-1)
     return np.where(count > 0, np.sqrt(count / np.where(count > 0, total, 1.0)), np.nan)
 

@@ -174,3 +174,20 @@ def test_openapi_declares_the_png(client):
     content = spec["paths"]["/v1/crlb/grid"]["post"]["responses"]["200"]["content"]
     assert content["image/png"]["schema"] == {"type": "string", "format": "binary"}
     assert "application/json" in content
+
+
+def test_fix_and_crlb_gdop_is_dimensionless_and_sqrt_trace_keeps_the_metres(client):
+    """Lines of sight crossing at 90 degrees, 7.07 km each, 1 degree: GDOP sqrt(2), sqrt(trace) 1.75 km."""
+    scene = local_request()
+    crlb = client.post("/v1/crlb", json={**{k: scene[k] for k in ("frame", "stations", "sensors", "constraints")},
+                                         "target": {"east_m": 0.0, "north_m": 5000.0}})
+    assert crlb.status_code == 200, crlb.text
+    sigma_m = np.radians(1.0) * np.hypot(5000.0, 5000.0)
+    fix = client.post("/v1/fixes", json={
+        "frame": "local", "stations": scene["stations"], "constraints": {"altitude_m": 0.0}, "method": "ml",
+        "measurements": [{"type": "bearing", "station_id": "a", "azimuth_deg": 45.0, "sigma_azimuth_deg": 1.0},
+                         {"type": "bearing", "station_id": "b", "azimuth_deg": 315.0, "sigma_azimuth_deg": 1.0}]})
+    assert fix.status_code == 200, fix.text
+    for error in (crlb.json()["error"], fix.json()["error"]):
+        assert error["gdop"] == pytest.approx(np.sqrt(2.0), rel=1e-6)
+        assert error["sqrt_trace_m"] == pytest.approx(np.sqrt(2.0) * sigma_m, rel=1e-6)
