@@ -12,9 +12,12 @@ Both take what :mod:`core.coverage` gives (the planning problem, its
   at most :data:`DECADES` decades above the best cell (worse cells saturate),
   unobservable cells grey; the square grid keeps its aspect ratio in the
   requested picture (letterboxed), a colour bar on the right with its range
-  in metres, stations as white rings with their ids. Drawn with Pillow, whose
-  import costs about a tenth of matplotlib's and which sets the picture's size
-  in pixels exactly.
+  in metres, stations as white rings with their ids. Drawn with Pillow, which
+  sets the picture's size in pixels exactly. Measured side by side on a
+  loaded two-core machine, 201 x 201 cells to 640 x 480: Pillow 132 ms, a
+  matplotlib (Agg) imshow with a colour bar 477 ms; a process importing numpy
+  and Pillow 0.6-1.5 s (numpy alone 1.0-1.5 s), numpy and matplotlib.pyplot
+  5.2-8.7 s.
 """
 
 from __future__ import annotations

@@ -88,7 +88,7 @@ class Settings(BaseSettings):
     max_evaluation_cost: int = Field(400_000, ge=1)
     max_batch_cost: int = Field(200_000, ge=1)
     max_fix_cost: int = Field(256 * 1024, ge=1)
-    max_grid_cost: int = Field(500_000, ge=1)
+    max_grid_cost: int = Field(200_000, ge=1)
     dask_scheduler: str | None = None
     cpu_workers: int = Field(2, ge=1, le=64)
     graceful_timeout_s: float = Field(10.0, gt=0.0)

@@ -191,3 +191,21 @@ def test_fix_and_crlb_gdop_is_dimensionless_and_sqrt_trace_keeps_the_metres(clie
     for error in (crlb.json()["error"], fix.json()["error"]):
         assert error["gdop"] == pytest.approx(np.sqrt(2.0), rel=1e-6)
         assert error["sqrt_trace_m"] == pytest.approx(np.sqrt(2.0) * sigma_m, rel=1e-6)
+
+
+def test_on_a_dask_scheduler_the_map_is_the_same_bytes(make_client):
+    distributed = pytest.importorskip("distributed")
+    request = local_request(step_m=500.0)  # 1,681 cells: two chunks
+    here = make_client().post("/v1/crlb/grid", json=request)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:
+        there = make_client(dask_scheduler=cluster.scheduler_address).post("/v1/crlb/grid", json=request)
+    assert here.status_code == there.status_code == 200, there.text
+    assert here.content == there.content
+
+
+def test_past_the_deadline_is_503(make_client):
+    client = make_client(request_deadline_s=1e-6)
+    response = client.post("/v1/crlb/grid", json=local_request(step_m=100.0))  # 40,401 cells, 40 chunks
+    assert response.status_code == 503, response.text
+    assert response.json()["code"] == "deadline_exceeded" and "coverage map" in response.json()["detail"]
