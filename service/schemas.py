@@ -419,13 +419,21 @@ class CoverageFeature(BaseModel):
     properties: CellProperties | StationProperties
 
 
+class GridSummary(BaseModel):
+    rows: int
+    columns: int
+    step_m: float
+    altitude_m: float = Field(description="of every cell: height above the ellipsoid, or up in a flat frame")
+    east_m: list[float] = Field(description="[first, last] column's east coordinate in the common frame")
+    north_m: list[float] = Field(description="[first, last] row's north coordinate in the common frame")
+
+
 class CrlbGridResponse(BaseModel):
     """GeoJSON (RFC 7946): one feature per cell (row-major from the south-west corner), then the stations."""
 
     type: Literal["FeatureCollection"]
     features: list[CoverageFeature]
-    grid: dict[str, Any] = Field(description="rows, columns, step_m, altitude_m, and the cells' east_m and north_m "
-                                             "ranges ([first, last]) in the common frame")
+    grid: GridSummary = Field(description="a foreign member (RFC 7946 section 6.1): the grid's shape")
 
 
 class ProblemError(BaseModel):
