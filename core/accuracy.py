@@ -160,8 +160,9 @@ class ErrorSummary:
         Radius of the sphere holding 50 % of the 3D error.
     vertical_sigma_m : ndarray
     gdop_m : ndarray
-        ``sqrt(trace(C))``, the geometric dilution of precision in metres as
-        the passive-location literature (e.g. paper 002) defines it.
+        ``sqrt(trace(C))`` in metres, what the passive-location literature
+        (e.g. paper 002) calls the GDOP; the dimensionless GDOP is
+        :func:`core.crlb.gdop` (the API reports this value as ``sqrt_trace_m``).
     ellipse_semi_major_m, ellipse_semi_minor_m : ndarray
         95 % horizontal error ellipse.
     ellipse_orientation_rad : ndarray

@@ -9,7 +9,7 @@ position is parameterised by its local east/north offsets and the bound is
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -35,12 +35,15 @@ class Information:
     observable : ndarray of bool, shape (B,)
     min_eigenvalue : ndarray, shape (B,)
         Of the unit-diagonal information; small means nearly unobservable.
+    reference_sigma_m : ndarray, shape (B,), or None
+        The measurements' metres-equivalent sigma (:func:`reference_sigma_m`), where it was computed.
     """
 
     covariance_enu_m2: np.ndarray
     covariance_params: np.ndarray
     observable: np.ndarray
     min_eigenvalue: np.ndarray
+    reference_sigma_m: np.ndarray | None = None
 
 
 def normal_matrix(jacobian, weights, axes, free):
@@ -74,6 +77,60 @@ def normal_matrix(jacobian, weights, axes, free):
     information = (local * weights[:, None, :]) @ np.swapaxes(local, -1, -2)
     information += np.eye(4) * ~free[:, None, :]
     return information, local
+
+
+def reference_sigma_m(jacobian, weights):
+    """The metres-equivalent sigma of each problem's measurements, the unit of :func:`gdop`.
+
+    Measurement ``i`` (sigma ``s_i`` in its own unit, gradient ``g_i`` with
+    respect to the position) moves by ``s_i`` when the position moves by
+    ``s_i / |g_i|`` metres along the gradient: that is its metres-equivalent
+    sigma ``r_i`` (a range: ``sigma_m``; a TOA: ``c sigma_s``; an azimuth:
+    ``sigma_rad`` times the horizontal distance; an elevation: ``sigma_rad``
+    times the slant range). The reference is their information mean,
+    ``sigma_ref = (mean_i r_i^-2)^-1/2``: the one sigma that, given to every
+    measurement, would carry the same total position information. With
+    equal ``r_i`` it is that common value, and :func:`gdop` is then the
+    classical ``sqrt(trace((H^T H)^-1))`` of unit line-of-sight rows.
+
+    Parameters
+    ----------
+    jacobian : ndarray, shape (B, 4, M)
+        As for :func:`normal_matrix` (rows east, north, up, b).
+    weights : ndarray, shape (B, M)
+        ``1 / sigma^2`` in model units; zero for padding (left out).
+
+    Returns
+    -------
+    ndarray, shape (B,)
+        NaN where no measurement has a finite, non-zero gradient.
+    """
+    with np.errstate(invalid="ignore", over="ignore"):
+        information = weights * np.sum(jacobian[:, :3] ** 2, axis=1)
+    usable = (weights > 0) & np.isfinite(information) & (information > 0)
+    # sequential (cumsum), so that padding a problem with more zero-weight rows cannot change the rounding
+    total = np.cumsum(np.where(usable, information, 0.0), axis=-1)[..., -1]
+    count = np.count_nonzero(usable, axis=-1)
+    return np.where(count > 0, np.sqrt(count / np.where(count > 0, total, 1.0)), np.nan)
+
+
+def gdop(covariance_enu_m2, sigma_ref_m):
+    """Dimensionless geometric dilution of precision ``sqrt(trace(C)) / sigma_ref``.
+
+    Parameters
+    ----------
+    covariance_enu_m2 : ndarray, shape (B, 3, 3)
+        A bound (the CRLB) on the position.
+    sigma_ref_m : ndarray, shape (B,)
+        From :func:`reference_sigma_m`.
+
+    Returns
+    -------
+    ndarray, shape (B,)
+        The position (not time) dilution; NaN where ``sigma_ref_m`` is.
+    """
+    trace = np.maximum(np.trace(covariance_enu_m2, axis1=-2, axis2=-1), 0.0)
+    return np.sqrt(trace) / sigma_ref_m
 
 
 def invert_information(information, axes, free) -> Information:
@@ -151,8 +208,9 @@ def batch_information(batch, positions_enu_m, sigmas=None) -> Information:
     model = MeasurementModel(stations, rotations, batch.kinds)
     _, jacobian = model.predict(positions_enu_m, np.zeros(batch.size))
     axes, free = parameterisation(positions_enu_m, batch.altitude_m, batch.has_toa, batch.origin, batch.geodetic)
-    information, _ = normal_matrix(jacobian, batch.weights(sigmas), axes, free)
-    return invert_information(information, axes, free)
+    weights = batch.weights(sigmas)
+    information, _ = normal_matrix(jacobian, weights, axes, free)
+    return replace(invert_information(information, axes, free), reference_sigma_m=reference_sigma_m(jacobian, weights))
 
 
 def information_at(problem, position_enu_m, sigmas=None) -> Information:

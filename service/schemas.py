@@ -198,6 +198,15 @@ class FixRequest(Strict):
         return self
 
 
+GDOP_DESCRIPTION = (
+    "dimensionless geometric (position) dilution of precision: sqrt(trace(CRLB)) / sigma_ref_m, where "
+    "sigma_ref_m = (mean over measurements of r_i^-2)^-1/2 and r_i is measurement i's sigma in metres at the "
+    "target (its sigma over the norm of its gradient with respect to the position: sigma_m for a range, "
+    "c * sigma_s for a TOA, sigma_azimuth_rad x horizontal distance for an azimuth, sigma_elevation_rad x slant "
+    "range for an elevation). With one metres-equivalent sigma for all it is the classical "
+    "sqrt(trace((H^T H)^-1)) of unit line-of-sight rows (for TOA: GNSS PDOP, the emission time marginalised)")
+
+
 class Ellipse(BaseModel):
     semi_major_m: float
     semi_minor_m: float
@@ -208,7 +217,11 @@ class ErrorSummary(BaseModel):
     cep50_m: float
     sep50_m: float
     vertical_sigma_m: float
-    gdop: float = Field(description="sqrt(trace(covariance)) in metres, the passive-location GDOP")
+    gdop: float | None = Field(description=GDOP_DESCRIPTION + "; null where undefined. Of the bound (a fix's crlb_enu_m2), so it describes the "
+                                                       "geometry, not the method. Until issue 14 this field held "
+                                                       "sqrt(trace(covariance)) in metres: that is sqrt_trace_m")
+    sqrt_trace_m: float = Field(description="sqrt(trace(covariance)) in metres, east, north and up (what gdop "
+                                            "held before it became dimensionless)")
     ellipse95: Ellipse
 
 
@@ -326,18 +339,101 @@ class SensorSpec(Strict):
         return self
 
 
-class CrlbRequest(Strict):
+class PlanningGeometry(Strict):
+    """The sensor geometry of a planning request (shared by the bound at a target and the coverage map)."""
+
     frame: Literal["wgs84", "local"] = "wgs84"
     origin: GeodeticPosition | None = None
     stations: list[Station] = Field(min_length=1, max_length=256)
     sensors: list[SensorSpec] = Field(min_length=1, max_length=1024)
-    target: Position
     constraints: Constraints | None = None
+
+
+class CrlbRequest(PlanningGeometry):
+    target: Position
 
 
 class CrlbResponse(BaseModel):
     crlb_enu_m2: Matrix3
     error: ErrorSummary
+
+
+#: Finest grid step: a millimetre (the number of cells is bounded by max_grid_cost anyway).
+MIN_GRID_STEP_M = 1e-3
+
+
+class GridSpec(Strict):
+    """A square grid of target positions in the scene's common east/north/up frame."""
+
+    centre: Position = Field(description="the centre cell (its height is ignored: altitude_m sets every cell's)")
+    half_width_m: float = Field(gt=0.0, le=MAX_COORDINATE_M, description=(
+        "cells reach this far east, west, north and south of the centre (the centre and floor(half_width_m / "
+        "step_m) cells on each side)"))
+    step_m: float = Field(ge=MIN_GRID_STEP_M, le=MAX_COORDINATE_M, description="distance between cell centres")
+    altitude_m: float | None = Field(None, ge=-MAX_COORDINATE_M, le=MAX_COORDINATE_M, description=(
+        "target altitude of every cell: height above the ellipsoid (wgs84 or with an origin), else the up "
+        "coordinate; default constraints.altitude_m, else 0 (when both are given they must agree)"))
+
+
+class ImageSpec(Strict):
+    """Size of the PNG heat map (with Accept: image/png)."""
+
+    width_px: int = Field(640, ge=16, le=4096)
+    height_px: int = Field(480, ge=16, le=4096)
+
+
+class CrlbGridRequest(PlanningGeometry):
+    grid: GridSpec
+    image: ImageSpec = Field(default_factory=ImageSpec, description="used only for the PNG (Accept: image/png)")
+
+
+class CellProperties(BaseModel):
+    """One cell (kind cell) of a coverage map; the bound's values are null where the cell is unobservable."""
+
+    kind: Literal["cell"]
+    row: int = Field(description="0 = southernmost row")
+    column: int = Field(description="0 = westernmost column")
+    east_m: float
+    north_m: float
+    up_m: float = Field(description="cell centre in the scene's common east/north/up frame")
+    unobservable: bool = Field(description="the sensors do not determine a target here (singular information)")
+    cep50_m: float | None = Field(description="horizontal CEP50 of the CRLB")
+    sqrt_trace_crlb_m: float | None = Field(description="sqrt(trace(CRLB)), east, north and up")
+    gdop: float | None = Field(description=GDOP_DESCRIPTION)
+    sigma_ref_m: float | None = Field(description="the metres-equivalent sigma gdop is relative to")
+
+
+class StationProperties(BaseModel):
+    kind: Literal["station"]
+    id: str
+    east_m: float
+    north_m: float
+    up_m: float
+
+
+class CoverageFeature(BaseModel):
+    type: Literal["Feature"]
+    geometry: PolygonGeometry | PointGeometry | None = Field(
+        description="cell: its square (corners step_m / 2 from the centre in the common frame) as "
+                    "[longitude_deg, latitude_deg]; station: a Point; null in a flat local frame")
+    properties: CellProperties | StationProperties
+
+
+class GridSummary(BaseModel):
+    rows: int
+    columns: int
+    step_m: float
+    altitude_m: float = Field(description="of every cell: height above the ellipsoid, or up in a flat frame")
+    east_m: list[float] = Field(description="[first, last] column's east coordinate in the common frame")
+    north_m: list[float] = Field(description="[first, last] row's north coordinate in the common frame")
+
+
+class CrlbGridResponse(BaseModel):
+    """GeoJSON (RFC 7946): one feature per cell (row-major from the south-west corner), then the stations."""
+
+    type: Literal["FeatureCollection"]
+    features: list[CoverageFeature]
+    grid: GridSummary = Field(description="a foreign member (RFC 7946 section 6.1): the grid's shape")
 
 
 class ProblemError(BaseModel):

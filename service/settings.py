@@ -56,6 +56,11 @@ class Settings(BaseSettings):
         25: service.limits).
     max_fix_cost : int
         Largest ``stations x measurements`` of one fix (also of each batch problem).
+    max_grid_cost : int
+        Largest ``cells x measurement rows`` of one coverage map (``POST /v1/crlb/grid``; 422 ``over_limit``).
+    dask_scheduler : str or None
+        Address of a Dask distributed scheduler (``tcp://host:8786``) that runs coverage maps in chunks;
+        None (the default) runs the same chunks in this process, on the CPU pool.
     cpu_workers : int
         Threads for the CPU-bound evaluations, apart from everything else.
     graceful_timeout_s : float
@@ -83,6 +88,8 @@ class Settings(BaseSettings):
     max_evaluation_cost: int = Field(400_000, ge=1)
     max_batch_cost: int = Field(200_000, ge=1)
     max_fix_cost: int = Field(256 * 1024, ge=1)
+    max_grid_cost: int = Field(200_000, ge=1)
+    dask_scheduler: str | None = None
     cpu_workers: int = Field(2, ge=1, le=64)
     graceful_timeout_s: float = Field(10.0, gt=0.0)
     log_level: str = "info"

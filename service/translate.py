@@ -23,16 +23,17 @@ from pydantic import ValidationError
 from core import geodesy
 from core.accuracy import error_summary
 from core.batch import ProblemBatch, build_problem_batch
-from core.crlb import information_at
+from core.coverage import Grid, cells_per_side, grid
+from core.crlb import gdop, information_at
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import FixBatch, SolveOptions, solve_many
 from core.measurements import Kind
 from core.simulation.measurements import EvaluationStopped, evaluate
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from service import schemas
-from service.problems import for_request, localization_problem, problem_body, validation_errors
+from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
-from service.limits import fix_within_limit
+from service.limits import check_grid, fix_within_limit
 
 _COMPONENT_NAMES = {int(Kind.AZIMUTH): "azimuth", int(Kind.ELEVATION): "elevation", int(Kind.RANGE): "range",
                     int(Kind.TOA): "toa"}
@@ -81,8 +82,8 @@ def to_options(request: schemas.FixRequest) -> SolveOptions:
                         outliers=o.outliers, absolute_sigma=o.absolute_sigma)
 
 
-def crlb_problem(request: schemas.CrlbRequest) -> tuple[Problem, np.ndarray]:
-    """A problem whose measurements are the sensors' kinds, and the target in its frame."""
+def planning_problem(request: schemas.PlanningGeometry) -> Problem:
+    """A problem whose measurements are the sensors' kinds (their values unused), in its common frame."""
     measurements = []
     for sensor in request.sensors:
         if sensor.azimuth:
@@ -95,20 +96,28 @@ def crlb_problem(request: schemas.CrlbRequest) -> tuple[Problem, np.ndarray]:
             measurements.append(TimeOfArrival(sensor.station_id, 0.0, sensor.sigma_toa_s))
     if not measurements:
         raise InvalidInput("the sensors measure nothing", ("sensors",))
-    problem = build_problem(
+    return build_problem(
         stations=[(s.id, to_point(s.position)) for s in request.stations],
         measurements=measurements,
         origin=None if request.origin is None else to_point(request.origin),
         altitude_m=_altitude(request.constraints),
     )
-    target = to_point(request.target)
-    if isinstance(target, GeodeticPoint):
+
+
+def in_frame(problem: Problem, position, loc: tuple) -> np.ndarray:
+    """A request position ``(3,)`` in the problem's common ENU frame (InvalidInput at ``loc`` if it cannot be)."""
+    point = to_point(position)
+    if isinstance(point, GeodeticPoint):
         if not problem.frame.is_geodetic:
-            raise InvalidInput("a geodetic target needs a geodetic frame or an origin", ("target",))
-        target_enu = problem.frame.from_geodetic(target.lat_rad, target.lon_rad, target.alt_m)
-    else:
-        target_enu = np.array([target.east_m, target.north_m, target.up_m])
-    return problem, target_enu
+            raise InvalidInput("a geodetic position needs a geodetic frame or an origin", loc)
+        return problem.frame.from_geodetic(point.lat_rad, point.lon_rad, point.alt_m)
+    return np.array([point.east_m, point.north_m, point.up_m])
+
+
+def crlb_problem(request: schemas.CrlbRequest) -> tuple[Problem, np.ndarray]:
+    """A problem whose measurements are the sensors' kinds, and the target in its frame."""
+    problem = planning_problem(request)
+    return problem, in_frame(problem, request.target, ("target",))
 
 
 def crlb_response(request: schemas.CrlbRequest) -> dict:
@@ -117,8 +126,29 @@ def crlb_response(request: schemas.CrlbRequest) -> dict:
     info = information_at(problem, target)
     if not info.observable[0]:
         raise UnobservableGeometry("these sensors do not determine the target position (singular information)")
-    bound = info.covariance_enu_m2[0]
-    return {"crlb_enu_m2": bound.tolist(), "error": error_dict(error_summary(bound))}
+    bound = info.covariance_enu_m2[0:1]
+    return {"crlb_enu_m2": bound[0].tolist(),
+            "error": error_dict(error_summary(bound), gdop(bound, info.reference_sigma_m))}
+
+
+def grid_of_request(request: schemas.CrlbGridRequest, max_grid_cost: int | None = None) -> tuple[Problem, Grid]:
+    """The planning problem and the grid of a coverage-map request.
+
+    Raises 422s with field paths: InvalidInput for a centre that cannot be placed, ``invalid_input`` for an
+    altitude other than the known one, ``over_limit`` when ``cells x measurement rows`` is over ``max_grid_cost``.
+    """
+    problem = planning_problem(request)
+    spec = request.grid
+    known = _altitude(request.constraints)
+    altitude = spec.altitude_m if spec.altitude_m is not None else (0.0 if known is None else known)
+    if known is not None and altitude != known:
+        detail = (f"the grid's altitude_m {altitude:g} differs from constraints.altitude_m {known:g}, the known "
+                  "target altitude")
+        raise ApiError(422, "invalid_input", detail, [{"loc": ["grid", "altitude_m"], "msg": detail}])
+    if max_grid_cost is not None:
+        check_grid(cells_per_side(spec.half_width_m, spec.step_m) ** 2, int(problem.kinds.size), max_grid_cost)
+    centre = in_frame(problem, spec.centre, ("grid", "centre"))
+    return problem, grid(problem, centre, spec.half_width_m, spec.step_m, altitude)
 
 
 def _finite(value):
@@ -147,12 +177,14 @@ def evaluation_body(request: schemas.EvaluationRequest, problem: Problem, target
     return {"methods": methods_out, "trials": request.trials, "seed": request.seed, "noise": request.noise}
 
 
-def error_dict(summary, i: int = 0) -> dict:
+def error_dict(summary, gdops, i: int = 0) -> dict:
+    """The ``error`` block of row ``i`` of an ErrorSummary, with its dimensionless GDOP (``(B,)``, NaN: null)."""
     return {
         "cep50_m": float(summary.cep50_m[i]),
         "sep50_m": float(summary.sep50_m[i]),
         "vertical_sigma_m": float(summary.vertical_sigma_m[i]),
-        "gdop": float(summary.gdop_m[i]),
+        "gdop": _finite(float(gdops[i])),
+        "sqrt_trace_m": float(summary.gdop_m[i]),
         "ellipse95": {
             "semi_major_m": float(summary.ellipse_semi_major_m[i]),
             "semi_minor_m": float(summary.ellipse_semi_minor_m[i]),
@@ -632,7 +664,8 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     covariance_ecef_l = list(np.ascontiguousarray(covariance_ecef))
     lat_l, lon_l, alt_l = np.degrees(lat).tolist(), np.degrees(lon).tolist(), alt.tolist()
     cep, sep = summary.cep50_m.tolist(), summary.sep50_m.tolist()
-    vertical, gdop = summary.vertical_sigma_m.tolist(), summary.gdop_m.tolist()
+    vertical, sqrt_trace = summary.vertical_sigma_m.tolist(), summary.gdop_m.tolist()
+    gdops = [v if math.isfinite(v) else None for v in fixes.gdop.tolist()]
     major, minor = summary.ellipse_semi_major_m.tolist(), summary.ellipse_semi_minor_m.tolist()
     orientation = np.degrees(summary.ellipse_orientation_rad).tolist()
     is_angle = (batch.kinds == _AZ) | (batch.kinds == _EL)
@@ -669,7 +702,8 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
             "covariance_source": source,
             "crlb_enu_m2": crlb_l[b],
             "error": {
-                "cep50_m": cep[b], "sep50_m": sep[b], "vertical_sigma_m": vertical[b], "gdop": gdop[b],
+                "cep50_m": cep[b], "sep50_m": sep[b], "vertical_sigma_m": vertical[b], "gdop": gdops[b],
+                "sqrt_trace_m": sqrt_trace[b],
                 "ellipse95": {"semi_major_m": major[b], "semi_minor_m": minor[b], "orientation_deg": orientation[b]},
             },
             "residuals": [

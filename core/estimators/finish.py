@@ -15,7 +15,7 @@ from scipy.special import chdtrc
 
 from core.angles import line_of_sight_enu
 from core.batch import ProblemBatch
-from core.crlb import invert_information, normal_matrix, parameterisation
+from core.crlb import gdop, invert_information, normal_matrix, parameterisation, reference_sigma_m
 from core.errors import LocalizationError, UnobservableGeometry
 from core.measurements import Kind, MeasurementModel
 from core.estimators.result import Estimates, FixBatch, FixWarning
@@ -214,6 +214,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
         details=estimates.details or [{} for _ in range(size)],
         used=valid,
         excluded=excluded,
+        gdop=gdop(crlb, reference_sigma_m(jacobian, weights)),
     )
 
 

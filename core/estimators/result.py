@@ -127,6 +127,8 @@ class Fix:
         The measurements that entered the fit (the others are reported, not judged).
     excluded : ndarray of bool, shape (M,)
         Those outlier exclusion removed.
+    gdop : float
+        Dimensionless, of the CRLB (:func:`core.crlb.gdop`); NaN where undefined.
     """
 
     method: str
@@ -148,6 +150,7 @@ class Fix:
     details: dict = field(default_factory=dict)
     used: np.ndarray | None = None
     excluded: np.ndarray | None = None
+    gdop: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -183,6 +186,8 @@ class FixBatch:
     details : list of dict, length B
     used, excluded : ndarray of bool, shape (B, M)
         As in :class:`Fix`.
+    gdop : ndarray, shape (B,)
+        Dimensionless, of the CRLB at the fix (:func:`core.crlb.gdop`); NaN where undefined.
     """
 
     method: str
@@ -207,6 +212,7 @@ class FixBatch:
     details: list
     used: np.ndarray
     excluded: np.ndarray
+    gdop: np.ndarray
 
     @property
     def size(self) -> int:
@@ -246,6 +252,7 @@ class FixBatch:
             details=dict(self.details[b]),
             used=self.used[b, :m].copy(),
             excluded=self.excluded[b, :m].copy(),
+            gdop=float(self.gdop[b]),
         )
 
     def fixes(self) -> list[Fix | LocalizationError]:
@@ -319,5 +326,5 @@ class FixBatch:
 
 _MEASUREMENT_FIELDS = ("residuals", "normalized_residuals", "studentized_residuals", "used", "excluded")
 _ARRAY_FIELDS = ("position_enu_m", "covariance_enu_m2", "crlb_enu_m2", "chi2", "dof", "p_value", "sigma_scale",
-                 "converged", "iterations", "coarse_position_enu_m", *_MEASUREMENT_FIELDS)
+                 "converged", "iterations", "coarse_position_enu_m", "gdop", *_MEASUREMENT_FIELDS)
 _LIST_FIELDS = ("warnings", "estimated_bearing_errors_rad", "details")

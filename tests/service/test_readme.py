@@ -26,7 +26,8 @@ def readme_requests() -> list[tuple[str, str, str | None]]:
 def test_the_readme_examples_answer(client):
     requests = readme_requests()
     assert [(m, p.split("?")[0]) for m, p, _ in requests] == [
-        ("POST", "/v1/fixes"), ("POST", "/v1/fixes/batch"), ("POST", "/v1/crlb"), ("POST", "/v1/evaluations"),
+        ("POST", "/v1/fixes"), ("POST", "/v1/fixes/batch"), ("POST", "/v1/crlb"), ("POST", "/v1/crlb/grid"),
+        ("POST", "/v1/evaluations"),
         ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$ID/measurements"), ("GET", "/v1/sessions/$ID")]
     session_id = None
     for method, path, body in requests:
@@ -41,5 +42,8 @@ def test_the_readme_examples_answer(client):
             assert answer["cot"].startswith("<event") and answer["geojson"]["type"] == "FeatureCollection"
         if path == "/v1/fixes/batch":
             assert [r["ok"] for r in answer["results"]] == [True, False] and answer["geojson"]["features"]
+        if path == "/v1/crlb/grid":
+            assert answer["grid"]["rows"] == 61 and not any(f["properties"].get("unobservable")
+                                                            for f in answer["features"])
         if path.endswith("/measurements"):
             assert answer["applied"] == 3
