@@ -4,19 +4,20 @@ Run from the repository root::
 
     .venv/bin/python -m tests.core.tracking.record_golden
 
-It runs the filters in ``tests/core/tracking/reference/`` (the frozen copy of commit ed7cbfd) on the
-scenarios below and writes one JSON file per run. JSON floats are Python's ``repr``, which reads back to
-the same bits, and every state is :meth:`core.tracking.TrackState.to_dict`, so ``from_dict`` restores it
-exactly. A file holds
+It runs the session filters of :mod:`core.tracking` on the scenarios below and writes one gzipped
+JSON file per run (the committed files were recorded from the old filters instead, see
+``golden/README.md``; record again only after a deliberate change of the filter, and say why in the
+commit). JSON floats are Python's ``repr``, which reads back to the same bits, and every state is
+:meth:`core.tracking.TrackState.to_dict`, so ``from_dict`` restores it exactly. A file holds
 
 - ``config``: the :class:`~core.tracking.TrackerConfig` fields;
 - ``epochs``: every epoch of the run, ``[time_s, azimuth_rad, elevation_rad, azimuth_rate_rad_s, toa_s]``;
 - ``steps``: the indices of the recorded epochs (see :func:`recorded_epochs`);
-- ``states``: ``{i: state}``, the reference's state *before* epoch ``i`` (``"0"`` is ``new_state``), for
+- ``states``: ``{i: state}``, the filter's state *before* epoch ``i`` (``"0"`` is ``new_state``), for
   every ``i`` in ``steps`` and ``i + 1``: each recorded epoch has its input and its output;
 - ``resets``: ``{i: state}``, a state planted before epoch ``i`` (the covariance-repair scenario): the
   input of that epoch, from which every run continues;
-- ``sensitivity``: the yardstick of the whole-run check, the reference's own largest deviation
+- ``sensitivity``: the yardstick of the whole-run check, the filter's own largest deviation
   (``test_regression.deviation``) from itself when every azimuth is moved one unit in the last place,
   taken over the states recorded.
 """
@@ -32,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
+from core.tracking import new_state, step
 from tests.core.tracking.scenarios import paper_config
 
 GOLDEN_DIR = Path(__file__).with_name("golden")
@@ -126,8 +128,7 @@ def recorded_epochs(epochs, outputs, resets) -> list[int]:
 
 
 def record(case, name):
-    """Run the reference on one configuration and scenario; the JSON-able record (see the module docstring)."""
-    from tests.core.tracking.reference.session import new_state, step
+    """Run the filter on one configuration and scenario; the JSON-able record (see the module docstring)."""
     from tests.core.tracking.test_regression import deviation
 
     model, known, extra = case
