@@ -191,40 +191,6 @@ def test_toa_update_equals_the_augmented_textbook_filter(period_known):
     np.testing.assert_array_equal(cov[:offset, :offset], state.covariance[:offset, :offset])
 
 
-@pytest.mark.parametrize("period_known", [True, False])
-@pytest.mark.parametrize("pseudo_range_errors", ["correlated", "independent"])
-def test_the_fused_tracking_step_equals_steps_1_2_3_one_after_another(period_known, pseudo_range_errors):
-    """velocity_kinematic's tracking step folds step 1's covariance change into step 3's; doing the steps
-    with the general functions, each forming its covariance, gives the same state to rounding."""
-    config, state, epoch = tracking_state(period_known, pseudo_range_errors=pseudo_range_errors)
-    fused = step(state, epoch, config)
-    correlated = pseudo_range_errors == "correlated"
-    dt = epoch.time_s - state.time_s
-    q = config.accel_sigma_mps2**2
-    blocks = ((3, 6), True) if correlated else ((3,), True, 6)
-    mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt, q, *blocks)
-    range_m = float(np.linalg.norm(mean[:3]))
-    dtoa = epoch.toa_s - state.toa_s
-    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
-    mean, cov, period_s, cross = kinematic_update(mean, cov, 6, round(dtoa / state.pulse_period_s), dtoa,
-                                                  state.pulse_period_s, los, d_az, d_el, range_m, config)
-    pseudo = range_pseudo_measurement(mean, cov, 6, cross, epoch.azimuth_rad, epoch.elevation_rad,
-                                      epoch.azimuth_rate_rad_s, config, range_m)
-    assert isinstance(pseudo, RangePseudoMeasurement)
-    mean, cov, _ = polar_update(mean, cov, 6, cross, pseudo, epoch.azimuth_rad, epoch.elevation_rad,
-                                config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2)
-    if not correlated:
-        cov[:6, 6:] = 0.0
-        cov[6:, :6] = 0.0
-    scale = np.sqrt(np.diag(cov))
-    assert fused.pulse_period_s == pytest.approx(period_s, rel=1e-15)
-    assert fused.last_range_measurement_m == pytest.approx(pseudo.range_m, rel=1e-13)
-    np.testing.assert_allclose(fused.mean, mean, rtol=0, atol=1e-12 * (np.abs(mean).max()))
-    np.testing.assert_allclose(fused.covariance / np.outer(scale, scale), cov / np.outer(scale, scale), rtol=0,
-                               atol=1e-12)
-    assert np.all(fused.covariance == fused.covariance.T)
-
-
 def test_range_jacobian_matches_finite_differences():
     config = paper_config("velocity_kinematic", True)
     mean = np.array([-300.0, 100.0, 2.0, 0.0])

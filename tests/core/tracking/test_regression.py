@@ -80,7 +80,7 @@ def test_the_recordings_cover_every_branch():
     codes, stages = set(), set()
     models = set()
     for path in GOLDEN:
-        config, epochs, steps, states, resets, _ = load(path)
+        config, _, steps, states, _, _ = load(path)
         models.add((config.model, config.period_known, config.pseudo_range_errors))
         for i in steps:
             codes |= {code for code, _ in states[i + 1].warnings}
