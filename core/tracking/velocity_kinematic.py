@@ -33,8 +33,8 @@ import math
 import numpy as np
 
 from core.tracking.config import TrackerConfig
-from core.tracking.kinematic import (RangePseudoMeasurement, initial_position_state, kinematic_epoch,
-                                     range_pseudo_measurement)
+from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, initial_position_state,
+                                     range_pseudo_measurement, velocity_update)
 from core.tracking.linalg import repaired_block
 from core.tracking.motion import constant_velocity_predict
 from core.tracking.state import TrackState, freeze, symmetric
@@ -50,7 +50,6 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
     dt_s = time_s - state.time_s
     correlated = config.pseudo_range_errors == "correlated"
     q = config.accel_sigma_mps2**2
-    warnings: list = []
     tracking = state.stage == "tracking"
     mean = state.mean.tolist()
     if tracking:
@@ -62,8 +61,10 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
         mean, cov = constant_velocity_predict(mean, state.covariance, dt_s, q, (0,), False)
         range_m = None
         offset = 0
-    mean, cov, period_s, cross = kinematic_epoch(mean, cov, offset, state.pulse_period_s, dt_s, toa_s - state.toa_s,
-                                                 azimuth, elevation, range_m, config, warnings)
+    mean, cov, period_s, cross, step1_warnings = velocity_update(
+        mean, cov, offset, state.pulse_period_s, ToaEpoch(dt_s, toa_s - state.toa_s, azimuth, elevation, range_m),
+        config)
+    warnings = list(step1_warnings)
     pseudo = range_pseudo_measurement(mean, cov, offset, cross, azimuth, elevation, rate, config, range_m)
     if not isinstance(pseudo, RangePseudoMeasurement):
         if tracking or pseudo.near_radial:

@@ -12,8 +12,8 @@ from core.angles import line_of_sight_enu, wrap_to_pi
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import new_state, step
 from core.tracking.config import SPEED_OF_LIGHT_MPS
-from core.tracking.kinematic import (RangePseudoMeasurement, kinematic_update, line_of_sight_derivatives,
-                                     range_pseudo_measurement)
+from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, line_of_sight_derivatives,
+                                     range_pseudo_measurement, velocity_update)
 from core.tracking.unscented import constant_velocity_predict, polar_update, transition
 from tests.core.tracking.scenarios import paper_config
 
@@ -176,9 +176,10 @@ def test_toa_update_equals_the_augmented_textbook_filter(period_known):
     offset = 6
     dtoa = epoch.toa_s - state.toa_s
     n_pulses = round(dtoa / state.pulse_period_s)
-    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
-    mean, cov, period_s, _ = kinematic_update(state.mean.tolist(), state.covariance, offset, n_pulses, dtoa,
-                                              state.pulse_period_s, los, d_az, d_el, None, config)
+    mean, cov, period_s, _, warnings = velocity_update(
+        state.mean.tolist(), state.covariance, offset, state.pulse_period_s,
+        ToaEpoch(epoch.time_s - state.time_s, dtoa, epoch.azimuth_rad, epoch.elevation_rad), config)
+    assert warnings == ()
     want_mean, want_cov = reference_toa_update(state.mean, state.covariance, offset, n_pulses, dtoa,
                                                state.pulse_period_s, epoch.azimuth_rad, epoch.elevation_rad, config)
     if not period_known:

@@ -223,7 +223,7 @@ def test_a_step_3_update_that_is_not_finite_leaves_step_1_applied(monkeypatch):
     (velocity, period, TOA reference) and the predicted position, says ``numerical_failure``, and the next
     epochs go on normally."""
     from core.tracking import unscented
-    from core.tracking.kinematic import kinematic_update, line_of_sight_derivatives
+    from core.tracking.kinematic import ToaEpoch, velocity_update
     from core.tracking.unscented import constant_velocity_predict
 
     config = paper_config("velocity_kinematic", False)
@@ -245,11 +245,10 @@ def test_a_step_3_update_that_is_not_finite_leaves_step_1_applied(monkeypatch):
     assert "numerical_failure" in {code for code, _ in held.warnings}
     mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, epoch.time_s - state.time_s,
                                           config.accel_sigma_mps2**2, (3, 6), True)
-    dtoa = epoch.toa_s - state.toa_s
-    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
-    mean, cov, period_s, _ = kinematic_update(mean, cov, 6, round(dtoa / state.pulse_period_s), dtoa,
-                                              state.pulse_period_s, los, d_az, d_el, float(np.linalg.norm(mean[:3])),
-                                              config)
+    mean, cov, period_s, _, _ = velocity_update(
+        mean, cov, 6, state.pulse_period_s, ToaEpoch(epoch.time_s - state.time_s, epoch.toa_s - state.toa_s,
+                                                     epoch.azimuth_rad, epoch.elevation_rad,
+                                                     float(np.linalg.norm(mean[:3]))), config)
     scale = np.sqrt(np.diag(cov))
     np.testing.assert_allclose(held.mean, mean, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(held.covariance / np.outer(scale, scale), cov / np.outer(scale, scale), atol=1e-12)
