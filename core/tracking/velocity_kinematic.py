@@ -78,11 +78,15 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
             if not correlated:
                 new_cov[:6, 6:] = 0.0
                 new_cov[6:, :6] = 0.0
-            if _finite(new_mean, new_cov, warnings):
-                mean, cov, stage = new_mean, new_cov, "tracking"
-                cov = _position_checked(cov, warnings)
+            if _finite(new_mean, new_cov):
+                mean, stage = new_mean, "tracking"
+                cov, repaired = _position_checked(new_cov)
+                warnings += repaired
+            else:
+                warnings.append(_NOT_FINITE)
     elif pseudo is not None:
-        updated = _position_update(mean, cov, cross, pseudo, azimuth, elevation, config, warnings)
+        updated, failed = _position_update(mean, cov, cross, pseudo, azimuth, elevation, config)
+        warnings += failed
         if updated is not None:
             new_mean, new_cov, nis = updated
             if nis > NIS_LIMIT[3]:
@@ -91,39 +95,43 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
             if not correlated:
                 new_cov[:6, 6:] = 0.0
                 new_cov[6:, :6] = 0.0
-            if _finite(new_mean, new_cov, warnings):
-                mean, cov = new_mean, _position_checked(new_cov, warnings)
+            if _finite(new_mean, new_cov):
+                mean = new_mean
+                cov, repaired = _position_checked(new_cov)
+                warnings += repaired
+            else:
+                warnings.append(_NOT_FINITE)
 
     return TrackState(config.model, stage, state.updates + 1, time_s, toa_s, period_s, freeze(np.array(mean)),
                       symmetric(cov), None if pseudo is None else pseudo.range_m, tuple(warnings))
 
 
-def _position_update(mean, cov, cross, pseudo, azimuth, elevation, config, warnings):
-    """Step 3's update; on a covariance that is not positive definite, repair and retry once, then give up
-    (the caller keeps the prediction) rather than fail."""
+_NOT_FINITE = ("numerical_failure", "the position update was not finite and was skipped")
+
+
+def _position_update(mean, cov, cross, pseudo, azimuth, elevation, config):
+    """Step 3's update ``(mean, cov, nis)`` and the warnings it raised; on a covariance that is not positive
+    definite, repair and retry once, then give up (None: the caller keeps the prediction) rather than fail."""
     variances = (config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2)
     try:
-        return polar_update(mean, cov, 6, cross, pseudo, azimuth, elevation, *variances)
+        return polar_update(mean, cov, 6, cross, pseudo, azimuth, elevation, *variances), ()
     except np.linalg.LinAlgError:
         pass
+    repaired = ()
     try:
-        cov = _position_checked(cov, warnings)
-        return polar_update(mean, cov, 6, cross, pseudo, azimuth, elevation, *variances)
+        cov, repaired = _position_checked(cov)
+        return polar_update(mean, cov, 6, cross, pseudo, azimuth, elevation, *variances), repaired
     except (np.linalg.LinAlgError, ArithmeticError, ValueError) as error:
-        warnings.append(("numerical_failure", f"the position update failed ({error}) and was skipped"))
-        return None
+        return None, repaired + (("numerical_failure", f"the position update failed ({error}) and was skipped"),)
 
 
-def _finite(mean, cov, warnings) -> bool:
-    if math.isfinite(sum(mean) + float(np.add.reduce(cov, None))):
-        return True
-    warnings.append(("numerical_failure", "the position update was not finite and was skipped"))
-    return False
+def _finite(mean, cov) -> bool:
+    return math.isfinite(sum(mean) + float(np.add.reduce(cov, None)))
 
 
-def _position_checked(cov, warnings):
-    """``cov`` with its ``[p, v]`` block positive definite (repaired and reported if it was not)."""
+def _position_checked(cov):
+    """``cov`` with its ``[p, v]`` block positive definite, and the warning when it had to be repaired."""
     cov, repaired = repaired_block(cov, 6)
     if repaired:
-        warnings.append(("covariance_repaired", "the position-velocity covariance was not positive definite"))
-    return cov
+        return cov, (("covariance_repaired", "the position-velocity covariance was not positive definite"),)
+    return cov, ()
