@@ -45,8 +45,8 @@ from core.tracking.config import SPEED_OF_LIGHT_MPS as C
 from core.tracking import imm, range_mixture
 from core.tracking.config import TrackerConfig
 from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRACTION, RangePseudoMeasurement,
-                                     count_pulses, fresh_toa_reference, initial_position_state, kinematic_epoch,
-                                     line_of_sight_derivatives, range_pseudo_measurement)
+                                     ToaEpoch, count_pulses, fresh_toa_reference, initial_position_state,
+                                     line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
 from core.tracking.state import TrackState, freeze, symmetric
 from core.tracking.linalg import cholesky_repaired, inverse_cholesky
 from core.tracking.motion import constant_velocity_predict, transition
@@ -82,8 +82,9 @@ def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
 
     if state.stage == "velocity":
         mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt_s, q, (0,), False)
-        mean, cov, period_s, cross = kinematic_epoch(mean, cov, 0, state.pulse_period_s, dt_s, dtoa_s,
-                                                     azimuth, elevation, None, config, warnings)
+        mean, cov, period_s, cross, step1_warnings = velocity_update(
+            mean, cov, 0, state.pulse_period_s, ToaEpoch(dt_s, dtoa_s, azimuth, elevation), config)
+        warnings += step1_warnings
         pseudo = range_pseudo_measurement(mean, cov, 0, cross, azimuth, elevation, rate, config)
         stage = "velocity"
         if isinstance(pseudo, RangePseudoMeasurement):

@@ -95,67 +95,58 @@ def count_pulses(dtoa_s: float, period_s: float, expected_range_change_m: float)
     return n, ratio - n
 
 
-def kinematic_epoch(mean, cov, offset: int, period_s: float, dt_s: float, dtoa_s: float, azimuth_rad: float,
-                    elevation_rad: float, range_m: float | None, config: TrackerConfig, warnings: list):
-    """Step 1 for one (already predicted) epoch: count the pulses, then update or start a new TOA reference.
+class ToaEpoch(NamedTuple):
+    """One epoch as step 1 sees it.
 
-    Parameters
+    Attributes
     ----------
-    mean : list of n floats
-    cov : ndarray, shape (n, n)
-        Predicted state and covariance; the step-1 block is ``[offset:]``.
-    offset : int
-        Where the step-1 block starts (0, or 6 after step 3's ``[p, v]``).
-    period_s : float
-        Period estimate (s).
     dt_s : float
         ``time_s`` interval since the previous epoch (s).
     dtoa_s : float
         TOA difference to the reference TOA (s).
     azimuth_rad, elevation_rad : float
+        This epoch's measured angles (the line of sight of the TOA difference).
     range_m : float or None
-        Current range estimate (m), for the curvature correction.
-    config : TrackerConfig
-    warnings : list
-        ``(code, message)`` pairs are appended to it.
+        Predicted range (m) for the curvature correction; None before there is a position.
+    """
 
-    Returns
-    -------
+    dt_s: float
+    dtoa_s: float
+    azimuth_rad: float
+    elevation_rad: float
+    range_m: float | None = None
+
+
+class VelocityUpdate(NamedTuple):
+    """Step 1's result at one epoch.
+
+    Attributes
+    ----------
     mean : list of n floats
+        Updated state, any period error folded into ``period_s``.
     cov : ndarray, shape (n, n)
-        New arrays (the inputs are not changed).
+        A new array; symmetric to rounding (the caller symmetrises once per step).
     period_s : float
     cross : ndarray, shape (K, 2) or None
-        Covariance of the step-1 error with this epoch's azimuth and elevation
-        errors (None when the TOA was not used).
+        Covariance of the updated step-1 error with this epoch's azimuth and elevation errors (None when
+        the TOA was not used).
+    warnings : tuple of (str, str)
+        ``pulse_count_ambiguous`` (the TOA was not used and becomes the new reference) or
+        ``pulse_count_mismatch``.
     """
-    los, d_az, d_el = line_of_sight_derivatives(azimuth_rad, elevation_rad)
-    n_pulses = usable_pulse_count(mean, offset, period_s, dt_s, dtoa_s, los, warnings)
-    if n_pulses is not None:
-        return kinematic_update(mean, cov, offset, n_pulses, dtoa_s, period_s, los, d_az, d_el, range_m, config)
-    mean, cov = fresh_toa_reference(mean, cov, config)
-    return mean, cov, period_s, None
+
+    mean: list
+    cov: np.ndarray
+    period_s: float
+    cross: np.ndarray | None
+    warnings: tuple
 
 
-def usable_pulse_count(mean, offset: int, period_s: float, dt_s: float, dtoa_s: float, los, warnings: list):
-    """The pulse count between the reference TOA and this one, or None when it is ambiguous (the TOA is
-    then not used); ``pulse_count_ambiguous`` and ``pulse_count_mismatch`` are appended to ``warnings``."""
-    vx, vy, vz = mean[offset:offset + 3]
-    n_pulses, fraction = count_pulses(dtoa_s, period_s, dt_s * (vx * los[0] + vy * los[1] + vz * los[2]))
-    if n_pulses >= 1 and abs(fraction) <= MAX_PULSE_COUNT_FRACTION:
-        if abs(n_pulses * period_s - dt_s) > MAX_INTERVAL_MISMATCH * dt_s:
-            warnings.append(("pulse_count_mismatch",
-                             f"{n_pulses} pulses of {period_s:.9g} s between TOAs, but time_s advanced {dt_s:.6g} s"))
-        return n_pulses
-    warnings.append(("pulse_count_ambiguous",
-                     f"TOA difference {dtoa_s:.9g} s is {n_pulses + fraction:.3f} periods; TOA not used"))
-    return None
-
-
-def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, period_s: float, los, d_az, d_el,
-                     range_m: float | None, config: TrackerConfig):
-    """Kalman update of the step-1 block with one TOA difference (exactly the Joseph form, written as a
-    rank-one downdate).
+def velocity_update(mean, cov, offset: int, period_s: float, epoch: ToaEpoch,
+                    config: TrackerConfig) -> VelocityUpdate:
+    """Step 1 for one predicted epoch: count the pulses, then the Kalman update of the step-1 block with the
+    TOA difference (exactly the Joseph form, written as a rank-one downdate), or a new TOA reference when
+    the count is ambiguous.
 
     The update runs on the state augmented with the new TOA's noise ``b``
     (last), with the row ``h = [0, T u, (n), -1, 1]`` (``-1`` on the old TOA
@@ -170,125 +161,52 @@ def kinematic_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, perio
     - ``P_oo`` (unchanged),
 
     and ``b``'s row is ``-w var_b / S`` with variance ``var_b - var_b^2 / S``.
-    The ``ss`` block is a rank-one downdate by ``w_s w_s^T / S`` with ``S``
-    larger than ``w_s^T P_ss^-1 w_s`` by the noise ``r + var_b > 0``, so it
-    stays positive definite; its products ``w_i w_j`` are formed once for both
-    triangles, so the result is exactly symmetric whenever ``P`` is.
+    In the layout after the update that is ``P' - (w u^T + u w^T - u u^T) / S``,
+    ``P'`` the predicted covariance with the old TOA noise's row and column
+    replaced by the new one's prior (zero, ``var_b``), ``w`` with ``w_b = var_b``
+    and ``u`` equal to ``w`` on the kept step-1 components and ``b``, zero
+    elsewhere. The ``ss`` block is a rank-one downdate with ``S`` larger than
+    ``w_s^T P_ss^-1 w_s`` by the noise ``r + var_b > 0``, so it stays positive
+    definite.
 
     Parameters
     ----------
     mean : list of n floats
     cov : ndarray, shape (n, n)
-        Predicted state and covariance.
+        Predicted state and covariance; the step-1 block is ``[offset:]``.
     offset : int
-        Start of the step-1 block.
-    n_pulses : int
-    dtoa_s : float
-        ``TOA_k - TOA_ref`` (s).
+        Where the step-1 block starts (0, or 6 after step 3's ``[p, v]``).
     period_s : float
-        Current period estimate (s).
-    los, d_az, d_el : tuple of 3 floats
-        Measured line of sight and its derivatives (see :func:`line_of_sight_derivatives`).
-    range_m : float or None
-        Current range estimate (m) for the curvature correction.
+        Period estimate (s).
+    epoch : ToaEpoch
     config : TrackerConfig
 
     Returns
     -------
-    mean : list of n floats
-        Updated state, any period error folded into the returned period.
-    cov : ndarray, shape (n, n)
-        A new array; symmetric to rounding (the caller symmetrises once per step).
-    period_s : float
-    cross : ndarray, shape (K, 2)
-        Covariance of the updated step-1 error with this epoch's azimuth and
-        elevation errors.
+    VelocityUpdate
+        New arrays (the inputs are not changed).
     """
-    update = toa_update(mean, cov, offset, n_pulses, dtoa_s, period_s, los, d_az, d_el, range_m, config)
-    return update.mean, update.covariance(cov), update.period_s, update.angle_cross()
-
-
-class ToaUpdate(NamedTuple):
-    """Step 1's update with one TOA difference, with the covariance change in factored form.
-
-    The new covariance is ``P' - (w u^T + u w^T - u u^T) / S`` where ``P'`` is
-    the predicted covariance with its last row and column replaced by the new
-    TOA noise's prior (zero, ``var_toa``), ``w`` is ``P h`` (its last entry
-    then ``var_toa``) and ``u`` is ``w`` on the kept step-1 components and
-    the new TOA noise, zero elsewhere (see :func:`kinematic_update`). Kept
-    factored so that step 3 can fold it into its own update.
-
-    Attributes
-    ----------
-    mean : list of n floats
-        Updated state, the period error folded into ``period_s``.
-    period_s : float
-    w, u : list of n floats
-    toa_var : float
-        ``(c sigma_toa)^2``.
-    inverse : float
-        ``1 / S``, S the innovation variance.
-    angle_sensitivity : tuple of 2 floats
-        ``(-d z/d B var_B, -d z/d E var_E)``: the covariance of the updated
-        step-1 error with this epoch's azimuth and elevation errors is
-        ``(u[offset:] / S) x angle_sensitivity``.
-    offset : int
-    """
-
-    mean: list
-    period_s: float
-    w: list
-    u: list
-    toa_var: float
-    inverse: float
-    angle_sensitivity: tuple
-    offset: int
-
-    def factors(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(F, G)``, each ``(2, n)``, with the covariance change ``F^T G``: ``F = [w; u]``,
-        ``G = [u; w - u] / S`` (``w - u`` is exactly ``w`` or zero)."""
-        first = np.array((self.w, self.u))
-        second = first[::-1] * self.inverse
-        second[1] -= second[0]
-        return first, second
-
-    def covariance(self, cov: np.ndarray) -> np.ndarray:
-        """The updated covariance ``(n, n)`` (a new array) from the predicted one."""
-        new_cov = self.base(cov.copy())
-        first, second = self.factors()
-        new_cov -= first.T.dot(second)
-        return new_cov
-
-    def base(self, cov: np.ndarray) -> np.ndarray:
-        """``P'``: ``cov`` (changed in place and returned) with the old TOA noise replaced by the new one's prior."""
-        cov[-1] = 0.0
-        cov[:, -1] = 0.0
-        cov[-1, -1] = self.toa_var
-        return cov
-
-    def angle_cross(self) -> np.ndarray:
-        """Covariance ``(K, 2)`` of the updated step-1 error with this epoch's azimuth and elevation errors."""
-        gains = np.array(self.u[self.offset:]) * self.inverse
-        return np.multiply.outer(gains, self.angle_sensitivity)
-
-
-def toa_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, period_s: float, los, d_az, d_el,
-               range_m: float | None, config: TrackerConfig, velocity_block=None) -> ToaUpdate:
-    """:func:`kinematic_update` without forming the new covariance (see :class:`ToaUpdate`).
-
-    ``velocity_block``, if given, is ``(p00, p01, p02, p11, p12, p22)`` of the
-    predicted step-1 velocity covariance (read from ``cov`` otherwise).
-    """
-    n = len(mean)
+    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
     values = list(mean)
     vx, vy, vz = values[offset:offset + 3]
     ux, uy, uz = los
-    interval_s = n_pulses * period_s
     radial = ux * vx + uy * vy + uz * vz
-    z = C * (dtoa_s - interval_s)
-    if range_m is not None:
+    n_pulses, fraction = count_pulses(epoch.dtoa_s, period_s, epoch.dt_s * radial)
+    if not (n_pulses >= 1 and abs(fraction) <= MAX_PULSE_COUNT_FRACTION):
+        values, cov = fresh_toa_reference(values, cov, config)
+        return VelocityUpdate(values, cov, period_s, None, (("pulse_count_ambiguous",
+            f"TOA difference {epoch.dtoa_s:.9g} s is {n_pulses + fraction:.3f} periods; TOA not used"),))
+    warnings = ()
+    if abs(n_pulses * period_s - epoch.dt_s) > MAX_INTERVAL_MISMATCH * epoch.dt_s:
+        warnings = (("pulse_count_mismatch", f"{n_pulses} pulses of {period_s:.9g} s between TOAs, but time_s "
+                                             f"advanced {epoch.dt_s:.6g} s"),)
+
+    n = len(values)
+    interval_s = n_pulses * period_s
+    z = C * (epoch.dtoa_s - interval_s)
+    if epoch.range_m is not None:
         perpendicular2 = max(vx * vx + vy * vy + vz * vz - radial * radial, 0.0)
-        z += interval_s * interval_s * perpendicular2 / (2.0 * range_m)
+        z += interval_s * interval_s * perpendicular2 / (2.0 * epoch.range_m)
     z -= interval_s * radial - values[-1]
     has_period = n - offset == 5
     if has_period:
@@ -297,10 +215,9 @@ def toa_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, period_s: f
     else:
         h = (interval_s * ux, interval_s * uy, interval_s * uz, -1.0)
 
-    if velocity_block is None:
-        (p00, p01, p02), (_, p11, p12), (_, _, p22) = cov[offset:offset + 3, offset:offset + 3].tolist()
-    else:
-        p00, p01, p02, p11, p12, p22 = velocity_block
+    # The angle-induced noise r: the TOA difference's sensitivity to B and E, through u, at the velocity
+    # estimate and over its spread.
+    (p00, p01, p02), (_, p11, p12), (_, _, p22) = cov[offset:offset + 3, offset:offset + 3].tolist()
     ax, ay = d_az[0], d_az[1]
     ex, ey, ez = d_el
     spread_az = ax * ax * p00 + 2.0 * ax * ay * p01 + ay * ay * p11
@@ -314,9 +231,6 @@ def toa_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, period_s: f
     r_angles = var_b * (gb * gb + t2 * spread_az) + var_e * (ge * ge + t2 * spread_el)
     var_toa = (C * config.sigma_toa_s) ** 2
 
-    # w = P h over the predicted state (h is zero outside the step-1 block); then, in the layout after the
-    # update (the new TOA noise b in the old one's place), w_b = var_toa, u = w on the kept step-1
-    # components and b, zero elsewhere: the new covariance is P' - (w u^T + u w^T - u u^T) / S.
     w = cov[:, offset:].dot(h).tolist()
     innovation_var = var_toa + r_angles
     for hi, wi in zip(h, w[offset:]):
@@ -331,7 +245,17 @@ def toa_update(mean, cov, offset: int, n_pulses: int, dtoa_s: float, period_s: f
     if has_period:
         period_s = period_s + values[offset + 3] / C
         values[offset + 3] = 0.0
-    return ToaUpdate(values, period_s, w, u, var_toa, inverse, (-gb * var_b, -ge * var_e), offset)
+
+    new_cov = cov.copy()
+    new_cov[-1] = 0.0
+    new_cov[:, -1] = 0.0
+    new_cov[-1, -1] = var_toa
+    first = np.array((w, u))
+    second = first[::-1] * inverse
+    second[1] -= second[0]
+    new_cov -= first.T.dot(second)
+    cross = np.multiply.outer(np.array(u[offset:]) * inverse, (-gb * var_b, -ge * var_e))
+    return VelocityUpdate(values, new_cov, period_s, cross, warnings)
 
 
 def fresh_toa_reference(mean, cov, config: TrackerConfig):
@@ -435,39 +359,12 @@ def range_pseudo_measurement(mean, cov, offset: int, cross, azimuth_rad: float, 
     -------
     RangePseudoMeasurement or NoRange
     """
-    (pxx, pxy), (_, pyy) = cov[offset:offset + 2, offset:offset + 2].tolist()
-    angle_cross = None if cross is None else tuple(cross[:2].ravel().tolist())
-    return range_from_velocity(mean[offset], mean[offset + 1], (pxx, pxy, pyy), angle_cross, azimuth_rad,
-                               elevation_rad, azimuth_rate_rad_s, config, predicted_range_m)
-
-
-def range_from_velocity(vx: float, vy: float, velocity_cov: tuple, angle_cross: tuple | None, azimuth_rad: float,
-                        elevation_rad: float, azimuth_rate_rad_s: float, config: TrackerConfig,
-                        predicted_range_m: float | None = None):
-    """:func:`range_pseudo_measurement` from scalars.
-
-    Parameters
-    ----------
-    vx, vy : float
-        Step-1 horizontal velocity (m/s).
-    velocity_cov : tuple of 3 floats
-        Its covariance ``(xx, xy, yy)``.
-    angle_cross : tuple of 4 floats or None
-        Covariance of ``(vx, vy)`` errors with this epoch's ``(B, E)`` errors:
-        ``(vx B, vx E, vy B, vy E)``.
-    azimuth_rad, elevation_rad, azimuth_rate_rad_s : float
-    config : TrackerConfig
-    predicted_range_m : float, optional
-
-    Returns
-    -------
-    RangePseudoMeasurement or NoRange
-    """
     sigma_rate = config.sigma_azimuth_rate_rad_s
     rate = azimuth_rate_rad_s
     if abs(rate) < config.min_azimuth_rate_snr * sigma_rate:
         return NoRange(f"|azimuth rate| {abs(rate):.3g} rad/s is below {config.min_azimuth_rate_snr:g} sigma "
                        f"({sigma_rate:.3g} rad/s): near-radial motion", True)
+    vx, vy = mean[offset], mean[offset + 1]
     sb, cb = math.sin(azimuth_rad), math.cos(azimuth_rad)
     ce = math.cos(elevation_rad)
     horizontal_tangential = vx * cb - vy * sb
@@ -491,13 +388,13 @@ def range_from_velocity(vx: float, vy: float, velocity_cov: tuple, angle_cross: 
     d_elevation = at_range * math.tan(elevation_rad)
     d_rate = horizontal_tangential * (variance_rate - rate * rate) / (rate2 * rate2 * ce)
 
-    pxx, pxy, pyy = velocity_cov
+    (pxx, pxy), (_, pyy) = cov[offset:offset + 2, offset:offset + 2].tolist()
     var_b = config.sigma_azimuth_rad**2
     var_e = config.sigma_elevation_rad**2
-    if angle_cross is None:
+    if cross is None:
         velocity_b = velocity_e = 0.0
     else:
-        cxb, cxe, cyb, cye = angle_cross
+        (cxb, cxe), (cyb, cye) = cross[:2].tolist()
         velocity_b = d_vx * cxb + d_vy * cyb
         velocity_e = d_vx * cxe + d_vy * cye
     covariance_rb = velocity_b + d_azimuth * var_b

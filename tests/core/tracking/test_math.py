@@ -1,4 +1,5 @@
-"""The filters' algebra against plain reference implementations and finite differences."""
+"""The filters' algebra against plain (brute-force) reference implementations and finite differences: each piece
+of a step that test_regression's golden vectors only see as a whole."""
 
 from __future__ import annotations
 
@@ -12,8 +13,11 @@ from core.angles import line_of_sight_enu, wrap_to_pi
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import new_state, step
 from core.tracking.config import SPEED_OF_LIGHT_MPS
-from core.tracking.kinematic import (RangePseudoMeasurement, kinematic_update, line_of_sight_derivatives,
-                                     range_pseudo_measurement)
+from core.tracking.joint_ukf import joint_update
+from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, initial_position_state,
+                                     line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
+from core.tracking.linalg import (EIGENVALUE_FLOOR, cholesky_lower, inverse_cholesky, repaired_block,
+                                  symmetrized)
 from core.tracking.unscented import constant_velocity_predict, polar_update, transition
 from tests.core.tracking.scenarios import paper_config
 
@@ -176,9 +180,10 @@ def test_toa_update_equals_the_augmented_textbook_filter(period_known):
     offset = 6
     dtoa = epoch.toa_s - state.toa_s
     n_pulses = round(dtoa / state.pulse_period_s)
-    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
-    mean, cov, period_s, _ = kinematic_update(state.mean.tolist(), state.covariance, offset, n_pulses, dtoa,
-                                              state.pulse_period_s, los, d_az, d_el, None, config)
+    mean, cov, period_s, _, warnings = velocity_update(
+        state.mean.tolist(), state.covariance, offset, state.pulse_period_s,
+        ToaEpoch(epoch.time_s - state.time_s, dtoa, epoch.azimuth_rad, epoch.elevation_rad), config)
+    assert warnings == ()
     want_mean, want_cov = reference_toa_update(state.mean, state.covariance, offset, n_pulses, dtoa,
                                                state.pulse_period_s, epoch.azimuth_rad, epoch.elevation_rad, config)
     if not period_known:
@@ -189,40 +194,6 @@ def test_toa_update_equals_the_augmented_textbook_filter(period_known):
     np.testing.assert_allclose(cov / np.outer(scale, scale), want_cov / np.outer(scale, scale), rtol=0, atol=1e-12)
     np.testing.assert_array_equal(mean[:offset], state.mean[:offset])
     np.testing.assert_array_equal(cov[:offset, :offset], state.covariance[:offset, :offset])
-
-
-@pytest.mark.parametrize("period_known", [True, False])
-@pytest.mark.parametrize("pseudo_range_errors", ["correlated", "independent"])
-def test_the_fused_tracking_step_equals_steps_1_2_3_one_after_another(period_known, pseudo_range_errors):
-    """velocity_kinematic's tracking step folds step 1's covariance change into step 3's; doing the steps
-    with the general functions, each forming its covariance, gives the same state to rounding."""
-    config, state, epoch = tracking_state(period_known, pseudo_range_errors=pseudo_range_errors)
-    fused = step(state, epoch, config)
-    correlated = pseudo_range_errors == "correlated"
-    dt = epoch.time_s - state.time_s
-    q = config.accel_sigma_mps2**2
-    blocks = ((3, 6), True) if correlated else ((3,), True, 6)
-    mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt, q, *blocks)
-    range_m = float(np.linalg.norm(mean[:3]))
-    dtoa = epoch.toa_s - state.toa_s
-    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
-    mean, cov, period_s, cross = kinematic_update(mean, cov, 6, round(dtoa / state.pulse_period_s), dtoa,
-                                                  state.pulse_period_s, los, d_az, d_el, range_m, config)
-    pseudo = range_pseudo_measurement(mean, cov, 6, cross, epoch.azimuth_rad, epoch.elevation_rad,
-                                      epoch.azimuth_rate_rad_s, config, range_m)
-    assert isinstance(pseudo, RangePseudoMeasurement)
-    mean, cov, _ = polar_update(mean, cov, 6, cross, pseudo, epoch.azimuth_rad, epoch.elevation_rad,
-                                config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2)
-    if not correlated:
-        cov[:6, 6:] = 0.0
-        cov[6:, :6] = 0.0
-    scale = np.sqrt(np.diag(cov))
-    assert fused.pulse_period_s == pytest.approx(period_s, rel=1e-15)
-    assert fused.last_range_measurement_m == pytest.approx(pseudo.range_m, rel=1e-13)
-    np.testing.assert_allclose(fused.mean, mean, rtol=0, atol=1e-12 * (np.abs(mean).max()))
-    np.testing.assert_allclose(fused.covariance / np.outer(scale, scale), cov / np.outer(scale, scale), rtol=0,
-                               atol=1e-12)
-    assert np.all(fused.covariance == fused.covariance.T)
 
 
 def test_range_jacobian_matches_finite_differences():
@@ -293,3 +264,165 @@ def test_line_of_sight_derivatives_agree_with_the_angles_module(azimuth, elevati
     numeric_el = (line_of_sight_enu(azimuth, elevation + h) - line_of_sight_enu(azimuth, elevation - h)) / (2 * h)
     np.testing.assert_allclose(d_az, numeric_az, atol=1e-9)
     np.testing.assert_allclose(d_el, numeric_el, atol=1e-9)
+
+
+def joint_measurement(points, n_pulses, interval_s, has_period_error):
+    """``(B, E, c dTOA - n Tr_hat, Bdot)`` of joint states ``(m, F)``, written out from the model."""
+    x, y, z, vx, vy = points[:, :5].T
+    rho = np.hypot(x, y)
+    previous = points[:, :3] - interval_s * points[:, 3:6]
+    change = np.linalg.norm(points[:, :3], axis=1) - np.linalg.norm(previous, axis=1) - points[:, -1]
+    if has_period_error:
+        change = change + n_pulses * points[:, 6]
+    return np.stack((np.arctan2(x, y), np.arctan2(z, rho), change, (y * vx - x * vy) / rho**2), axis=1)
+
+
+def reference_joint_update(mean, cov, measured, n_pulses, period_s, use_toa, config):
+    """The joint UKF's update by brute force: filterpy's Merwe points (alpha 1, beta 0, kappa 0: 2F points of
+    weight 1/2F) and unscented transform, the new TOA noise ``b`` as an explicit state (it enters the TOA row
+    additively), Gaussian conditioning with an explicit inverse, then ``b`` in the old TOA noise's place."""
+    f = mean.shape[0]
+    rows = [0, 1, 2, 3] if use_toa else [0, 1, 3]
+    var_toa = (C * config.sigma_toa_s) ** 2
+    points = MerweScaledSigmaPoints(f, alpha=1.0, beta=0.0, kappa=0.0)
+    sigmas = points.sigma_points(mean, cov)
+    z_sigmas = joint_measurement(sigmas, n_pulses, n_pulses * period_s, f == 8)[:, rows]
+    centre = joint_measurement(mean[None], n_pulses, n_pulses * period_s, f == 8)[0, rows]
+    z_sigmas[:, 0] = centre[0] + wrap_to_pi(z_sigmas[:, 0] - centre[0])
+    noise = np.diag([config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2, var_toa,
+                     config.sigma_azimuth_rate_rad_s**2])[np.ix_(rows, rows)]
+    z_mean, s = unscented_transform(z_sigmas, points.Wm, points.Wc, noise)
+    joint = np.zeros((f + 1, f + 1))
+    joint[:f, :f] = cov
+    joint[f, f] = var_toa
+    cross = np.zeros((f + 1, len(rows)))
+    cross[:f] = (sigmas - mean).T @ np.diag(points.Wc) @ (z_sigmas - z_mean)
+    if use_toa:
+        cross[f, 2] = var_toa
+    innovation = np.asarray(measured)[rows] - z_mean
+    innovation[0] = wrap_to_pi(innovation[0])
+    gain = cross @ np.linalg.inv(s)
+    x = np.append(mean, 0.0) + gain @ innovation
+    p = joint - gain @ s @ gain.T
+    keep = list(range(f - 1)) + [f]
+    x, p = x[keep], p[np.ix_(keep, keep)]
+    nis = innovation @ np.linalg.inv(s) @ innovation
+    return x, p, nis, np.linalg.slogdet(s)[1]
+
+
+@pytest.mark.parametrize("period_known", [True, False])
+@pytest.mark.parametrize("use_toa", [True, False])
+def test_joint_update_equals_the_brute_force_transform(period_known, use_toa):
+    config = paper_config("joint_ukf", period_known, joint_initial_range="kinematic")
+    track = simulate_emitter(paper_001_scenario(epochs=61), np.random.default_rng(11))
+    state = new_state(config)
+    for epoch in track.epochs[:-1]:
+        state = step(state, epoch, config)
+    assert state.stage == "tracking"
+    epoch = track.epochs[-1]
+    dt = epoch.time_s - state.time_s
+    mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, dt, config.accel_sigma_mps2**2,
+                                          (3,), True)
+    dtoa = epoch.toa_s - state.toa_s
+    n_pulses = round(dtoa / state.pulse_period_s)
+    measured = (epoch.azimuth_rad, epoch.elevation_rad, C * (dtoa - n_pulses * state.pulse_period_s),
+                epoch.azimuth_rate_rad_s)
+    got_mean, got_cov, got_nis, got_log_det = joint_update(mean, cov, np.linalg.cholesky(cov), measured, n_pulses,
+                                                           state.pulse_period_s, use_toa, config)
+    want_mean, want_cov, want_nis, want_log_det = reference_joint_update(np.array(mean), cov, measured, n_pulses,
+                                                                         state.pulse_period_s, use_toa, config)
+    if not use_toa:
+        want_mean[-1] = 0.0
+        want_cov[-1] = want_cov[:, -1] = 0.0
+        want_cov[-1, -1] = (C * config.sigma_toa_s) ** 2
+    scale = np.sqrt(np.diag(want_cov))
+    np.testing.assert_allclose(got_mean, want_mean, rtol=0, atol=1e-9 * scale.max())
+    np.testing.assert_allclose(got_cov / np.outer(scale, scale), want_cov / np.outer(scale, scale), rtol=0,
+                               atol=1e-9)
+    assert got_nis == pytest.approx(want_nis, rel=1e-9)
+    assert got_log_det == pytest.approx(want_log_det, rel=1e-12, abs=1e-9)
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 4, 5])
+def test_inverse_cholesky_is_the_inverse_of_numpys_factor(size):
+    rng = np.random.default_rng(size)
+    a = rng.normal(size=(size, size))
+    scale = np.logspace(0, 6, size)
+    matrix = (a @ a.T + np.eye(size)) * np.outer(scale, scale)
+    got = np.array(inverse_cholesky(matrix.tolist()))
+    want = np.linalg.inv(np.linalg.cholesky(matrix))
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+    assert np.all(np.triu(got, 1) == 0.0)
+    indefinite = matrix.copy()
+    indefinite[-1, -1] = -1.0
+    with pytest.raises(np.linalg.LinAlgError):
+        inverse_cholesky(indefinite.tolist())
+    np.testing.assert_array_equal(cholesky_lower(matrix), np.tril(cholesky_lower(matrix)))
+    np.testing.assert_allclose(np.tril(cholesky_lower(matrix)), np.linalg.cholesky(matrix), rtol=1e-12,
+                               atol=1e-12 * np.sqrt(matrix.max()))
+    assert cholesky_lower(indefinite) is None
+
+
+def test_repaired_block_floors_the_correlation_eigenvalues_of_that_block_only():
+    """Brute force: the block's correlation matrix with its eigenvalues floored at EIGENVALUE_FLOOR times the
+    largest (by numpy's eigh), scaled back; the rest of the matrix follows its rows' new scale."""
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(9, 9)) * np.logspace(0, 4, 9)
+    cov = a @ a.T
+    cov[3, 4] = cov[4, 3] = 2.0 * math.sqrt(cov[3, 3] * cov[4, 4])
+    assert np.linalg.eigvalsh(cov[:6, :6]).min() < 0
+    got, repaired = repaired_block(cov, 6)
+    assert repaired
+    scale = np.sqrt(np.diag(cov[:6, :6]))
+    values, vectors = np.linalg.eigh(cov[:6, :6] / np.outer(scale, scale))
+    fixed = (vectors * np.maximum(values, EIGENVALUE_FLOOR * values[-1])) @ vectors.T * np.outer(scale, scale)
+    np.testing.assert_allclose(got[:6, :6], fixed, rtol=1e-9, atol=1e-12 * cov.max())
+    new_scale = np.sqrt(np.diag(got[:6, :6]))
+    np.testing.assert_allclose(got[:6, 6:], cov[:6, 6:] * (new_scale / scale)[:, None], rtol=1e-12)
+    np.testing.assert_array_equal(got[6:, 6:], cov[6:, 6:])
+    np.testing.assert_array_equal(got[6:, :6], got[:6, 6:].T)
+    np.linalg.cholesky(got[:6, :6])
+    same, repaired = repaired_block(got, 6)
+    assert same is got and not repaired
+    np.testing.assert_array_equal(symmetrized(cov + np.triu(cov, 1)), cov + 0.5 * (np.triu(cov, 1) + np.tril(cov, -1)))
+
+
+def test_initial_position_state_is_the_first_order_propagation_by_finite_differences():
+    """The tracking state from the first range: ``p = r(v, B, E, Bdot) u(B, E)`` with the step-1 state carried,
+    its covariance ``G E G^T`` with ``G`` the Jacobian, here by central differences of that map."""
+    config = paper_config("velocity_kinematic", True)
+    mean = [-300.0, 100.0, 2.0, 0.0]
+    rng = np.random.default_rng(8)
+    a = rng.normal(size=(4, 4)) * (2.0, 2.0, 10.0, 3.0)
+    cov = a @ a.T
+    cross = rng.normal(scale=1e-3, size=(4, 2))
+    azimuth, elevation, rate = 0.87, 0.05, -1.7e-3
+    pseudo = range_pseudo_measurement(mean, cov, 0, cross, azimuth, elevation, rate, config)
+    assert isinstance(pseudo, RangePseudoMeasurement)
+    got_mean, got_cov = initial_position_state(pseudo, mean, cov, cross, azimuth, elevation, config, True)
+
+    def position(inputs):
+        vx, vy, vz, toa, b, e, bdot = inputs
+        r = range_pseudo_measurement([vx, vy, vz, toa], cov, 0, cross, b, e, bdot, config).range_m
+        return r * np.array(line_of_sight_enu(b, e))
+
+    base = np.array(mean + [azimuth, elevation, rate])
+    steps = np.array([1e-2, 1e-2, 1e-2, 1e-2, 1e-6, 1e-6, 1e-8])
+    jacobian = np.zeros((13, 7))
+    for i, h in enumerate(steps):
+        up, down = base.copy(), base.copy()
+        up[i] += h
+        down[i] -= h
+        jacobian[:3, i] = (position(up) - position(down)) / (2 * h)
+    jacobian[3:6, :3] = np.eye(3)
+    jacobian[6:10, :4] = np.eye(4)
+    errors = np.zeros((7, 7))
+    errors[:4, :4] = cov
+    errors[:4, 4:6] = cross
+    errors[4:6, :4] = cross.T
+    errors[4:, 4:] = np.diag([config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2,
+                              config.sigma_azimuth_rate_rad_s**2])
+    want_cov = (jacobian @ errors @ jacobian.T)[:10, :10]
+    np.testing.assert_allclose(got_mean, list(position(base)) + mean[:3] + mean, rtol=1e-13)
+    scale = np.sqrt(np.diag(want_cov))
+    np.testing.assert_allclose(got_cov / np.outer(scale, scale), want_cov / np.outer(scale, scale), atol=1e-9)

@@ -191,13 +191,11 @@ def test_a_repaired_covariance_is_reported_not_fatal():
 
 
 @pytest.mark.parametrize("model, targets", [
-    ("velocity_kinematic",
-     ("core.tracking.velocity_kinematic.polar_transform", "core.tracking.unscented.polar_transform")),
+    ("velocity_kinematic", ("core.tracking.unscented.polar_transform",)),
     ("joint_ukf", ("core.tracking.joint_ukf.joint_update",)),
 ])
 def test_an_update_that_fails_outright_is_skipped_and_reported(monkeypatch, model, targets):
-    """The step-3 transform (both the fused tracking path's and the general one it falls back to) or the
-    joint update raises: the epoch is applied without it and ``numerical_failure`` says so."""
+    """The step-3 transform or the joint update raises: the epoch is applied without it and ``numerical_failure`` says so."""
     config = paper_config(model, True)
     track = simulate_emitter(paper_001_scenario(epochs=60), np.random.default_rng(7))
     state = new_state(config)
@@ -224,8 +222,8 @@ def test_a_step_3_update_that_is_not_finite_leaves_step_1_applied(monkeypatch):
     """velocity_kinematic's tracking step: when step 3's transform yields NaN, the epoch keeps step 1's update
     (velocity, period, TOA reference) and the predicted position, says ``numerical_failure``, and the next
     epochs go on normally."""
-    import core.tracking.velocity_kinematic as velocity_kinematic
-    from core.tracking.kinematic import kinematic_update, line_of_sight_derivatives
+    from core.tracking import unscented
+    from core.tracking.kinematic import ToaEpoch, velocity_update
     from core.tracking.unscented import constant_velocity_predict
 
     config = paper_config("velocity_kinematic", False)
@@ -234,24 +232,23 @@ def test_a_step_3_update_that_is_not_finite_leaves_step_1_applied(monkeypatch):
     for epoch in track.epochs[:60]:
         state = step(state, epoch, config)
     assert state.initialized
-    real = velocity_kinematic.polar_transform
+    real = unscented.polar_transform
 
     def poisoned(*args, **kwargs):
         transform = real(*args, **kwargs)
         return transform._replace(whitened=(math.nan,) * len(transform.whitened))
 
-    monkeypatch.setattr(velocity_kinematic, "polar_transform", poisoned)
+    monkeypatch.setattr(unscented, "polar_transform", poisoned)
     epoch = track.epochs[60]
     held = step(state, epoch, config)
     monkeypatch.undo()
     assert "numerical_failure" in {code for code, _ in held.warnings}
     mean, cov = constant_velocity_predict(state.mean.tolist(), state.covariance, epoch.time_s - state.time_s,
                                           config.accel_sigma_mps2**2, (3, 6), True)
-    dtoa = epoch.toa_s - state.toa_s
-    los, d_az, d_el = line_of_sight_derivatives(epoch.azimuth_rad, epoch.elevation_rad)
-    mean, cov, period_s, _ = kinematic_update(mean, cov, 6, round(dtoa / state.pulse_period_s), dtoa,
-                                              state.pulse_period_s, los, d_az, d_el, float(np.linalg.norm(mean[:3])),
-                                              config)
+    mean, cov, period_s, _, _ = velocity_update(
+        mean, cov, 6, state.pulse_period_s, ToaEpoch(epoch.time_s - state.time_s, epoch.toa_s - state.toa_s,
+                                                     epoch.azimuth_rad, epoch.elevation_rad,
+                                                     float(np.linalg.norm(mean[:3]))), config)
     scale = np.sqrt(np.diag(cov))
     np.testing.assert_allclose(held.mean, mean, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(held.covariance / np.outer(scale, scale), cov / np.outer(scale, scale), atol=1e-12)
