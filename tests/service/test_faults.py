@@ -1,6 +1,7 @@
 """Faults on real processes: a killed or stopped Redis, a read-only, full or damaged SQLite, heavy and abandoned
-evaluations, SIGTERM, the largest allowed fix. The service answers 503 with Retry-After within 3 s (never 500), keeps its probes fast,
-recovers without a restart, and stops computing what nobody waits for.
+evaluations, SIGTERM, the largest allowed fix. The service answers 503 with Retry-After within 3 s (never 500),
+keeps its probes fast, recovers without a restart, stops computing what nobody waits for, and holds the largest
+fix within its memory bound.
 """
 
 from __future__ import annotations
