@@ -73,3 +73,42 @@ def four_station_requests(count: int, rng: np.random.Generator, method: str = "m
                                  "sigma_m": RANGE_SIGMA * float(ranges[b])})
         requests.append({"frame": "wgs84", "stations": stations, "measurements": measurements, "method": method})
     return requests
+
+
+def largest_fix_request(method: str = "auto", seed: int = 7) -> dict:
+    """The largest fix the schema and the default ``max_fix_cost`` allow: 256 stations x 1,024 bearings.
+
+    The stations stand on a ring of about 55 km around the target, four noisy bearings (azimuth and
+    elevation) each.
+
+    Parameters
+    ----------
+    method : str
+    seed : int
+
+    Returns
+    -------
+    dict
+        A JSON-ready FixRequest body (frame ``wgs84``).
+    """
+    rng = np.random.default_rng(seed)
+    stations_n, per_station = 256, 4
+    target = np.radians(35.0), np.radians(110.0), 3000.0
+    ring = 2 * np.pi * np.arange(stations_n) / stations_n
+    station_lat = target[0] + np.radians(0.5) * np.cos(ring)
+    station_lon = target[1] + np.radians(0.6) * np.sin(ring)
+    station_alt = np.full(stations_n, 100.0)
+    seen = geodesy.geodetic_to_enu(target[0], target[1], target[2], station_lat, station_lon, station_alt)
+    azimuth = np.arctan2(seen[..., 0], seen[..., 1])[:, None]
+    elevation = np.arctan2(seen[..., 2], np.hypot(seen[..., 0], seen[..., 1]))[:, None]
+    sigma = np.radians(SIGMA_DEG)
+    azimuth_deg = np.degrees(np.mod(azimuth + sigma * rng.standard_normal((stations_n, per_station)), 2 * np.pi))
+    elevation_deg = np.degrees(elevation + sigma * rng.standard_normal((stations_n, per_station)))
+    stations = [{"id": f"s{s}", "position": {"lat_deg": math.degrees(station_lat[s]),
+                                             "lon_deg": math.degrees(station_lon[s]), "alt_m": 100.0}}
+                for s in range(stations_n)]
+    measurements = [{"type": "bearing", "station_id": f"s{s}", "azimuth_deg": float(azimuth_deg[s, k]),
+                     "elevation_deg": float(elevation_deg[s, k]), "sigma_azimuth_deg": SIGMA_DEG,
+                     "sigma_elevation_deg": SIGMA_DEG}
+                    for s in range(stations_n) for k in range(per_station)]
+    return {"frame": "wgs84", "stations": stations, "measurements": measurements, "method": method}

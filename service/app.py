@@ -65,9 +65,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         store = make_store(settings)
         store.on_failure = lambda operation: metrics.store_errors.labels(operation).inc()
         app.state.store = store
-        app.state.fix_coalescer = Coalescer()
-        app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
         app.state.stopping = threading.Event()
+        app.state.fix_coalescer = Coalescer(app.state.stopping)
+        app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
         await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, compile_kernels)
         try:
             await store.run(lambda backend: None)  # open now when we can; a store that is down opens later

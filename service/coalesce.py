@@ -23,33 +23,42 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
+from typing import Callable
 
 from starlette.concurrency import run_in_threadpool
 
+from core.parallel import Stopped
 from service.translate import fix_results
 
 logger = logging.getLogger("passive_locator")
 
-logger = logging.getLogger("passive_locator")
 
-
-def solve_together(items: list[tuple[object, str | None]]) -> list[dict | BaseException]:
+def solve_together(items: list[tuple[object, str | None]],
+                   should_stop: Callable[[], bool] | None = None) -> list[dict | BaseException]:
     """Results of ``(body, request_id)`` items as one :func:`fix_results` call; each gets its own result.
 
     A failure of the shared call falls back to solving each body alone, so
-    one body's bug fails only its request.
+    one body's bug fails only its request. ``should_stop`` is asked between
+    parts of the solve (raises :class:`core.parallel.Stopped`).
     """
     try:
-        return fix_results([body for body, _ in items], [rid for _, rid in items])
+        return fix_results([body for body, _ in items], [rid for _, rid in items], should_stop)
+    except Stopped:
+        raise
     except Exception:
         logger.exception("shared solve of %d fixes failed; solving each alone", len(items))
     out: list[dict | BaseException] = []
     for body, rid in items:
         try:
-            out.append(fix_results([body], rid)[0])
+            out.append(fix_results([body], rid, should_stop)[0])
         except Exception as error:
             out.append(error)
     return out
+
+
+def _never() -> bool:
+    return False
 
 
 class Coalescer:
@@ -61,22 +70,29 @@ class Coalescer:
         How many shared solves ran and how many problems they took (for tests and metrics).
     """
 
-    def __init__(self) -> None:
-        self._pending: list[tuple[object, str | None, asyncio.Future]] = []
+    def __init__(self, stopping: threading.Event | None = None) -> None:
+        self._pending: list[tuple[object, str | None, Callable[[], bool], asyncio.Future]] = []
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._stopping = stopping or threading.Event()
         self.drains = 0
         self.solved = 0
 
-    async def solve(self, body, request_id: str | None = None) -> dict:
+    async def solve(self, body, request_id: str | None = None, should_stop: Callable[[], bool] | None = None) -> dict:
         """The result of one parsed FixRequest body (``{"index": 0, "ok", "fix" | "error"}``), solved
-        together with whatever else is queued."""
+        together with whatever else is queued.
+
+        A drain stops between parts (:class:`core.parallel.Stopped` for each of its requests) when the
+        server stops or when every request of the drain says stop (``should_stop``: its deadline, its
+        client gone).
+        """
         loop = asyncio.get_running_loop()
+        should_stop = should_stop or _never
         if self._loop is not None and self._loop is not loop:
             # A drain runs on another event loop (an odd test setup): solve this one alone, off the loop.
-            (result,) = await run_in_threadpool(solve_together, [(body, request_id)])
+            (result,) = await run_in_threadpool(solve_together, [(body, request_id)], should_stop)
             return _unwrap(result)
         future = loop.create_future()
-        self._pending.append((body, request_id, future))
+        self._pending.append((body, request_id, should_stop, future))
         if self._loop is None:
             self._loop = loop
             loop.create_task(self._drain())
@@ -88,8 +104,15 @@ class Coalescer:
                 taken, self._pending = self._pending, []
                 self.drains += 1
                 self.solved += len(taken)
+                stops = [item[2] for item in taken]
+
+                def should_stop() -> bool:
+                    return self._stopping.is_set() or all(stop() for stop in stops)
+
                 try:
-                    results = await run_in_threadpool(solve_together, [item[:2] for item in taken])
+                    results = await run_in_threadpool(solve_together, [item[:2] for item in taken], should_stop)
+                except Stopped as error:
+                    results = [error] * len(taken)
                 except BaseException:  # cancelled with the loop: nobody may wait forever
                     self._fail(taken)
                     raise

@@ -16,7 +16,8 @@ ple3d 2.5, ws3d 2.6, los_intersection 2.0, eove 1.2, taylor_wls 2.6 ms).
   azimuths (about 28 MB of GeoJSON) or 25,000 of eight rows;
 - fix: ``stations x measurements`` (``max_fix_cost``), for a single fix and
   for each problem of a batch (the largest fix the schema allows,
-  256 x 1024, is within 3 s and 300 MB).
+  256 x 1024, is within 3 s and 300 MB with every method:
+  ``python -m bench.largest_fix`` and ``tests/service/test_faults.py``).
 """
 
 from __future__ import annotations

@@ -48,7 +48,8 @@ class Settings(BaseSettings):
     rate_limit_clients : int
         Buckets kept (least recently seen dropped first): the limiter's memory is bounded.
     request_deadline_s : float
-        Longest computation of one request (evaluations stop between chunks; 503 ``deadline_exceeded``).
+        Longest computation of one request (evaluations, fixes and batches stop between chunks; 503
+        ``deadline_exceeded``).
     max_evaluation_cost : int
         Largest ``trials x measurement rows x method weights`` of one evaluation (422 ``over_limit`` above).
     max_batch_cost : int

@@ -28,6 +28,7 @@ from core.crlb import gdop, information_at
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import FixBatch, SolveOptions, solve_many
 from core.measurements import Kind
+from core.parallel import Stopped
 from core.simulation.measurements import EvaluationStopped, evaluate
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from service import schemas
@@ -742,7 +743,7 @@ PART_PROBLEMS = 2048
 MAX_WORKERS = min(2, os.cpu_count() or 1)
 
 
-def fix_results(bodies: list, request_ids=None) -> list[dict]:
+def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
     """Results of parsed FixRequest bodies: read, solved and written as one batch.
 
     Parameters
@@ -751,11 +752,18 @@ def fix_results(bodies: list, request_ids=None) -> list[dict]:
         Parsed JSON of each request.
     request_ids : str or sequence of str, optional
         Written into each error body (one for all, or one per body).
+    should_stop : callable returning bool, optional
+        Asked before each part of :data:`PART_PROBLEMS` problems is solved (deadline, disconnect, shutdown).
 
     Returns
     -------
     list of dict
         ``{"index", "ok": True, "fix"}`` or ``{"index", "ok": False, "error"}`` per body, in order.
+
+    Raises
+    ------
+    core.parallel.Stopped
+        When ``should_stop`` said so.
     """
     if request_ids is None or isinstance(request_ids, str):
         request_ids = [request_ids] * len(bodies)
@@ -775,6 +783,8 @@ def fix_results(bodies: list, request_ids=None) -> list[dict]:
         parts = [rows[i:i + PART_PROBLEMS] for i in range(0, batch.size, PART_PROBLEMS)]
 
         def solve_part(chosen):
+            if should_stop is not None and should_stop():
+                raise Stopped()
             part = batch if chosen.size == batch.size else batch.take(chosen)
             return chosen, solve_many(part, [read.methods[r] for r in chosen], [read.options[r] for r in chosen])
 

@@ -46,8 +46,9 @@ PARALLEL_SIN2 = 1e-10
 SAME_ORIGIN_M = 1e-3
 #: Smallest per-axis variance (m^2) given to a pair's point.
 MIN_VARIANCE_M2 = 1e-12
-#: A batch is intersected in chunks of at most about this many pairs of lines (problems x pairs each).
-CHUNK_PAIRS = 1 << 18
+#: A batch is intersected in chunks of at most about this many pairs of lines (problems x pairs each; the
+#: pairs of one problem with many bearings in chunks of its own).
+CHUNK_PAIRS = 1 << 14
 
 
 def common_perpendicular(origins_enu_m, rotations, azimuth_rad, elevation_rad):
@@ -218,12 +219,19 @@ def _pair_errors(batch: ProblemBatch, lines: _Lines, pair_ok) -> dict[int, Local
     return errors
 
 
-def _sum_over_pairs(values, used):
-    """``sum_p values[:, p]`` over used pairs, added in pair order (a problem's sums do not depend on the batch)."""
-    total = np.zeros(values.shape[:1] + values.shape[2:])
-    for p in range(values.shape[1]):
-        total = total + np.where(used[:, p, None], values[:, p], 0.0)
-    return total
+def _sum_over_pairs(values, used, start):
+    """``start + sum_p values[:, p]`` over used pairs, added one pair after the other in pair order (a
+    sequential accumulation, so a problem's sums depend neither on the batch nor on the chunks of pairs).
+
+    Parameters
+    ----------
+    values : ndarray, shape (B, P, 3)
+    used : ndarray of bool, shape (B, P)
+    start : ndarray, shape (B, 3)
+        The sum over the pairs before these.
+    """
+    terms = np.concatenate([start[:, None], np.where(used[..., None], values, 0.0)], axis=1)
+    return np.add.accumulate(terms, axis=1)[:, -1]
 
 
 def intersect_lines_of_sight(batch: ProblemBatch, options: SolveOptions | None = None) -> Estimates:
@@ -295,22 +303,32 @@ def _intersect(batch: ProblemBatch) -> Estimates:
         np.moveaxis(station_to_common(v, lines.rotations), -1, 0)
         for v in line_of_sight_derivatives(lines.azimuth_rad, lines.elevation_rad))
     origins = np.moveaxis(lines.origins_enu_m, -1, 0)
+    total = np.zeros((size, 3))
+    weighted = np.zeros((size, 3))
+    pairs_used = np.zeros(size, dtype=int)
+    # One problem with many bearings has many pairs (1,024 bearings: 523,776): its pairs go in chunks too.
+    per_chunk = max(1, CHUNK_PAIRS // size)
+    for start in range(0, first.size, per_chunk):
+        i, j = first[start:start + per_chunk], second[start:start + per_chunk]
 
-    def paired(planes):
-        return np.stack([planes[..., first], planes[..., second]])
+        def paired(planes):
+            return np.stack([planes[..., i], planes[..., j]])
 
-    feet, jacobian, sin2 = _perpendicular(paired(origins), paired(directions),
-                                          np.stack([paired(d_azimuth), paired(d_elevation)], axis=1))
-    variances = np.stack([lines.sigma_azimuth_rad[:, first], lines.sigma_elevation_rad[:, first],
-                          lines.sigma_azimuth_rad[:, second], lines.sigma_elevation_rad[:, second]]) ** 2
-    points, point_variance = (np.moveaxis(x, 0, -1) for x in _fuse(feet, jacobian, variances))
-    usable = (pair_ok & (sin2 > PARALLEL_SIN2) & np.all(np.isfinite(points), axis=-1)
-              & np.all(np.isfinite(point_variance), axis=-1))
-    weights = 1.0 / np.where(usable[..., None], point_variance, 1.0)
-    total = _sum_over_pairs(weights, usable)
+        feet, jacobian, sin2 = _perpendicular(paired(origins), paired(directions),
+                                              np.stack([paired(d_azimuth), paired(d_elevation)], axis=1))
+        variances = np.stack([lines.sigma_azimuth_rad[:, i], lines.sigma_elevation_rad[:, i],
+                              lines.sigma_azimuth_rad[:, j], lines.sigma_elevation_rad[:, j]]) ** 2
+        points, point_variance = (np.moveaxis(x, 0, -1) for x in _fuse(feet, jacobian, variances))
+        del feet, jacobian, variances
+        usable = (pair_ok[:, start:start + per_chunk] & (sin2 > PARALLEL_SIN2)
+                  & np.all(np.isfinite(points), axis=-1) & np.all(np.isfinite(point_variance), axis=-1))
+        weights = 1.0 / np.where(usable[..., None], point_variance, 1.0)
+        total = _sum_over_pairs(weights, usable, total)
+        weighted = _sum_over_pairs(weights * points, usable, weighted)
+        pairs_used += np.count_nonzero(usable, axis=-1)
     has_pair = np.all(total > 0, axis=-1)
     safe_total = np.where(total > 0, total, 1.0)
-    coarse = np.where(has_pair[:, None], _sum_over_pairs(weights * points, usable) / safe_total, 0.0)
+    coarse = np.where(has_pair[:, None], weighted / safe_total, 0.0)
     coarse_variance = 1.0 / safe_total
     coarse_on = batch.onto_altitude(coarse)
 
@@ -351,7 +369,6 @@ def _intersect(batch: ProblemBatch) -> Estimates:
     position = batch.onto_altitude(reference + (step if axes is None else np.einsum("bi,bij->bj", step, axes)))
     valid = has_pair & inverse.observable & np.all(np.isfinite(position), axis=-1)
 
-    pairs_used = np.count_nonzero(usable, axis=-1)
     pairs_total = np.count_nonzero(pair_ok, axis=-1)
     for b in np.flatnonzero(~valid).tolist():
         if b in errors:

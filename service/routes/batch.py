@@ -2,7 +2,9 @@
 
 The problems go through :func:`~service.translate.fix_results`, the same
 read, solve and write as ``POST /v1/fixes``; a problem's error stays in its
-slot. The body is parsed here with orjson, not by the framework, and the
+slot; the solve stops between parts at the request deadline, when the
+client goes away or when the server stops (:mod:`service.watch`: 503
+``deadline_exceeded``). The body is parsed here with orjson, not by the framework, and the
 cyclic garbage collector is paused while the request's million small objects
 are made and dropped (it would otherwise rescan them over and over: about
 five times the work of the parse itself).
@@ -25,6 +27,7 @@ from service.renderings import batch_geojson
 from service.limits import check_batch
 from service.responses import JsonResponse
 from service.translate import fix_results
+from service.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
@@ -35,6 +38,8 @@ _ERRORS = {
     400: {"model": schemas.Problem, "description": "the body is not valid JSON"},
     422: {"model": schemas.Problem, "description": "the body is not {\"problems\": [...]} with 1..10000 problems, "
                                                    "or the batch is over max_batch_cost (code over_limit)"},
+    503: {"model": schemas.Problem, "description": "not finished within the request deadline (code "
+                                                   "deadline_exceeded), or the server is shutting down"},
 }
 
 
@@ -98,14 +103,18 @@ def _problems(raw: bytes) -> tuple[list, list]:
                          "unsolvable problem is reported in its own slot (`ok: false` with a problem+json "
                          "`error` whose `loc` is relative to the problem) and never fails the others.",
              response_model=schemas.BatchResponse, responses=_ERRORS, openapi_extra={"requestBody": _request_body_schema()})
-def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonResponse:
-    with gc_paused():
-        problems, formats = _problems(raw)
-        check_batch(problems, request.app.state.settings.max_batch_cost)
-        results = fix_results(problems, request_id(request))
-        request.app.state.metrics.count("batch_problems_total", len(problems))
-        request.app.state.metrics.batch_fixes(problems, results)
-        tak.push_batch(request.app, problems, results)
-        response = JsonResponse({"results": results, **({"geojson": batch_geojson(results, problems)} if formats else {})})
-        del problems, results
-    return response
+async def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonResponse:
+    def run(should_stop) -> JsonResponse:
+        with gc_paused():
+            problems, formats = _problems(raw)
+            check_batch(problems, request.app.state.settings.max_batch_cost)
+            results = fix_results(problems, request_id(request), should_stop)
+            request.app.state.metrics.count("batch_problems_total", len(problems))
+            request.app.state.metrics.batch_fixes(problems, results)
+            tak.push_batch(request.app, problems, results)
+            response = JsonResponse({"results": results,
+                                     **({"geojson": batch_geojson(results, problems)} if formats else {})})
+            del problems, results
+        return response
+
+    return await watched(request, in_pool(None, run), "send fewer problems per batch")

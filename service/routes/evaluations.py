@@ -3,32 +3,27 @@
 The one long computation of the service. It is priced before it starts
 (``service.limits``: 422 ``over_limit`` above ``max_evaluation_cost``), runs
 on the app's CPU pool (never the threads or the loop that serve the probes),
-in chunks of trials that each ask whether to stop: at the request deadline
-(503 ``deadline_exceeded``), when the client disconnects, or when the server
-shuts down. A stopped evaluation stops using the CPU within one chunk.
+in chunks of trials that each ask whether to stop (:mod:`service.watch`): at
+the request deadline (503 ``deadline_exceeded``), when the client
+disconnects, or when the server shuts down. A stopped evaluation stops using
+the CPU within one chunk.
 """
 
 from __future__ import annotations
-
-import asyncio
-import threading
-import time
 
 from fastapi import APIRouter, Request
 
 from service import schemas
 from service.deps import OwnerDep
 from service.limits import check_evaluation, method_weight
-from service.problems import ApiError
 from service.responses import JsonResponse
-from service.translate import EvaluationStopped, crlb_problem, evaluation_body
+from service.translate import crlb_problem, evaluation_body
+from service.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["evaluations"])
 
 #: Cost units (see service.limits) per chunk of trials: a chunk takes a few tenths of a second at most.
 CHUNK_UNITS = 2000
-#: How often the route looks for a disconnected client while the evaluation runs.
-POLL_S = 0.2
 
 
 @router.post("/evaluations", operation_id="evaluations-create",
@@ -45,34 +40,9 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
     rows = int(problem.kinds.size)
     check_evaluation(request.trials, methods, rows, settings.max_evaluation_cost)
     chunk = max(1, CHUNK_UNITS // (rows * max(method_weight(m) for m in methods)))
-    deadline = time.monotonic() + settings.request_deadline_s
-    cancelled = threading.Event()
-    stopping: threading.Event = http.app.state.stopping
 
-    def should_stop() -> bool:
-        return cancelled.is_set() or stopping.is_set() or time.monotonic() > deadline
-
-    def run():
+    def run(should_stop):
         return evaluation_body(request, problem, target, methods, should_stop, chunk)
 
-    future = asyncio.get_running_loop().run_in_executor(http.app.state.cpu_pool, run)
-    try:
-        while True:
-            done, _ = await asyncio.wait({future}, timeout=POLL_S)
-            if done:
-                break
-            if await http.is_disconnected():
-                cancelled.set()
-                future.cancel()
-                raise ApiError(499, "client_closed", "the client went away")
-        body = future.result()
-    except EvaluationStopped:
-        if time.monotonic() > deadline:
-            raise ApiError(503, "deadline_exceeded",
-                           f"the evaluation did not finish within request_deadline_s = {settings.request_deadline_s:g} s;"
-                           " ask for fewer trials or methods", headers={"Retry-After": "1"}) from None
-        raise ApiError(503, "shutting_down", "the server is shutting down; retry", headers={"Retry-After": "1"}) \
-            from None
-    finally:
-        cancelled.set()  # the request is over, whatever ended it (a cancelled task at shutdown too)
+    body = await watched(http, in_pool(http.app.state.cpu_pool, run), "ask for fewer trials or methods")
     return JsonResponse(body)

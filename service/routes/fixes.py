@@ -4,7 +4,9 @@
 :class:`~service.coalesce.Coalescer`, which solves every fix queued at that
 moment as one batch on a worker thread, through the same
 :func:`~service.translate.fix_results` as ``POST /v1/fixes/batch``: a single
-fix is a batch of one.
+fix is a batch of one. Both wait under :func:`service.watch.watched`: 503
+``deadline_exceeded`` past ``request_deadline_s``, and the solve stops between
+parts once its clients are gone.
 """
 
 from __future__ import annotations
@@ -19,10 +21,14 @@ from service.problems import MEDIA_TYPE
 from service.renderings import problem_renderings
 from service.responses import JsonResponse
 from service.translate import crlb_response
+from service.watch import watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
 _ERRORS = {422: {"model": schemas.Problem, "description": "invalid input or unobservable geometry"}}
+_DEADLINE = {503: {"model": schemas.Problem, "description": "not finished within the request deadline (code "
+                                                           "deadline_exceeded), or the server is shutting down"}}
+_HINT = "ask for fewer stations or measurements"
 
 
 async def _owner_on_loop(request: Request) -> str:
@@ -31,10 +37,11 @@ async def _owner_on_loop(request: Request) -> str:
 
 
 @router.post("/fixes", operation_id="fixes-create", summary="Locate an emitter from one set of measurements",
-             response_model=schemas.FixResponse, responses=_ERRORS,
+             response_model=schemas.FixResponse, responses={**_ERRORS, **_DEADLINE},
              openapi_extra={"requestBody": json_request_body(schemas.FixRequest)})
 async def create_fix(body: JsonBody, http: Request, owner: str = Depends(_owner_on_loop)) -> Response:
-    result = await http.app.state.fix_coalescer.solve(body, request_id(http))
+    coalescer = http.app.state.fix_coalescer
+    result = await watched(http, lambda should_stop: coalescer.solve(body, request_id(http), should_stop), _HINT)
     if result["ok"]:
         fix = result["fix"]
         http.app.state.metrics.fix(fix["method"], "ok")

@@ -34,6 +34,16 @@ _INVALID = {422: {"model": Problem, "description": "invalid values, with the fie
 _UNAVAILABLE = {503: {"model": Problem, "description": "the session store is unavailable, too slow, or could not "
                                                        "serialise this write in time; retry after Retry-After",
                       "headers": {"Retry-After": {"description": "seconds", "schema": {"type": "string"}}}}}
+#: One server-sent event, as parsed from the stream (OpenAPI 3.1 has ``schema`` describe each event of a
+#: ``text/event-stream``; 3.2 names it ``itemSchema``). ``data`` is one line of JSON: a SessionState for
+#: ``state``, ``{"id"}`` for ``deleted``.
+_EVENT = {"type": "object", "required": ["event", "data"], "properties": {
+    "event": {"type": "string", "enum": ["state", "deleted"]},
+    "id": {"type": "string", "pattern": "^[0-9]+$", "description": "the session's version (state events)"},
+    "data": {"type": "string", "contentMediaType": "application/json", "contentSchema": {"anyOf": [
+        {"$ref": "#/components/schemas/SessionState"},
+        {"type": "object", "required": ["id"], "properties": {"id": {"type": "string"}}}]}},
+}}
 _FORMATS = Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$", description="comma-separated renderings: cot, geojson")
 
 
@@ -117,7 +127,7 @@ async def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, requ
                         "latest state, not every version in between. A `deleted` event ends the stream when "
                         "the session is deleted or expires; comments keep an idle connection open.",
             responses={200: {"description": "the event stream", "content": {"text/event-stream": {
-                "schema": {"type": "string"}}}}, **_NOT_FOUND, **_UNAVAILABLE})
+                "schema": _EVENT}}}, **_NOT_FOUND, **_UNAVAILABLE})
 async def session_events(session_id: str, owner: OwnerDep, store: StoreDep, request: Request,
                          formats: Annotated[str | None, _FORMATS] = None,
                          last_event_id: Annotated[str | None, Header(description="the id (version) of the last "

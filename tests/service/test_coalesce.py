@@ -114,10 +114,10 @@ def test_a_bug_in_one_problem_fails_only_its_request(make_client, monkeypatch, t
     poisoned["options"] = {"max_iterations": 17}
     real_fix_results = coalesce.fix_results
 
-    def buggy_fix_results(bodies, request_ids=None):
+    def buggy_fix_results(bodies, request_ids=None, should_stop=None):
         if any(b.get("options", {}).get("max_iterations") == 17 for b in bodies):
             raise ZeroDivisionError("a bug")
-        return real_fix_results(bodies, request_ids)
+        return real_fix_results(bodies, request_ids, should_stop)
 
     monkeypatch.setattr(coalesce, "fix_results", buggy_fix_results)
     app = create_app(Settings(store=f"sqlite:///{tmp_path}/bug.db"))
@@ -152,12 +152,12 @@ def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch, caplog)
     poisoned = items[1][0]
     real_fix_results = coalesce.fix_results
 
-    def buggy_fix_results(bodies, request_ids=None):
+    def buggy_fix_results(bodies, request_ids=None, should_stop=None):
         if len(bodies) > 1:
             raise ZeroDivisionError("a bug in the shared call")
         if bodies[0] is poisoned:
             raise ZeroDivisionError("a bug in this problem")
-        return real_fix_results(bodies, request_ids)
+        return real_fix_results(bodies, request_ids, should_stop)
 
     monkeypatch.setattr(coalesce, "fix_results", buggy_fix_results)
     results = coalesce.solve_together(items)

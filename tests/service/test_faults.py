@@ -1,6 +1,7 @@
 """Faults on real processes: a killed or stopped Redis, a read-only, full or damaged SQLite, heavy and abandoned
-evaluations, SIGTERM. The service answers 503 with Retry-After within 3 s (never 500), keeps its probes fast,
-recovers without a restart, and stops computing what nobody waits for.
+evaluations, SIGTERM, the largest allowed fix. The service answers 503 with Retry-After within 3 s (never 500),
+keeps its probes fast, recovers without a restart, stops computing what nobody waits for, and holds the largest
+fix within its memory bound.
 """
 
 from __future__ import annotations
@@ -349,3 +350,33 @@ def test_sigterm_stops_the_server_within_its_graceful_timeout(app_factory, tmp_p
     app.process.wait(timeout=15)
     assert time.monotonic() - sent < 2.0 + 2.0  # the 2 s graceful timeout, plus one chunk and the exit
     thread.join(timeout=30)
+
+
+def _memory_kib(pid: int, field: str) -> int:
+    """``VmRSS`` (resident now) or ``VmHWM`` (peak resident so far) of a process, KiB, from /proc."""
+    for line in pathlib.Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1])
+    raise KeyError(field)
+
+
+def test_the_largest_allowed_fix_stays_within_300_mb_with_every_method(app_factory, tmp_path):
+    """256 stations x 1,024 bearings (the schema's and max_fix_cost's largest) with each method: the server's
+    peak resident memory grows by less than 300 MB over what it held before the first of them (time: bench)."""
+    from bench.scenarios import largest_fix_request
+    from service.schemas import METHODS
+
+    app = app_factory(f"sqlite:///{tmp_path}/s.db")
+    small = largest_fix_request("ml")
+    small["stations"], small["measurements"] = small["stations"][:4], small["measurements"][:16]
+    with httpx.Client(timeout=120.0) as client:
+        assert client.post(f"{app.url}/v1/fixes", json=small).status_code == 200  # imports and caches warmed
+        before_kib = _memory_kib(app.process.pid, "VmRSS")
+        answered = {}
+        for method in sorted(METHODS):
+            response = client.post(f"{app.url}/v1/fixes", json=largest_fix_request(method))
+            answered[method] = response.status_code
+            assert response.status_code in (200, 422), response.text  # 422: a method that needs other kinds
+            grown_mb = (_memory_kib(app.process.pid, "VmHWM") - before_kib) * 1024 / 1e6
+            assert grown_mb < 300, (method, grown_mb)
+    assert sum(status == 200 for status in answered.values()) >= 8, answered

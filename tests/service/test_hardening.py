@@ -233,10 +233,10 @@ def test_log_lines_are_json_with_time_level_and_request_id_and_no_measurements(c
 def test_the_coalescer_logs_the_exception_its_fallback_absorbs(monkeypatch, captured_logs):
     real = coalesce.fix_results
 
-    def broken_when_shared(bodies, request_ids=None):
+    def broken_when_shared(bodies, request_ids=None, should_stop=None):
         if len(bodies) > 1:
             raise RuntimeError("the batched path broke")
-        return real(bodies, request_ids)
+        return real(bodies, request_ids, should_stop)
 
     monkeypatch.setattr(coalesce, "fix_results", broken_when_shared)
     body = bearing_request(STATIONS_300KM, TARGET)

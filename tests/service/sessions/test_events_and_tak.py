@@ -299,3 +299,38 @@ def test_tak_feed_over_tls_verifies_the_server(monkeypatch, tmp_path):
             client.app.state.tak_feed.close()
     finally:
         server.close()
+
+
+def test_every_event_is_what_the_spec_declares(server):
+    """Each event as a client parses it (event, id, data) matches the event schema of the committed spec:
+    its required fields, its event names, a numeric id, and data that is a SessionState or ``{"id"}``."""
+    import json
+    import re
+
+    from service.session_schemas import SessionState
+    from tests.service.sessions.helpers import REPO
+
+    spec = json.loads((REPO / "openapi" / "openapi.json").read_text())
+    schema = spec["paths"]["/v1/sessions/{session_id}/events"]["get"]["responses"]["200"]["content"][
+        "text/event-stream"]["schema"]
+    session = _create(server.url)
+    reader = EventReader(f"{server.url}/v1/sessions/{session['id']}/events?formats=cot,geojson")
+    try:
+        events = [reader.next(10.0)]
+        httpx.post(f"{server.url}/v1/sessions/{session['id']}/measurements", json={"measurements": EPOCHS[:5]},
+                   timeout=30)
+        events.append(reader.next(5.0))
+        httpx.delete(f"{server.url}/v1/sessions/{session['id']}", timeout=30)
+        events.append(reader.next(5.0))
+    finally:
+        reader.close()
+    assert [e["event"] for e in events] == ["state", "state", "deleted"]
+    for event in events:
+        assert set(schema["required"]) <= event.keys() <= schema["properties"].keys(), event
+        assert event["event"] in schema["properties"]["event"]["enum"]
+        data = orjson.loads(event["data"])
+        if event["event"] == "state":
+            assert re.fullmatch(schema["properties"]["id"]["pattern"], event["id"])
+            SessionState.model_validate(data)
+        else:
+            assert data == {"id": session["id"]}
