@@ -22,16 +22,20 @@ from scipy.special import chdtrc
 
 from core.batch import TOA, ProblemBatch
 from core.crlb import batch_information, normal_matrix, parameterisation
-from core.errors import LocalizationError
+from core.errors import AmbiguousGeometry, LocalizationError
 from core.estimators.base import SolveOptions, register
 from core.estimators.finish import optimal_bias_m
+from core.estimators.loss import loss_weights
 from core.estimators.result import Estimates, FixWarning
 from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
+from core.geodesy import enu_to_geodetic
 from core.measurements import MeasurementModel
 from core.problem import onto_altitude
 
 _EYE4 = np.eye(4)
+#: Plain least squares: ``(loss name, scale in sigmas)``.
+LINEAR = ("linear", 1.0)
 _LAMBDA_START = 1e-3
 _LAMBDA_MIN = 1e-12
 _LAMBDA_MAX = 1e12
@@ -101,16 +105,26 @@ class _Problems:
         ranges = np.linalg.norm(positions_enu_m[:, None, :] - self.station_positions, axis=-1)
         return optimal_bias_m(self.weights, self.values, ranges, self.is_toa)
 
-    def evaluate(self, positions_enu_m, bias_m):
-        """Residuals ``(B, M)`` (model units, zero on padding), cost ``(B,)`` and Jacobian ``(B, 4, M)``."""
+    def evaluate(self, positions_enu_m, bias_m, loss=LINEAR):
+        """Residuals ``(B, M)`` (model units, zero on padding), cost ``(B,)``, Jacobian ``(B, 4, M)`` and the
+        gradient and Gauss-Newton weights ``(B, M)`` (``weights`` themselves for the linear loss).
+
+        ``loss`` is ``(name, scale in sigmas)``; the cost is ``sum C^2 rho(z / C^2)`` of the squared whitened
+        residuals ``z`` (:mod:`core.estimators.loss`).
+        """
         predicted, jacobian = self.model.predict(positions_enu_m, bias_m)
         residual = self.model.residuals(self.values, predicted) * self.used
-        cost = np.einsum("bm,bm->b", self.weights, residual * residual)
-        return residual, cost, jacobian
+        squared = self.weights * residual * residual
+        if loss[0] == "linear":
+            return residual, squared.sum(axis=-1), jacobian, self.weights, self.weights
+        rho, gradient_factor, curvature_factor = loss_weights(squared, *loss)
+        return (residual, np.sum(rho * self.used, axis=-1), jacobian, self.weights * gradient_factor,
+                self.weights * curvature_factor)
 
 
-def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tolerance_m=1e-3) -> Solution:
-    """Iterate every problem of a batch to its ML position.
+def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tolerance_m=1e-3,
+                        loss=LINEAR) -> Solution:
+    """Iterate every problem of a batch to its ML position (or, with a robust loss, its M-estimate).
 
     Parameters
     ----------
@@ -118,6 +132,8 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     start_enu_m : ndarray, shape (B, 3)
     max_iterations : int
     tolerance_m : float
+    loss : tuple of (str, float)
+        The loss's name and scale in sigmas (:mod:`core.estimators.loss`); the cost minimised is its sum.
 
     Returns
     -------
@@ -138,7 +154,8 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     active = np.ones(size, dtype=bool)
     converged = np.zeros(size, dtype=bool)
     iterations = np.zeros(size, dtype=int)
-    r, cost, jacobian = sub.evaluate(x, bias)
+    r, cost, jacobian, gradient_w, curvature_w = sub.evaluate(x, bias, loss)
+    robust = loss[0] != "linear"
 
     def store():
         x_all[work], bias_all[work], cost_all[work] = x, bias, cost
@@ -154,11 +171,12 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
             keep = np.flatnonzero(active)
             work, sub = work[keep], sub.take(keep)
             x, bias, r, cost, jacobian = x[keep], bias[keep], r[keep], cost[keep], jacobian[keep]
+            gradient_w, curvature_w = (gradient_w[keep], curvature_w[keep]) if robust else (sub.weights,) * 2
             damping, converged, iterations = damping[keep], converged[keep], iterations[keep]
             active = active[keep]
         axes, free = sub.parameterisation(x)
-        information, local = normal_matrix(jacobian, sub.weights, axes, free)
-        gradient = np.einsum("bim,bm->bi", local * sub.weights[:, None, :], r)
+        information, local = normal_matrix(jacobian, curvature_w, axes, free)
+        gradient = np.einsum("bim,bm->bi", local * gradient_w[:, None, :], r)
         diag = np.einsum("bii->bi", information)
         scale = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
         scaled = information * scale[:, :, None] * scale[:, None, :] + damping[:, None, None] * eye
@@ -168,15 +186,18 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
         delta = step[:, :3] if axes is None else np.einsum("bi,bij->bj", step[:, :3], axes)
         x_new = sub.project(x + delta)
         bias_new = bias + step[:, 3]
-        r_new, cost_new, jacobian_new = sub.evaluate(x_new, bias_new)
+        r_new, cost_new, jacobian_new, gradient_w_new, curvature_w_new = sub.evaluate(x_new, bias_new, loss)
         accept = active & np.isfinite(cost_new) & (cost_new <= cost * (1.0 + 1e-12) + 1e-300)
         x = np.where(accept[:, None], x_new, x)
         bias = np.where(accept, bias_new, bias)
         r = np.where(accept[:, None], r_new, r)
         cost = np.where(accept, cost_new, cost)
         jacobian = np.where(accept[:, None, None], jacobian_new, jacobian)
+        if robust:
+            gradient_w = np.where(accept[:, None], gradient_w_new, gradient_w)
+            curvature_w = np.where(accept[:, None], curvature_w_new, curvature_w)
         iterations += active
-        damping = np.where(accept, np.maximum(damping / 10.0, _LAMBDA_MIN), damping * 10.0)
+        damping = np.where(accept, np.maximum(damping / 10.0, _LAMBDA_MIN), np.where(active, damping * 10.0, damping))
         done = active & (np.sqrt(np.einsum("bi,bi->b", delta, delta)) < tolerance_m)
         stuck = active & (damping > _LAMBDA_MAX)
         converged |= done
@@ -185,14 +206,19 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     return Solution(x_all, bias_all, iterations_all, converged_all, cost_all)
 
 
+def _loss(options: SolveOptions) -> tuple[str, float]:
+    return options.loss, options.loss_scale
+
+
 def iterate(batch: ProblemBatch, starts_enu_m, options: SolveOptions) -> Solution:
     """:func:`levenberg_marquardt` in cache-sized chunks (results do not depend on the chunking)."""
     starts = np.asarray(starts_enu_m, dtype=float)
     rows = max(CHUNK_MIN_PROBLEMS, CHUNK_ENTRIES // max(batch.kinds.shape[1], 1))
     if rows >= batch.size:
-        return levenberg_marquardt(batch, starts, options.max_iterations, options.tolerance_m)
+        return levenberg_marquardt(batch, starts, options.max_iterations, options.tolerance_m, _loss(options))
     parts = [levenberg_marquardt(batch.take(np.arange(first, min(first + rows, batch.size))),
-                                 starts[first:first + rows], options.max_iterations, options.tolerance_m)
+                                 starts[first:first + rows], options.max_iterations, options.tolerance_m,
+                                 _loss(options))
              for first in range(0, batch.size, rows)]
     return Solution(*(np.concatenate([getattr(p, f) for p in parts]) for f in Solution.__dataclass_fields__))
 
@@ -224,6 +250,7 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
     return Estimates(
         position_enu_m=solution.position_enu_m,
         covariance_source="information",
+        loss=None if options.loss == "linear" else _loss(options),
         errors=errors,
         converged=solution.converged,
         iterations=solution.iterations,
@@ -234,24 +261,49 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
 
 #: A second solution whose cost is within this of the best (chi-square units) makes the fix ambiguous.
 AMBIGUITY_COST = 4.0
+#: ... when it is farther from the best than this squared Mahalanobis distance (the best's CRLB): within one
+#: basin a point whose cost is within ``AMBIGUITY_COST`` of the minimum is within about that distance.
+DISTINCT_MAHALANOBIS2 = 25.0
+#: Below this height above the ellipsoid (m) a point of a geodetic scene is inside the earth: no solution.
+MIN_ALTITUDE_M = -1000.0
 
 
-def searched_starts(batch: ProblemBatch, options: SolveOptions) -> tuple[np.ndarray, np.ndarray]:
+def above_ground(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
+    """Which positions ``(B, 3)`` are physically possible: in a geodetic scene, not below ``MIN_ALTITUDE_M``
+    (a flat local frame does not say where the ground is)."""
+    if not np.any(batch.geodetic):
+        return np.ones(batch.size, dtype=bool)
+    origin = batch.origin
+    altitude = enu_to_geodetic(np.nan_to_num(positions_enu_m), origin[:, 0], origin[:, 1], origin[:, 2])[2]
+    return ~batch.geodetic | (altitude >= MIN_ALTITUDE_M)
+
+
+def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None) -> tuple[np.ndarray, np.ndarray]:
     """Starts where no closed form applies: ML from every candidate of
-    :func:`core.estimators.search.candidates`, the lowest final cost where the information is regular kept
-    (an iterate that ran off to where the measurements say nothing may fit better, and is no fix).
+    :func:`core.estimators.search.candidates` (and from ``extra_enu_m``, e.g. a fit already made), the
+    lowest final cost kept among the solutions that are regular (an iterate that ran off to where the
+    measurements say nothing may fit better, and is no fix) and physically possible (:func:`above_ground`).
+
+    Parameters
+    ----------
+    batch : ProblemBatch
+    options : SolveOptions
+    extra_enu_m : ndarray, shape (B, 3), optional
+        One more start per problem (NaN rows: none).
 
     Returns
     -------
     starts : ndarray, shape (B, 3)
         NaN rows where no candidate gave a regular solution.
     rival : ndarray, shape (B, 3)
-        Another regular solution, distinct from the best (farther than ten iteration tolerances), whose
+        The best of the other solutions that are distinct from the best (``DISTINCT_MAHALANOBIS2``) and whose
         cost is within ``AMBIGUITY_COST`` of it (the second crossing of a line of sight with a hyperboloid,
         the mirror of coplanar stations, when the measurements leave no degree of freedom to tell them
         apart); NaN rows where none.
     """
     points = candidates(batch)
+    if extra_enu_m is not None:
+        points = np.concatenate([np.asarray(extra_enu_m, dtype=float)[:, None, :], points], axis=1)
     size, count = points.shape[:2]
     tried = np.repeat(np.arange(size), count)
     flat = points.reshape(-1, 3)
@@ -261,22 +313,26 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions) -> tuple[np.ndar
         return out, rival
     tried, flat = tried[finite], flat[finite]
     expanded = batch.take(tried)
-    solution = levenberg_marquardt(expanded, flat, options.max_iterations, options.tolerance_m)
+    solution = levenberg_marquardt(expanded, flat, options.max_iterations, options.tolerance_m, _loss(options))
     position = solution.position_enu_m
     finite = np.all(np.isfinite(position), axis=-1)
-    observable = batch_information(expanded, np.where(finite[:, None], position, 0.0)).observable
-    cost = np.where(finite & observable, solution.cost, np.inf)
+    information = batch_information(expanded, np.where(finite[:, None], position, 0.0))
+    regular = finite & information.observable & above_ground(expanded, position)
+    cost = np.where(regular, solution.cost, np.inf)
     order = np.lexsort((cost, tried))
     first = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
     good = np.isfinite(cost[first])
     out[tried[first][good]] = position[first][good]
-    best = out[tried]
-    scale = np.linalg.norm(best - expanded.stations_enu_m[:, 0], axis=-1)
-    apart = np.linalg.norm(np.nan_to_num(position) - best, axis=-1) > np.maximum(10.0 * options.tolerance_m,
-                                                                                1e-7 * scale)
-    close = np.isfinite(cost) & apart & (cost <= cost[first][np.searchsorted(tried[first], tried)] + AMBIGUITY_COST)
-    for k in np.flatnonzero(close)[::-1]:
-        rival[tried[k]] = position[k]
+    best_of = first[np.searchsorted(tried[first], tried)]
+    apart = np.nan_to_num(position - position[best_of])
+    precision = np.linalg.pinv(information.covariance_enu_m2[best_of], rcond=1e-9, hermitian=True)
+    distance2 = np.einsum("ki,kij,kj->k", apart, precision, apart)
+    close = regular & (distance2 > DISTINCT_MAHALANOBIS2) & (cost <= cost[best_of] + AMBIGUITY_COST)
+    second = np.where(close, cost, np.inf)
+    order = np.lexsort((second, tried))
+    lowest = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
+    found = np.isfinite(second[lowest])
+    rival[tried[lowest][found]] = position[lowest][found]
     return out, rival
 
 
@@ -284,7 +340,38 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions) -> tuple[np.ndar
 IMPLAUSIBLE_P = 1e-9
 
 
-@register("ml", "maximum likelihood (Levenberg-Marquardt) over any mix of measurements; the reference")
+def _ambiguous(batch: ProblemBatch, b: int, other_enu_m, starts, names, failures, solution: Solution,
+               options: SolveOptions) -> tuple:
+    """Problem ``b`` fits ``other_enu_m`` as well as its fix: the client's initial guess picks the nearer
+    (the fix then warns ``ambiguous_solution``, naming the other); without one, ``AmbiguousGeometry``."""
+    fix = solution.position_enu_m[b].copy()
+    guess = batch.initial_guess_enu_m[b]
+    if not np.all(np.isfinite(guess)):
+        failures[b] = AmbiguousGeometry(
+            f"two points fit the measurements equally well: {_point(batch, b, fix)} and "
+            f"{_point(batch, b, other_enu_m)}; send options.initial_guess near the right one, or add a "
+            "measurement that tells them apart")
+        return ()
+    if np.linalg.norm(other_enu_m - guess) < np.linalg.norm(fix - guess):
+        picked = iterate(batch.take([b]), other_enu_m[None], options)
+        for name in Solution.__dataclass_fields__:
+            getattr(solution, name)[b] = getattr(picked, name)[0]
+        starts[b], names[b], other_enu_m = other_enu_m, "initial_guess", fix
+    return (FixWarning("ambiguous_solution", f"another point fits the measurements as well, at "
+                                             f"{_point(batch, b, other_enu_m)}; the initial guess picked this one"),)
+
+
+def _point(batch: ProblemBatch, b: int, position_enu_m) -> str:
+    """A position as a message names it: common-frame ENU, and geodetic in a geodetic scene."""
+    east, north, up = position_enu_m
+    text = f"({east:.0f}, {north:.0f}, {up:.0f}) m in the common frame"
+    if batch.geodetic[b]:
+        lat, lon, alt = enu_to_geodetic(position_enu_m, *batch.origin[b])
+        text += f" (lat {np.rad2deg(lat):.6f} deg, lon {np.rad2deg(lon):.6f} deg, alt {alt:.0f} m)"
+    return text
+
+
+@register("ml", "maximum likelihood (Levenberg-Marquardt) over any mix of measurements; the reference", robust=True)
 def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     """ML from the closed-form start for the mix; where there is none, or the fit from it did not converge
     or is implausible (chi-square p below ``IMPLAUSIBLE_P``: the start sat in another basin), ML from the
@@ -300,21 +387,20 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     warnings: list[tuple] = [()] * batch.size
     if np.any(retry):
         rows = np.flatnonzero(retry)
-        found, rival = searched_starts(batch.take(rows), options)
+        earlier = np.where(missing[rows, None], np.nan, solution.position_enu_m[rows])
+        found, rival = searched_starts(batch.take(rows), options, earlier)
         ok = np.all(np.isfinite(found), axis=-1)
         again = iterate(batch.take(rows[ok]), found[ok], options) if np.any(ok) else None
         for j, b in enumerate(rows[ok].tolist()):
-            plausible = chdtrc(max(int(dof[b]), 1), again.cost[j]) >= IMPLAUSIBLE_P
-            if plausible and (missing[b] or again.cost[j] < solution.cost[b]):
+            if chdtrc(max(int(dof[b]), 1), again.cost[j]) < IMPLAUSIBLE_P:
+                continue
+            if missing[b] or again.cost[j] < solution.cost[b]:
                 starts[b], names[b] = found[ok][j], "search"
                 failures.pop(b, None)
                 missing[b] = False
                 for name in Solution.__dataclass_fields__:
                     getattr(solution, name)[b] = getattr(again, name)[j]
             if np.all(np.isfinite(rival[ok][j])):
-                other = rival[ok][j]
-                warnings[b] = (FixWarning("ambiguous_solution", "another point fits the measurements as well, at "
-                                          f"({other[0]:.0f}, {other[1]:.0f}, {other[2]:.0f}) m in the common frame: "
-                                          "add a measurement to tell them apart"),)
+                warnings[b] = _ambiguous(batch, b, rival[ok][j], starts, names, failures, solution, options)
     estimates = estimate_from(batch, starts, options, names, failures, solution)
     return replace(estimates, warnings=warnings)

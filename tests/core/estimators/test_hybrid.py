@@ -46,23 +46,53 @@ def test_one_bearing_and_three_toas_in_3d():
     assert abs(rmse / reference - 1.0) <= 0.05
 
 
-def test_an_azimuth_only_bearing_and_two_toas_on_the_ground():
-    """No degree of freedom is left, so the line of sight may cross the TDOA hyperbola twice: every fix is the
-    reference's, or says that another point fits as well."""
-    stations = [("a", GeodeticPoint(0.6, 1.9, 100.0)), ("b", GeodeticPoint(0.601, 1.905, 50.0)),
-                ("c", GeodeticPoint(0.605, 1.899, 10.0))]
-    measurements = [Bearing("a", 0.0, None, SIGMA)] + [TimeOfArrival(s, 0.0, SIGMA_TOA_S) for s, _ in stations[1:]]
-    problem = build_problem(stations, measurements, altitude_m=0.0)
-    target = problem.frame.onto_altitude(np.array([3e3, 25e3, 0.0]), 0.0)
+GROUND = [("a", GeodeticPoint(0.6, 1.9, 100.0)), ("b", GeodeticPoint(0.601, 1.905, 50.0)),
+          ("c", GeodeticPoint(0.605, 1.899, 10.0))]
+
+
+def _ground_problem(toa_stations):
+    measurements = [Bearing("a", 0.0, None, SIGMA)] + [TimeOfArrival(s, 0.0, SIGMA_TOA_S) for s in toa_stations]
+    problem = build_problem(GROUND, measurements, altitude_m=0.0)
+    return problem, problem.frame.onto_altitude(np.array([3e3, 25e3, 0.0]), 0.0)
+
+
+def test_an_azimuth_only_bearing_and_two_toas_on_the_ground_where_the_solution_is_unique():
+    """The bearing station also has a TOA: a ray from a focus of the TDOA hyperbola crosses it once."""
+    problem, target = _ground_problem(["a", "b"])
+    share, rmse, reference = _against_reference(problem, target, 2)
+    assert share >= 0.99
+    assert abs(rmse / reference - 1.0) <= 0.05
+
+
+def test_one_bearing_and_two_toas_in_3d_where_the_solution_is_unique():
+    stations = [("a", LocalPoint(0.0, 0.0, 0.0)), ("b", LocalPoint(20e3, 0.0, 0.0)), ("c", LocalPoint(0.0, 25e3, 100.0))]
+    measurements = [Bearing("a", 0.0, 0.0, SIGMA, SIGMA)] + [TimeOfArrival(s, 0.0, SIGMA_TOA_S) for s in ("a", "c")]
+    share, rmse, reference = _against_reference(build_problem(stations, measurements), np.array([12e3, 30e3, 2e3]), 3)
+    assert share >= 0.99
+    assert abs(rmse / reference - 1.0) <= 0.05
+
+
+def test_two_crossings_of_the_line_of_sight_are_refused_unless_a_guess_picks_one():
+    """The bearing station has no TOA: the line of sight may cross the TDOA hyperbola twice, and nothing
+    physical tells the crossings apart. Every draw is the reference's fix or a 422 naming both points; an
+    initial guess near the target picks it."""
+    problem, target = _ground_problem(["b", "c"])
     rng = np.random.default_rng(2)
     draws = [measure(problem, target, rng) for _ in range(TRIALS)]
     fixes = solve_batch(draws, "auto")
     reference = solve_batch([replace(d, initial_guess_enu_m=target) for d in draws], "ml")
-    solved = [(f, r) for f, r in zip(fixes, reference) if not isinstance(f, LocalizationError)]
-    assert len(solved) >= 0.99 * TRIALS
-    for fix, ref in solved:
-        same = np.linalg.norm(fix.position_enu_m - ref.position_enu_m) < 1.0  # 1 m
-        assert same or "ambiguous_solution" in {w.code for w in fix.warnings}
+    refused = [f for f in fixes if isinstance(f, LocalizationError)]
+    # A draw whose line of sight misses the hyperbola (the two crossings merged and vanished) fits nothing.
+    assert all(f.code == "unobservable" or f.code == "ambiguous_geometry" and f.message.count("lat ") == 2
+               for f in refused)
+    for fix, ref in zip(fixes, reference):
+        if not isinstance(fix, LocalizationError):
+            assert np.linalg.norm(fix.position_enu_m - ref.position_enu_m) < 1.0  # 1 m
+    assert sum(f.code == "ambiguous_geometry" for f in refused) >= 0.5 * TRIALS  # both crossings are real here
+    nudged = solve_batch([replace(d, initial_guess_enu_m=target + [400.0, -300.0, 0.0]) for d in draws[:50]], "auto")
+    for fix, ref in zip(nudged, reference):
+        assert not isinstance(fix, LocalizationError)
+        assert np.linalg.norm(fix.position_enu_m - ref.position_enu_m) < 1.0
 
 
 def test_an_azimuth_only_bearing_and_three_toas_on_the_ground():
