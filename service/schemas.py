@@ -295,7 +295,9 @@ class FixResponse(BaseModel):
     covariance_ecef_m2: Matrix3 | None = None
     covariance_source: Literal[COVARIANCE_SOURCES + SCALED_COVARIANCE_SOURCES] = Field(  # type: ignore[valid-type]
         description="information: inverse Fisher information at the fix; propagated: first-order through the "
-                    "closed form; crlb: the bound; _scaled: times sigma_scale^2 (options.absolute_sigma false)")
+                    "closed form; crlb: the bound; robust: with options.loss, the sandwich A^-1 B A^-1 of the "
+                    "loss's final weights w = rho' (A = J^T W w J, B = J^T W w^2 J); _scaled: times "
+                    "sigma_scale^2 (options.absolute_sigma false)")
     crlb_enu_m2: Matrix3
     error: ErrorSummary
     residuals: list[Residual]

@@ -11,6 +11,28 @@ altitude is a constraint: the position moves along the local east/north at
 the current point and is put back on the altitude surface after each step.
 The covariance is the inverse information at the solution (computed by the
 finisher, like everything else a fix reports).
+
+A robust loss (``options.loss``, scipy's names: :mod:`core.estimators.loss`)
+is minimised as scipy's ``least_squares`` does: the gradient weights each
+measurement by ``rho'``, the normal equations by ``rho' + 2 rho'' z``. The
+finisher then reports the sandwich covariance of the final weights ``rho'``
+(``covariance_source`` ``"robust"``): that of a weighted least-squares fit
+with those weights, which is the bound without a measurement the loss has
+set aside, and never below the bound.
+
+Ties. Where the measurements leave (almost) no degree of freedom, a second
+point may fit as well: a line of sight crosses a TDOA hyperboloid twice, or
+ranges, TOAs and azimuths from nearly coplanar stations fit a point and its
+mirror image through their plane. ML looks for one among the search's
+solutions and from the fix's mirror image (:func:`mirror_points`); a rival
+is a solution whose cost is within ``AMBIGUITY_COST`` of the fix, farther
+than one sigma of the fix's bound (``DISTINCT_MAHALANOBIS2``: nearer, the
+covariance covers both) and physically possible (a geodetic point more
+than 1 km below the ellipsoid is no solution; a point behind a bearing
+station never ties, its azimuth residual is near pi; a TOA's emission
+precedes its arrival by construction of the model). A tie is a
+:class:`~core.errors.AmbiguousGeometry` (422 ``ambiguous_geometry``) naming
+both points, unless the client's ``initial_guess`` picks the nearer one.
 """
 
 from __future__ import annotations
@@ -20,7 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.special import chdtrc
 
-from core.batch import TOA, ProblemBatch
+from core.batch import ELEVATION, TOA, ProblemBatch
 from core.crlb import batch_information, normal_matrix, parameterisation
 from core.errors import AmbiguousGeometry, LocalizationError
 from core.estimators.base import SolveOptions, register
@@ -30,6 +52,7 @@ from core.estimators.result import Estimates, FixWarning
 from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
 from core.geodesy import enu_to_geodetic
+from core.linalg import jacobi_svd
 from core.measurements import MeasurementModel
 from core.problem import onto_altitude
 
@@ -261,9 +284,12 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
 
 #: A second solution whose cost is within this of the best (chi-square units) makes the fix ambiguous.
 AMBIGUITY_COST = 4.0
-#: ... when it is farther from the best than this squared Mahalanobis distance (the best's CRLB): within one
-#: basin a point whose cost is within ``AMBIGUITY_COST`` of the minimum is within about that distance.
-DISTINCT_MAHALANOBIS2 = 25.0
+#: ... when it is a converged solution farther from the best than this squared Mahalanobis distance (the
+#: best's CRLB): nearer, no measurement at the stated noise tells them apart and the covariance covers both.
+DISTINCT_MAHALANOBIS2 = 1.0
+#: An iterate that stopped before converging is a rival only farther than this (it may be still sliding
+#: down the best's own valley).
+DISTINCT_UNCONVERGED_MAHALANOBIS2 = 25.0
 #: Below this height above the ellipsoid (m) a point of a geodetic scene is inside the earth: no solution.
 MIN_ALTITUDE_M = -1000.0
 
@@ -276,6 +302,43 @@ def above_ground(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     origin = batch.origin
     altitude = enu_to_geodetic(np.nan_to_num(positions_enu_m), origin[:, 0], origin[:, 1], origin[:, 2])[2]
     return ~batch.geodetic | (altitude >= MIN_ALTITUDE_M)
+
+
+def _rivals(best_covariance_enu_m2, best_enu_m, best_cost, position_enu_m, cost, converged, eligible):
+    """Which solutions ``(K,)`` are rivals of their best: eligible (regular, possible), distinct
+    (``DISTINCT_MAHALANOBIS2``, or ``DISTINCT_UNCONVERGED_MAHALANOBIS2`` if not converged) and as good
+    (``AMBIGUITY_COST``)."""
+    apart = np.nan_to_num(position_enu_m - best_enu_m)
+    precision = np.linalg.pinv(best_covariance_enu_m2, rcond=1e-9, hermitian=True)
+    distance2 = np.einsum("ki,kij,kj->k", apart, precision, apart)
+    distinct = distance2 > np.where(converged, DISTINCT_MAHALANOBIS2, DISTINCT_UNCONVERGED_MAHALANOBIS2)
+    return eligible & distinct & (cost <= best_cost + AMBIGUITY_COST)
+
+
+def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
+    """Each position reflected through its stations' plane ``(B, 3)``, where that mirror image may fit as
+    well: unconstrained problems without an elevation (ranges, TOAs and azimuths cannot tell a point from its
+    mirror through the plane of nearly coplanar stations); NaN rows elsewhere.
+
+    The plane is the stations' least-squares plane; with fewer than three stations, or collinear ones, the
+    most horizontal plane through them.
+    """
+    size = batch.size
+    present = np.arange(batch.stations_enu_m.shape[1])[None, :] < batch.n_stations[:, None]
+    centroid = np.sum(np.where(present[..., None], batch.stations_enu_m, 0.0), axis=1) / batch.n_stations[:, None]
+    spread, axes, _ = jacobi_svd(np.where(present[..., None], batch.stations_enu_m - centroid[:, None, :], 0.0))
+    normal = np.take_along_axis(axes, np.argmin(spread, axis=-1)[:, None, None], axis=-1)[..., 0]
+    largest = np.take_along_axis(axes, np.argmax(spread, axis=-1)[:, None, None], axis=-1)[..., 0]
+    flat = np.sort(spread, axis=-1)[:, 1] <= 1e-9 * np.maximum(spread.max(axis=-1), 1.0)
+    up = np.array([0.0, 0.0, 1.0])
+    line = np.where((spread.max(axis=-1) > 0)[:, None], largest, 0.0)
+    horizontal = up - np.sum(line * up, axis=-1)[:, None] * line
+    normal = np.where(flat[:, None], horizontal / np.linalg.norm(horizontal, axis=-1, keepdims=True), normal)
+    height = np.einsum("bi,bi->b", positions_enu_m - centroid, normal)
+    mirrored = positions_enu_m - 2.0 * height[:, None] * normal
+    elevation = np.any(batch.valid & (batch.kinds == ELEVATION), axis=-1)
+    applies = ~batch.constrained & ~elevation & (size > 0)
+    return np.where(applies[:, None], mirrored, np.nan)
 
 
 def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None) -> tuple[np.ndarray, np.ndarray]:
@@ -324,10 +387,8 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None
     good = np.isfinite(cost[first])
     out[tried[first][good]] = position[first][good]
     best_of = first[np.searchsorted(tried[first], tried)]
-    apart = np.nan_to_num(position - position[best_of])
-    precision = np.linalg.pinv(information.covariance_enu_m2[best_of], rcond=1e-9, hermitian=True)
-    distance2 = np.einsum("ki,kij,kj->k", apart, precision, apart)
-    close = regular & (distance2 > DISTINCT_MAHALANOBIS2) & (cost <= cost[best_of] + AMBIGUITY_COST)
+    close = _rivals(information.covariance_enu_m2[best_of], position[best_of], cost[best_of], position, cost,
+                    solution.converged, regular)
     second = np.where(close, cost, np.inf)
     order = np.lexsort((second, tried))
     lowest = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
@@ -402,5 +463,30 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
                     getattr(solution, name)[b] = getattr(again, name)[j]
             if np.all(np.isfinite(rival[ok][j])):
                 warnings[b] = _ambiguous(batch, b, rival[ok][j], starts, names, failures, solution, options)
+    # A closed form's (or the search's) fix may have a mirror image that fits as well: try it.
+    plausible = chdtrc(np.maximum(dof, 1), solution.cost) >= IMPLAUSIBLE_P
+    mirrored = mirror_points(batch, solution.position_enu_m)
+    check = np.flatnonzero(~missing & plausible & np.all(np.isfinite(mirrored), axis=-1)
+                           & np.array([not w for w in warnings]))
+    check = np.array([b for b in check.tolist() if b not in failures], dtype=np.intp)
+    if check.size:
+        part = batch.take(check)
+        image = iterate(part, mirrored[check], options)
+        position = image.position_enu_m
+        finite = np.all(np.isfinite(position), axis=-1)
+        information = batch_information(part, np.where(finite[:, None], position, 0.0))
+        at_fix = batch_information(part, solution.position_enu_m[check])
+        eligible = finite & information.observable & above_ground(part, position)
+        rival = _rivals(at_fix.covariance_enu_m2, solution.position_enu_m[check], solution.cost[check], position,
+                        image.cost, image.converged, eligible)
+        possible = above_ground(part, solution.position_enu_m[check])
+        for j in np.flatnonzero(rival).tolist():
+            b = int(check[j])
+            if possible[j]:
+                warnings[b] = _ambiguous(batch, b, position[j], starts, names, failures, solution, options)
+                continue
+            starts[b], names[b] = mirrored[b], "mirror"
+            for name in Solution.__dataclass_fields__:
+                getattr(solution, name)[b] = getattr(image, name)[j]
     estimates = estimate_from(batch, starts, options, names, failures, solution)
     return replace(estimates, warnings=warnings)

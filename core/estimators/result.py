@@ -31,7 +31,9 @@ WARNING_CODES = {
     "coarse_polar_fallback": "stations at one height: the coarse fix used per-station polar points",
     "start_fallback": "the closed-form start failed; a fallback start was used",
     "measurement_excluded": "outlier exclusion removed this measurement from the fit (named in the message)",
-    "ambiguous_solution": "another point fits the measurements as well (named in the message)",
+    "ambiguous_solution": "another point fits the measurements as well; options.initial_guess picked this one "
+                          "(the other is named in the message; without a guess such a tie is a 422 "
+                          "ambiguous_geometry)",
     "measurements_unused": "the method does not use some kinds of the given measurements (named in the message)",
     "measurement_downweighted": "the robust loss left this measurement under a tenth of its weight (named in the "
                                 "message)",
