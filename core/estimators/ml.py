@@ -404,9 +404,14 @@ IMPLAUSIBLE_P = 1e-9
 def _ambiguous(batch: ProblemBatch, b: int, other_enu_m, starts, names, failures, solution: Solution,
                options: SolveOptions) -> tuple:
     """Problem ``b`` fits ``other_enu_m`` as well as its fix: the client's initial guess picks the nearer
-    (the fix then warns ``ambiguous_solution``, naming the other); without one, ``AmbiguousGeometry``."""
+    (the fix then warns ``ambiguous_solution``, naming the other); without one, ``AmbiguousGeometry`` (with
+    a robust loss, the warning)."""
     fix = solution.position_enu_m[b].copy()
     guess = batch.initial_guess_enu_m[b]
+    if not np.all(np.isfinite(guess)) and options.loss != "linear":
+        # A redescending loss has minima of its own (one per subset it sets aside): named, not refused.
+        return (FixWarning("ambiguous_solution", f"another point fits the measurements as well under the "
+                                                 f"{options.loss} loss, at {_point(batch, b, other_enu_m)}"),)
     if not np.all(np.isfinite(guess)):
         failures[b] = AmbiguousGeometry(
             f"two points fit the measurements equally well: {_point(batch, b, fix)} and "

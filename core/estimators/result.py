@@ -33,7 +33,7 @@ WARNING_CODES = {
     "measurement_excluded": "outlier exclusion removed this measurement from the fit (named in the message)",
     "ambiguous_solution": "another point fits the measurements as well; options.initial_guess picked this one "
                           "(the other is named in the message; without a guess such a tie is a 422 "
-                          "ambiguous_geometry)",
+                          "ambiguous_geometry, except under a robust loss)",
     "measurements_unused": "the method does not use some kinds of the given measurements (named in the message)",
     "measurement_downweighted": "the robust loss left this measurement under a tenth of its weight (named in the "
                                 "message)",
