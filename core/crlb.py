@@ -155,6 +155,20 @@ def invert_information(information, axes, free) -> Information:
     return Information(position, inverse, observable, min_eig)
 
 
+def sandwich_covariance(jacobian, bread_weights, meat_weights, axes, free):
+    """``A^-1 B A^-1`` over the local parameters with ``A = J'^T W_a J'``, ``B = J'^T W_b J'``: the
+    position covariance ``(B, 3, 3)`` of a weighted least-squares fit whose weights ``W_a`` are not the
+    inverse variances (``W_b = W_a^2 Sigma``). Arguments as in :func:`normal_matrix`; ``A`` is inverted by
+    :func:`invert_information`.
+    """
+    bread, local = normal_matrix(jacobian, bread_weights, axes, free)
+    inverse = invert_information(bread, axes, free).covariance_params
+    meat = (local * meat_weights[:, None, :]) @ np.swapaxes(local, -1, -2)
+    params = inverse @ meat @ inverse
+    block = 0.5 * (params[:, :3, :3] + np.swapaxes(params[:, :3, :3], -1, -2))
+    return block if axes is None else np.swapaxes(axes, -1, -2) @ block @ axes
+
+
 def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic):
     """Axes and free parameters of the ``(east, north, up, b)`` parameterisation of B problems.
 

@@ -46,6 +46,13 @@ class UnobservableGeometry(LocalizationError):
     code = "unobservable"
 
 
+class AmbiguousGeometry(LocalizationError):
+    """Two distinct points fit the measurements as well as each other and nothing physical tells them apart
+    (the message names both; an ``initial_guess`` near one picks it)."""
+
+    code = "ambiguous_geometry"
+
+
 class NotConverged(LocalizationError):
     """An iteration failed to produce any usable estimate."""
 

@@ -102,6 +102,8 @@ API_PATH = {
     "altitude_m": ("constraints", "altitude_m"),
     "initial_guess": ("options", "initial_guess"),
     "variant": ("options", "variant"),
+    "loss": ("options", "loss"),
+    "loss_scale": ("options", "loss_scale"),
 }
 
 

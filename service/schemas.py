@@ -12,6 +12,7 @@ from typing import Annotated, Any, Literal, Union, get_args
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Discriminator, Field, StrictBool, Tag, model_validator
 
 from core.estimators import REGISTRY
+from core.estimators.loss import LOSSES
 from core.estimators.result import COVARIANCE_SOURCES, SCALED_COVARIANCE_SOURCES, WARNING_CODES
 from service.limits import check_fix
 
@@ -150,6 +151,14 @@ class Options(Strict):
                               "report: only warn")
     absolute_sigma: StrictBool = Field(
         True, description="false: scale the covariance by the fit's sigma_scale^2 (as scipy's curve_fit)")
+    loss: Literal[LOSSES] = Field(  # type: ignore[valid-type]
+        "linear", description="ml's loss, scipy least_squares' names and meanings, on residuals in sigmas: linear "
+                              "(least squares) | huber | soft_l1 | cauchy | arctan. Redescending losses (cauchy, "
+                              "arctan) set gross errors aside; huber and soft_l1 bound their pull. The covariance "
+                              "is then the sandwich of the loss's final weights (covariance_source robust) and "
+                              "fit.sigma_scale is sqrt(sum rho / dof), as curve_fit's; chi2 stays the plain sum")
+    loss_scale: float = Field(1.0, gt=0.0, le=1e6, description="the loss's scale in sigmas (scipy's f_scale "
+                                                                "applied to whitened residuals)")
 
 
 Format = Literal["geojson", "cot"]
@@ -299,7 +308,9 @@ class FixResponse(BaseModel):
     covariance_ecef_m2: Matrix3 | None = None
     covariance_source: Literal[COVARIANCE_SOURCES + SCALED_COVARIANCE_SOURCES] = Field(  # type: ignore[valid-type]
         description="information: inverse Fisher information at the fix; propagated: first-order through the "
-                    "closed form; crlb: the bound; _scaled: times sigma_scale^2 (options.absolute_sigma false)")
+                    "closed form; crlb: the bound; robust: with options.loss, the sandwich A^-1 B A^-1 of the "
+                    "loss's final weights w = rho' (A = J^T W w J, B = J^T W w^2 J); _scaled: times "
+                    "sigma_scale^2 (options.absolute_sigma false)")
     crlb_enu_m2: Matrix3
     error: ErrorSummary
     residuals: list[Residual]

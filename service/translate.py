@@ -80,7 +80,7 @@ def to_problem(request: schemas.FixRequest) -> Problem:
 def to_options(request: schemas.FixRequest) -> SolveOptions:
     o = request.options
     return SolveOptions(max_iterations=o.max_iterations, tolerance_m=o.tolerance_m, variant=o.variant,
-                        outliers=o.outliers, absolute_sigma=o.absolute_sigma)
+                        outliers=o.outliers, absolute_sigma=o.absolute_sigma, loss=o.loss, loss_scale=o.loss_scale)
 
 
 def planning_problem(request: schemas.PlanningGeometry) -> Problem:
@@ -211,7 +211,7 @@ READ_FIELDS = {
     schemas.RangeMeasurement: frozenset(("type", "station_id", "range_m", "sigma_m")),
     schemas.ToaMeasurement: frozenset(("type", "station_id", "toa_s", "sigma_s")),
     schemas.Options: frozenset(("max_iterations", "tolerance_m", "initial_guess", "variant", "outliers",
-                                "absolute_sigma")),
+                                "absolute_sigma", "loss", "loss_scale")),
     schemas.Constraints: frozenset(("altitude_m",)),
 }
 _GEODETIC_KEYS = READ_FIELDS[schemas.GeodeticPosition]
@@ -228,8 +228,10 @@ _METHODS = schemas.METHODS
 _DEFAULT_OPTIONS = schemas.Options()
 _VARIANTS = frozenset(typing.get_args(schemas.Variant))
 _OUTLIERS = frozenset(typing.get_args(schemas.Options.model_fields["outliers"].annotation))
+_LOSSES = frozenset(typing.get_args(schemas.Options.model_fields["loss"].annotation))
 _DEFAULT_SOLVE = SolveOptions(_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m, _DEFAULT_OPTIONS.variant,
-                              _DEFAULT_OPTIONS.outliers, _DEFAULT_OPTIONS.absolute_sigma)
+                              _DEFAULT_OPTIONS.outliers, _DEFAULT_OPTIONS.absolute_sigma, _DEFAULT_OPTIONS.loss,
+                              _DEFAULT_OPTIONS.loss_scale)
 #: A request with only these fields needs no per-field settings beyond frame and method.
 _PLAIN_KEYS = frozenset(("frame", "method", "stations", "measurements"))
 _NAN3 = (math.nan, math.nan, math.nan)
@@ -283,6 +285,7 @@ _TOA_S = _bounds(schemas.ToaMeasurement, "toa_s")
 _SIGMA_TOA = _bounds(schemas.ToaMeasurement, "sigma_s")
 _TOLERANCE = _bounds(schemas.Options, "tolerance_m")
 _ITERATIONS = _bounds(schemas.Options, "max_iterations")
+_LOSS_SCALE = _bounds(schemas.Options, "loss_scale")
 _ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
 _MEASUREMENTS_MAX = schemas.MAX_FIX_MEASUREMENTS
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
@@ -328,10 +331,12 @@ def _problem_settings(body: dict) -> tuple:
             raise _Reject
         outliers = options.get("outliers", _DEFAULT_OPTIONS.outliers)
         absolute_sigma = options.get("absolute_sigma", _DEFAULT_OPTIONS.absolute_sigma)
-        if outliers not in _OUTLIERS or type(absolute_sigma) is not bool:
+        loss = options.get("loss", _DEFAULT_OPTIONS.loss)
+        if outliers not in _OUTLIERS or type(absolute_sigma) is not bool or loss not in _LOSSES:
             raise _Reject
         solve = SolveOptions(iterations, _number(options.get("tolerance_m", _DEFAULT_OPTIONS.tolerance_m), _TOLERANCE),
-                             variant, outliers, absolute_sigma)
+                             variant, outliers, absolute_sigma, loss,
+                             _number(options.get("loss_scale", _DEFAULT_OPTIONS.loss_scale), _LOSS_SCALE))
         raw = options.get("initial_guess")
         if raw is not None:
             guess_geodetic = type(raw) is dict and ("lat_deg" in raw or "lon_deg" in raw)

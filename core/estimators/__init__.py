@@ -18,6 +18,7 @@ import numpy as np
 from core.batch import AZIMUTH, ProblemBatch, size_groups
 from core.errors import InvalidInput, LocalizationError
 from core.estimators.base import REGISTRY, SolveOptions, get_estimator
+from core.estimators.loss import LOSSES
 from core.estimators.result import Fix, FixBatch, FixWarning
 from core.problem import Problem
 
@@ -76,6 +77,7 @@ def solve_many(batch: ProblemBatch, methods, options) -> list[tuple[np.ndarray, 
         try:
             spec = get_estimator(name)
             _check_variant(spec, opts)
+            _check_loss(spec, opts)
         except LocalizationError as error:
             out.append((rows, error))
             continue
@@ -182,6 +184,18 @@ def _check_variant(spec, options: SolveOptions) -> None:
         raise InvalidInput(f"{spec.name} variant must be one of {', '.join(spec.variants)}; got {variant!r}",
                            ("variant",))
     raise InvalidInput(f"{spec.name} has no variants; got {variant!r}", ("variant",))
+
+
+def _check_loss(spec, options: SolveOptions) -> None:
+    if options.loss not in LOSSES:
+        raise InvalidInput(f"loss must be one of {', '.join(LOSSES)}; got {options.loss!r}", ("loss",))
+    if not (np.isfinite(options.loss_scale) and options.loss_scale > 0):
+        raise InvalidInput(f"loss_scale must be a positive number of sigmas; got {options.loss_scale!r}",
+                           ("loss_scale",))
+    if options.loss != "linear" and not spec.robust:
+        robust = ", ".join(sorted(name for name, s in REGISTRY.items() if s.robust))
+        raise InvalidInput(f"{spec.name} minimises plain least squares; loss {options.loss!r} needs {robust}",
+                           ("loss",))
 
 
 __all__ = ["AUTO", "REGISTRY", "Fix", "FixBatch", "FixWarning", "SolveOptions", "exclude_outliers", "resolve_methods", "solve",

@@ -45,6 +45,10 @@ class SolveOptions:
         (:func:`core.estimators.exclude_outliers`); ``"report"`` only warns.
     absolute_sigma : bool
         False scales each covariance by the fit's ``sigma_scale^2`` (as scipy's ``curve_fit``).
+    loss : str
+        One of :data:`core.estimators.loss.LOSSES` (scipy's names): the ML iteration's loss.
+    loss_scale : float
+        The loss's scale in sigmas (scipy's ``f_scale`` on whitened residuals).
     """
 
     max_iterations: int = 50
@@ -52,6 +56,8 @@ class SolveOptions:
     variant: str | None = None
     outliers: str = "report"
     absolute_sigma: bool = True
+    loss: str = "linear"
+    loss_scale: float = 1.0
 
 
 Estimator = Callable[[ProblemBatch, SolveOptions], Estimates]
@@ -74,6 +80,8 @@ class EstimatorSpec:
         Accepted ``options.variant`` values (the first is the default); empty when none.
     uses : frozenset of Kind
         The measurement kinds the method uses; the others are reported, not judged.
+    robust : bool
+        True when the method minimises ``options.loss`` (the others take only ``"linear"``).
     """
 
     name: str
@@ -82,6 +90,7 @@ class EstimatorSpec:
     needs_sigmas: bool = True
     variants: tuple[str, ...] = ()
     uses: frozenset = ALL_KINDS
+    robust: bool = False
 
     def solve_batch(self, batch: ProblemBatch, options: SolveOptions, excluded=None) -> FixBatch:
         """Fixes of every problem of ``batch`` (a problem that cannot be solved carries its error).
@@ -98,14 +107,14 @@ REGISTRY: dict[str, EstimatorSpec] = {}
 
 
 def register(name: str, summary: str, needs_sigmas: bool = True, variants: tuple[str, ...] = (),
-             uses: frozenset = None):
+             uses: frozenset = None, robust: bool = False):
     """Decorator adding a batch estimator to :data:`REGISTRY` under its API name."""
 
     def add(estimate: Estimator) -> Estimator:
         if name in REGISTRY:
             raise RuntimeError(f"estimator {name!r} registered twice")
         REGISTRY[name] = EstimatorSpec(name, estimate, summary, needs_sigmas, variants,
-                                       ALL_KINDS if uses is None else frozenset(uses))
+                                       ALL_KINDS if uses is None else frozenset(uses), robust)
         return estimate
 
     return add

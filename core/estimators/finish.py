@@ -15,10 +15,12 @@ from scipy.special import chdtrc
 
 from core.angles import line_of_sight_enu
 from core.batch import ProblemBatch
-from core.crlb import gdop, invert_information, normal_matrix, parameterisation, reference_sigma_m
+from core.crlb import (gdop, invert_information, normal_matrix, parameterisation, reference_sigma_m,
+                       sandwich_covariance)
 from core.errors import LocalizationError, UnobservableGeometry
-from core.measurements import Kind, MeasurementModel
+from core.estimators.loss import loss_weights
 from core.estimators.result import Estimates, FixBatch, FixWarning
+from core.measurements import Kind, MeasurementModel
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
 OUTLIER_SIGMAS = 4.0
@@ -30,6 +32,8 @@ COLLINEAR_SPREAD_RAD = np.deg2rad(2.0)
 INEFFICIENCY_RATIO = 10.0
 #: Minimum unit-diagonal information eigenvalue below which a fix is ill-conditioned.
 ILL_CONDITIONED_EIGENVALUE = 1e-6
+#: Robust-loss weight factor (``rho'``) below which a measurement is named as downweighted.
+DOWNWEIGHTED_FACTOR = 0.1
 #: Pairwise line-of-sight cosines are formed for at most this many entries at once.
 _GRAM_ENTRIES = 1 << 21
 
@@ -101,7 +105,13 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     dof = np.count_nonzero(known, axis=-1) - n_parameters
     positive = dof > 0
     p_value = np.where(positive, chdtrc(np.maximum(dof, 1), chi2), np.nan)
-    sigma_scale = np.where(positive, np.sqrt(chi2 / np.maximum(dof, 1)), np.nan)
+    plain_scale = np.where(positive, np.sqrt(chi2 / np.maximum(dof, 1)), np.nan)
+    sigma_scale = plain_scale
+    robust_factor = None
+    if estimates.loss is not None:
+        rho, robust_factor, _ = loss_weights(np.where(known, normalized, 0.0) ** 2, *estimates.loss)
+        robust_cost = np.sum(np.where(known, rho, 0.0), axis=-1)
+        sigma_scale = np.where(positive, np.sqrt(robust_cost / np.maximum(dof, 1)), np.nan)
 
     axes, free = parameterisation(position, batch.altitude_m, batch.has_toa, batch.origin, batch.geodetic)
     information, local = normal_matrix(jacobian, weights, axes, free)
@@ -111,7 +121,10 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     if source == "information":
         for b in np.flatnonzero(~failed & ~info.observable):
             errors[int(b)] = UnobservableGeometry(_singular_reason(batch, int(b), position[b], info.min_eigenvalue[b]))
-    if estimates.covariance_enu_m2 is None:
+    if robust_factor is not None:
+        covariance = sandwich_covariance(jacobian, weights * robust_factor, weights * robust_factor**2, axes, free)
+        source = "robust"
+    elif estimates.covariance_enu_m2 is None:
         covariance = crlb
         source = "information" if source == "information" else "crlb"
     else:
@@ -139,8 +152,10 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     own = estimates.warnings or [()] * size
     any_behind, any_zenith = np.any(behind, axis=-1), np.any(zenith, axis=-1)
     any_excluded, any_unused = np.any(excluded, axis=-1), np.any(unused, axis=-1)
+    downweighted = np.zeros_like(known) if robust_factor is None else known & (robust_factor < DOWNWEIGHTED_FACTOR)
+    any_downweighted = np.any(downweighted, axis=-1)
     flagged = ~converged | ill | inefficient | outlier | mismatch | collinear | any_behind | any_zenith
-    flagged |= any_unused | any_excluded
+    flagged |= any_unused | any_excluded | any_downweighted
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
     for b in np.flatnonzero(flagged & ~failed):
         found = list(own[b])
@@ -177,11 +192,19 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
             found.append(FixWarning(
                 "sigma_mismatch",
                 f"chi2 = {chi2[b]:.1f} on {dof[b]} dof (p = {p_value[b]:.1e}): residuals are "
-                f"{sigma_scale[b]:.2f} x what the stated sigmas allow"))
+                f"{plain_scale[b]:.2f} x what the stated sigmas allow"))
         if any_excluded[b]:
             for source in sorted(set(batch.source_index[b, excluded[b]].tolist())):
                 found.append(FixWarning("measurement_excluded",
                                         f"measurement {source} failed the consistency test and was excluded"))
+        if any_downweighted[b]:
+            for m in np.flatnonzero(downweighted[b]).tolist():
+                station = batch.station_ids[b][batch.station_index[b, m]]
+                found.append(FixWarning(
+                    "measurement_downweighted",
+                    f"measurement {int(batch.source_index[b, m])} ({Kind(batch.kinds[b, m]).name.lower()} at {station}) "
+                    f"keeps {100.0 * robust_factor[b, m]:.1f} % of its weight under the {estimates.loss[0]} loss "
+                    f"(scale {estimates.loss[1]:g} sigma)"))
         if any_unused[b]:
             kinds = sorted({Kind(k).name.lower() for k in batch.kinds[b, unused[b]].tolist()})
             found.append(FixWarning(

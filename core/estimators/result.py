@@ -31,13 +31,18 @@ WARNING_CODES = {
     "coarse_polar_fallback": "stations at one height: the coarse fix used per-station polar points",
     "start_fallback": "the closed-form start failed; a fallback start was used",
     "measurement_excluded": "outlier exclusion removed this measurement from the fit (named in the message)",
-    "ambiguous_solution": "another point fits the measurements as well (named in the message)",
+    "ambiguous_solution": "another point fits the measurements as well; options.initial_guess picked this one "
+                          "(the other is named in the message; without a guess such a tie is a 422 "
+                          "ambiguous_geometry, except under a robust loss)",
     "measurements_unused": "the method does not use some kinds of the given measurements (named in the message)",
+    "measurement_downweighted": "the robust loss left this measurement under a tenth of its weight (named in the "
+                                "message)",
 }
 
 #: Covariance sources: the inverse information at the estimate (ML-type methods), first-order
-#: propagation through a closed form, or the CRLB at the estimate where the method has none of its own.
-COVARIANCE_SOURCES = ("information", "propagated", "crlb")
+#: propagation through a closed form, the CRLB at the estimate where the method has none of its own, or
+#: (ML with a robust loss) the sandwich of the loss's final weights.
+COVARIANCE_SOURCES = ("information", "propagated", "crlb", "robust")
 #: Each source with ``_scaled``: multiplied by the fit's ``sigma_scale^2`` (``absolute_sigma`` false).
 SCALED_COVARIANCE_SOURCES = tuple(f"{source}_scaled" for source in COVARIANCE_SOURCES)
 
@@ -79,6 +84,9 @@ class Estimates:
     bias_m : ndarray, shape (B,), optional
         TOA emission offset (metres); default the best one for each position.
     details : list of dict, length B, optional
+    loss : tuple of (str, float), optional
+        The robust loss (name, scale in sigmas) the estimate minimised; None for least squares. The finisher
+        then gives the covariance as a sandwich of the loss's final weights (source ``"robust"``).
     """
 
     position_enu_m: np.ndarray
@@ -93,6 +101,7 @@ class Estimates:
     sigmas: np.ndarray | None = None
     bias_m: np.ndarray | None = None
     details: list | None = None
+    loss: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -115,7 +124,7 @@ class Fix:
     p_value : float or None
         None when ``dof`` is 0.
     sigma_scale : float or None
-        ``sqrt(chi2 / dof)``.
+        ``sqrt(chi2 / dof)``; with a robust loss ``sqrt(sum rho / dof)`` (scipy's ``curve_fit`` under a loss).
     converged : bool
     iterations : int
     warnings : tuple of FixWarning

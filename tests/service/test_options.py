@@ -46,3 +46,26 @@ def test_unknown_option_values_are_422_with_their_path(client):
         assert_problem(client.post("/v1/fixes", json=base | {"options": options}), 422, loc)
     ml_with_variant = copy.deepcopy(base) | {"method": "ml", "options": {"variant": "newton"}}
     assert_problem(client.post("/v1/fixes", json=ml_with_variant), 422, ["options", "variant"])
+
+
+def test_a_robust_loss_sets_the_gross_bearing_aside(client):
+    report = client.post("/v1/fixes", json=_with_gross_azimuth()).json()
+    robust = client.post("/v1/fixes", json=_with_gross_azimuth(loss="cauchy", loss_scale=2.0)).json()
+    assert robust["covariance_source"] == "robust"
+    assert any(w["code"] == "measurement_downweighted" and w["message"].startswith("measurement 1 ")
+               for w in robust["warnings"])
+    assert robust["fit"]["chi2"] > robust["fit"]["sigma_scale"] ** 2 * robust["fit"]["dof"]  # chi2 stays the plain sum
+    # The culprit barely pulls the robust fit: its residual is the whole 20 deg, the others' are small.
+    others = [abs(r["normalized"]) for r in robust["residuals"] if r["measurement_index"] != 1]
+    assert max(others) < 5.0 < max(abs(r["normalized"]) for r in report["residuals"] if r["measurement_index"] != 1)
+
+
+def test_bad_loss_values_are_422_with_their_path(client):
+    base = bearing_request(STATIONS_300KM, TARGET)
+    for options, loc in (({"loss": "l1"}, ["options", "loss"]),
+                         ({"loss": ["huber"]}, ["options", "loss"]),
+                         ({"loss_scale": 0.0}, ["options", "loss_scale"]),
+                         ({"loss_scale": "2"}, ["options", "loss_scale"])):
+        assert_problem(client.post("/v1/fixes", json=base | {"options": options}), 422, loc)
+    eove_with_loss = copy.deepcopy(base) | {"method": "weighted_eove", "options": {"loss": "huber"}}
+    assert_problem(client.post("/v1/fixes", json=eove_with_loss), 422, ["options", "loss"])
