@@ -21,7 +21,7 @@ from service.deps import OwnerDep
 from service.limits import check_evaluation, method_weight
 from service.problems import ApiError
 from service.responses import JsonResponse
-from service.translate import EvaluationStopped, crlb_problem, evaluation_body
+from service.translate import Stopped, crlb_problem, evaluation_body
 
 router = APIRouter(prefix="/v1", tags=["evaluations"])
 
@@ -53,7 +53,7 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
         return cancelled.is_set() or stopping.is_set() or time.monotonic() > deadline
 
     def run():
-        return evaluation_body(request, problem, target, methods, should_stop, chunk)
+        return evaluation_body(request, problem, target, methods, should_stop, chunk, settings.dask_scheduler or None)
 
     future = asyncio.get_running_loop().run_in_executor(http.app.state.cpu_pool, run)
     try:
@@ -66,7 +66,7 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
                 future.cancel()
                 raise ApiError(499, "client_closed", "the client went away")
         body = future.result()
-    except EvaluationStopped:
+    except Stopped:
         if time.monotonic() > deadline:
             raise ApiError(503, "deadline_exceeded",
                            f"the evaluation did not finish within request_deadline_s = {settings.request_deadline_s:g} s;"

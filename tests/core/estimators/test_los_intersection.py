@@ -16,20 +16,19 @@ from core.estimators.line_of_sight_intersection import (
 )
 from core.measurements import predict
 from core.problem import Bearing, GeodeticPoint, LocalPoint, build_problem
+from core.simulation.scenarios import PAPER_002_SIGMA_RAD, PAPER_002_STATIONS, PAPER_002_TARGET_HEIGHT_M, paper_002_problem
 from core.simulation.measurements import draw_noise, trial_batch, true_values
 
-SIGMA_RAD = 0.010  # the paper's 10 mrad on both angles
-PAPER_SENSORS = [("s1", LocalPoint(0.0, 0.0, 0.0)), ("s2", LocalPoint(10_000.0, 0.0, 0.0)),
-                 ("s3", LocalPoint(5_000.0, 10_000.0, 0.0))]
-TARGET_HEIGHT_M = 500.0
+SIGMA_RAD = PAPER_002_SIGMA_RAD
+PAPER_SENSORS = list(PAPER_002_STATIONS)
+TARGET_HEIGHT_M = PAPER_002_TARGET_HEIGHT_M
 
 
 def bearings(stations, sigma=SIGMA_RAD, elevation=True):
     return [Bearing(sid, 0.0, 0.0 if elevation else None, sigma, sigma if elevation else None) for sid, _ in stations]
 
 
-def paper_problem():
-    return build_problem(PAPER_SENSORS, bearings(PAPER_SENSORS))
+paper_problem = paper_002_problem
 
 
 def geodetic_problem():

@@ -15,7 +15,7 @@ from core.tracking.config import SPEED_OF_LIGHT_MPS
 from core.tracking.kinematic import (RangePseudoMeasurement, kinematic_update, line_of_sight_derivatives,
                                      range_pseudo_measurement)
 from core.tracking.unscented import constant_velocity_predict, polar_update, transition
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 C = SPEED_OF_LIGHT_MPS
 

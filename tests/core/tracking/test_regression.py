@@ -40,7 +40,7 @@ from core.tracking import TrackState, step
 from core.tracking import new_state as new_state_now
 from tests.core.tracking.reference.session import new_state as new_state_then
 from tests.core.tracking.reference.session import step as step_then
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 #: Largest deviation of one step from the same input state (3.4e-12 is the largest seen, see above).
 STEP_TOLERANCE = 1e-11
