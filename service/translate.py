@@ -129,14 +129,14 @@ def _finite(value):
 
 
 def evaluation_body(request: schemas.EvaluationRequest, problem: Problem, target_enu_m, methods, should_stop,
-                    chunk_trials: int, scheduler: str | None = None) -> dict:
+                    chunk_trials: int, scheduler: str | None = None, progress=None) -> dict:
     """The response body of a Monte Carlo evaluation (raises core.parallel.Stopped when ``should_stop`` says so).
 
     ``scheduler``: a Dask scheduler address to run the chunks on (the service's ``dask_scheduler``), else here.
     """
     results = evaluate(problem, target_enu_m, methods, request.trials, request.seed, request.noise,
                        options=to_options(request), should_stop=should_stop, chunk_trials=chunk_trials,
-                       scheduler=scheduler)
+                       scheduler=scheduler, progress=progress)
     methods_out = {
         name: {
             "rmse_m": _finite(r.rmse_m),
