@@ -46,7 +46,10 @@ class ProgressBar:
 
 
 def _pyplot():
-    import matplotlib
+    try:
+        import matplotlib
+    except ImportError:
+        raise RuntimeError("PNG plots need matplotlib: pip install 'passive-locator[reports]'") from None
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
