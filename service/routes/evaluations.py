@@ -43,8 +43,9 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
     problem, target = crlb_problem(request.scenario)
     methods = list(dict.fromkeys(request.methods))
     rows = int(problem.kinds.size)
-    check_evaluation(request.trials, methods, rows, settings.max_evaluation_cost)
-    chunk = max(1, CHUNK_UNITS // (rows * max(method_weight(m) for m in methods)))
+    exclude = request.options.outliers == "exclude"
+    check_evaluation(request.trials, methods, rows, settings.max_evaluation_cost, exclude)
+    chunk = max(1, CHUNK_UNITS // (rows * max(method_weight(m) for m in methods) * (2 if exclude else 1)))
     deadline = time.monotonic() + settings.request_deadline_s
     cancelled = threading.Event()
     stopping: threading.Event = http.app.state.stopping

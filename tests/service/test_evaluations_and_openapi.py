@@ -68,3 +68,25 @@ def test_committed_openapi_matches_the_app():
     operation_ids = [op["operationId"] for path in spec["paths"].values() for op in path.values()]
     assert len(operation_ids) == len(set(operation_ids))
     assert all("-" in op for op in operation_ids)  # {tag}-{name}, for generated clients
+
+
+def test_evaluation_with_outlier_noise_shows_the_exclusion(client):
+    """Contaminated-gaussian noise: with exclusion on, a good share of the trials drop a measurement (a
+    trial has a gross error with probability 1 - 0.95^M) and the RMSE falls below that of reporting only."""
+    body = {"scenario": _scenario(), "methods": ["ml"], "trials": 300, "seed": 4, "noise": "outlier"}
+    report = client.post("/v1/evaluations", json=body)
+    exclude = client.post("/v1/evaluations", json={**body, "options": {"outliers": "exclude"}})
+    assert report.status_code == exclude.status_code == 200, exclude.text
+    report, exclude = report.json()["methods"]["ml"], exclude.json()["methods"]["ml"]
+    assert report["excluded_trials"] == 0 and exclude["excluded_trials"] > 0.15 * 300
+    assert exclude["rmse_m"] < 0.8 * report["rmse_m"]
+
+
+def test_exclusion_prices_its_refits(make_client):
+    client = make_client(max_evaluation_cost=10_000)
+    body = {"scenario": _scenario(), "methods": ["ml"], "trials": 1000}
+    rows = 2 * len(STATIONS_300KM)
+    assert rows * 1000 <= 10_000 < rows * 1000 * 9  # the same evaluation fits only without exclusion
+    assert client.post("/v1/evaluations", json={**body, "trials": 10_000 // rows}).status_code == 200
+    refused = client.post("/v1/evaluations", json={**body, "trials": 10_000 // rows, "options": {"outliers": "exclude"}})
+    assert refused.status_code == 422 and refused.json()["code"] == "over_limit"
