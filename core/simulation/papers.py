@@ -302,7 +302,8 @@ def paper_002(size: str = "full", seed: int = 2002, scheduler: Any = None, progr
               bool(np.all(np.abs(plain[away] - 1) < 4 * sd[away]) and abs(np.nanmean(plain[away]) - 1) < 0.05)),
     ]
     grid = cv.reshape(axis.size, axis.size)
-    curves = {"p002_efficiency": {"grid": grid.tolist(), "extent_km": [0.0, 10.0, 0.0, 10.0],
+    half_km = step / 2e3
+    curves = {"p002_efficiency": {"grid": grid.tolist(), "extent_km": [-half_km, 10.0 + half_km, -half_km, 10.0 + half_km],
                                   "label": "MSE / tr CRLB (control variate)",
                                   "stations_km": (stations[:, :2] / 1e3).tolist()}}
     return PaperResult(
@@ -349,8 +350,9 @@ def paper_003(size: str = "full", seed: int = 3003, scheduler: Any = None, progr
     checks.append(Check("uniform noise of the same sigma gives an RMSE within 10 % of the gaussian one",
                         f"{u.rmse_m:.0f} m vs {g.rmse_m:.0f} m ({u.rmse_m / g.rmse_m:.3f})",
                         abs(u.rmse_m / g.rmse_m - 1) < 0.10))
-    checks.append(Check("paper's table: angle + range total RMSE 456 m (below the gaussian CRLB: read as a trend)",
-                        f"{g.rmse_m:.0f} m gaussian, {u.rmse_m:.0f} m uniform; CRLB {g.crlb_rmse_m:.0f} m",
+    checks.append(Check("paper's table: angle + range total RMSE 456 m",
+                        f"{g.rmse_m:.0f} m gaussian, {u.rmse_m:.0f} m uniform; the CRLB is {g.crlb_rmse_m:.0f} m, so "
+                        "no unbiased estimator reaches the paper's figure with these sigmas: read it as a trend",
                         g.rmse_m <= 1.25 * 456.0, asserted=False))
     return PaperResult(
         "003", "Dual-aircraft cooperative location with angle and distance (coarse + Gauss-Newton fine)",
@@ -399,7 +401,9 @@ def paper_004(size: str = "full", seed: int = 4000, scheduler: Any = None, progr
         ["sigma (deg)", "method", "RMSE (m)", "sqrt tr CRLB (m)", "MSE / tr CRLB", "failures"], rows, checks,
         {"p004_efficiency": {"x": list(ratios), "xlabel": "bearing sigma (deg)", "ylabel": "RMSE / sqrt tr CRLB",
                              "log": False, "series": {"taylor_wls": list(ratios.values())}}},
-        notes=f"{trials} trials per sigma, seeds {seed} + k; ctls is the Newton variant.")
+        notes=f"{trials} trials per sigma, seeds {seed} + k; ctls is the Newton variant. On this geometry all three "
+              "reach the CRLB, so the patent's accuracy ranking shows only as 'not worse'; its bearing-error "
+              "estimates are checked in tests/core/estimators/test_paper004.py.")
 
 
 PAPERS: dict[str, Callable[..., PaperResult]] = {"000": paper_000, "001": paper_001, "002": paper_002,
