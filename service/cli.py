@@ -141,12 +141,23 @@ def _add_tools(commands) -> None:
     reproduce.set_defaults(run=_run_reproduce)
 
 
-def _scheduler(args) -> str | None:
-    if args.scheduler:
-        return args.scheduler
-    from service.settings import Settings
+def _scheduler(args):
+    """A context giving a connected Dask client (one for the whole command), or None to run in-process."""
+    import contextlib
 
-    return Settings().dask_scheduler or None
+    address = args.scheduler
+    if not address:
+        from service.settings import Settings
+
+        address = Settings().dask_scheduler
+    if not address:
+        return contextlib.nullcontext(None)
+    try:
+        from distributed import Client
+    except ImportError:
+        raise SystemExit("passive-locator: --scheduler needs dask.distributed: pip install "
+                         "'passive-locator[distributed]'") from None
+    return Client(address)
 
 
 def _run_evaluate(args) -> int:
@@ -164,13 +175,13 @@ def _run_evaluate(args) -> int:
         print(f"passive-locator evaluate: cannot read {path}: {error}", file=sys.stderr)
         return 2
     out = pathlib.Path(args.out) if args.out else pathlib.Path("reports") / path.stem
-    scheduler = _scheduler(args)
     bar = ProgressBar(path.stem)
     try:
-        if isinstance(data, dict) and "tracking" in data:
-            written = _evaluate_tracking(data["tracking"], out, path.stem, scheduler, bar)
-        else:
-            written = _evaluate_fixes(data, out, path.stem, scheduler, bar)
+        with _scheduler(args) as scheduler:
+            if isinstance(data, dict) and "tracking" in data:
+                written = _evaluate_tracking(data["tracking"], out, path.stem, scheduler, bar)
+            else:
+                written = _evaluate_fixes(data, out, path.stem, scheduler, bar)
     except ValidationError as error:
         print(f"passive-locator evaluate: {path} is not a valid evaluation:\n{error}", file=sys.stderr)
         return 2
@@ -223,11 +234,12 @@ def _run_reproduce(args) -> int:
 
     size = "quick" if args.quick else "full"
     out = pathlib.Path(args.out) if args.out else pathlib.Path("reports") / ("quick" if args.quick else "")
-    scheduler = _scheduler(args)
     start = time.monotonic()
-    results = reproduce(size, scheduler=scheduler, papers=args.paper,
-                        progress=lambda name: print(f"paper {name} ...", file=sys.stderr, flush=True))
-    written = write_papers(results, out, size, time.monotonic() - start, scheduler)
+    with _scheduler(args) as scheduler:
+        results = reproduce(size, scheduler=scheduler, papers=args.paper,
+                            progress=lambda name: print(f"paper {name} ...", file=sys.stderr, flush=True))
+        where = None if scheduler is None else f"{len(scheduler.scheduler_info()['workers'])} Dask workers"
+    written = write_papers(results, out, size, time.monotonic() - start, where)
     failed = [(r.paper, c) for r in results for c in r.checks if c.asserted and not c.holds]
     for paper, check in failed:
         print(f"FAILED paper {paper}: {check.claim}: {check.measured}", file=sys.stderr)

@@ -71,3 +71,20 @@ def test_evaluate_refuses_an_invalid_file_with_status_2(tmp_path):
     assert done.returncode == 2
     assert "not a valid evaluation" in done.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.slow
+def test_evaluate_on_a_two_worker_cluster_writes_the_in_process_numbers(tmp_path):
+    distributed = pytest.importorskip("distributed")
+    scenario = json.loads((ROOT / "examples" / "three_stations.json").read_text())
+    scenario.update(trials=300, methods=["ml", "eove"])
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps(scenario))
+    here = run_cli("evaluate", str(path), "--out", str(tmp_path / "here"))
+    assert here.returncode == 0, here.stderr[-3000:]
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        there = run_cli("evaluate", str(path), "--out", str(tmp_path / "there"), "--scheduler",
+                        cluster.scheduler_address)
+    assert there.returncode == 0, there.stderr[-3000:]
+    assert (tmp_path / "here" / "evaluation.json").read_text() == (tmp_path / "there" / "evaluation.json").read_text()
