@@ -6,6 +6,7 @@ import json
 import pathlib
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
 from service import schemas
@@ -90,3 +91,15 @@ def test_exclusion_prices_its_refits(make_client):
     assert client.post("/v1/evaluations", json={**body, "trials": 10_000 // rows}).status_code == 200
     refused = client.post("/v1/evaluations", json={**body, "trials": 10_000 // rows, "options": {"outliers": "exclude"}})
     assert refused.status_code == 422 and refused.json()["code"] == "over_limit"
+
+
+@pytest.mark.slow
+def test_evaluation_on_the_configured_dask_scheduler_answers_the_in_process_body(make_client):
+    distributed = pytest.importorskip("distributed")
+    body = {"scenario": _scenario(), "methods": ["ml", "eove"], "trials": 300, "seed": 12}
+    here = make_client().post("/v1/evaluations", json=body)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        there = make_client(dask_scheduler=cluster.scheduler_address).post("/v1/evaluations", json=body)
+    assert here.status_code == there.status_code == 200, there.text
+    assert here.json() == there.json()
