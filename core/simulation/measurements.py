@@ -135,9 +135,10 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, seed: int | n
     Every method sees the same noisy draws, and each method solves a chunk of
     trials as one batch (:func:`core.estimators.solve_many`). The trials are
     drawn in blocks of :data:`DRAW_BLOCK_TRIALS`, block ``b`` from child
-    ``b`` of the seed (:func:`core.parallel.chunk_seeds`); the blocks are
-    grouped into chunks of about ``chunk_trials`` that run here or on a Dask
-    cluster (:func:`core.parallel.run_chunks`). The result for a seed is
+    ``b`` of the seed (:func:`core.parallel.chunk_seeds`); the trials are
+    cut into chunks of ``chunk_trials`` (each drawing the blocks it overlaps
+    and keeping its rows of them) that run here or on a Dask cluster
+    (:func:`core.parallel.run_chunks`). The result for a seed is
     therefore the same for any chunk size and any number of workers.
     ``should_stop`` is asked between chunks.
 
@@ -156,7 +157,7 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, seed: int | n
     should_stop : callable returning bool, optional
         True = stop now (raises :class:`core.parallel.Stopped`).
     chunk_trials : int
-        Trials per chunk (rounded up to whole draw blocks).
+        Trials per chunk.
     scheduler : str or distributed.Client, optional
         Run the chunks on this Dask cluster; None runs them in this process.
     progress : callable(done, total), optional
@@ -183,9 +184,14 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, seed: int | n
     bound = information.covariance_enu_m2[0]
     blocks = chunk_slices(trials, DRAW_BLOCK_TRIALS)
     seeds = chunk_seeds(seed, len(blocks))
-    per_chunk = max(1, -(-int(chunk_trials) // DRAW_BLOCK_TRIALS))
-    chunks = [(problem, target, methods, [(seeds[b], blocks[b].stop - blocks[b].start) for b in range(p.start, p.stop)],
-               noise, options) for p in chunk_slices(len(blocks), per_chunk)]
+    chunks = []
+    for part in chunk_slices(trials, chunk_trials):
+        pieces = []
+        for b in range(part.start // DRAW_BLOCK_TRIALS, (part.stop - 1) // DRAW_BLOCK_TRIALS + 1):
+            block = blocks[b]
+            pieces.append((seeds[b], block.stop - block.start, max(part.start, block.start) - block.start,
+                           min(part.stop, block.stop) - block.start))
+        chunks.append((problem, target, methods, pieces, noise, options))
     parts = run_chunks(evaluate_chunk, chunks, scheduler=scheduler, should_stop=should_stop, progress=progress)
     out = {}
     for method in methods:
@@ -215,8 +221,9 @@ def evaluate_chunk(problem: Problem, target_enu_m, methods, blocks, noise: str, 
     problem : Problem
     target_enu_m : ndarray, shape (3,)
     methods : list of str
-    blocks : list of (numpy.random.SeedSequence, int)
-        Each block's seed and trial count.
+    blocks : list of (numpy.random.SeedSequence, int, int, int)
+        The draw blocks the chunk overlaps: each block's seed and trial count, and the rows of it the chunk
+        takes (``start``, ``stop``).
     noise : str
     options : SolveOptions
 
@@ -229,8 +236,8 @@ def evaluate_chunk(problem: Problem, target_enu_m, methods, blocks, noise: str, 
     from core.estimators import solve_many
 
     clean = true_values(problem, target_enu_m)
-    draws = np.concatenate([clean + draw_noise(np.random.default_rng(block_seed), problem.sigmas, noise, size=size)
-                            for block_seed, size in blocks])
+    draws = np.concatenate([clean + draw_noise(np.random.default_rng(block_seed), problem.sigmas, noise,
+                                               size=size)[start:stop] for block_seed, size, start, stop in blocks])
     batch = trial_batch(problem, draws)
     out = {}
     for method in methods:
