@@ -11,8 +11,11 @@ RUN python -m venv /opt/venv
 # Dependencies first, read from pyproject.toml itself (no second list to drift from it) and pinned to the
 # tested versions by constraints.txt (`make constraints`): this layer is rebuilt only when those two change,
 # not when the source or the README does.
+# EXTRAS: optional-dependency groups to add, comma-separated: `--build-arg EXTRAS=distributed` gives the
+# image the Dask scheduler and workers of deploy/ run (and the API with PASSIVE_LOCATOR_DASK_SCHEDULER).
+ARG EXTRAS=""
 COPY pyproject.toml constraints.txt ./
-RUN /opt/venv/bin/python -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" \
+RUN EXTRAS="$EXTRAS" /opt/venv/bin/python -c "import os, tomllib; p = tomllib.load(open('pyproject.toml', 'rb'))['project']; print(*p['dependencies'], *(r for e in os.environ['EXTRAS'].split(',') if e for r in p['optional-dependencies'][e]), sep='\n')" \
         > /tmp/requirements.txt \
     && /opt/venv/bin/pip install -c constraints.txt -r /tmp/requirements.txt
 COPY README.md ./

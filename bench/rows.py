@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import gc
 import http.client
+import importlib
 import math
+import os
 import subprocess
 import time
 from dataclasses import dataclass, field
@@ -574,3 +576,40 @@ def filter_step_row(repeats: int = 9) -> Row:
                 + ", ".join(f"{r:.2f}" for r in per_round) + "; filterpy: 7-state joint UKF (position, velocity, period error) with the raw "
                 "(B, E, dTOA, Bdot), Merwe points, the same epochs; the step includes core's input validation "
                 "and immutable state."])
+
+
+def evaluation_throughput_row(trials: int = 20_000, chunk_trials: int = 1_000) -> Row:
+    """Row 8: Monte Carlo evaluation throughput (trials/s of ``ml``) in this process and on a local two-worker
+    Dask cluster, the same chunks and seed (the results are compared bit for bit)."""
+    what = f"evaluation: {trials:,} ml trials, 3 stations, in-process vs LocalCluster(2 workers)"
+    target = "same result; report both"
+    try:
+        import distributed
+    except ImportError:
+        return unavailable(7, what, target, "distributed is not installed (pip install 'passive-locator[distributed]')")
+    from core.problem import Bearing, LocalPoint, build_problem
+    from core.simulation.measurements import evaluate
+
+    stations = [("a", LocalPoint(0.0, 0.0, 0.0)), ("b", LocalPoint(20_000.0, 0.0, 100.0)),
+                ("c", LocalPoint(10_000.0, 18_000.0, 300.0))]
+    sigma = np.deg2rad(0.5)
+    problem = build_problem(stations, [Bearing(i, 0.0, 0.0, sigma, sigma) for i, _ in stations])
+    target_enu = np.array([9_000.0, 7_000.0, 3_000.0])
+    evaluate(problem, target_enu, ["ml"], 200, 1)  # imports and caches warm
+    t = time.perf_counter()
+    here = evaluate(problem, target_enu, ["ml"], trials, 7, chunk_trials=chunk_trials)["ml"]
+    here_s = time.perf_counter() - t
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster, distributed.Client(cluster) as client:
+        # every worker imports core and solves once before the clock starts (its first task would pay for both)
+        client.run(importlib.import_module, "core.simulation.measurements")
+        evaluate(problem, target_enu, ["ml"], 1_000, 1, chunk_trials=64, scheduler=client)
+        t = time.perf_counter()
+        there = evaluate(problem, target_enu, ["ml"], trials, 7, chunk_trials=chunk_trials, scheduler=client)["ml"]
+        there_s = time.perf_counter() - t
+    same = bool(np.array_equal(here.errors_enu_m, there.errors_enu_m))
+    return Row(8, what, f"{trials / there_s:,.0f} trials/s on 2 workers ({there_s:.2f} s)",
+               f"{trials / here_s:,.0f} trials/s in-process ({here_s:.2f} s)", f"{here_s / there_s:.2f}x", target,
+               ("met" if same else "missed") + f": results {'identical' if same else 'DIFFER'}",
+               [f"{trials // chunk_trials} chunks of {chunk_trials} trials, seed 7; {os.cpu_count()} CPUs shared with "
+                "the cluster's two worker processes and the client, so the ratio is bounded by the free cores"])

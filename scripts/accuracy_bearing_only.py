@@ -38,7 +38,7 @@ from core.errors import LocalizationError  # noqa: E402
 from core.estimators import SolveOptions, solve  # noqa: E402
 from core.measurements import Kind  # noqa: E402
 from core.simulation.measurements import evaluate  # noqa: E402
-from tests.core.estimators import scenarios as sc  # noqa: E402
+from core.simulation import scenarios as sc  # noqa: E402
 
 HEADER = (f"{'scenario':42s} {'method':16s} {'trials':>6s} {'rmse_m':>10s} {'crlb_m':>10s} {'ratio':>7s} "
           f"{'nees':>6s} {'dof':>3s} {'fail':>5s}  notes")
@@ -65,7 +65,7 @@ def evaluated(scene, methods, trials, seed):
     dof = 2 if scene.altitude_m is not None else 3
     lines = []
     for label, (name, variant) in methods.items():
-        result = evaluate(problem, target, [name], trials, np.random.default_rng(seed),
+        result = evaluate(problem, target, [name], trials, seed,
                           options=SolveOptions(variant=variant))[name]
         note = failure_note(scene, name, variant) if result.failures else ""
         lines.append(row(scene.name, label, trials, result.rmse_m, result.crlb_rmse_m, result.nees_mean, dof,

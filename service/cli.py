@@ -1,4 +1,13 @@
-"""``passive-locator serve [--host H] [--port P] [--workers N] [--log-level L]``."""
+"""``passive-locator serve | evaluate | reproduce``.
+
+- ``serve [--host H] [--port P] [--workers N] [--log-level L]``: the HTTP service.
+- ``evaluate SCENARIO.json [--out DIR] [--scheduler tcp://host:8786]``: a Monte Carlo evaluation with a
+  progress bar, written as Markdown, JSON and a PNG of the RMSE against the bound. The file is either the
+  body of ``POST /v1/evaluations`` or ``{"tracking": {...}}``, a session-filter evaluation against the
+  posterior CRLB (see ``evaluate --help``).
+- ``reproduce [--quick] [--out DIR] [--scheduler ...]``: the five papers' scenarios, ``papers.md`` with
+  each table beside the paper's claim; exit status 1 when an asserted claim fails.
+"""
 
 from __future__ import annotations
 
@@ -77,7 +86,10 @@ def main(argv: list[str] | None = None) -> None:
                             "summed over the workers")
     serve.add_argument("--log-level", default=None, choices=["critical", "error", "warning", "info", "debug"],
                        help="log level (default: PASSIVE_LOCATOR_LOG_LEVEL, else info)")
+    _add_tools(commands)
     args = parser.parse_args(argv)
+    if args.command != "serve":
+        sys.exit(args.run(args))
 
     from service.logs import uvicorn_log_config
     from service.settings import Settings
@@ -95,6 +107,144 @@ def main(argv: list[str] | None = None) -> None:
     uvicorn.run("service.main:app", factory=False, host=args.host, port=args.port, workers=args.workers,
                 log_level=level, log_config=uvicorn_log_config(level, settings.log_format), access_log=False,
                 proxy_headers=False, timeout_graceful_shutdown=settings.graceful_timeout_s)
+
+
+TRACKING_HELP = """A session-filter evaluation file:
+  {"tracking": {"model": "joint_ukf", "period_known": true, "runs": 20, "seed": 1000,
+                "config": {"accel_sigma_mps2": 0.05}, "scenario": {"accel_sigma_mps2": 0.05}}}
+config: TrackerConfig fields over paper 001's filter settings; scenario: EmitterScenario fields over paper
+001's emitter (SI units, radians). The report gives the position RMSE over runs per epoch beside the
+posterior CRLB of the scenario's own model."""
+
+
+def _add_tools(commands) -> None:
+    scheduler_help = ("run the chunks on this Dask scheduler (tcp://host:8786; needs the 'distributed' extra); "
+                      "default: PASSIVE_LOCATOR_DASK_SCHEDULER, else in this process. The result for a seed is "
+                      "the same either way")
+    evaluate = commands.add_parser("evaluate", help="Monte Carlo evaluation of a scenario file",
+                                   description="Monte Carlo RMSE of methods (or of a session filter) against the "
+                                               "bound; writes evaluation.md, evaluation.json and rmse.png.",
+                                   epilog=TRACKING_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
+    evaluate.add_argument("scenario", help="a POST /v1/evaluations body, or a {\"tracking\": ...} file (below)")
+    evaluate.add_argument("--out", default=None, help="report directory (default reports/<scenario name>)")
+    evaluate.add_argument("--scheduler", default=None, help=scheduler_help)
+    evaluate.set_defaults(run=_run_evaluate)
+    reproduce = commands.add_parser("reproduce", help="the five papers' scenarios, checked against their claims",
+                                    description="Run the five papers' scenarios (full size unless --quick) and "
+                                                "write papers.md beside plots; exit 1 when an asserted claim fails.")
+    reproduce.add_argument("--quick", action="store_true", help="reduced size (CI: about a minute)")
+    reproduce.add_argument("--out", default=None, help="report directory (default reports, reports/quick with "
+                                                       "--quick)")
+    reproduce.add_argument("--paper", action="append", choices=["000", "001", "002", "003", "004"],
+                           help="only these papers (repeatable)")
+    reproduce.add_argument("--scheduler", default=None, help=scheduler_help)
+    reproduce.set_defaults(run=_run_reproduce)
+
+
+def _scheduler(args):
+    """A context giving a connected Dask client (one for the whole command), or None to run in-process."""
+    import contextlib
+
+    address = args.scheduler
+    if not address:
+        from service.settings import Settings
+
+        address = Settings().dask_scheduler
+    if not address:
+        return contextlib.nullcontext(None)
+    try:
+        from distributed import Client
+    except ImportError:
+        raise SystemExit("passive-locator: --scheduler needs dask.distributed: pip install "
+                         "'passive-locator[distributed]'") from None
+    return Client(address)
+
+
+def _run_evaluate(args) -> int:
+    import json
+    import pathlib
+
+    from pydantic import ValidationError
+
+    from service.reports import ProgressBar
+
+    path = pathlib.Path(args.scenario)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        print(f"passive-locator evaluate: cannot read {path}: {error}", file=sys.stderr)
+        return 2
+    out = pathlib.Path(args.out) if args.out else pathlib.Path("reports") / path.stem
+    bar = ProgressBar(path.stem)
+    try:
+        with _scheduler(args) as scheduler:
+            if isinstance(data, dict) and "tracking" in data:
+                written = _evaluate_tracking(data["tracking"], out, path.stem, scheduler, bar)
+            else:
+                written = _evaluate_fixes(data, out, path.stem, scheduler, bar)
+    except ValidationError as error:
+        print(f"passive-locator evaluate: {path} is not a valid evaluation:\n{error}", file=sys.stderr)
+        return 2
+    except (TypeError, ValueError) as error:
+        print(f"passive-locator evaluate: {path}: {error}", file=sys.stderr)
+        return 2
+    for p in written:
+        print(p)
+    return 0
+
+
+def _evaluate_fixes(data, out, title, scheduler, bar):
+    from core.errors import LocalizationError
+    from service import schemas
+    from service.reports import write_evaluation
+    from service.translate import crlb_problem, evaluation_body
+
+    request = schemas.EvaluationRequest.model_validate(data)
+    try:
+        problem, target = crlb_problem(request.scenario)
+        methods = list(dict.fromkeys(request.methods))
+        body = evaluation_body(request, problem, target, methods, None, 256, scheduler, progress=bar)
+    except LocalizationError as error:
+        raise ValueError(error.message) from None
+    body["options"] = request.options.model_dump()
+    return write_evaluation(body, out, title)
+
+
+def _evaluate_tracking(spec, out, title, scheduler, bar):
+    from core.simulation.emitter import paper_001_scenario
+    from core.simulation.tracking import against_bound, paper_config
+    from service.reports import write_tracking_evaluation
+
+    known = spec.get("known", spec.get("period_known", True))
+    lists_as_tuples = {k: tuple(v) if isinstance(v, list) else v for k, v in spec.get("scenario", {}).items()}
+    config = paper_config(spec.get("model", "joint_ukf"), bool(known),
+                          **{k: tuple(v) if isinstance(v, list) else v for k, v in spec.get("config", {}).items()})
+    scenario = paper_001_scenario(**lists_as_tuples)
+    runs, seed = int(spec.get("runs", 20)), int(spec.get("seed", 1000))
+    result = against_bound(config, scenario, runs, seed, scheduler=scheduler, progress=bar)
+    return write_tracking_evaluation(result, config, runs, seed, out, title)
+
+
+def _run_reproduce(args) -> int:
+    import pathlib
+    import time
+
+    from core.simulation.papers import reproduce
+    from service.reports import write_papers
+
+    size = "quick" if args.quick else "full"
+    out = pathlib.Path(args.out) if args.out else pathlib.Path("reports") / ("quick" if args.quick else "")
+    start = time.monotonic()
+    with _scheduler(args) as scheduler:
+        results = reproduce(size, scheduler=scheduler, papers=args.paper,
+                            progress=lambda name: print(f"paper {name} ...", file=sys.stderr, flush=True))
+        where = None if scheduler is None else f"{len(scheduler.scheduler_info()['workers'])} Dask workers"
+    written = write_papers(results, out, size, time.monotonic() - start, where)
+    failed = [(r.paper, c) for r in results for c in r.checks if c.asserted and not c.holds]
+    for paper, check in failed:
+        print(f"FAILED paper {paper}: {check.claim}: {check.measured}", file=sys.stderr)
+    print(written[0])
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

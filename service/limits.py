@@ -43,15 +43,21 @@ def over_limit(name: str, cost: int, limit: int, loc: list, what: str) -> ApiErr
     return ApiError(422, "over_limit", detail, [{"loc": loc, "msg": detail, "type": "over_limit"}])
 
 
-def evaluation_cost(trials: int, methods, rows: int) -> int:
-    return trials * rows * sum(method_weight(m) for m in methods)
+def evaluation_cost(trials: int, methods, rows: int, exclude: bool = False) -> int:
+    """``trials x rows x method weights``, times ``1 + MAX_EXCLUSIONS`` with outlier exclusion (each trial
+    may be solved again once per exclusion: the worst case is priced)."""
+    from core.estimators import MAX_EXCLUSIONS
+
+    refits = 1 + MAX_EXCLUSIONS if exclude else 1
+    return trials * rows * sum(method_weight(m) for m in methods) * refits
 
 
-def check_evaluation(trials: int, methods, rows: int, limit: int) -> None:
-    cost = evaluation_cost(trials, methods, rows)
+def check_evaluation(trials: int, methods, rows: int, limit: int, exclude: bool = False) -> None:
+    cost = evaluation_cost(trials, methods, rows, exclude)
     if cost > limit:
         raise over_limit("max_evaluation_cost", cost, limit, ["trials"],
-                         f"{trials} trials x {len(methods)} methods x {rows} measurement rows")
+                         f"{trials} trials x {len(methods)} methods x {rows} measurement rows"
+                         + (" x (1 + the exclusions each trial may refit)" if exclude else ""))
 
 
 def check_grid(cells: int, rows: int, limit: int) -> None:

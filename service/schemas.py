@@ -490,13 +490,27 @@ class BatchResponse(BaseModel):
     geojson: FeatureCollection | None = Field(None, description="when the request's formats ask for geojson")
 
 
+class EvaluationOptions(Strict):
+    max_iterations: int = Field(50, ge=1, le=1000)
+    tolerance_m: float = Field(1e-3, ge=1e-9, le=1e6)
+    variant: Variant | None = Field(None, description="method variant: ctls newton (default) | projected")
+    outliers: Literal["report", "exclude"] = Field(
+        "report", description="exclude: fault detection and exclusion in every trial (as in a fix); report: only warn")
+    absolute_sigma: StrictBool = True
+
+
 class EvaluationRequest(Strict):
     scenario: CrlbRequest
     methods: list[Method] = Field(min_length=1, max_length=16)  # type: ignore[valid-type]
     trials: int = Field(1000, ge=1, le=100000)
     seed: int = Field(7, ge=0, le=2**63 - 1)
-    noise: Literal["gaussian", "uniform"] = Field(
-        "gaussian", description="uniform: zero-mean with the same sigma (half-width sigma*sqrt(3))")
+    noise: Literal["gaussian", "uniform", "outlier"] = Field(
+        "gaussian", description="uniform: zero-mean with the same sigma (half-width sigma*sqrt(3)); outlier: a "
+                                "contaminated gaussian, each measurement N(0, sigma^2) except with probability 0.05 "
+                                "a gross error N(0, (10 sigma)^2) (try it with options.outliers = exclude)")
+    options: EvaluationOptions = Field(default_factory=lambda: EvaluationOptions(),
+                                       description="solver options for every trial (a fix's options without the "
+                                                   "per-fix initial_guess)")
 
 
 class MethodEvaluation(BaseModel):
@@ -507,6 +521,7 @@ class MethodEvaluation(BaseModel):
     efficiency: float | None = Field(description="rmse^2 / trace(crlb); 1 is efficient")
     nees_mean: float | None = Field(description="mean e^T C^-1 e with the method's own covariance; 3 if honest")
     failures: int
+    excluded_trials: int = Field(0, description="trials with a fix in which outlier exclusion dropped a measurement")
 
 
 class EvaluationResponse(BaseModel):

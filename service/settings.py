@@ -67,6 +67,9 @@ class Settings(BaseSettings):
     graceful_timeout_s : float
         On SIGTERM, in-flight requests get this long before they are cancelled.
     log_format : {"json", "text"}
+    dask_scheduler : str
+        A Dask distributed scheduler (``tcp://host:8786``) that runs the chunks of evaluations; empty (the
+        default) runs them in the service's CPU pool. The result for a seed is the same either way.
     """
 
     model_config = SettingsConfigDict(env_prefix="PASSIVE_LOCATOR_", extra="ignore")
@@ -96,6 +99,7 @@ class Settings(BaseSettings):
     log_level: str = "info"
     cors_allow_origins: list[str] = Field(default_factory=list)
     log_format: Literal["json", "text"] = "json"
+    dask_scheduler: str | None = None
 
     api_keys: str | None = Field(None, description="gone: plain keys in configuration are refused")
 

@@ -29,7 +29,7 @@ from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import FixBatch, SolveOptions, solve_many
 from core.measurements import Kind
 from core.parallel import Stopped
-from core.simulation.measurements import EvaluationStopped, evaluate
+from core.simulation.measurements import evaluate
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from service import schemas
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
@@ -77,7 +77,7 @@ def to_problem(request: schemas.FixRequest) -> Problem:
     )
 
 
-def to_options(request: schemas.FixRequest) -> SolveOptions:
+def to_options(request: schemas.FixRequest | schemas.EvaluationRequest) -> SolveOptions:
     o = request.options
     return SolveOptions(max_iterations=o.max_iterations, tolerance_m=o.tolerance_m, variant=o.variant,
                         outliers=o.outliers, absolute_sigma=o.absolute_sigma, loss=o.loss, loss_scale=o.loss_scale)
@@ -159,10 +159,14 @@ def _finite(value):
 
 
 def evaluation_body(request: schemas.EvaluationRequest, problem: Problem, target_enu_m, methods, should_stop,
-                    chunk_trials: int) -> dict:
-    """The response body of a Monte Carlo evaluation (raises EvaluationStopped when ``should_stop`` says so)."""
-    results = evaluate(problem, target_enu_m, methods, request.trials, np.random.default_rng(request.seed),
-                       request.noise, should_stop=should_stop, chunk_trials=chunk_trials)
+                    chunk_trials: int, scheduler: str | None = None, progress=None) -> dict:
+    """The response body of a Monte Carlo evaluation (raises core.parallel.Stopped when ``should_stop`` says so).
+
+    ``scheduler``: a Dask scheduler address to run the chunks on (the service's ``dask_scheduler``), else here.
+    """
+    results = evaluate(problem, target_enu_m, methods, request.trials, request.seed, request.noise,
+                       options=to_options(request), should_stop=should_stop, chunk_trials=chunk_trials,
+                       scheduler=scheduler, progress=progress)
     methods_out = {
         name: {
             "rmse_m": _finite(r.rmse_m),
@@ -172,6 +176,7 @@ def evaluation_body(request: schemas.EvaluationRequest, problem: Problem, target
             "efficiency": _finite(r.efficiency),
             "nees_mean": _finite(r.nees_mean),
             "failures": r.failures,
+            "excluded_trials": r.excluded_trials,
         }
         for name, r in results.items()
     }

@@ -29,14 +29,13 @@ from starlette.concurrency import run_in_threadpool
 
 from core.parallel import Stopped
 from service.problems import ApiError
-from service.translate import EvaluationStopped
 
 #: How often a waiting route looks for a disconnected client.
 POLL_S = 0.2
 #: How long a stopped request waits for its work to reach its next check before it answers.
 STOP_GRACE_S = 1.0
 
-_STOPPED = (Stopped, EvaluationStopped)
+_STOPPED = (Stopped,)
 
 
 class RequestWatch:

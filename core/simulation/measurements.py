@@ -3,16 +3,24 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 
 from core.batch import ProblemBatch
 from core.errors import LocalizationError, UnobservableGeometry
 from core.measurements import predict
+from core.parallel import chunk_seeds, chunk_slices, run_chunks
 from core.problem import Problem
 
-NOISE_KINDS = ("gaussian", "uniform")
+NOISE_KINDS = ("gaussian", "uniform", "outlier")
+#: ``"outlier"`` noise, a contaminated gaussian: each measurement's error is N(0, sigma^2), except with this
+#: probability, independently per measurement, a gross error N(0, (OUTLIER_SCALE sigma)^2).
+OUTLIER_PROBABILITY = 0.05
+OUTLIER_SCALE = 10.0
+#: Trials drawn from one child seed: the draws of a seeded evaluation depend on the seed and the trial count
+#: only, not on how the trials are chunked for running (or on how many workers run them).
+DRAW_BLOCK_TRIALS = 64
 
 
 def true_values(problem: Problem, target_enu_m) -> np.ndarray:
@@ -55,8 +63,8 @@ def measure(problem: Problem, target_enu_m, rng: np.random.Generator | None = No
     target_enu_m : ndarray, shape (3,)
     rng : numpy.random.Generator, optional
         None gives noise-free values.
-    noise : {"gaussian", "uniform"}
-        Uniform noise is zero-mean with the stated sigma (half-width sigma sqrt(3)).
+    noise : {"gaussian", "uniform", "outlier"}
+        See :func:`draw_noise`.
     """
     values = true_values(problem, target_enu_m)
     if rng is not None:
@@ -65,13 +73,22 @@ def measure(problem: Problem, target_enu_m, rng: np.random.Generator | None = No
 
 
 def draw_noise(rng: np.random.Generator, sigmas, noise: str = "gaussian", size=None) -> np.ndarray:
-    """Zero-mean noise with standard deviations ``sigmas`` (shape ``size + sigmas.shape``)."""
+    """Zero-mean noise scaled by ``sigmas`` (shape ``size + sigmas.shape``).
+
+    ``"gaussian"``: N(0, sigma^2). ``"uniform"``: zero-mean with the same sigma (half-width sigma sqrt(3)).
+    ``"outlier"``: a contaminated gaussian, N(0, sigma^2) except with probability
+    :data:`OUTLIER_PROBABILITY` per measurement N(0, (:data:`OUTLIER_SCALE` sigma)^2): gross errors that
+    outlier exclusion (``SolveOptions(outliers="exclude")``) should find.
+    """
     sigmas = np.asarray(sigmas, dtype=float)
     shape = sigmas.shape if size is None else tuple(np.atleast_1d(size)) + sigmas.shape
     if noise == "gaussian":
         return rng.standard_normal(shape) * sigmas
     if noise == "uniform":
         return rng.uniform(-1.0, 1.0, shape) * np.sqrt(3.0) * sigmas
+    if noise == "outlier":
+        gross = rng.random(shape) < OUTLIER_PROBABILITY
+        return rng.standard_normal(shape) * sigmas * np.where(gross, OUTLIER_SCALE, 1.0)
     raise ValueError(f"unknown noise {noise!r}")
 
 
@@ -94,6 +111,8 @@ class MethodAccuracy:
         Trials where the method gave no fix.
     errors_enu_m : ndarray, shape (T, 3)
         Per-trial errors of successful trials.
+    excluded_trials : int
+        Successful trials in which outlier exclusion dropped at least one measurement.
     """
 
     rmse_m: float
@@ -104,22 +123,24 @@ class MethodAccuracy:
     nees_mean: float
     failures: int
     errors_enu_m: np.ndarray
+    excluded_trials: int = 0
 
 
-class EvaluationStopped(Exception):
-    """An evaluation stopped between chunks because its ``should_stop`` said so (deadline, cancellation)."""
-
-
-def evaluate(problem: Problem, target_enu_m, methods, trials: int, rng: np.random.Generator,
+def evaluate(problem: Problem, target_enu_m, methods, trials: int, seed: int | np.random.SeedSequence = 0,
              noise: str = "gaussian", options=None, should_stop: Callable[[], bool] | None = None,
-             chunk_trials: int = 256) -> dict[str, MethodAccuracy]:
+             chunk_trials: int = 256, scheduler: Any = None,
+             progress: Callable[[int, int], None] | None = None) -> dict[str, MethodAccuracy]:
     """Monte Carlo RMSE, bias, efficiency and NEES of methods on one scenario.
 
-    Every method sees the same noisy draws. ML-family methods run batched.
-    Trials run in chunks; between chunks (and between methods within one)
-    ``should_stop`` is asked, so a long evaluation can be abandoned within
-    one chunk of one method. The draws are those of one ``trials``-row draw
-    whatever the chunking (numpy's generators fill rows in order).
+    Every method sees the same noisy draws, and each method solves a chunk of
+    trials as one batch (:func:`core.estimators.solve_many`). The trials are
+    drawn in blocks of :data:`DRAW_BLOCK_TRIALS`, block ``b`` from child
+    ``b`` of the seed (:func:`core.parallel.chunk_seeds`); the trials are
+    cut into chunks of ``chunk_trials`` (each drawing the blocks it overlaps
+    and keeping its rows of them) that run here or on a Dask cluster
+    (:func:`core.parallel.run_chunks`). The result for a seed is
+    therefore the same for any chunk size and any number of workers.
+    ``should_stop`` is asked between chunks.
 
     Parameters
     ----------
@@ -128,54 +149,55 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, rng: np.rando
     target_enu_m : ndarray, shape (3,)
     methods : sequence of str
     trials : int
-    rng : numpy.random.Generator
-    noise : {"gaussian", "uniform"}
+    seed : int or numpy.random.SeedSequence
+    noise : {"gaussian", "uniform", "outlier"}
+        See :func:`draw_noise`.
     options : SolveOptions, optional
+        ``outliers="exclude"`` shows exclusion against ``noise="outlier"``.
     should_stop : callable returning bool, optional
-        True = stop now (raises :class:`EvaluationStopped`).
+        True = stop now (raises :class:`core.parallel.Stopped`).
     chunk_trials : int
         Trials per chunk.
+    scheduler : str or distributed.Client, optional
+        Run the chunks on this Dask cluster; None runs them in this process.
+    progress : callable(done, total), optional
+        Called after each chunk.
 
     Raises
     ------
     UnobservableGeometry
         When the sensors do not determine the target.
-    EvaluationStopped
+    core.parallel.Stopped
         When ``should_stop`` returned True.
     """
     from core.crlb import information_at
-    from core.estimators import SolveOptions, solve_batch
+    from core.estimators import SolveOptions
 
+    if noise not in NOISE_KINDS:
+        raise ValueError(f"unknown noise {noise!r}")
     options = options or SolveOptions()
+    methods = list(methods)
     target = np.asarray(target_enu_m, dtype=float)
     information = information_at(problem, target)
     if not information.observable[0]:
         raise UnobservableGeometry("the scenario's sensors do not determine the target (singular information)")
     bound = information.covariance_enu_m2[0]
-    clean = true_values(problem, target)
-    errors_by_method: dict[str, list[np.ndarray]] = {method: [] for method in methods}
-    nees_by_method: dict[str, list[float]] = {method: [] for method in methods}
-
-    def check() -> None:
-        if should_stop is not None and should_stop():
-            raise EvaluationStopped("the evaluation was stopped")
-
-    for start in range(0, trials, max(1, chunk_trials)):
-        size = min(max(1, chunk_trials), trials - start)
-        check()
-        draws = clean + draw_noise(rng, problem.sigmas, noise, size=size)
-        noisy = [problem.with_values(v) for v in draws]
-        for method in methods:
-            check()
-            results = solve_batch(noisy, method, options)
-            fixes = [r for r in results if not isinstance(r, LocalizationError)]
-            errors = np.array([f.position_enu_m - target for f in fixes]).reshape(-1, 3)
-            errors_by_method[method].append(errors)
-            nees_by_method[method].extend(_nees(e, f.covariance_enu_m2) for e, f in zip(errors, fixes))
+    blocks = chunk_slices(trials, DRAW_BLOCK_TRIALS)
+    seeds = chunk_seeds(seed, len(blocks))
+    chunks = []
+    for part in chunk_slices(trials, chunk_trials):
+        pieces = []
+        for b in range(part.start // DRAW_BLOCK_TRIALS, (part.stop - 1) // DRAW_BLOCK_TRIALS + 1):
+            block = blocks[b]
+            pieces.append((seeds[b], block.stop - block.start, max(part.start, block.start) - block.start,
+                           min(part.stop, block.stop) - block.start))
+        chunks.append((problem, target, methods, pieces, noise, options))
+    parts = run_chunks(evaluate_chunk, chunks, scheduler=scheduler, should_stop=should_stop, progress=progress)
     out = {}
     for method in methods:
-        errors = np.concatenate(errors_by_method[method]) if errors_by_method[method] else np.zeros((0, 3))
-        nees = nees_by_method[method]
+        errors = np.concatenate([part[method][0] for part in parts]) if parts else np.zeros((0, 3))
+        nees = np.concatenate([part[method][1] for part in parts]) if parts else np.zeros(0)
+        excluded = sum(int(part[method][2]) for part in parts)
         found = len(errors)
         out[method] = MethodAccuracy(
             rmse_m=float(np.sqrt(np.mean(np.sum(errors**2, axis=1)))) if found else float("nan"),
@@ -183,13 +205,63 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, rng: np.rando
             bias_enu_m=errors.mean(axis=0) if found else np.full(3, np.nan),
             crlb_rmse_m=float(np.sqrt(np.trace(bound))),
             efficiency=float(np.mean(np.sum(errors**2, axis=1)) / np.trace(bound)) if found else float("nan"),
-            nees_mean=float(np.mean(nees)) if nees else float("nan"),
+            nees_mean=float(np.mean(nees)) if found else float("nan"),
             failures=trials - found,
             errors_enu_m=errors,
+            excluded_trials=excluded,
         )
     return out
 
 
-def _nees(error_enu_m, covariance_enu_m2) -> float:
-    """``e^T C^+ e`` (pseudo-inverse: a constrained fix has a rank-2 covariance)."""
-    return float(error_enu_m @ np.linalg.pinv(covariance_enu_m2, rcond=1e-12, hermitian=True) @ error_enu_m)
+def evaluate_chunk(problem: Problem, target_enu_m, methods, blocks, noise: str, options):
+    """One chunk of :func:`evaluate`: its draw blocks, every method solved over them as one batch.
+
+    Parameters
+    ----------
+    problem : Problem
+    target_enu_m : ndarray, shape (3,)
+    methods : list of str
+    blocks : list of (numpy.random.SeedSequence, int, int, int)
+        The draw blocks the chunk overlaps: each block's seed and trial count, and the rows of it the chunk
+        takes (``start``, ``stop``).
+    noise : str
+    options : SolveOptions
+
+    Returns
+    -------
+    dict of str to (ndarray (F, 3), ndarray (F,), int)
+        Per method: the errors and NEES of the F trials that gave a fix, and how many of them excluded
+        a measurement.
+    """
+    from core.estimators import solve_many
+
+    clean = true_values(problem, target_enu_m)
+    draws = np.concatenate([clean + draw_noise(np.random.default_rng(block_seed), problem.sigmas, noise,
+                                               size=size)[start:stop] for block_seed, size, start, stop in blocks])
+    batch = trial_batch(problem, draws)
+    out = {}
+    for method in methods:
+        errors, nees, excluded = [], [], 0
+        for rows, fixes in solve_many(batch, method, options):
+            if isinstance(fixes, LocalizationError):
+                continue
+            ok = fixes.ok
+            if not ok.any():
+                continue
+            e = fixes.position_enu_m[ok] - target_enu_m
+            errors.append(np.column_stack([rows[ok], e]))
+            nees.append(_nees(e, fixes.covariance_enu_m2[ok]))
+            excluded += int(np.count_nonzero(fixes.excluded[ok].any(axis=1)))
+        if errors:
+            joined = np.concatenate(errors)
+            order = np.argsort(joined[:, 0], kind="stable")
+            out[method] = (joined[order, 1:], np.concatenate(nees)[order], excluded)
+        else:
+            out[method] = (np.zeros((0, 3)), np.zeros(0), 0)
+    return out
+
+
+def _nees(errors_enu_m, covariances_enu_m2) -> np.ndarray:
+    """``e^T C^+ e`` per row ``(F,)`` (pseudo-inverse: a constrained fix has a rank-2 covariance)."""
+    inverse = np.linalg.pinv(covariances_enu_m2, rcond=1e-12, hermitian=True)
+    return np.einsum("fi,fij,fj->f", errors_enu_m, inverse, errors_enu_m)

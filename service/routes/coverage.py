@@ -4,7 +4,7 @@ The grid is priced before anything is computed (``service.limits``: 422
 ``over_limit`` above ``max_grid_cost``); the cells are then computed in
 chunks (:func:`core.coverage.coverage_map`) on the app's CPU pool, or on the
 Dask cluster of ``dask_scheduler``, and stop at the request deadline, on
-disconnect and at shutdown like an evaluation (:func:`service.cpu.run_stoppable`).
+disconnect and at shutdown like an evaluation (:func:`service.watch.watched`).
 ``Accept: image/png`` asks for the heat map (:func:`service.maps.coverage_png`),
 anything else for the GeoJSON (:func:`service.maps.coverage_geojson`).
 """
@@ -15,13 +15,12 @@ from fastapi import APIRouter, Request
 from starlette.responses import Response
 
 from core.coverage import coverage_map
-from core.parallel import Stopped
 from service import schemas
-from service.cpu import run_stoppable
 from service.deps import OwnerDep
 from service.maps import coverage_geojson, coverage_png
 from service.responses import JsonResponse
 from service.translate import grid_of_request
+from service.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
@@ -76,7 +75,7 @@ async def crlb_grid(request: schemas.CrlbGridRequest, owner: OwnerDep, http: Req
             return coverage_png(problem, grid, coverage, request.image.width_px, request.image.height_px)
         return coverage_geojson(problem, grid, coverage)
 
-    body = await run_stoppable(http, work, (Stopped,), "the coverage map", "ask for a coarser grid")
+    body = await watched(http, in_pool(http.app.state.cpu_pool, work), "ask for a coarser grid")
     if png:
         return Response(body, media_type=PNG)
     return JsonResponse(body)

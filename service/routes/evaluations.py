@@ -38,11 +38,12 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
     problem, target = crlb_problem(request.scenario)
     methods = list(dict.fromkeys(request.methods))
     rows = int(problem.kinds.size)
-    check_evaluation(request.trials, methods, rows, settings.max_evaluation_cost)
-    chunk = max(1, CHUNK_UNITS // (rows * max(method_weight(m) for m in methods)))
+    exclude = request.options.outliers == "exclude"
+    check_evaluation(request.trials, methods, rows, settings.max_evaluation_cost, exclude)
+    chunk = max(1, CHUNK_UNITS // (rows * max(method_weight(m) for m in methods) * (2 if exclude else 1)))
 
     def run(should_stop):
-        return evaluation_body(request, problem, target, methods, should_stop, chunk)
+        return evaluation_body(request, problem, target, methods, should_stop, chunk, settings.dask_scheduler or None)
 
     body = await watched(http, in_pool(http.app.state.cpu_pool, run), "ask for fewer trials or methods")
     return JsonResponse(body)

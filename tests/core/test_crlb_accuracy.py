@@ -19,7 +19,8 @@ from core.crlb import information_at
 from core.estimators import SolveOptions, solve_batch
 from core.measurements import SPEED_OF_LIGHT_MPS
 from core.problem import Bearing, GeodeticPoint, TimeOfArrival, build_problem
-from core.simulation.measurements import evaluate, measure
+from core.parallel import chunk_seeds, chunk_slices
+from core.simulation.measurements import DRAW_BLOCK_TRIALS, evaluate, measure
 
 d2r = np.deg2rad
 ONE_DEG = d2r(1.0)
@@ -149,10 +150,11 @@ def test_evaluate_reports_what_an_independent_loop_measures():
     """core.simulation.evaluate (behind /v1/evaluations) against the same draws solved here."""
     problem, target = scenario()
     trials = 500
-    report = evaluate(problem, target, ["ml"], trials, np.random.default_rng(99))["ml"]
-    rng = np.random.default_rng(99)
+    report = evaluate(problem, target, ["ml"], trials, 99)["ml"]
     clean = measure(problem, target).values
-    draws = clean + rng.standard_normal((trials, clean.size)) * problem.sigmas
+    blocks = chunk_slices(trials, DRAW_BLOCK_TRIALS)
+    draws = np.concatenate([clean + np.random.default_rng(seed).standard_normal((b.stop - b.start, clean.size))
+                            * problem.sigmas for seed, b in zip(chunk_seeds(99, len(blocks)), blocks)])
     fixes = solve_batch([problem.with_values(v) for v in draws], "ml")
     errors = np.array([f.position_enu_m - target for f in fixes])
     nees = [e @ np.linalg.solve(f.covariance_enu_m2, e) for e, f in zip(errors, fixes)]

@@ -132,3 +132,34 @@ def test_redis_persists_with_aof_and_everything_has_a_healthcheck(k8s, compose):
     hpa = k8s[("HorizontalPodAutoscaler", "passive-locator")]
     assert hpa["spec"]["scaleTargetRef"]["name"] == "passive-locator"
     assert hpa["spec"]["minReplicas"] >= 2
+
+
+def test_dask_scheduler_and_workers_agree_with_each_other_and_the_package(k8s, compose):
+    """The workers dial the scheduler's own service and port; both run the image with the `distributed`
+    extra that pyproject.toml defines; the API's setting names that scheduler."""
+    import tomllib
+
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    dask_image = IMAGE.replace("passive-locator:", "passive-locator-dask:")
+    scheduler = compose["services"]["dask-scheduler"]
+    worker = compose["services"]["dask-worker"]
+    assert scheduler["build"]["args"]["EXTRAS"] in extras
+    assert any(r.startswith("dask[distributed]") for r in extras[scheduler["build"]["args"]["EXTRAS"]])
+    assert scheduler["image"] == worker["image"] == dask_image
+    port = scheduler["command"][scheduler["command"].index("--port") + 1]
+    assert f"tcp://dask-scheduler:{port}" in worker["command"]
+    assert worker["deploy"]["replicas"] == 2
+    assert f"PASSIVE_LOCATOR_DASK_SCHEDULER: tcp://dask-scheduler:{port}" in (DEPLOY / "compose.yaml").read_text()
+
+    service = k8s[("Service", "passive-locator-dask-scheduler")]
+    comm = next(p for p in service["spec"]["ports"] if p["name"] == "tcp-comm")
+    k8s_scheduler = k8s[("Deployment", "passive-locator-dask-scheduler")]["spec"]["template"]["spec"]
+    k8s_worker = k8s[("Deployment", "passive-locator-dask-worker")]["spec"]
+    assert str(comm["port"]) == k8s_scheduler["containers"][0]["args"][
+        k8s_scheduler["containers"][0]["args"].index("--port") + 1]
+    assert f"tcp://passive-locator-dask-scheduler:{comm['port']}" in k8s_worker["template"]["spec"]["containers"][0]["args"]
+    assert k8s_worker["replicas"] == 2
+    for pod in (k8s_scheduler, k8s_worker["template"]["spec"]):
+        assert pod["securityContext"]["runAsNonRoot"] is True
+        assert pod["containers"][0]["image"] == dask_image
+        assert pod["containers"][0]["securityContext"]["readOnlyRootFilesystem"] is True

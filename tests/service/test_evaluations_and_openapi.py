@@ -6,6 +6,7 @@ import json
 import pathlib
 
 import numpy as np
+import pytest
 from scipy.stats import chi2
 
 from service import schemas
@@ -68,3 +69,37 @@ def test_committed_openapi_matches_the_app():
     operation_ids = [op["operationId"] for path in spec["paths"].values() for op in path.values()]
     assert len(operation_ids) == len(set(operation_ids))
     assert all("-" in op for op in operation_ids)  # {tag}-{name}, for generated clients
+
+
+def test_evaluation_with_outlier_noise_shows_the_exclusion(client):
+    """Contaminated-gaussian noise: with exclusion on, a good share of the trials drop a measurement (a
+    trial has a gross error with probability 1 - 0.95^M) and the RMSE falls below that of reporting only."""
+    body = {"scenario": _scenario(), "methods": ["ml"], "trials": 300, "seed": 4, "noise": "outlier"}
+    report = client.post("/v1/evaluations", json=body)
+    exclude = client.post("/v1/evaluations", json={**body, "options": {"outliers": "exclude"}})
+    assert report.status_code == exclude.status_code == 200, exclude.text
+    report, exclude = report.json()["methods"]["ml"], exclude.json()["methods"]["ml"]
+    assert report["excluded_trials"] == 0 and exclude["excluded_trials"] > 0.15 * 300
+    assert exclude["rmse_m"] < 0.8 * report["rmse_m"]
+
+
+def test_exclusion_prices_its_refits(make_client):
+    client = make_client(max_evaluation_cost=10_000)
+    body = {"scenario": _scenario(), "methods": ["ml"], "trials": 1000}
+    rows = 2 * len(STATIONS_300KM)
+    assert rows * 1000 <= 10_000 < rows * 1000 * 9  # the same evaluation fits only without exclusion
+    assert client.post("/v1/evaluations", json={**body, "trials": 10_000 // rows}).status_code == 200
+    refused = client.post("/v1/evaluations", json={**body, "trials": 10_000 // rows, "options": {"outliers": "exclude"}})
+    assert refused.status_code == 422 and refused.json()["code"] == "over_limit"
+
+
+@pytest.mark.slow
+def test_evaluation_on_the_configured_dask_scheduler_answers_the_in_process_body(make_client):
+    distributed = pytest.importorskip("distributed")
+    body = {"scenario": _scenario(), "methods": ["ml", "eove"], "trials": 300, "seed": 12}
+    here = make_client().post("/v1/evaluations", json=body)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        there = make_client(dask_scheduler=cluster.scheduler_address).post("/v1/evaluations", json=body)
+    assert here.status_code == there.status_code == 200, there.text
+    assert here.json() == there.json()

@@ -324,7 +324,7 @@ def test_an_over_budget_evaluation_is_refused_and_an_over_deadline_one_stops(app
         assert "max_evaluation_cost" in refused.json()["detail"]
         assert refused.json()["errors"][0]["loc"] == ["trials"]
         response, elapsed = timed(lambda: client.post(f"{app.url}/v1/evaluations",
-                                                      json=_evaluation(1500, ["eove", "ove"])))
+                                                      json=_evaluation(100_000, ["eove", "ove"])))
         assert response.status_code == 503 and response.json()["code"] == "deadline_exceeded", response.text
         assert elapsed < 3.0
     assert _cpu_over(app, 1.0) < 0.1

@@ -13,25 +13,20 @@ from core.estimators import solve_batch
 from core.estimators.angle_range import coarse_fix
 from core.measurements import Kind
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, build_problem
+from core.simulation.scenarios import PAPER_003_SIGMA_ANGLE_RAD, PAPER_003_STATIONS, PAPER_003_TARGET, paper_003_problem
 from core.simulation.measurements import draw_noise, true_values
 
 DEG = np.pi / 180.0
-PAPER_SIGMA_ANGLE_RAD = 1.0 * DEG
-PAPER_SIGMA_RANGE_M = 250.0
-PAPER_STATIONS = [("master", GeodeticPoint(41.8031 * DEG, 123.4262 * DEG, 5000.0)),
-                  ("helper", GeodeticPoint(41.5010 * DEG, 122.9819 * DEG, 5000.0))]
-PAPER_TARGET = (41.3183 * DEG, 123.6043 * DEG, 5009.0)
+PAPER_SIGMA_ANGLE_RAD = PAPER_003_SIGMA_ANGLE_RAD
+PAPER_STATIONS = list(PAPER_003_STATIONS)
+PAPER_TARGET = PAPER_003_TARGET
 
 
 def bearing(station, sigma=PAPER_SIGMA_ANGLE_RAD, elevation=True):
     return Bearing(station, 0.0, 0.0 if elevation else None, sigma, sigma if elevation else None)
 
 
-def paper_problem(with_ranges=True):
-    measurements = [bearing("master"), bearing("helper")]
-    if with_ranges:
-        measurements += [Range("master", 1.0, PAPER_SIGMA_RANGE_M), Range("helper", 1.0, PAPER_SIGMA_RANGE_M)]
-    return build_problem(PAPER_STATIONS, measurements)
+paper_problem = paper_003_problem
 
 
 def monte_carlo(problem, target_enu_m, trials, seed, noise="gaussian"):

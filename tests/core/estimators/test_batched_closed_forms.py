@@ -11,7 +11,7 @@ from core.estimators import solve_batch
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, build_problem
 from core.simulation.measurements import measure
 
-from tests.core.estimators import scenarios as sc
+from core.simulation import scenarios as sc
 from tests.core.test_ml_batch import assert_same_fix, mixed_problems
 
 SIGMA = 0.01

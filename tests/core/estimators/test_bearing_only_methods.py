@@ -13,7 +13,7 @@ from core.measurements import Kind, predict, residuals
 from core.problem import LocalPoint, build_problem
 from core.simulation.measurements import evaluate
 
-from tests.core.estimators import scenarios as sc
+from core.simulation import scenarios as sc
 from tests.core.estimators.test_paper000 import nees_interval
 
 
@@ -166,7 +166,7 @@ def test_pseudolinear_covariance_predicts_the_error(method):
     scene = sc.generic_3d(1.0)
     problem = scene.template()
     trials = 500
-    result = evaluate(problem, scene.target_enu_m(problem), [method], trials, np.random.default_rng(3100))[method]
+    result = evaluate(problem, scene.target_enu_m(problem), [method], trials, 3100)[method]
     predicted = np.sqrt(np.trace(solve(scene.problem(), method).covariance_enu_m2))
     assert result.failures == 0
     # the rmse of 500 trials scatters about 3 % (1 sigma) around its expectation

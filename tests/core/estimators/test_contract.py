@@ -25,7 +25,7 @@ from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, Uno
 from core.estimators import REGISTRY, SolveOptions, solve
 from core.problem import LocalPoint
 
-from tests.core.estimators import scenarios as sc
+from core.simulation import scenarios as sc
 
 #: Scenes for methods that need other than the generic 3D bearing scene.
 SCENES = {

@@ -6,7 +6,7 @@ import numpy as np
 
 from core.estimators import solve
 from core.estimators.finish import INEFFICIENCY_RATIO
-from tests.core.estimators.scenarios import generic_3d, paper_000
+from core.simulation.scenarios import generic_3d, paper_000
 
 
 def _flags(problem, method):

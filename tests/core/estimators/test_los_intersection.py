@@ -14,22 +14,21 @@ from core.estimators.line_of_sight_intersection import (
     fuse_feet,
     intersect_lines_of_sight,
 )
-from core.measurements import predict
 from core.problem import Bearing, GeodeticPoint, LocalPoint, build_problem
+from core.simulation.scenarios import PAPER_002_SIGMA_RAD, PAPER_002_STATIONS, PAPER_002_TARGET_HEIGHT_M, paper_002_problem
 from core.simulation.measurements import draw_noise, trial_batch, true_values
+from core.simulation.papers import efficient_gain
 
-SIGMA_RAD = 0.010  # the paper's 10 mrad on both angles
-PAPER_SENSORS = [("s1", LocalPoint(0.0, 0.0, 0.0)), ("s2", LocalPoint(10_000.0, 0.0, 0.0)),
-                 ("s3", LocalPoint(5_000.0, 10_000.0, 0.0))]
-TARGET_HEIGHT_M = 500.0
+SIGMA_RAD = PAPER_002_SIGMA_RAD
+PAPER_SENSORS = list(PAPER_002_STATIONS)
+TARGET_HEIGHT_M = PAPER_002_TARGET_HEIGHT_M
 
 
 def bearings(stations, sigma=SIGMA_RAD, elevation=True):
     return [Bearing(sid, 0.0, 0.0 if elevation else None, sigma, sigma if elevation else None) for sid, _ in stations]
 
 
-def paper_problem():
-    return build_problem(PAPER_SENSORS, bearings(PAPER_SENSORS))
+paper_problem = paper_002_problem
 
 
 def geodetic_problem():
@@ -44,13 +43,7 @@ def measured(problem, target_enu_m):
     return problem.with_values(true_values(problem, target_enu_m))
 
 
-def linear_gain(problem, target_enu_m):
-    """The efficient linear map from angle noise to position error at the target: (3, M)."""
-    s = problem.station_index
-    _, jac = predict(np.asarray(target_enu_m)[None], np.zeros(1), problem.stations_enu_m[s][None],
-                     problem.station_rotations[s][None], problem.kinds[None])
-    crlb = information_at(problem, target_enu_m).covariance_enu_m2[0]
-    return crlb @ jac[0, :, :3].T / problem.sigmas**2
+linear_gain = efficient_gain  # the efficient linear map from angle noise to position error (3, M)
 
 
 def test_registered_under_its_api_name():

@@ -24,7 +24,7 @@ from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeome
 from core.estimators import solve
 from core.simulation.measurements import evaluate
 
-from tests.core.estimators import scenarios as sc
+from core.simulation import scenarios as sc
 
 TRIALS = 1000
 #: Monte Carlo RMSE of 1000 trials scatters about 2-3 % (1 sigma); nonlinearity at
@@ -42,9 +42,19 @@ def predicted_rmse_m(scene, method) -> float:
     return float(np.sqrt(np.trace(solve(scene.problem(), method).covariance_enu_m2)))
 
 
+def rmse_sampling_sd(result) -> float:
+    """Relative sampling sd of a Monte Carlo RMSE, from its own trials (delta method on the mean square).
+
+    At 2 deg and 35-45 km the squared errors are heavy-tailed: about 2 % here, so a fixed 5 % margin under
+    the CRLB is under 3 sd.
+    """
+    squared = np.sum(result.errors_enu_m**2, axis=1)
+    return float(squared.std() / squared.mean() / (2.0 * np.sqrt(squared.size)))
+
+
 def accuracy(scene, methods, seed):
     problem = scene.template()
-    return evaluate(problem, scene.target_enu_m(problem), methods, TRIALS, np.random.default_rng(seed))
+    return evaluate(problem, scene.target_enu_m(problem), methods, TRIALS, seed)
 
 
 def test_eove_locates_from_two_stations():
@@ -54,7 +64,7 @@ def test_eove_locates_from_two_stations():
     assert result.failures == 0
     predicted = predicted_rmse_m(scene, "eove")
     assert abs(result.rmse_m / predicted - 1) < PREDICTION_TOLERANCE
-    assert result.rmse_m > 0.95 * result.crlb_rmse_m
+    assert result.rmse_m > result.crlb_rmse_m * (1 - 3.5 * rmse_sampling_sd(result))
 
 
 @pytest.mark.parametrize("looks", [1, 2])
@@ -101,7 +111,7 @@ def test_eove_locates_with_one_station_giving_azimuth_only():
     result = accuracy(scene, ["eove"], seed=2002)["eove"]
     assert result.failures == 0
     assert abs(result.rmse_m / predicted_rmse_m(scene, "eove") - 1) < PREDICTION_TOLERANCE
-    assert result.rmse_m > 0.95 * result.crlb_rmse_m
+    assert result.rmse_m > result.crlb_rmse_m * (1 - 3.5 * rmse_sampling_sd(result))
 
 
 def test_eove_is_more_accurate_than_ove_with_two_looks_per_station():

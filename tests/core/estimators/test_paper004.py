@@ -30,7 +30,7 @@ from core.crlb import information_at
 from core.estimators import SolveOptions, solve
 from core.measurements import Kind
 
-from tests.core.estimators import scenarios as sc
+from core.simulation import scenarios as sc
 
 SIGMAS_DEG = [1.0, 3.0, 5.0, 10.0]
 BEARINGS = 151

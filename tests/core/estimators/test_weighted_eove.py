@@ -10,7 +10,7 @@ import numpy as np
 
 from core.simulation.measurements import evaluate
 
-from tests.core.estimators import scenarios as sc
+from core.simulation import scenarios as sc
 from tests.core.estimators.test_paper000 import nees_interval
 
 TRIALS = 1000
@@ -20,7 +20,7 @@ def test_weighted_eove_is_within_15_percent_of_the_crlb():
     scene = sc.generic_3d(1.0)
     problem = scene.template()
     results = evaluate(problem, scene.target_enu_m(problem), ["weighted_eove", "eove", "ove"], TRIALS,
-                       np.random.default_rng(3000))
+                       3000)
     for name, r in results.items():
         print(f"{name:14s} rmse {r.rmse_m:8.1f} m  crlb {r.crlb_rmse_m:8.1f} m  ratio {r.rmse_m / r.crlb_rmse_m:5.3f}"
               f"  nees {r.nees_mean:5.2f}  failures {r.failures}")

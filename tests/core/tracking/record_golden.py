@@ -34,7 +34,7 @@ import numpy as np
 
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import new_state, step
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 GOLDEN_DIR = Path(__file__).with_name("golden")
 

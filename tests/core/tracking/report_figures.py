@@ -15,7 +15,7 @@ from scipy.stats import chi2
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import new_state, step
 from core.tracking.config import DEFAULT_RANGE_PRIOR_SIGMA_M
-from tests.core.tracking.scenarios import PAPER_ACCEL_SIGMA_MPS2, PAPER_FIRST_RANGE_M, paper_config, run_monte_carlo
+from core.simulation.tracking import PAPER_ACCEL_SIGMA_MPS2, PAPER_FIRST_RANGE_M, paper_config, run_monte_carlo
 
 TIMES_S = (10, 25, 50, 100, 150, 200)
 CONVERGENCE_PERCENT = 5.0
@@ -207,7 +207,7 @@ SWITCHING_SCHEDULE = (QUIET_MPS2,) * 70 + (MANOEUVRE_MPS2,) * 40 + (QUIET_MPS2,)
 def bound(runs: int, block: int = 50) -> None:
     """Ratio of the position RMSE over the last 50 reports to the PCRB, and the mean position NEES, on truths
     drawn from the filter's model, in blocks of ``block`` runs (seeds 30000 + 100 b), then pooled."""
-    from tests.core.tracking.scenarios import against_bound
+    from core.simulation.tracking import against_bound
 
     blocks = max(1, runs // block)
     print(f"\nAgainst the PCRB: {blocks} x {block} runs, truth with the filter's acceleration noise, last 50 of "
@@ -228,7 +228,7 @@ def bound(runs: int, block: int = 50) -> None:
 
 def switching(runs: int) -> None:
     """The IMM and the single-level joint UKFs on the switching target, against the PCRB of the true model."""
-    from tests.core.tracking.scenarios import against_bound
+    from core.simulation.tracking import against_bound
 
     scenario = paper_001_scenario(accel_sigma_by_interval_mps2=SWITCHING_SCHEDULE)
     print(f"\nSwitching target ({runs} runs, seeds 40000+): quiet {QUIET_MPS2} / manoeuvring {MANOEUVRE_MPS2} m/s^2 "

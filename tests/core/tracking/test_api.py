@@ -18,7 +18,7 @@ from core.angles import line_of_sight_enu
 from core.tracking import (MODELS, WARNING_CODES, Epoch, TimeNotIncreasing, TrackerConfig, TrackState, new_state,
                            step, step_many)
 from core.tracking.config import DEFAULT_RANGE_PRIOR_M, DEFAULT_RANGE_PRIOR_SIGMA_M
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 
 def test_models_are_the_two_the_api_names():

@@ -32,7 +32,7 @@ import pytest
 from scipy.stats import chi2
 
 from core.simulation.emitter import paper_001_scenario
-from tests.core.tracking.scenarios import against_bound, paper_config
+from core.simulation.tracking import against_bound, paper_config
 
 RUNS = 50
 LAST_50 = slice(-50, None)

@@ -11,7 +11,7 @@ from core.measurements import azimuth_rate
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking.bound import (C, information_predict, invert_information, measurement_weights, pcrb_recursion,
                                  prior_information, session_pcrb, session_transition)
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 
 def random_spd(rng, n, scale=1.0):

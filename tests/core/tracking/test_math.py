@@ -19,7 +19,7 @@ from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, initial_p
 from core.tracking.linalg import (EIGENVALUE_FLOOR, cholesky_lower, inverse_cholesky, repaired_block,
                                   symmetrized)
 from core.tracking.unscented import constant_velocity_predict, polar_update, transition
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 C = SPEED_OF_LIGHT_MPS
 

@@ -14,7 +14,7 @@ from core.tracking import TrackState, new_state, step
 from core.tracking.joint_ukf import joint_epoch, joint_epochs, pulse_count
 from core.tracking.range_mixture import (MERGE_COST, RANGE_RATIO, component_ranges, merge_neighbours, moments,
                                          relative_sigma)
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 
 def test_moments_equal_those_of_samples_from_the_sum():

@@ -51,7 +51,7 @@ import pytest
 from scipy.stats import chi2
 
 from core.simulation.emitter import paper_001_scenario
-from tests.core.tracking.scenarios import (PAPER_ACCEL_SIGMA_MPS2, PAPER_FIRST_RANGE_M, MonteCarlo, paper_config,
+from core.simulation.tracking import (PAPER_ACCEL_SIGMA_MPS2, PAPER_FIRST_RANGE_M, MonteCarlo, paper_config,
                                            run_monte_carlo)
 
 RUNS = 50

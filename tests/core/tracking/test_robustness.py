@@ -12,7 +12,7 @@ import pytest
 
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import TrackState, new_state, step
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 #: Symmetry tolerance, relative to the largest covariance entry.
 SYMMETRY_RTOL = 1e-9

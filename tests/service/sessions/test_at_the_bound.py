@@ -18,7 +18,7 @@ from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking.bound import session_pcrb
 from service.app import create_app
 from service.settings import Settings
-from tests.core.tracking.scenarios import paper_config
+from core.simulation.tracking import paper_config
 
 from .helpers import api_epochs, create_body
 

@@ -1,4 +1,10 @@
-"""Scenes for the bearing-only estimator tests and ``scripts/accuracy_bearing_only.py``.
+"""The papers' scenarios and the generic scenes: one definition for the tests, the scripts and the CLI.
+
+Papers 000 and 004 and the generic scenes are :class:`Scene` objects; paper
+002's and 003's geometries are problems (:func:`paper_002_problem`,
+:func:`paper_003_problem`); paper 001's emitter is
+:func:`core.simulation.emitter.paper_001_scenario` with its filter settings
+in :func:`core.simulation.tracking.paper_config`.
 
 A :class:`Scene` is a geometry (stations, a target, what each station
 measures and how well); :meth:`Scene.measurements` draws one set of
@@ -187,3 +193,35 @@ def paper_004(sigma_deg: float, sigma_known: bool = True) -> Scene:
     sensors = tuple(Sensor(i, sigma_deg * DEG) for i, _ in stations)
     return Scene(f"paper 004, {sigma_deg:g} deg", stations, sensors, LocalPoint(30e3, 35e3, 0.0),
                  altitude_m=0.0, sigma_known=sigma_known)
+
+
+#: Paper 002: sensors at (0,0,0), (10,0,0), (5,10,0) km, 10 mrad on both angles, targets 0.5 km up over
+#: x, y in [0, 10] km.
+PAPER_002_SIGMA_RAD = 0.010
+PAPER_002_STATIONS = (("s1", LocalPoint(0.0, 0.0, 0.0)), ("s2", LocalPoint(10_000.0, 0.0, 0.0)),
+                      ("s3", LocalPoint(5_000.0, 10_000.0, 0.0)))
+PAPER_002_TARGET_HEIGHT_M = 500.0
+
+
+def paper_002_problem() -> Problem:
+    """Paper 002's three sensors, azimuth and elevation at each (values zero: a template)."""
+    sigma = PAPER_002_SIGMA_RAD
+    return build_problem(list(PAPER_002_STATIONS), [Bearing(i, 0.0, 0.0, sigma, sigma) for i, _ in PAPER_002_STATIONS])
+
+
+#: Paper 003: two aircraft at 5 km, 1 deg angles, 250 m ranges, a target about 50 km away.
+PAPER_003_SIGMA_ANGLE_RAD = 1.0 * DEG
+PAPER_003_SIGMA_RANGE_M = 250.0
+PAPER_003_STATIONS = (("master", GeodeticPoint(41.8031 * DEG, 123.4262 * DEG, 5000.0)),
+                      ("helper", GeodeticPoint(41.5010 * DEG, 122.9819 * DEG, 5000.0)))
+#: (lat_rad, lon_rad, alt_m)
+PAPER_003_TARGET = (41.3183 * DEG, 123.6043 * DEG, 5009.0)
+
+
+def paper_003_problem(with_ranges: bool = True) -> Problem:
+    """Paper 003's two stations with azimuth and elevation (and a range each unless ``with_ranges`` is False)."""
+    sigma = PAPER_003_SIGMA_ANGLE_RAD
+    measurements = [Bearing("master", 0.0, 0.0, sigma, sigma), Bearing("helper", 0.0, 0.0, sigma, sigma)]
+    if with_ranges:
+        measurements += [Range("master", 1.0, PAPER_003_SIGMA_RANGE_M), Range("helper", 1.0, PAPER_003_SIGMA_RANGE_M)]
+    return build_problem(list(PAPER_003_STATIONS), measurements)

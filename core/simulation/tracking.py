@@ -1,10 +1,20 @@
-"""Shared Monte Carlo helpers for the session-filter tests (and ``report_figures``)."""
+"""Monte Carlo evaluation of the session filters (paper 001), against the posterior CRLB.
+
+Each run is one simulated track with its own seed (``seed + r``), so the
+runs can be cut into chunks that run here or on a Dask cluster
+(:func:`core.parallel.run_chunks`) with the same result. A filter steps
+through one track epoch by epoch (its state is sequential), so a chunk
+loops over its runs; the bookkeeping afterwards is batched.
+"""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
+
+from core.parallel import chunk_slices, run_chunks
 
 from core.simulation.emitter import EmitterScenario, paper_001_scenario, simulate_emitter
 from core.tracking import TrackerConfig, new_state, step
@@ -81,19 +91,31 @@ class MonteCarlo:
         return float(self.times_s[above[-1] + 1])
 
 
-def run_monte_carlo(config: TrackerConfig, scenario: EmitterScenario, runs: int, seed: int) -> MonteCarlo:
-    """Run ``config`` on ``runs`` independent draws of ``scenario`` (seeds ``seed + r``).
+def run_tracks(config: TrackerConfig, scenario: EmitterScenario, seeds) -> dict:
+    """Run ``config`` on one simulated track per seed (one chunk of a Monte Carlo).
 
-    The per-epoch figures (NEES, sigmas, smallest correlation eigenvalue) are computed after the runs, in
-    batches: the filter steps dominate the time, not the bookkeeping."""
+    Parameters
+    ----------
+    config : TrackerConfig
+    scenario : EmitterScenario
+    seeds : sequence of int
+        One track per seed (``numpy.random.default_rng(seed)``).
+
+    Returns
+    -------
+    dict
+        ``times_s`` (K,), ``ranges_m`` (R, K), ``truths`` (R, K, 6), ``estimates`` (R, K, 6) (NaN before
+        initialisation), ``covariances`` (R, K, 6, 6) (identity before initialisation).
+    """
+    seeds = list(seeds)
     k = scenario.epochs - len(scenario.missed_epochs)
-    estimates = np.full((runs, k, 6), np.nan)
-    covariances = np.tile(np.eye(6), (runs, k, 1, 1))
-    truths = np.empty((runs, k, 6))
-    ranges = np.empty((runs, k))
-    times = None
-    for r in range(runs):
-        track = simulate_emitter(scenario, np.random.default_rng(seed + r))
+    estimates = np.full((len(seeds), k, 6), np.nan)
+    covariances = np.tile(np.eye(6), (len(seeds), k, 1, 1))
+    truths = np.empty((len(seeds), k, 6))
+    ranges = np.empty((len(seeds), k))
+    times = np.zeros(k)
+    for r, seed in enumerate(seeds):
+        track = simulate_emitter(scenario, np.random.default_rng(seed))
         times = track.emission_times_s
         ranges[r] = track.ranges_m
         truths[r] = track.states_enu
@@ -103,7 +125,36 @@ def run_monte_carlo(config: TrackerConfig, scenario: EmitterScenario, runs: int,
             if state.initialized:
                 estimates[r, i] = state.mean[:6]
                 covariances[r, i] = state.covariance[:6, :6]
-    errors = estimates - truths
+    return {"times_s": times, "ranges_m": ranges, "truths": truths, "estimates": estimates,
+            "covariances": covariances}
+
+
+def monte_carlo_tracks(config: TrackerConfig, scenario: EmitterScenario, runs: int, seed: int, *,
+                       chunk_runs: int = 4, scheduler: Any = None,
+                       progress: Callable[[int, int], None] | None = None) -> dict:
+    """:func:`run_tracks` over runs ``seed + r``, ``r < runs``, in chunks (here or on a Dask cluster).
+
+    The result is that of one call with every seed: it depends on neither ``chunk_runs`` nor the workers.
+    """
+    chunks = [(config, scenario, [seed + r for r in range(part.start, part.stop)])
+              for part in chunk_slices(runs, chunk_runs)]
+    parts = run_chunks(run_tracks, chunks, scheduler=scheduler, progress=progress)
+    out = {key: np.concatenate([part[key] for part in parts]) for key in ("ranges_m", "truths", "estimates",
+                                                                          "covariances")}
+    out["times_s"] = parts[0]["times_s"]
+    return out
+
+
+def run_monte_carlo(config: TrackerConfig, scenario: EmitterScenario, runs: int, seed: int, *,
+                    scheduler: Any = None, progress: Callable[[int, int], None] | None = None) -> MonteCarlo:
+    """Run ``config`` on ``runs`` independent draws of ``scenario`` (seeds ``seed + r``).
+
+    The per-epoch figures (NEES, sigmas, smallest correlation eigenvalue) are computed after the runs, in
+    batches: the filter steps dominate the time, not the bookkeeping."""
+    tracks = monte_carlo_tracks(config, scenario, runs, seed, scheduler=scheduler, progress=progress)
+    covariances = tracks["covariances"]
+    errors = tracks["estimates"] - tracks["truths"]
+    k = errors.shape[1]
     ready = ~np.isnan(errors[..., 0])
     nees = np.full((runs, k), np.nan)
     min_eigenvalues = np.full((runs, k), np.nan)
@@ -114,7 +165,8 @@ def run_monte_carlo(config: TrackerConfig, scenario: EmitterScenario, runs: int,
     e = errors[ready]
     nees[ready] = np.einsum("ni,ni->n", e, np.linalg.solve(cov, e[..., None])[..., 0])
     min_eigenvalues[ready] = np.linalg.eigvalsh(cov / (d[:, :, None] * d[:, None, :]))[:, 0]
-    return MonteCarlo(times, ranges, np.linalg.norm(errors[..., :3], axis=-1), errors, nees, min_eigenvalues, sigmas)
+    return MonteCarlo(tracks["times_s"], tracks["ranges_m"], np.linalg.norm(errors[..., :3], axis=-1), errors, nees,
+                      min_eigenvalues, sigmas)
 
 
 @dataclass
@@ -129,11 +181,19 @@ class AgainstBound:
         Position NEES (3 degrees of freedom).
     bound_m2 : ndarray, shape (K,)
         Trace of the PCRB's position block.
+    times_s : ndarray, shape (K,)
+    ranges_m : ndarray, shape (R, K)
     """
 
     squared_errors_m2: np.ndarray
     nees: np.ndarray
     bound_m2: np.ndarray
+    times_s: np.ndarray | None = None
+    ranges_m: np.ndarray | None = None
+
+    def rmse_m(self) -> np.ndarray:
+        """Per epoch ``(K,)``, the position RMSE over runs (NaN while a run is not initialised)."""
+        return np.sqrt(np.mean(self.squared_errors_m2, axis=0))
 
     def ratio(self, window: slice) -> float:
         """RMSE over runs and the epochs of ``window`` over the PCRB's RMS there."""
@@ -144,25 +204,25 @@ class AgainstBound:
         return self.nees[:, window].mean(axis=0)
 
 
-def against_bound(config: TrackerConfig, scenario: EmitterScenario, runs: int, seed: int) -> AgainstBound:
+def against_bound(config: TrackerConfig, scenario: EmitterScenario, runs: int, seed: int, *,
+                  scheduler: Any = None, progress: Callable[[int, int], None] | None = None) -> AgainstBound:
     """Run ``config`` on ``runs`` draws of ``scenario`` (seeds ``seed + r``) next to the PCRB of the
-    scenario's own model (its acceleration noise, per interval when it has a schedule)."""
+    scenario's own model (its acceleration noise, per interval when it has a schedule).
+
+    The session-filter evaluation of ``passive-locator evaluate`` (a tracking scenario): RMSE per epoch
+    against the bound. Chunks of runs run here or on a Dask cluster (``scheduler``)."""
     from core.tracking.bound import session_pcrb
 
-    tracks = [simulate_emitter(scenario, np.random.default_rng(seed + r)) for r in range(runs)]
-    states = np.array([t.states_enu for t in tracks])
+    tracks = monte_carlo_tracks(config, scenario, runs, seed, scheduler=scheduler, progress=progress)
+    states = tracks["truths"]
     sigmas = scenario.accel_sigma_by_interval_mps2
     if sigmas is None:
         sigmas = (scenario.accel_sigma_mps2,) * (scenario.epochs - 1)
-    bound = session_pcrb(states, tracks[0].emission_times_s, config, np.array(sigmas))
-    squared = np.full(states.shape[:2], np.nan)
-    nees = np.full(states.shape[:2], np.nan)
-    for r, track in enumerate(tracks):
-        state = new_state(config)
-        for i, epoch in enumerate(track.epochs):
-            state = step(state, epoch, config)
-            if state.initialized:
-                error = state.mean[:3] - track.states_enu[i, :3]
-                squared[r, i] = error @ error
-                nees[r, i] = error @ np.linalg.solve(state.covariance[:3, :3], error)
-    return AgainstBound(squared, nees, bound.position_rmse_m**2)
+    bound = session_pcrb(states, tracks["times_s"], config, np.array(sigmas))
+    error = tracks["estimates"][..., :3] - states[..., :3]
+    squared = np.einsum("rki,rki->rk", error, error)
+    position_cov = tracks["covariances"][..., :3, :3]
+    ready = ~np.isnan(error[..., 0])
+    nees = np.full(squared.shape, np.nan)
+    nees[ready] = np.einsum("ni,ni->n", error[ready], np.linalg.solve(position_cov[ready], error[ready][..., None])[..., 0])
+    return AgainstBound(squared, nees, bound.position_rmse_m**2, tracks["times_s"], tracks["ranges_m"])
