@@ -139,6 +139,13 @@ def _add_tools(commands) -> None:
                            help="only these papers (repeatable)")
     reproduce.add_argument("--scheduler", default=None, help=scheduler_help)
     reproduce.set_defaults(run=_run_reproduce)
+    coverage = commands.add_parser("map", help="coverage map of a geometry: GeoJSON cells and a PNG heat map",
+                                   description="The CRLB over a grid of target positions (a POST /v1/crlb/grid "
+                                               "body): writes coverage.geojson and coverage.png (its image size).")
+    coverage.add_argument("grid", help="a POST /v1/crlb/grid body (JSON file)")
+    coverage.add_argument("--out", default=None, help="output directory (default reports/<grid file name>)")
+    coverage.add_argument("--scheduler", default=None, help=scheduler_help)
+    coverage.set_defaults(run=_run_map)
 
 
 def _scheduler(args):
@@ -223,6 +230,38 @@ def _evaluate_tracking(spec, out, title, scheduler, bar):
     runs, seed = int(spec.get("runs", 20)), int(spec.get("seed", 1000))
     result = against_bound(config, scenario, runs, seed, scheduler=scheduler, progress=bar)
     return write_tracking_evaluation(result, config, runs, seed, out, title)
+
+
+def _run_map(args) -> int:
+    import json
+    import pathlib
+
+    from pydantic import ValidationError
+
+    from core.coverage import coverage_map
+    from core.errors import LocalizationError
+    from service import schemas
+    from service.maps import coverage_geojson, coverage_png
+    from service.reports import ProgressBar
+    from service.translate import grid_of_request
+
+    path = pathlib.Path(args.grid)
+    try:
+        request = schemas.CrlbGridRequest.model_validate(json.loads(path.read_text()))
+        problem, grid = grid_of_request(request)
+    except (OSError, ValueError, ValidationError, LocalizationError) as error:
+        print(f"passive-locator map: {path}: {getattr(error, 'message', error)}", file=sys.stderr)
+        return 2
+    out = pathlib.Path(args.out) if args.out else pathlib.Path("reports") / path.stem
+    out.mkdir(parents=True, exist_ok=True)
+    with _scheduler(args) as scheduler:
+        coverage = coverage_map(problem, grid.cells_enu_m, scheduler=scheduler, progress=ProgressBar(path.stem))
+    geojson, png = out / "coverage.geojson", out / "coverage.png"
+    geojson.write_text(json.dumps(coverage_geojson(problem, grid, coverage)))
+    png.write_bytes(coverage_png(problem, grid, coverage, request.image.width_px, request.image.height_px))
+    print(geojson)
+    print(png)
+    return 0
 
 
 def _run_reproduce(args) -> int:

@@ -88,3 +88,18 @@ def test_evaluate_on_a_two_worker_cluster_writes_the_in_process_numbers(tmp_path
                         cluster.scheduler_address)
     assert there.returncode == 0, there.stderr[-3000:]
     assert (tmp_path / "here" / "evaluation.json").read_text() == (tmp_path / "there" / "evaluation.json").read_text()
+
+
+def test_map_writes_the_geojson_cells_and_a_png_of_the_requested_size(tmp_path):
+    from tests.service.test_crlb_grid import cells, local_request, png_size
+
+    grid = tmp_path / "grid.json"
+    grid.write_text(json.dumps({**local_request(step_m=2000.0), "image": {"width_px": 120, "height_px": 90}}))
+    run = run_cli("map", str(grid), "--out", str(tmp_path / "out"))
+    assert run.returncode == 0, run.stderr
+    found = cells(json.loads((tmp_path / "out" / "coverage.geojson").read_text()))
+    assert len(found) == 11 * 11 and sum(c["unobservable"] for c in found) < len(found)
+    assert png_size((tmp_path / "out" / "coverage.png").read_bytes()) == (120, 90)
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(local_request(step_m=-1.0)))
+    assert run_cli("map", str(bad)).returncode == 2
