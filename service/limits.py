@@ -1,11 +1,11 @@
 """The cost model: what one request may ask of the machine (422 ``over_limit`` naming the limit above it).
 
-Costs are in units of about one batched ML measurement row (~0.1 ms on the
-reference machine). Methods that the core solves one problem at a time cost
-about 25 times more per row than the batched ones (measured with
-``POST /v1/evaluations`` on a four-station scenario, 200 trials each:
-ml 0.11, ctls 0.14, angle_range 0.03 ms per row; ove 1.6, weighted_eove 1.5,
-ple3d 2.5, ws3d 2.6, los_intersection 2.0, eove 1.2, taylor_wls 2.6 ms).
+Costs are in units of about one batched ML measurement row. Every method is
+solved batched now, at about the cost of ML per problem (10,000 four-station
+problems in core, estimate and finish, us per fix: ml 42, weighted_eove 27,
+eove 21, ove 55, los_intersection 35, ple3d 42, ws3d 49, angle_range 72 with
+its range, tls 32, ctls 32, taylor_wls 55; ``python -m bench.closed_form_core``),
+so every method weighs 1:
 
 - evaluation: ``trials x sum over methods of weight x measurement rows``
   (``max_evaluation_cost``);
@@ -26,16 +26,13 @@ import contextvars
 
 from service.problems import ApiError
 
-#: Methods the core solves batched (vectorised across problems and trials).
-BATCHED_METHODS = frozenset(("auto", "ml", "tls", "ctls", "angle_range"))
-UNBATCHED_WEIGHT = 25
-
 #: The ``max_fix_cost`` of the app serving this request (set per request by the middleware).
 fix_cost_limit: contextvars.ContextVar[int | None] = contextvars.ContextVar("fix_cost_limit", default=None)
 
 
 def method_weight(method) -> int:
-    return 1 if not isinstance(method, str) or method in BATCHED_METHODS else UNBATCHED_WEIGHT
+    """Cost of one measurement row of ``method`` (see the module docstring: all methods weigh alike)."""
+    return 1
 
 
 def over_limit(name: str, cost: int, limit: int, loc: list, what: str) -> ApiError:

@@ -140,10 +140,11 @@ class Constraints(Strict):
 Variant = Literal[tuple(sorted({v for spec in REGISTRY.values() for v in spec.variants}))]  # type: ignore[valid-type]
 
 
-class Options(Strict):
+class EvaluationOptions(Strict):
+    """Solver options: a fix's without its ``initial_guess`` (what an evaluation applies to every trial)."""
+
     max_iterations: int = Field(50, ge=1, le=1000)
     tolerance_m: float = Field(1e-3, ge=1e-9, le=1e6)
-    initial_guess: Position | None = None
     variant: Variant | None = Field(None, description="method variant: ctls newton (default) | projected")
     outliers: Literal["report", "exclude"] = Field(
         "report", description="exclude: fault detection and exclusion (chi-square test, then the measurement with "
@@ -159,6 +160,10 @@ class Options(Strict):
                               "fit.sigma_scale is sqrt(sum rho / dof), as curve_fit's; chi2 stays the plain sum")
     loss_scale: float = Field(1.0, gt=0.0, le=1e6, description="the loss's scale in sigmas (scipy's f_scale "
                                                                 "applied to whitened residuals)")
+
+
+class Options(EvaluationOptions):
+    initial_guess: Position | None = None
 
 
 Format = Literal["geojson", "cot"]
@@ -488,15 +493,6 @@ class BatchResult(BaseModel):
 class BatchResponse(BaseModel):
     results: list[BatchResult]
     geojson: FeatureCollection | None = Field(None, description="when the request's formats ask for geojson")
-
-
-class EvaluationOptions(Strict):
-    max_iterations: int = Field(50, ge=1, le=1000)
-    tolerance_m: float = Field(1e-3, ge=1e-9, le=1e6)
-    variant: Variant | None = Field(None, description="method variant: ctls newton (default) | projected")
-    outliers: Literal["report", "exclude"] = Field(
-        "report", description="exclude: fault detection and exclusion in every trial (as in a fix); report: only warn")
-    absolute_sigma: StrictBool = True
 
 
 class EvaluationRequest(Strict):

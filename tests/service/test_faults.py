@@ -316,7 +316,7 @@ def test_an_abandoned_evaluation_stops_using_cpu_within_2s(app_factory, tmp_path
 
 
 def test_an_over_budget_evaluation_is_refused_and_an_over_deadline_one_stops(app_factory, tmp_path):
-    app = app_factory(f"sqlite:///{tmp_path}/s.db", request_deadline_s=1, max_evaluation_cost=50_000_000)
+    app = app_factory(f"sqlite:///{tmp_path}/s.db", request_deadline_s=1, max_evaluation_cost=2_000_000)
     with httpx.Client(timeout=30.0) as client:
         refused = client.post(f"{app.url}/v1/evaluations", json=_evaluation(100_000, ["ml", "eove", "ove", "tls",
                                                                                        "ple3d", "ws3d"]))

@@ -220,4 +220,5 @@ def test_a_batch_over_its_cost_is_422_naming_the_limit(make_client):
                              loc=["problems"], code="over_limit")
     assert "max_batch_cost" in problem["detail"]
     eove = {**body, "method": "eove"}
-    assert_problem(small.post("/v1/fixes/batch", json={"problems": [eove] * 2}), 422, code="over_limit")  # 2 x 4 x 25
+    assert small.post("/v1/fixes/batch", json={"problems": [eove] * 25}).status_code == 200  # every method weighs 1
+    assert_problem(small.post("/v1/fixes/batch", json={"problems": [eove] * 26}), 422, code="over_limit")
