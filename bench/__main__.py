@@ -167,54 +167,24 @@ def main(argv=None) -> int:
 EXTRA_NOTES = """
 ## Where the time goes, and what would close the misses
 
-Measured with cProfile and the phase timings in the notes above (the machine
-is shared: absolute figures move by 2x from run to run, the same-run ratios
-much less).
+The machine is shared and its speed moved by about 3x between sessions (this
+run's orjson parse of the same 11 MB batch took 0.134 s against 0.049 s on
+2026-11-23, with no change to that code): compare ratios within one run only.
 
-**Row 1, single fix over HTTP.** One fix costs the worker about 1.2-1.5 ms
-of CPU against about 0.2-0.3 ms for the echo route. Of the fix's own work,
-`solve` (weighted-EOVE start, LM, finish at B = 1) is about 60 %, the error
-summary (CEP/SEP quadrature) 15-20 %, `to_problem` (exact geodesy of the
-stations) 12 %; validation and serialisation are small. At B = 1 every numpy
-call costs its 1-5 us of dispatch however small its arrays, and one fix makes
-several hundred of them. The p99 follows from the throughput: 16 connections
-on ~450 req/s queue ~35 ms on average, and even the echo route's p99 is tens
-of milliseconds here. This change made the single fix ~18 % cheaper in CPU
-(12 % more req/s, measured side by side against the previous commit), which
-does not change the verdict. Closing it needs a different shape, not
-tuning: (a) coalesce concurrent /v1/fixes requests into one batched solve in
-the route (the batch path costs 10-20 us per fix in core), with the lean
-reader in front of it; (b) a compiled per-problem kernel for the LM and the
-error summary (numba or C; outside the core's numpy-only rule); (c) more
-workers, which the row's setup rules out.
+**Rows 1 and 7, one fix.** A fix at B = 1 is about 2,000 numpy calls (the
+start's SVDs are now one compiled kernel; the LM, the CRLB, the finisher and
+the reader are numpy on arrays of four rows), i.e. milliseconds where the
+target is 50 us. The targets need the whole per-problem pipeline compiled
+(reader geodesy, start, LM, CRLB, finisher, error summary) as one kernel,
+which the batch would then use too; that rewrite was not done.
 
-**Row 2, batch over HTTP.** The route already overlaps the numeric work of
-later parts (core and summaries, on a second thread: numpy runs outside the
-GIL) with building the bodies of earlier ones. No phase dominates (see the
-single-thread phase breakdown):
-reading the problems (~10 us each, structure checks in Python, numbers
-checked in bulk), the core (~10-20 us), the response bodies (~20 us: about
-13 of them the CEP/SEP quadrature, 192 directions x ~6 Newton steps with erf
-per fix, computed 256 fixes at a time to stay in cache), orjson both ways,
-and the HTTP transfer of 11 MB in and 24 MB out. What would close the gap:
-a cheaper SEP quadrature (a lead's decision: it changes the numbers at the
-1e-6 level); building the response text from the arrays in compiled code
-rather than as ~100 Python objects per fix (building and freeing them is
-about 0.1 s per 10,000); the reader is near what pure Python can do. A
-better Newton start with per-row stopping in the quadrature was tried: 12 %
-on the summaries, not kept.
+**Row 2, batches over HTTP.** Core (estimate + finish) runs at 20,000-49,000
+fixes/s for every method; end to end the POST is 3-5x slower, spent in the
+reader (Python per problem), the response bodies (about 100 Python objects
+per fix) and orjson both ways. Closing it needs the bodies written from the
+arrays in compiled code and a reader that fills the batch arrays directly.
 
-**Row 3, the scipy ratio.** In the core about 55 % is the LM (about four
-model evaluations per problem on (B, M) planes, ~85 element-wise operations
-each), 20 % the weighted-EOVE start, 20 % the finish (residuals, the CRLB
-inversion with its eigenvalues, studentized residuals, geometry warnings).
-At 80k-element planes numpy runs at 1-2 ns per element and operation;
-100x scipy needs ~3-5 us per fix, i.e. fusing those operations per problem in
-compiled code (the same algorithm would then cost about 1 us per fix).
-
-**BLAS.** The ML path has no BLAS-sized work (3x3 and 4x4 batches, element-
-wise planes); single-fix timings with OPENBLAS_CORETYPE and OPENBLAS_L2_SIZE
-unset were the same as with them set.
+**Row 3, the scipy ratio.** 41-43x in this run (33x on 2026-11-23).
 """
 
 if __name__ == "__main__":
