@@ -75,7 +75,8 @@ async def crlb_grid(request: schemas.CrlbGridRequest, owner: OwnerDep, http: Req
             return coverage_png(problem, grid, coverage, request.image.width_px, request.image.height_px)
         return coverage_geojson(problem, grid, coverage)
 
-    body = await watched(http, in_pool(http.app.state.cpu_pool, work), "ask for a coarser coverage map (a larger step_m or a smaller half_width_m)")
+    body = await watched(http, in_pool(http.app.state.cpu_pool, work),
+                         "ask for a coarser coverage map (a larger step_m or a smaller half_width_m)")
     if png:
         return Response(body, media_type=PNG)
     return JsonResponse(body)
