@@ -238,27 +238,28 @@ def _run_map(args) -> int:
 
     from pydantic import ValidationError
 
-    from core.coverage import coverage_map
     from core.errors import LocalizationError
     from service import schemas
-    from service.maps import coverage_geojson, coverage_png
+    from service.problems import ApiError
     from service.reports import ProgressBar
-    from service.translate import grid_of_request
+    from service.translate import coverage_renderings, grid_of_request
 
     path = pathlib.Path(args.grid)
     try:
         request = schemas.CrlbGridRequest.model_validate(json.loads(path.read_text()))
         problem, grid = grid_of_request(request)
-    except (OSError, ValueError, ValidationError, LocalizationError) as error:
-        print(f"passive-locator map: {path}: {getattr(error, 'message', error)}", file=sys.stderr)
+    except (OSError, ValueError, ValidationError, LocalizationError, ApiError) as error:
+        reason = getattr(error, "message", None) or getattr(error, "detail", None) or error
+        print(f"passive-locator map: {path}: {reason}", file=sys.stderr)
         return 2
     out = pathlib.Path(args.out) if args.out else pathlib.Path("reports") / path.stem
     out.mkdir(parents=True, exist_ok=True)
     with _scheduler(args) as scheduler:
-        coverage = coverage_map(problem, grid.cells_enu_m, scheduler=scheduler, progress=ProgressBar(path.stem))
+        rendered = coverage_renderings(request, problem, grid, ("geojson", "png"), scheduler=scheduler,
+                                       progress=ProgressBar(path.stem))
     geojson, png = out / "coverage.geojson", out / "coverage.png"
-    geojson.write_text(json.dumps(coverage_geojson(problem, grid, coverage)))
-    png.write_bytes(coverage_png(problem, grid, coverage, request.image.width_px, request.image.height_px))
+    geojson.write_text(json.dumps(rendered["geojson"]))
+    png.write_bytes(rendered["png"])
     print(geojson)
     print(png)
     return 0

@@ -23,7 +23,7 @@ from pydantic import ValidationError
 from core import geodesy
 from core.accuracy import error_summary
 from core.batch import ProblemBatch, build_problem_batch
-from core.coverage import Grid, cells_per_side, grid
+from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import FixBatch, SolveOptions, solve_many
@@ -35,6 +35,7 @@ from service import schemas
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
 from service.limits import check_grid, fix_within_limit
+from service.maps import coverage_geojson, coverage_png
 
 _COMPONENT_NAMES = {int(Kind.AZIMUTH): "azimuth", int(Kind.ELEVATION): "elevation", int(Kind.RANGE): "range",
                     int(Kind.TOA): "toa"}
@@ -150,6 +151,22 @@ def grid_of_request(request: schemas.CrlbGridRequest, max_grid_cost: int | None 
         check_grid(cells_per_side(spec.half_width_m, spec.step_m) ** 2, int(problem.kinds.size), max_grid_cost)
     centre = in_frame(problem, spec.centre, ("grid", "centre"))
     return problem, grid(problem, centre, spec.half_width_m, spec.step_m, altitude)
+
+
+def coverage_renderings(request: schemas.CrlbGridRequest, problem: Problem, grid_cells: Grid, formats, *,
+                        scheduler=None, should_stop=None, progress=None) -> dict:
+    """A coverage map computed once and rendered as asked: ``{"geojson": dict, "png": bytes}`` for ``formats``.
+
+    Raises core.parallel.Stopped when ``should_stop`` says so; ``scheduler`` as for :func:`core.parallel.run_chunks`.
+    """
+    coverage = coverage_map(problem, grid_cells.cells_enu_m, scheduler=scheduler, should_stop=should_stop,
+                            progress=progress)
+    out = {}
+    if "geojson" in formats:
+        out["geojson"] = coverage_geojson(problem, grid_cells, coverage)
+    if "png" in formats:
+        out["png"] = coverage_png(problem, grid_cells, coverage, request.image.width_px, request.image.height_px)
+    return out
 
 
 def _finite(value):

@@ -2,7 +2,7 @@
 
 The grid is priced before anything is computed (``service.limits``: 422
 ``over_limit`` above ``max_grid_cost``); the cells are then computed in
-chunks (:func:`core.coverage.coverage_map`) on the app's CPU pool, or on the
+chunks (:func:`service.translate.coverage_renderings`) on the app's CPU pool, or on the
 Dask cluster of ``dask_scheduler``, and stop at the request deadline, on
 disconnect and at shutdown like an evaluation (:func:`service.watch.watched`).
 ``Accept: image/png`` asks for the heat map (:func:`service.maps.coverage_png`),
@@ -14,12 +14,10 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from core.coverage import coverage_map
 from service import schemas
 from service.deps import OwnerDep
-from service.maps import coverage_geojson, coverage_png
 from service.responses import JsonResponse
-from service.translate import grid_of_request
+from service.translate import coverage_renderings, grid_of_request
 from service.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
@@ -66,17 +64,14 @@ def wants_png(accept: str | None) -> bool:
 async def crlb_grid(request: schemas.CrlbGridRequest, owner: OwnerDep, http: Request) -> Response:
     settings = http.app.state.settings
     problem, grid = grid_of_request(request, settings.max_grid_cost)
-    png = wants_png(http.headers.get("accept"))
+    kind = "png" if wants_png(http.headers.get("accept")) else "geojson"
 
     def work(should_stop):
-        coverage = coverage_map(problem, grid.cells_enu_m, scheduler=settings.dask_scheduler,
-                                should_stop=should_stop)
-        if png:
-            return coverage_png(problem, grid, coverage, request.image.width_px, request.image.height_px)
-        return coverage_geojson(problem, grid, coverage)
+        return coverage_renderings(request, problem, grid, (kind,), scheduler=settings.dask_scheduler,
+                                   should_stop=should_stop)[kind]
 
     body = await watched(http, in_pool(http.app.state.cpu_pool, work),
                          "ask for a coarser coverage map (a larger step_m or a smaller half_width_m)")
-    if png:
+    if kind == "png":
         return Response(body, media_type=PNG)
     return JsonResponse(body)
