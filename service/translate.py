@@ -401,7 +401,7 @@ def _read(bodies: list):
     coordinates, scalars, rest = [], [], []
     add_coordinates, add_scalar = coordinates.extend, scalars.extend
     geodetic_keys, local_keys, station_keys = _GEODETIC_KEYS, _LOCAL_KEYS, _STATION_KEYS
-    bearing_keys, range_keys, toa_keys, id_max, methods = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX, _METHODS
+    bearing_keys, range_keys, toa_keys, id_max = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX
     nan = math.nan
     plain = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, nan, ())
              for frame in ("wgs84", "local") for method in _METHODS}

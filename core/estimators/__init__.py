@@ -118,7 +118,6 @@ def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: Fi
     covariance and CRLB are those of the measurements used; every excluded
     one is named in a warning.
     """
-    present = batch.present
     used = batch.valid.copy()
     excluded = np.zeros_like(used)
     settled = np.zeros(batch.size, dtype=bool)

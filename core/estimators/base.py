@@ -15,11 +15,10 @@ from typing import Callable
 import numpy as np
 
 from core.batch import ProblemBatch
-from core.errors import InvalidInput, LocalizationError
+from core.errors import InvalidInput
 from core.estimators.finish import finish
-from core.estimators.result import Estimates, FixBatch, FixWarning
+from core.estimators.result import Estimates, FixBatch
 from core.measurements import Kind
-from core.problem import Problem
 
 #: Every measurement kind.
 ALL_KINDS = frozenset(Kind)
@@ -125,72 +124,3 @@ def get_estimator(name: str) -> EstimatorSpec:
         return REGISTRY[name]
     except KeyError:
         raise InvalidInput(f"unknown method {name!r}; known: {', '.join(sorted(REGISTRY))}", ("method",)) from None
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """One problem's estimate, for the methods still written one problem at a time.
-
-    Fields as the rows of :class:`~core.estimators.result.Estimates`.
-    """
-
-    position_enu_m: np.ndarray
-    covariance_enu_m2: np.ndarray | None = None
-    converged: bool = True
-    iterations: int = 0
-    warnings: tuple[FixWarning, ...] = ()
-    coarse_position_enu_m: np.ndarray | None = None
-    estimated_bearing_errors_rad: np.ndarray | None = None
-    sigmas: np.ndarray | None = None
-    details: dict | None = None
-
-
-def per_problem(solve_one: Callable[[Problem, SolveOptions], Estimate], covariance_source: str) -> Estimator:
-    """A batch estimator from a one-problem one: a loop over the batch, each failure kept in its row."""
-
-    def estimate(batch: ProblemBatch, options: SolveOptions) -> Estimates:
-        size = batch.size
-        position = np.full((size, 3), np.nan)
-        covariance = np.full((size, 3, 3), np.nan)
-        coarse = np.full((size, 3), np.nan)
-        sigmas = batch.sigmas.copy()
-        converged = np.ones(size, dtype=bool)
-        iterations = np.zeros(size, dtype=int)
-        warnings: list[tuple] = [()] * size
-        bearing_errors: list = [None] * size
-        details: list[dict] = [{} for _ in range(size)]
-        errors: dict[int, LocalizationError] = {}
-        own_covariance = estimated_sigmas = False
-        for b in range(size):
-            try:
-                row = solve_one(batch.problem(b), options)
-            except LocalizationError as error:
-                errors[b] = error
-                continue
-            position[b] = row.position_enu_m
-            if row.covariance_enu_m2 is not None:
-                covariance[b], own_covariance = row.covariance_enu_m2, True
-            if row.coarse_position_enu_m is not None:
-                coarse[b] = row.coarse_position_enu_m
-            if row.sigmas is not None:
-                m = row.sigmas.size
-                sigmas[b, :m], estimated_sigmas = row.sigmas, True
-            converged[b], iterations[b] = row.converged, row.iterations
-            warnings[b] = tuple(row.warnings)
-            bearing_errors[b] = row.estimated_bearing_errors_rad
-            details[b] = dict(row.details or {})
-        return Estimates(
-            position_enu_m=position,
-            covariance_source=covariance_source,
-            covariance_enu_m2=covariance if own_covariance else None,
-            errors=errors,
-            converged=converged,
-            iterations=iterations,
-            warnings=warnings,
-            coarse_position_enu_m=coarse,
-            estimated_bearing_errors_rad=bearing_errors,
-            sigmas=sigmas if estimated_sigmas else None,
-            details=details,
-        )
-
-    return estimate

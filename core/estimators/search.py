@@ -75,7 +75,8 @@ def candidates(batch: ProblemBatch) -> np.ndarray:
     along = along.reshape(size, -1, 3)
     # Around the stations' centroid.
     n = batch.n_stations
-    centroid = np.array([batch.stations_enu_m[b, :n[b]].mean(axis=0) for b in range(size)]) if size else np.zeros((0, 3))
+    present = np.arange(batch.stations_enu_m.shape[1])[None, :] < n[:, None]
+    centroid = np.sum(np.where(present[..., None], batch.stations_enu_m, 0.0), axis=1) / np.maximum(n, 1)[:, None]
     sphere, circle = _sphere(SPHERE_DIRECTIONS), _circle(CIRCLE_DIRECTIONS)
     circle = np.concatenate([circle, np.full((SPHERE_DIRECTIONS - CIRCLE_DIRECTIONS, 3), np.nan)])
     directions = np.where(constrained[:, None, None], circle[None], sphere[None])

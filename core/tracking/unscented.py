@@ -19,9 +19,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from core.tracking.linalg import (EIGENVALUE_FLOOR, cholesky_lower, cholesky_repaired, inverse_cholesky,  # noqa: F401
-                                  repaired_block, symmetrized)
-from core.tracking.motion import constant_velocity_predict, transition  # noqa: F401
+from core.tracking.linalg import symmetrized
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi

@@ -18,7 +18,8 @@ from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, initial_p
                                      line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
 from core.tracking.linalg import (EIGENVALUE_FLOOR, cholesky_lower, inverse_cholesky, repaired_block,
                                   symmetrized)
-from core.tracking.unscented import constant_velocity_predict, polar_update, transition
+from core.tracking.motion import constant_velocity_predict, transition
+from core.tracking.unscented import polar_update
 from core.simulation.tracking import paper_config
 
 C = SPEED_OF_LIGHT_MPS

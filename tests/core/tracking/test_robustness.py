@@ -224,7 +224,7 @@ def test_a_step_3_update_that_is_not_finite_leaves_step_1_applied(monkeypatch):
     epochs go on normally."""
     from core.tracking import unscented
     from core.tracking.kinematic import ToaEpoch, velocity_update
-    from core.tracking.unscented import constant_velocity_predict
+    from core.tracking.motion import constant_velocity_predict
 
     config = paper_config("velocity_kinematic", False)
     track = simulate_emitter(paper_001_scenario(epochs=80), np.random.default_rng(9))
