@@ -71,7 +71,7 @@ def _combined(runs) -> tuple[float, float, float, int]:
 
 def _single_phase_times(count: int = 300) -> dict[str, float]:
     """Where one fix's server time goes (us), phase by phase, in this process: the route's own steps."""
-    from core.accuracy import error_summary
+    from core.error_summary import error_summary
     from core.estimators import solve_many
     from service.deps import parse_json
     from service.responses import JsonResponse
@@ -147,7 +147,7 @@ def core_single_row(count: int = 300, rounds: int = 5) -> Row:
     it as a batch of one (start, LM, finish with CRLB, residuals and warnings): what ``POST /v1/fixes`` costs
     apart from HTTP and JSON.
     """
-    from core.accuracy import error_summary
+    from core.error_summary import error_summary
     from core.estimators import solve_many
     from service.translate import read_fix_requests
 

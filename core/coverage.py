@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.accuracy import error_summary
-from core.batch import ProblemBatch
+from core.error_summary import error_summary
+from core.problem_batch import ProblemBatch
 from core.crlb import batch_information, gdop
 from core.parallel import chunk_slices, run_chunks
 from core.problem import Problem

@@ -207,7 +207,7 @@ def batch_information(batch, positions_enu_m, sigmas=None) -> Information:
 
     Parameters
     ----------
-    batch : core.batch.ProblemBatch
+    batch : core.problem_batch.ProblemBatch
         Its kinds, stations and sigmas are used, not its values.
     positions_enu_m : ndarray, shape (B, 3)
     sigmas : ndarray, shape (B, M), optional
@@ -243,7 +243,7 @@ def information_at(problem, position_enu_m, sigmas=None) -> Information:
     Information
         ``covariance_enu_m2[0]`` is the CRLB ``(3, 3)``.
     """
-    from core.batch import ProblemBatch
+    from core.problem_batch import ProblemBatch
 
     return batch_information(ProblemBatch.from_problems([problem]), np.reshape(position_enu_m, (1, 3)),
                              None if sigmas is None else np.reshape(sigmas, (1, -1)))

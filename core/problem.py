@@ -458,7 +458,7 @@ def build_problem(
     if altitude_m is not None:
         _check_finite(altitude_m, ("altitude_m",))
 
-    from core.batch import build_problem_batch
+    from core.problem_batch import build_problem_batch
 
     batch = build_problem_batch(
         station_counts=[len(stations)],

@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from core import geodesy
-from core.batch import ProblemBatch, build_problem_batch
+from core.problem_batch import ProblemBatch, build_problem_batch
 from core.estimators import SolveOptions
 from core.estimators.base import get_estimator
 from core.measurements import Kind, MeasurementModel

@@ -27,7 +27,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from core import geodesy
-from core.accuracy import error_summary
+from core.error_summary import error_summary
 
 #: Polygon vertices of an ellipse (the ring has one more: the first repeated).
 ELLIPSE_VERTICES = 72

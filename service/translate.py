@@ -21,8 +21,8 @@ import numpy as np
 from pydantic import ValidationError
 
 from core import geodesy
-from core.accuracy import error_summary
-from core.batch import ProblemBatch, build_problem_batch
+from core.error_summary import error_summary
+from core.problem_batch import ProblemBatch, build_problem_batch
 from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
@@ -544,7 +544,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
     A body that is plainly valid (the exact fields, types and bounds of
     :class:`schemas.FixRequest`, known and unique station ids) is read in
     bulk: structure problem by problem, numbers converted and range-checked
-    for all at once, the frames placed by :func:`core.batch.build_problem_batch`.
+    for all at once, the frames placed by :func:`core.problem_batch.build_problem_batch`.
     Any other body is validated by the schema and built by :func:`to_problem`,
     which decide and word its error, and joins the same batch.
     """
@@ -644,7 +644,7 @@ _SUMMARY_CHUNK = 256
 
 
 def error_summaries(covariance_enu_m2):
-    """:func:`core.accuracy.error_summary` of ``(B, 3, 3)`` covariances, in cache-sized chunks."""
+    """:func:`core.error_summary.error_summary` of ``(B, 3, 3)`` covariances, in cache-sized chunks."""
     parts = [error_summary(covariance_enu_m2[i:i + _SUMMARY_CHUNK])
              for i in range(0, max(len(covariance_enu_m2), 1), _SUMMARY_CHUNK)]
     if len(parts) == 1:

@@ -1,7 +1,7 @@
 """Estimators behind one interface, batch first.
 
 Every estimator is registered in :data:`core.estimators.base.REGISTRY` under
-its API name and consumes a :class:`~core.batch.ProblemBatch`
+its API name and consumes a :class:`~core.problem_batch.ProblemBatch`
 (``spec.solve_batch(batch, options) -> FixBatch``). :func:`solve_many` runs
 many problems, each with its own method and options, grouped so that each
 group is one batched call; :func:`solve` is a batch of one, squeezed.
@@ -15,7 +15,7 @@ import pkgutil
 
 import numpy as np
 
-from core.batch import AZIMUTH, ProblemBatch, size_groups
+from core.problem_batch import AZIMUTH, ProblemBatch, size_groups
 from core.errors import InvalidInput, LocalizationError
 from core.estimators.base import REGISTRY, SolveOptions, get_estimator
 from core.estimators.loss import LOSSES

@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from core.angles import station_to_common
-from core.batch import AZIMUTH, RANGE, ProblemBatch
+from core.problem_batch import AZIMUTH, RANGE, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators.base import SolveOptions, register
 from core.estimators.ml import estimate_from

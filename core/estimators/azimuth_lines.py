@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from core.batch import ELEVATION, RANGE, TOA, ProblemBatch
+from core.problem_batch import ELEVATION, RANGE, TOA, ProblemBatch
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.measurements import Kind
 from core.problem import local_axes, onto_altitude

@@ -1,7 +1,7 @@
 """The one interface every estimator implements, and the registry.
 
 An estimator is a function ``estimate(batch, options) -> Estimates`` over a
-whole :class:`~core.batch.ProblemBatch`, registered under its API name with
+whole :class:`~core.problem_batch.ProblemBatch`, registered under its API name with
 :func:`register`. Its :class:`EstimatorSpec` adds the finisher:
 ``spec.solve_batch(batch, options) -> FixBatch``. One problem is a batch of
 one (:func:`core.estimators.solve`).
@@ -14,7 +14,7 @@ from typing import Callable
 
 import numpy as np
 
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.errors import InvalidInput
 from core.estimators.finish import finish
 from core.estimators.result import Estimates, FixBatch

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from core.angles import line_of_sight_enu
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.crlb import (gdop, invert_information, normal_matrix, parameterisation, reference_sigma_m,
                        sandwich_covariance)
 from core.errors import LocalizationError, UnobservableGeometry

@@ -17,7 +17,7 @@ too close to that line's station for linearisation: the pass is linearised
 instead at the point of that station's measured line of sight at the same
 distance ``|X_s - s_p|``.
 
-Everything is vectorised over the problems of a :class:`~core.batch.ProblemBatch`
+Everything is vectorised over the problems of a :class:`~core.problem_batch.ProblemBatch`
 (a Monte Carlo over one geometry is one batch:
 :func:`core.simulation.measurements.trial_batch`). Only angles are used; ranges
 and TOAs in a problem are ignored by this method (they still enter the fix's
@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.angles import line_of_sight_derivatives, line_of_sight_enu, station_to_common
-from core.batch import AZIMUTH, ELEVATION, RANGE, TOA, ProblemBatch
+from core.problem_batch import AZIMUTH, ELEVATION, RANGE, TOA, ProblemBatch
 from core.crlb import invert_information, normal_matrix, parameterisation
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register

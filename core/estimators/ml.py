@@ -42,7 +42,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.special import chdtrc
 
-from core.batch import ELEVATION, TOA, ProblemBatch
+from core.problem_batch import ELEVATION, TOA, ProblemBatch
 from core.crlb import batch_information, normal_matrix, parameterisation
 from core.errors import AmbiguousGeometry, LocalizationError
 from core.estimators.base import SolveOptions, register

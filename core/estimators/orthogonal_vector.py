@@ -36,7 +36,7 @@ from enum import Enum
 
 import numpy as np
 
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates

@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators.azimuth_lines import Lines, azimuth_normals, crossing_errors, has_elevations, solve_2x2
 from core.estimators.base import ANGLES, SolveOptions, register

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.angles import line_of_sight_enu
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.problem import onto_altitude
 
 #: Distances (m) at which candidates are placed from a station or the stations' centroid (a factor 2.15

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from core.angles import line_of_sight_enu
-from core.batch import AZIMUTH, RANGE, TOA, ProblemBatch
+from core.problem_batch import AZIMUTH, RANGE, TOA, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.orthogonal_vector import Normals, Weighting, normal_vectors, solve_orthogonal_batch
 from core.linalg import jacobi_svd, last_dot, matvec

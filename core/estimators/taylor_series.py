@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.batch import AZIMUTH, ELEVATION, ProblemBatch
+from core.problem_batch import AZIMUTH, ELEVATION, ProblemBatch
 from core.crlb import OBSERVABILITY_THRESHOLD
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, get_estimator, register

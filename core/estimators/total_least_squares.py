@@ -69,7 +69,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.azimuth_lines import (
     AzimuthEquations,

@@ -7,7 +7,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, UnobservableGeometry
 from core.measurements import predict
 from core.parallel import chunk_seeds, chunk_slices, run_chunks

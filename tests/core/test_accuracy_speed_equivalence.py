@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.accuracy import error_summary
+from core.error_summary import error_summary
 
-#: What ``core.accuracy`` promises for the interpolated radii against ``exact=True`` (measured: 1.5e-5).
+#: What ``core.error_summary`` promises for the interpolated radii against ``exact=True`` (measured: 1.5e-5).
 TOLERANCE = 5e-5
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.coverage import cells_per_side, coverage_grid, coverage_map, grid
 from core.crlb import information_at
 from core.parallel import Stopped

@@ -14,7 +14,7 @@ import pymap3d
 import pytest
 from scipy.stats import chi2, norm
 
-from core.accuracy import error_summary
+from core.error_summary import error_summary
 from core.crlb import information_at
 from core.estimators import SolveOptions, solve_batch
 from core.measurements import SPEED_OF_LIGHT_MPS

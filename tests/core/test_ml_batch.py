@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from core.batch import ProblemBatch, build_problem_batch, size_groups
+from core.problem_batch import ProblemBatch, build_problem_batch, size_groups
 from core.errors import LocalizationError
 from core.estimators import REGISTRY, SolveOptions, solve_batch
 from core.estimators.base import get_estimator

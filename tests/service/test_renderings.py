@@ -18,7 +18,7 @@ from lxml import etree
 from shapely.geometry import LinearRing, shape
 
 from core import geodesy
-from core.accuracy import CHI2_2DOF_95
+from core.error_summary import CHI2_2DOF_95
 from service import schemas
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.test_fixes_api import assert_problem

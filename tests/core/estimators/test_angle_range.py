@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.crlb import information_at
 from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators import REGISTRY, SolveOptions, solve

@@ -59,7 +59,7 @@ def test_each_problem_gets_what_it_gets_alone(method):
 
 def test_los_intersection_chunks_do_not_change_results(monkeypatch):
     import core.estimators.line_of_sight_intersection as los
-    from core.batch import ProblemBatch
+    from core.problem_batch import ProblemBatch
     from core.estimators import SolveOptions
     from core.estimators.base import get_estimator
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.batch import ProblemBatch
+from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators import SolveOptions
 from core.estimators.base import REGISTRY
