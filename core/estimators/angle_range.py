@@ -21,10 +21,9 @@ stations use the polar points, else the usual closed-form start
 (:func:`core.estimators.starting_points.initial_position`). ``details["coarse"]``
 says which ran.
 
-The coarse stage runs over the whole batch at once; the per-station polar
-points and their fusion are computed here for the batch (a private copy of
-``core.estimators.starting_points.polar_points`` / ``fuse_points`` until the batched
-starts take them over).
+The coarse stage runs over the whole batch at once, the polar points
+included (the batched starts' :func:`~core.estimators.starting_points.station_polar_points`
+and :func:`~core.estimators.starting_points.fuse_points`).
 
 Fine stage: maximum likelihood (batched Levenberg-Marquardt, section 3) over
 every angle and range, started at the coarse point. The covariance is the
@@ -43,7 +42,7 @@ from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators.base import SolveOptions, register
 from core.estimators.ml import estimate_from
 from core.estimators.result import Estimates, FixWarning
-from core.estimators.starting_points import initial_position
+from core.estimators.starting_points import fuse_points, initial_position, station_polar_points
 
 #: Relative eigenvalue below which the azimuth planes do not determine ``(x0, y0)``.
 RANK_TOLERANCE = 1e-9
@@ -180,13 +179,9 @@ class _AzimuthPlanes:
         return np.einsum("bij,bj->bi", covariance, right), covariance, determined
 
 
-def _polar_points(batch: ProblemBatch, stations: _RangeStations):
-    """Per-station polar fixes ``s + R u`` fused by inverse covariance (batched ``start.polar_points`` /
-    ``start.fuse_points``).
-
-    A polar point comes from each bearing with elevation at a station with a
-    range; its first-order covariance is ``R^2 sigma_el^2`` and
-    ``(R cos el)^2 sigma_az^2`` across the line of sight, ``sigma_R^2`` along it.
+def _polar_points(batch: ProblemBatch):
+    """The per-station polar fixes ``s + R u`` (:func:`~core.estimators.starting_points.station_polar_points`)
+    fused by inverse covariance, per problem.
 
     Returns
     -------
@@ -194,32 +189,10 @@ def _polar_points(batch: ProblemBatch, stations: _RangeStations):
     covariance_enu_m2 : ndarray, shape (B, 3, 3)
     exists : ndarray of bool, shape (B,)
     """
-    is_line, elevation, sigma_elevation = batch.lines_of_sight()
-    station = batch.station_index
-    b, m = np.nonzero(is_line & ~np.isnan(elevation) & stations.present[np.arange(batch.size)[:, None], station])
-    exists = np.zeros(batch.size, dtype=bool)
-    exists[b] = True
-    az, el = batch.values[b, m], elevation[b, m]
-    s = station[b, m]
-    range_m = stations.ranges_m[b, s]
-    sin_az, cos_az, sin_el, cos_el = np.sin(az), np.cos(az), np.sin(el), np.cos(el)
-    along = np.stack([cos_el * sin_az, cos_el * cos_az, sin_el], axis=-1)
-    across_az = np.stack([cos_az, -sin_az, np.zeros_like(az)], axis=-1)
-    across_el = np.stack([-sin_el * sin_az, -sin_el * cos_az, cos_el], axis=-1)
-    basis = np.stack([along, across_az, across_el], axis=-1)
-    sd = np.stack([np.sqrt(stations.variances_m2[b, s]), range_m * cos_el * batch.sigmas[b, m],
-                   range_m * sigma_elevation[b, m]], axis=-1)
-    local = (basis * np.square(np.maximum(sd, 1e-9))[..., None, :]) @ np.swapaxes(basis, -1, -2)
-    rotation = batch.station_rotations[b, s]
-    to_common = np.swapaxes(rotation, -1, -2)
-    points = batch.stations_enu_m[b, s] + station_to_common(range_m[:, None] * along, rotation)
-    information = np.zeros(batch.kinds.shape + (3, 3))
-    information[b, m] = np.linalg.inv(to_common @ local @ rotation)
-    weighted = np.zeros(batch.kinds.shape + (3,))
-    weighted[b, m] = np.einsum("pij,pj->pi", information[b, m], points)
-    total = np.linalg.inv(np.where(exists[:, None, None], _column_sum(information), np.eye(3)))
-    point = np.einsum("bij,bj->bi", total, _column_sum(weighted))
-    return point, total, exists
+    points, covariances, found = station_polar_points(batch)
+    exists = np.any(found, axis=-1)
+    point, covariance = fuse_points(points, covariances, found | ~exists[:, None])
+    return point, covariance, exists
 
 
 def coarse_fix(batch: ProblemBatch) -> CoarseFixes:
@@ -255,7 +228,7 @@ def coarse_fix(batch: ProblemBatch) -> CoarseFixes:
             update = by_ranges & determined
             horizontal = np.where(update[:, None], moved, horizontal)
             horizontal_covariance = np.where(update[:, None, None], moved_covariance, horizontal_covariance)
-        polar, polar_covariance, has_polar = _polar_points(batch, stations)
+        polar, polar_covariance, has_polar = _polar_points(batch)
     polar_sd = np.sqrt(polar_covariance[:, 2, 2])
 
     use_ranges = by_ranges & (~has_polar | (height_sd <= polar_sd))
