@@ -1,25 +1,75 @@
 """WGS84 geodesy: geodetic <-> ECEF <-> ENU, and the rotations between frames.
 
-The forward conversion comes from pymap3d. Its inverse (and pyproj's) loses
-accuracy with altitude (about 1e-6 m at 100 km and tens of metres at
-20,000 km in a round trip), so :func:`ecef_to_geodetic` is our own iteration,
-exact to round-off at any altitude. ENU rotation matrices are not offered by
-either library in the batched form the estimators need, so they are here too.
+The conversions are our own. pymap3d's and pyproj's inverse loses accuracy
+with altitude (about 1e-6 m at 100 km and tens of metres at 20,000 km in a
+round trip), so :func:`ecef_to_geodetic` is a converged iteration, exact to
+round-off at any altitude; the forward conversion is the closed form (the one
+pymap3d evaluates, and the tests check against it). Each point conversion is
+one compiled scalar function (:func:`geodetic_to_ecef_point`,
+:func:`ecef_to_geodetic_point`), which the array functions here loop over
+and compiled kernels elsewhere (the ML iteration's altitude constraint) call
+directly: one implementation for one point and for a million.
 
-Angles are radians; lengths metres. All functions broadcast over leading axes.
+Angles are radians; lengths metres. All array functions broadcast over leading axes.
 """
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
-import pymap3d
 
 WGS84_A_M = 6378137.0
 WGS84_F = 1.0 / 298.257223563
 WGS84_B_M = WGS84_A_M * (1.0 - WGS84_F)
 WGS84_E2 = WGS84_F * (2.0 - WGS84_F)
 WGS84_EP2 = WGS84_E2 / (1.0 - WGS84_E2)
-_ELLIPSOID = pymap3d.Ellipsoid.from_name("wgs84")
+#: Rounds of Bowring's iteration in :func:`ecef_to_geodetic_point` (cubically convergent).
+BOWRING_ROUNDS = 5
+
+
+@numba.njit(cache=True, nogil=True)
+def geodetic_to_ecef_point(lat_rad, lon_rad, alt_m):
+    """One point's ECEF ``(x, y, z)`` (m) from geodetic coordinates (compiled; callable from kernels)."""
+    sin_lat, cos_lat = math.sin(lat_rad), math.cos(lat_rad)
+    n = WGS84_A_M / math.sqrt(1.0 - WGS84_E2 * sin_lat * sin_lat)
+    horizontal = (n + alt_m) * cos_lat
+    return (horizontal * math.cos(lon_rad), horizontal * math.sin(lon_rad),
+            (n * (1.0 - WGS84_E2) + alt_m) * sin_lat)
+
+
+@numba.njit(cache=True, nogil=True)
+def ecef_to_geodetic_point(x, y, z):
+    """One point's ``(lat_rad, lon_rad, alt_m)`` from ECEF (compiled; see :func:`ecef_to_geodetic`)."""
+    lon = math.atan2(y, x)
+    p = math.hypot(x, y)
+    beta = math.atan2(z, (1.0 - WGS84_F) * p)
+    lat = 0.0
+    for _ in range(BOWRING_ROUNDS):
+        sin_b, cos_b = math.sin(beta), math.cos(beta)
+        lat = math.atan2(z + WGS84_EP2 * WGS84_B_M * sin_b ** 3, p - WGS84_E2 * WGS84_A_M * cos_b ** 3)
+        beta = math.atan2((1.0 - WGS84_F) * math.sin(lat), math.cos(lat))
+    sin_lat, cos_lat = math.sin(lat), math.cos(lat)
+    n = WGS84_A_M / math.sqrt(1.0 - WGS84_E2 * sin_lat * sin_lat)
+    return lat, lon, p * cos_lat + (z + WGS84_E2 * n * sin_lat) * sin_lat - n
+
+
+@numba.njit(cache=True, nogil=True)
+def _to_ecef_many(lat_rad, lon_rad, alt_m):
+    out = np.empty((lat_rad.size, 3))
+    for i in range(lat_rad.size):
+        out[i, 0], out[i, 1], out[i, 2] = geodetic_to_ecef_point(lat_rad[i], lon_rad[i], alt_m[i])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _to_geodetic_many(position_ecef_m):
+    out = np.empty((3, position_ecef_m.shape[0]))
+    for i in range(position_ecef_m.shape[0]):
+        out[0, i], out[1, i], out[2, i] = ecef_to_geodetic_point(
+            position_ecef_m[i, 0], position_ecef_m[i, 1], position_ecef_m[i, 2])
+    return out
 
 
 def geodetic_to_ecef(lat_rad, lon_rad, alt_m):
@@ -37,21 +87,17 @@ def geodetic_to_ecef(lat_rad, lon_rad, alt_m):
     ndarray, shape (..., 3)
         ECEF position in metres.
     """
-    x, y, z = pymap3d.geodetic2ecef(
-        np.asarray(lat_rad, dtype=float),
-        np.asarray(lon_rad, dtype=float),
-        np.asarray(alt_m, dtype=float),
-        ell=_ELLIPSOID,
-        deg=False,
-    )
-    return np.stack(np.broadcast_arrays(x, y, z), axis=-1)
+    lat, lon, alt = np.broadcast_arrays(np.asarray(lat_rad, dtype=float), np.asarray(lon_rad, dtype=float),
+                                        np.asarray(alt_m, dtype=float))
+    return _to_ecef_many(np.ascontiguousarray(lat).ravel(), np.ascontiguousarray(lon).ravel(),
+                         np.ascontiguousarray(alt).ravel()).reshape(lat.shape + (3,))
 
 
 def ecef_to_geodetic(position_ecef_m):
     """ECEF to geodetic, exact to round-off from the geocentre to GEO and beyond.
 
     Bowring's parametric-latitude iteration, converged (it is cubically
-    convergent; five rounds reach round-off everywhere outside the ellipsoid's
+    convergent; :data:`BOWRING_ROUNDS` = 5 rounds reach round-off everywhere outside the ellipsoid's
     evolute, i.e. farther than ~43 km from the geocentre).
 
     Parameters
@@ -63,18 +109,9 @@ def ecef_to_geodetic(position_ecef_m):
     lat_rad, lon_rad, alt_m : ndarray, shape (...)
     """
     p_ecef = np.asarray(position_ecef_m, dtype=float)
-    x, y, z = p_ecef[..., 0], p_ecef[..., 1], p_ecef[..., 2]
-    lon = np.arctan2(y, x)
-    p = np.hypot(x, y)
-    beta = np.arctan2(z, (1.0 - WGS84_F) * p)
-    for _ in range(5):
-        sin_b, cos_b = np.sin(beta), np.cos(beta)
-        lat = np.arctan2(z + WGS84_EP2 * WGS84_B_M * sin_b**3, p - WGS84_E2 * WGS84_A_M * cos_b**3)
-        beta = np.arctan2((1.0 - WGS84_F) * np.sin(lat), np.cos(lat))
-    sin_lat, cos_lat = np.sin(lat), np.cos(lat)
-    n = WGS84_A_M / np.sqrt(1.0 - WGS84_E2 * sin_lat**2)
-    alt = p * cos_lat + (z + WGS84_E2 * n * sin_lat) * sin_lat - n
-    return lat, lon, alt
+    lat, lon, alt = _to_geodetic_many(np.ascontiguousarray(p_ecef.reshape(-1, 3)))
+    shape = p_ecef.shape[:-1]
+    return lat.reshape(shape)[()], lon.reshape(shape)[()], alt.reshape(shape)[()]
 
 
 def ecef_to_enu_rotation(lat_rad, lon_rad):
