@@ -14,8 +14,10 @@ problem ``(M,)`` or a batch ``(B, M)``.
 
 from __future__ import annotations
 
+import math
 from enum import IntEnum
 
+import numba
 import numpy as np
 
 from core.angles import wrap_to_pi
@@ -34,6 +36,10 @@ class Kind(IntEnum):
     RANGE = 2
     TOA = 3
 
+
+#: Kind codes as plain ints (for compiled code, and because comparing an array with an IntEnum member goes
+#: through the enum machinery).
+AZIMUTH, ELEVATION, RANGE, TOA = (int(k) for k in Kind)
 
 
 def relative_position(position_enu_m, stations_enu_m, rotations):
@@ -56,14 +62,74 @@ def relative_position(position_enu_m, stations_enu_m, rotations):
     return np.einsum("...ij,...j->...i", rotations, delta)
 
 
-class MeasurementModel:
-    """The measurement model of B measurement sets: ``h(p, b)`` and its Jacobian in one fused pass.
+@numba.njit(cache=True, nogil=True)
+def measure_point(east_m, north_m, up_m, bias_m, station_enu_m, rotation, kind):
+    """One measurement's prediction and its Jacobian w.r.t. ``(east, north, up, bias)`` of the common frame.
 
-    The stations and rotations are held component-first, ``(3, B, M)`` and
-    ``(3, 3, B, M)``: element-wise arithmetic on whole ``(B, M)`` planes is
-    several times faster than ``einsum`` or ``matmul`` over ``(B, M, 3, 3)``
-    blocks of 3x3 matrices. Every estimator, the CRLB and the finisher
-    evaluate the model through this class (or :func:`predict`, which wraps it).
+    Compiled; the one coding of ``h(p)`` that :class:`MeasurementModel` and the ML iteration's kernel
+    evaluate.
+
+    Parameters
+    ----------
+    east_m, north_m, up_m : float
+        Target in the common frame.
+    bias_m : float
+        TOA emission-time offset times c (used by TOA only).
+    station_enu_m : ndarray, shape (3,)
+    rotation : ndarray, shape (3, 3)
+        Station ENU <- common ENU.
+    kind : int
+        :class:`Kind` code.
+
+    Returns
+    -------
+    predicted, d_east, d_north, d_up, d_bias : float
+    """
+    dx, dy, dz = east_m - station_enu_m[0], north_m - station_enu_m[1], up_m - station_enu_m[2]
+    e = rotation[0, 0] * dx + rotation[0, 1] * dy + rotation[0, 2] * dz
+    n = rotation[1, 0] * dx + rotation[1, 1] * dy + rotation[1, 2] * dz
+    u = rotation[2, 0] * dx + rotation[2, 1] * dy + rotation[2, 2] * dz
+    rho2 = max(e * e + n * n, MIN_HORIZONTAL_DISTANCE_M ** 2)
+    rho = math.sqrt(rho2)
+    r2 = rho2 + u * u
+    d_bias = 0.0
+    if kind == AZIMUTH:
+        predicted, ge, gn, gu = math.atan2(e, n), n / rho2, -e / rho2, 0.0
+    elif kind == ELEVATION:
+        factor = u / (r2 * rho)
+        predicted, ge, gn, gu = math.atan2(u, rho), -e * factor, -n * factor, rho / r2
+    else:
+        r = math.sqrt(r2)
+        predicted, ge, gn, gu = r, e / r, n / r, u / r
+        if kind == TOA:
+            predicted += bias_m
+            d_bias = 1.0
+    return (predicted,
+            ge * rotation[0, 0] + gn * rotation[1, 0] + gu * rotation[2, 0],
+            ge * rotation[0, 1] + gn * rotation[1, 1] + gu * rotation[2, 1],
+            ge * rotation[0, 2] + gn * rotation[1, 2] + gu * rotation[2, 2],
+            d_bias)
+
+
+@numba.njit(cache=True, nogil=True)
+def _predict_kernel(positions_enu_m, bias_m, stations_enu_m, rotations, kinds):
+    size, width = kinds.shape
+    predicted = np.empty((size, width))
+    jacobian = np.empty((size, 4, width))
+    for b in range(size):
+        east, north, up = positions_enu_m[b, 0], positions_enu_m[b, 1], positions_enu_m[b, 2]
+        for m in range(width):
+            predicted[b, m], jacobian[b, 0, m], jacobian[b, 1, m], jacobian[b, 2, m], jacobian[b, 3, m] = \
+                measure_point(east, north, up, bias_m[b], stations_enu_m[b, m], rotations[b, m], kinds[b, m])
+    return predicted, jacobian
+
+
+class MeasurementModel:
+    """The measurement model of B measurement sets: ``h(p, b)`` and its Jacobian.
+
+    Every estimator, the CRLB and the finisher evaluate the model through
+    this class (or :func:`predict`, which wraps it); all of them run
+    :func:`measure_point`, compiled, once per measurement.
 
     Parameters
     ----------
@@ -76,25 +142,14 @@ class MeasurementModel:
     """
 
     def __init__(self, stations_enu_m, rotations, kinds):
-        self.stations = np.ascontiguousarray(np.moveaxis(np.asarray(stations_enu_m, dtype=float), -1, 0))
-        self.rotations = np.ascontiguousarray(np.moveaxis(np.asarray(rotations, dtype=float), (-2, -1), (0, 1)))
-        kinds = np.asarray(kinds)
-        self.kinds = kinds
-        self.is_az = kinds == Kind.AZIMUTH
-        self.is_el = kinds == Kind.ELEVATION
-        self.is_angle = self.is_az | self.is_el
-        self.is_toa = (kinds == Kind.TOA).astype(float)
-        self.ranged = not bool(np.all(self.is_angle))
+        self.stations = np.ascontiguousarray(stations_enu_m, dtype=float)
+        self.rotations = np.ascontiguousarray(rotations, dtype=float)
+        self.kinds = np.ascontiguousarray(kinds, dtype=np.int64)
+        self.is_angle = (self.kinds == Kind.AZIMUTH) | (self.kinds == Kind.ELEVATION)
 
     def take(self, rows) -> "MeasurementModel":
         """The model of the sets ``rows``."""
-        out = object.__new__(MeasurementModel)
-        out.stations = self.stations[:, rows]
-        out.rotations = self.rotations[:, :, rows]
-        for name in ("kinds", "is_az", "is_el", "is_angle", "is_toa"):
-            setattr(out, name, getattr(self, name)[rows])
-        out.ranged = not bool(np.all(out.is_angle))
-        return out
+        return MeasurementModel(self.stations[rows], self.rotations[rows], self.kinds[rows])
 
     def predict(self, positions_enu_m, bias_m):
         """Predicted measurements ``(B, M)`` and their Jacobian ``(B, 4, M)``.
@@ -112,44 +167,14 @@ class MeasurementModel:
         jacobian : ndarray, shape (B, 4, M)
             Derivatives w.r.t. ``(east, north, up, bias)`` of the common frame.
         """
-        s, rot = self.stations, self.rotations
-        dx = positions_enu_m[:, 0, None] - s[0]
-        dy = positions_enu_m[:, 1, None] - s[1]
-        dz = positions_enu_m[:, 2, None] - s[2]
-        e = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
-        n = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
-        u = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
-        rho2 = np.maximum(e * e + n * n, MIN_HORIZONTAL_DISTANCE_M**2)
-        rho = np.sqrt(rho2)
-        r2 = rho2 + u * u
-        is_az, is_el = self.is_az, self.is_el
-        elevation = np.arctan2(u, rho)
-        elevation_factor = u / (r2 * rho)
-        if self.ranged:
-            r = np.sqrt(r2)
-            inv_r = 1.0 / r
-            far = np.where(is_el, elevation, r + np.asarray(bias_m)[:, None] * self.is_toa)
-            ge_far = np.where(is_el, -e * elevation_factor, e * inv_r)
-            gn_far = np.where(is_el, -n * elevation_factor, n * inv_r)
-            gu_far = np.where(is_el, rho / r2, u * inv_r)
-        else:
-            far, ge_far, gn_far, gu_far = elevation, -e * elevation_factor, -n * elevation_factor, rho / r2
-        predicted = np.where(is_az, np.arctan2(e, n), far)
-        ge = np.where(is_az, n / rho2, ge_far)
-        gn = np.where(is_az, -e / rho2, gn_far)
-        gu = np.where(is_az, 0.0, gu_far)
-        jacobian = np.empty((e.shape[0], 4, e.shape[1]))
-        jacobian[:, 0] = ge * rot[0, 0] + gn * rot[1, 0] + gu * rot[2, 0]
-        jacobian[:, 1] = ge * rot[0, 1] + gn * rot[1, 1] + gu * rot[2, 1]
-        jacobian[:, 2] = ge * rot[0, 2] + gn * rot[1, 2] + gu * rot[2, 2]
-        jacobian[:, 3] = self.is_toa
-        return predicted, jacobian
+        size = self.kinds.shape[0]
+        positions = np.ascontiguousarray(np.broadcast_to(np.asarray(positions_enu_m, dtype=float), (size, 3)))
+        bias = np.ascontiguousarray(np.broadcast_to(np.asarray(bias_m, dtype=float), (size,)))
+        return _predict_kernel(positions, bias, self.stations, self.rotations, self.kinds)
 
     def residuals(self, measured, predicted):
         """Measured minus predicted ``(B, M)``, angle residuals wrapped to (-pi, pi]."""
         raw = measured - predicted
-        if not self.ranged:
-            return wrap_to_pi(raw)
         return np.where(self.is_angle, wrap_to_pi(raw), raw)
 
 

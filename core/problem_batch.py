@@ -22,13 +22,11 @@ from typing import Sequence
 import numpy as np
 
 from core import geodesy
-from core.measurements import SPEED_OF_LIGHT_MPS, Kind
+from core.measurements import AZIMUTH, ELEVATION, RANGE, SPEED_OF_LIGHT_MPS, TOA, Kind
 from core.problem import CommonFrame, GeodeticPoint, Problem, local_axes, onto_altitude
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).
 PAD_KIND = Kind.RANGE
-#: Kind codes as plain ints: comparing an array with an IntEnum member goes through the enum machinery.
-AZIMUTH, ELEVATION, RANGE, TOA = (int(k) for k in (Kind.AZIMUTH, Kind.ELEVATION, Kind.RANGE, Kind.TOA))
 
 
 @dataclass(frozen=True)
