@@ -13,6 +13,9 @@ the loss's bend adds no curvature).
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 #: The losses, as ``options.loss`` and scipy name them.
@@ -21,8 +24,52 @@ LOSSES = ("linear", "huber", "soft_l1", "cauchy", "arctan")
 CURVATURE_FLOOR = np.finfo(float).eps
 
 
+@numba.njit(cache=True, nogil=True)
+def loss_point(z, code, c2):
+    """One measurement's ``C^2 rho(z / C^2)`` and its first two derivatives by ``z`` (compiled).
+
+    ``code`` is the loss's index in :data:`LOSSES`, ``c2`` the squared scale ``C^2``; the one coding of the
+    losses, which :func:`loss_terms` and the ML iteration's kernel evaluate.
+    """
+    if code == 0:
+        return z, 1.0, 0.0
+    u = z / c2
+    if code == 1:
+        if u <= 1.0:
+            rho, rho1, rho2 = u, 1.0, 0.0
+        else:
+            root = math.sqrt(u)
+            rho, rho1, rho2 = 2.0 * root - 1.0, 1.0 / root, -0.5 / (root * root * root)
+    elif code == 2:
+        t = 1.0 + u
+        root = math.sqrt(t)
+        rho, rho1, rho2 = 2.0 * (root - 1.0), 1.0 / root, -0.5 / (t * root)
+    elif code == 3:
+        t = 1.0 + u
+        rho, rho1, rho2 = math.log1p(u), 1.0 / t, -1.0 / (t * t)
+    else:
+        t = 1.0 + u * u
+        rho, rho1, rho2 = math.atan(u), 1.0 / t, -2.0 * u / (t * t)
+    return c2 * rho, rho1, rho2 / c2
+
+
+@numba.njit(cache=True, nogil=True)
+def _loss_many(z, code, c2):
+    rho, rho1, rho2 = np.empty_like(z), np.empty_like(z), np.empty_like(z)
+    for i in range(z.size):
+        rho[i], rho1[i], rho2[i] = loss_point(z[i], code, c2)
+    return rho, rho1, rho2
+
+
+def loss_code(loss: str) -> int:
+    """The loss's index in :data:`LOSSES` (what the compiled functions take)."""
+    if loss not in LOSSES:
+        raise ValueError(f"unknown loss {loss!r}; known: {', '.join(LOSSES)}")
+    return LOSSES.index(loss)
+
+
 def loss_terms(z, loss: str, scale: float):
-    """``C^2 rho(z / C^2)`` and its first two derivatives with respect to ``z``.
+    """``C^2 rho(z / C^2)`` and its first two derivatives with respect to ``z`` (:func:`loss_point`).
 
     Parameters
     ----------
@@ -43,29 +90,8 @@ def loss_terms(z, loss: str, scale: float):
         ``d^2 rho / d z^2``.
     """
     z = np.asarray(z, dtype=float)
-    if loss == "linear":
-        return z, np.ones_like(z), np.zeros_like(z)
-    c2 = float(scale) ** 2
-    u = z / c2
-    if loss == "huber":
-        inside = u <= 1.0
-        root = np.sqrt(np.where(inside, 1.0, u))
-        rho = np.where(inside, u, 2.0 * root - 1.0)
-        rho1 = np.where(inside, 1.0, 1.0 / root)
-        rho2 = np.where(inside, 0.0, -0.5 / (root * root * root))
-    elif loss == "soft_l1":
-        t = 1.0 + u
-        root = np.sqrt(t)
-        rho, rho1, rho2 = 2.0 * (root - 1.0), 1.0 / root, -0.5 / (t * root)
-    elif loss == "cauchy":
-        t = 1.0 + u
-        rho, rho1, rho2 = np.log1p(u), 1.0 / t, -1.0 / (t * t)
-    elif loss == "arctan":
-        t = 1.0 + u * u
-        rho, rho1, rho2 = np.arctan(u), 1.0 / t, -2.0 * u / (t * t)
-    else:
-        raise ValueError(f"unknown loss {loss!r}; known: {', '.join(LOSSES)}")
-    return c2 * rho, rho1, rho2 / c2
+    terms = _loss_many(np.ascontiguousarray(z).ravel(), loss_code(loss), float(scale) ** 2)
+    return tuple(t.reshape(z.shape) for t in terms)
 
 
 def loss_weights(z, loss: str, scale: float):
