@@ -24,7 +24,7 @@ COPY service ./service
 # The runtime needs no installer: pip and setuptools leave the venv once it is complete and checked; nor
 # numpy's and scipy's own test suites (about 50 MB).
 RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check \
-    && /opt/venv/bin/python -c "import core.linalg; core.linalg.compile_kernels()" \
+    && /opt/venv/bin/python -c "import core.kernels; core.kernels.compile_kernels()" \
     && find /opt/venv/lib/python3*/site-packages/numpy /opt/venv/lib/python3*/site-packages/scipy \
         -type d -name tests -prune -exec rm -rf {} + \
     && (/opt/venv/bin/pip uninstall --yes --quiet setuptools wheel || true) \

@@ -6,7 +6,7 @@ round trip), so :func:`ecef_to_geodetic` is a converged iteration, exact to
 round-off at any altitude; the forward conversion is the closed form (the one
 pymap3d evaluates, and the tests check against it). Each point conversion is
 one compiled scalar function (:func:`geodetic_to_ecef_point`,
-:func:`ecef_to_geodetic_point`), which the array functions here loop over
+:func:`ecef_to_geodetic_point`, :func:`ecef_to_enu_rotation_point`), which the array functions here loop over
 and compiled kernels elsewhere (the ML iteration's altitude constraint) call
 directly: one implementation for one point and for a million.
 
@@ -53,6 +53,24 @@ def ecef_to_geodetic_point(x, y, z):
     sin_lat, cos_lat = math.sin(lat), math.cos(lat)
     n = WGS84_A_M / math.sqrt(1.0 - WGS84_E2 * sin_lat * sin_lat)
     return lat, lon, p * cos_lat + (z + WGS84_E2 * n * sin_lat) * sin_lat - n
+
+
+@numba.njit(cache=True, nogil=True)
+def ecef_to_enu_rotation_point(lat_rad, lon_rad, out):
+    """Write into ``out`` ``(3, 3)`` the rotation ECEF -> east/north/up at one point (compiled; see
+    :func:`ecef_to_enu_rotation`)."""
+    sp, cp, sl, cl = math.sin(lat_rad), math.cos(lat_rad), math.sin(lon_rad), math.cos(lon_rad)
+    out[0, 0], out[0, 1], out[0, 2] = -sl, cl, 0.0
+    out[1, 0], out[1, 1], out[1, 2] = -sp * cl, -sp * sl, cp
+    out[2, 0], out[2, 1], out[2, 2] = cp * cl, cp * sl, sp
+
+
+@numba.njit(cache=True, nogil=True)
+def _rotations_many(lat_rad, lon_rad):
+    out = np.empty((lat_rad.size, 3, 3))
+    for i in range(lat_rad.size):
+        ecef_to_enu_rotation_point(lat_rad[i], lon_rad[i], out[i])
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -127,16 +145,9 @@ def ecef_to_enu_rotation(lat_rad, lon_rad):
         ``R`` with ``v_enu = R @ v_ecef``; its transpose goes back. A
         covariance moves as ``C_enu = R C_ecef R^T``.
     """
-    lat = np.asarray(lat_rad, dtype=float)
-    lon = np.asarray(lon_rad, dtype=float)
-    sp, cp, sl, cl = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
-    zero = np.zeros_like(sp * sl)
-    rows = [
-        [-sl + zero, cl + zero, zero],
-        [-sp * cl, -sp * sl, cp + zero],
-        [cp * cl, cp * sl, sp + zero],
-    ]
-    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+    lat, lon = np.broadcast_arrays(np.asarray(lat_rad, dtype=float), np.asarray(lon_rad, dtype=float))
+    return _rotations_many(np.ascontiguousarray(lat).ravel(), np.ascontiguousarray(lon).ravel()).reshape(
+        lat.shape + (3, 3))
 
 
 def ecef_to_enu(position_ecef_m, origin_lat_rad, origin_lon_rad, origin_alt_m):

@@ -66,14 +66,6 @@ def jacobi_svd(a, rhs=None):
     return s, v, projected.reshape(stack + (width, sides.shape[1]))
 
 
-def compile_kernels() -> None:
-    """Compile (or load from numba's on-disk cache) every kernel here, so that no fix pays for it.
-
-    Called at install and image build time (which fills the cache) and in the service's lifespan.
-    """
-    jacobi_svd(np.eye(4, 3)[None], np.ones((1, 4, 1)))
-
-
 def row_dot(x, y):
     """``sum_r x[r] y[r]`` over the leading axis, added in row order.
 

@@ -16,7 +16,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from core.linalg import compile_kernels
+from core.kernels import compile_kernels
 from service import logs, openapi, problems, tak, web
 from service.coalesce import Coalescer
 from service.metrics import InFlight, Metrics

@@ -1,14 +1,13 @@
 """Maximum likelihood by Levenberg-Marquardt over a batch of problems (section 3).
 
 Minimises ``sum (z - h(p))^2 / sigma^2`` for any mix of azimuth, elevation,
-range and TOA. Problems of different sizes are padded with zero-weight
-measurements and iterated together: every step is one batched solve of
-``(B, 4, 4)`` Jacobi-scaled normal equations in the common frame (metres of
-order 1e5 at most, never ECEF's 6.4e6), with the Marquardt damping
-``lambda diag(J^T W J)`` per problem. Problems that have converged leave the
-working set, so late iterations cost only what is still moving. A known
-altitude is a constraint: the position moves along the local east/north at
-the current point and is put back on the altitude surface after each step.
+range and TOA. One compiled kernel iterates each problem of a batch on its
+own (:func:`levenberg_marquardt`; zero-weight padding is skipped): ``4 x 4``
+Jacobi-scaled normal equations in the common frame (metres of order 1e5 at
+most, never ECEF's 6.4e6), with the Marquardt damping ``lambda diag(J^T W J)``.
+A known altitude is a constraint: the position moves along the local
+east/north at the current point and is put back on the altitude surface
+after each step.
 The covariance is the inverse information at the solution (computed by the
 finisher, like everything else a fix reports).
 
@@ -37,37 +36,35 @@ both points, unless the client's ``initial_guess`` picks the nearer one.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 from scipy.special import chdtrc
 
-from core.problem_batch import ELEVATION, TOA, ProblemBatch
-from core.crlb import batch_information, normal_matrix, parameterisation
+from core import geodesy
+from core.crlb import batch_information
 from core.errors import AmbiguousGeometry, LocalizationError
 from core.estimators.base import SolveOptions, register
-from core.estimators.finish import optimal_bias_m
-from core.estimators.loss import loss_weights
+from core.estimators.loss import CURVATURE_FLOOR, loss_code, loss_point
 from core.estimators.result import Estimates, FixWarning
 from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
-from core.geodesy import enu_to_geodetic
+from core.geodesy import ecef_to_enu_rotation_point, ecef_to_geodetic_point, enu_to_geodetic, geodetic_to_ecef_point
 from core.linalg import jacobi_svd
-from core.measurements import MeasurementModel
-from core.problem import onto_altitude
+from core.measurements import AZIMUTH, ELEVATION, TOA, measure_point
+from core.problem_batch import ProblemBatch
 
-_EYE4 = np.eye(4)
 #: Plain least squares: ``(loss name, scale in sigmas)``.
 LINEAR = ("linear", 1.0)
-_LAMBDA_START = 1e-3
-_LAMBDA_MIN = 1e-12
-_LAMBDA_MAX = 1e12
-#: The working set is compacted when fewer than this share of it is still active.
-_COMPACT_BELOW = 0.5
-#: A batch is solved in chunks of about this many measurement slots (problems x padded width),
-#: and of at least ``CHUNK_MIN_PROBLEMS`` problems: the working planes then stay in cache.
+#: Marquardt damping: the first, and the bounds (past LAMBDA_MAX the iteration gives up).
+LAMBDA_START = 1e-3
+LAMBDA_MIN = 1e-12
+LAMBDA_MAX = 1e12
+#: The search's fits from every candidate run in chunks of about this many measurement slots
+#: (candidates x padded width): the expanded problems then take megabytes, not gigabytes.
 CHUNK_ENTRIES = 1 << 15
-CHUNK_MIN_PROBLEMS = 64
 
 
 @dataclass(frozen=True)
@@ -91,63 +88,223 @@ class Solution:
     cost: np.ndarray
 
 
-class _Problems:
-    """What the iteration needs of B problems: their measurement model, values, weights and constraints."""
+@numba.njit(cache=True, nogil=True)
+def _enu_to_geodetic(position_enu_m, origin_ecef_m, rotation):
+    x = origin_ecef_m[0] + rotation[0, 0] * position_enu_m[0] + rotation[1, 0] * position_enu_m[1] \
+        + rotation[2, 0] * position_enu_m[2]
+    y = origin_ecef_m[1] + rotation[0, 1] * position_enu_m[0] + rotation[1, 1] * position_enu_m[1] \
+        + rotation[2, 1] * position_enu_m[2]
+    z = origin_ecef_m[2] + rotation[0, 2] * position_enu_m[0] + rotation[1, 2] * position_enu_m[1] \
+        + rotation[2, 2] * position_enu_m[2]
+    return ecef_to_geodetic_point(x, y, z)
 
-    def __init__(self, batch: ProblemBatch | None = None, **arrays):
-        if batch is None:
-            self.__dict__.update(arrays)
-            return
-        stations, rotations = batch.measurement_stations()
-        self.model = MeasurementModel(stations, rotations, batch.kinds)
-        self.station_positions = stations
-        self.values = batch.model_values()
-        self.weights = batch.weights()
-        self.used = self.weights > 0
-        self.is_toa = batch.kinds == TOA
-        self.altitude_m = batch.altitude_m
-        self.origin = batch.origin
-        self.geodetic = batch.geodetic
-        self.has_toa = batch.has_toa
 
-    def take(self, rows) -> "_Problems":
-        out = {name: value[rows] for name, value in self.__dict__.items() if name != "model"}
-        return _Problems(model=self.model.take(rows), **out)
+@numba.njit(cache=True, nogil=True)
+def _onto_altitude(position_enu_m, altitude_m, geodetic, origin_ecef_m, rotation):
+    """:func:`core.problem.onto_altitude` of one point, in place."""
+    if not geodetic:
+        position_enu_m[2] = altitude_m
+        return
+    lat, lon, _ = _enu_to_geodetic(position_enu_m, origin_ecef_m, rotation)
+    x, y, z = geodetic_to_ecef_point(lat, lon, altitude_m)
+    dx, dy, dz = x - origin_ecef_m[0], y - origin_ecef_m[1], z - origin_ecef_m[2]
+    for i in range(3):
+        position_enu_m[i] = rotation[i, 0] * dx + rotation[i, 1] * dy + rotation[i, 2] * dz
 
-    def project(self, positions_enu_m):
-        constrained = ~np.isnan(self.altitude_m)
-        if not np.any(constrained):
-            return positions_enu_m
-        moved = onto_altitude(positions_enu_m, np.nan_to_num(self.altitude_m), self.origin, self.geodetic)
-        return np.where(constrained[:, None], moved, positions_enu_m)
 
-    def parameterisation(self, positions_enu_m):
-        return parameterisation(positions_enu_m, self.altitude_m, self.has_toa, self.origin, self.geodetic)
+@numba.njit(cache=True, nogil=True)
+def _local_axes(position_enu_m, geodetic, origin_ecef_m, rotation, point_rotation, axes):
+    """:func:`core.problem.local_axes` of one point into ``axes`` (rows east, north, up)."""
+    if not geodetic:
+        for i in range(3):
+            for j in range(3):
+                axes[i, j] = 1.0 if i == j else 0.0
+        return
+    lat, lon, _ = _enu_to_geodetic(position_enu_m, origin_ecef_m, rotation)
+    ecef_to_enu_rotation_point(lat, lon, point_rotation)
+    for i in range(3):
+        for j in range(3):
+            axes[i, j] = (point_rotation[i, 0] * rotation[j, 0] + point_rotation[i, 1] * rotation[j, 1]
+                          + point_rotation[i, 2] * rotation[j, 2])
 
-    def optimal_bias(self, positions_enu_m):
-        ranges = np.linalg.norm(positions_enu_m[:, None, :] - self.station_positions, axis=-1)
-        return optimal_bias_m(self.weights, self.values, ranges, self.is_toa)
 
-    def evaluate(self, positions_enu_m, bias_m, loss=LINEAR):
-        """Residuals ``(B, M)`` (model units, zero on padding), cost ``(B,)``, Jacobian ``(B, 4, M)`` and the
-        gradient and Gauss-Newton weights ``(B, M)`` (``weights`` themselves for the linear loss).
+@numba.njit(cache=True, nogil=True)
+def _evaluate(position_enu_m, bias_m, stations, rotations, kinds, values, weights, loss_code, c2,
+              residual, jacobian, gradient_w, curvature_w):
+    """Residuals, Jacobian and the gradient and Gauss-Newton weights of one problem's measurements (written
+    in place; zero where the weight is); returns the cost ``sum C^2 rho(z / C^2)`` of the squared whitened
+    residuals ``z``."""
+    cost = 0.0
+    for m in range(kinds.size):
+        w = weights[m]
+        if not w > 0.0:
+            residual[m] = 0.0
+            gradient_w[m] = curvature_w[m] = 0.0
+            jacobian[:, m] = 0.0
+            continue
+        kind = kinds[m]
+        predicted, jacobian[0, m], jacobian[1, m], jacobian[2, m], jacobian[3, m] = measure_point(
+            position_enu_m[0], position_enu_m[1], position_enu_m[2], bias_m, stations[m], rotations[m], kind)
+        r = values[m] - predicted
+        if kind == AZIMUTH or kind == ELEVATION:
+            r = (r + math.pi) % (2.0 * math.pi) - math.pi
+            if r == -math.pi:
+                r = math.pi
+        residual[m] = r
+        z = w * r * r
+        rho, rho1, rho2 = loss_point(z, loss_code, c2)
+        cost += rho
+        gradient_w[m] = w * rho1
+        curvature_w[m] = w if loss_code == 0 else w * max(rho1 + 2.0 * rho2 * z, CURVATURE_FLOOR)
+    return cost
 
-        ``loss`` is ``(name, scale in sigmas)``; the cost is ``sum C^2 rho(z / C^2)`` of the squared whitened
-        residuals ``z`` (:mod:`core.estimators.loss`).
-        """
-        predicted, jacobian = self.model.predict(positions_enu_m, bias_m)
-        residual = self.model.residuals(self.values, predicted) * self.used
-        squared = self.weights * residual * residual
-        if loss[0] == "linear":
-            return residual, squared.sum(axis=-1), jacobian, self.weights, self.weights
-        rho, gradient_factor, curvature_factor = loss_weights(squared, *loss)
-        return (residual, np.sum(rho * self.used, axis=-1), jacobian, self.weights * gradient_factor,
-                self.weights * curvature_factor)
+
+@numba.njit(cache=True, nogil=True)
+def _solve_small(a, rhs, out):
+    """``a x = rhs`` for one small matrix by Gaussian elimination with partial pivoting (``a``, ``rhs`` overwritten)."""
+    size = rhs.size
+    for k in range(size):
+        pivot = k
+        for i in range(k + 1, size):
+            if abs(a[i, k]) > abs(a[pivot, k]):
+                pivot = i
+        if pivot != k:
+            for j in range(size):
+                a[k, j], a[pivot, j] = a[pivot, j], a[k, j]
+            rhs[k], rhs[pivot] = rhs[pivot], rhs[k]
+        for i in range(k + 1, size):
+            factor = a[i, k] / a[k, k]
+            for j in range(k, size):
+                a[i, j] -= factor * a[k, j]
+            rhs[i] -= factor * rhs[k]
+    for k in range(size - 1, -1, -1):
+        total = rhs[k]
+        for j in range(k + 1, size):
+            total -= a[k, j] * out[j]
+        out[k] = total / a[k, k]
+
+
+@numba.njit(cache=True, nogil=True)
+def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, geodetic, origin_ecef_m,
+               origin_rotation, has_toa, loss_code, c2, max_iterations, tolerance_m):
+    size, count = kinds.shape
+    position_out = np.empty((size, 3))
+    bias_out = np.empty(size)
+    iterations_out = np.zeros(size, dtype=np.int64)
+    converged_out = np.zeros(size, dtype=np.bool_)
+    cost_out = np.empty(size)
+    residual, gradient_w, curvature_w = np.empty(count), np.empty(count), np.empty(count)
+    residual_new, gradient_w_new, curvature_w_new = np.empty(count), np.empty(count), np.empty(count)
+    jacobian, jacobian_new = np.empty((4, count)), np.empty((4, count))
+    local = np.empty((4, count))
+    axes, point_rotation = np.empty((3, 3)), np.empty((3, 3))
+    information, scaled = np.empty((4, 4)), np.empty((4, 4))
+    gradient, scale, right, step, free = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
+    x, x_new, delta = np.empty(3), np.empty(3), np.empty(3)
+    for b in range(size):
+        st, rot, kd, val, wt = stations[b], rotations[b], kinds[b], values[b], weights[b]
+        constrained = not math.isnan(altitude_m[b])
+        x[:] = starts[b]
+        if constrained:
+            _onto_altitude(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
+        total = offset = 0.0
+        for m in range(count):
+            if kd[m] == TOA and wt[m] > 0.0:
+                distance = math.sqrt((x[0] - st[m, 0]) ** 2 + (x[1] - st[m, 1]) ** 2 + (x[2] - st[m, 2]) ** 2)
+                total += wt[m]
+                offset += wt[m] * (val[m] - distance)
+        bias = offset / total if total > 0.0 else 0.0
+        free[0] = free[1] = 1.0
+        free[2] = 0.0 if constrained else 1.0
+        free[3] = 1.0 if has_toa[b] else 0.0
+        cost = _evaluate(x, bias, st, rot, kd, val, wt, loss_code, c2, residual, jacobian, gradient_w,
+                         curvature_w)
+        damping = LAMBDA_START
+        iterations = 0
+        converged = False
+        for _ in range(max_iterations):
+            if constrained:
+                _local_axes(x, geodetic[b], origin_ecef_m[b], origin_rotation[b], point_rotation, axes)
+            for m in range(count):
+                for i in range(3):
+                    if constrained:
+                        local[i, m] = (axes[i, 0] * jacobian[0, m] + axes[i, 1] * jacobian[1, m]
+                                       + axes[i, 2] * jacobian[2, m]) * free[i]
+                    else:
+                        local[i, m] = jacobian[i, m] * free[i]
+                local[3, m] = jacobian[3, m] * free[3]
+            finite = True
+            for i in range(4):
+                g = 0.0
+                for m in range(count):
+                    g += local[i, m] * gradient_w[m] * residual[m]
+                gradient[i] = g
+                for j in range(4):
+                    total = 0.0
+                    for m in range(count):
+                        total += local[i, m] * curvature_w[m] * local[j, m]
+                    information[i, j] = total + (1.0 - free[i] if i == j else 0.0)
+            for i in range(4):
+                d = information[i, i]
+                scale[i] = 1.0 / math.sqrt(d if d > 0.0 else 1.0)
+            for i in range(4):
+                for j in range(4):
+                    scaled[i, j] = information[i, j] * scale[i] * scale[j] + (damping if i == j else 0.0)
+                    if not math.isfinite(scaled[i, j]):
+                        finite = False
+                right[i] = scale[i] * gradient[i]
+            if not finite:
+                for i in range(4):
+                    for j in range(4):
+                        scaled[i, j] = 1.0 if i == j else 0.0
+            _solve_small(scaled, right, step)
+            for i in range(4):
+                step[i] *= scale[i] * free[i]
+            length2 = 0.0
+            for j in range(3):
+                if constrained:
+                    delta[j] = step[0] * axes[0, j] + step[1] * axes[1, j] + step[2] * axes[2, j]
+                else:
+                    delta[j] = step[j]
+                x_new[j] = x[j] + delta[j]
+                length2 += delta[j] * delta[j]
+            if constrained:
+                _onto_altitude(x_new, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
+            bias_new = bias + step[3]
+            cost_new = _evaluate(x_new, bias_new, st, rot, kd, val, wt, loss_code, c2, residual_new,
+                                 jacobian_new, gradient_w_new, curvature_w_new)
+            iterations += 1
+            if math.isfinite(cost_new) and cost_new <= cost * (1.0 + 1e-12) + 1e-300:
+                x[:] = x_new
+                bias, cost = bias_new, cost_new
+                residual, residual_new = residual_new, residual
+                jacobian, jacobian_new = jacobian_new, jacobian
+                gradient_w, gradient_w_new = gradient_w_new, gradient_w
+                curvature_w, curvature_w_new = curvature_w_new, curvature_w
+                damping = max(damping / 10.0, LAMBDA_MIN)
+            else:
+                damping *= 10.0
+            if math.sqrt(length2) < tolerance_m:
+                converged = True
+                break
+            if damping > LAMBDA_MAX:
+                break
+        position_out[b] = x
+        bias_out[b], cost_out[b] = bias, cost
+        iterations_out[b], converged_out[b] = iterations, converged
+    return position_out, bias_out, iterations_out, converged_out, cost_out
 
 
 def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tolerance_m=1e-3,
                         loss=LINEAR) -> Solution:
     """Iterate every problem of a batch to its ML position (or, with a robust loss, its M-estimate).
+
+    One compiled kernel runs each problem's iteration on its own (so a problem's result does not depend on
+    the batch it is in): Jacobi-scaled normal equations of ``(east, north, up, b)`` with the Marquardt
+    damping ``lambda diag(J^T W J)``, a step accepted when the cost does not rise; with a known altitude
+    the step moves along the local east and north and the point is put back on the altitude surface
+    (:func:`core.problem.onto_altitude`, the same geodesy). The model is
+    :func:`core.measurements.measure_point`, the loss :func:`core.estimators.loss.loss_point`.
 
     Parameters
     ----------
@@ -155,6 +312,7 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     start_enu_m : ndarray, shape (B, 3)
     max_iterations : int
     tolerance_m : float
+        Converged when a step moves the position less than this.
     loss : tuple of (str, float)
         The loss's name and scale in sigmas (:mod:`core.estimators.loss`); the cost minimised is its sum.
 
@@ -162,71 +320,18 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     -------
     Solution
     """
-    problems = _Problems(batch)
-    x_all = problems.project(np.asarray(start_enu_m, dtype=float).copy())
-    bias_all = problems.optimal_bias(x_all)
-    size = x_all.shape[0]
-    converged_all = np.zeros(size, dtype=bool)
-    iterations_all = np.zeros(size, dtype=int)
-    cost_all = np.zeros(size)
-
-    work = np.arange(size)
-    sub = problems
-    x, bias = x_all, bias_all
-    damping = np.full(size, _LAMBDA_START)
-    active = np.ones(size, dtype=bool)
-    converged = np.zeros(size, dtype=bool)
-    iterations = np.zeros(size, dtype=int)
-    r, cost, jacobian, gradient_w, curvature_w = sub.evaluate(x, bias, loss)
-    robust = loss[0] != "linear"
-
-    def store():
-        x_all[work], bias_all[work], cost_all[work] = x, bias, cost
-        converged_all[work], iterations_all[work] = converged, iterations
-
-    eye = _EYE4
-    for _ in range(max_iterations):
-        n_active = np.count_nonzero(active)
-        if n_active == 0:
-            break
-        if n_active < _COMPACT_BELOW * work.size:
-            store()
-            keep = np.flatnonzero(active)
-            work, sub = work[keep], sub.take(keep)
-            x, bias, r, cost, jacobian = x[keep], bias[keep], r[keep], cost[keep], jacobian[keep]
-            gradient_w, curvature_w = (gradient_w[keep], curvature_w[keep]) if robust else (sub.weights,) * 2
-            damping, converged, iterations = damping[keep], converged[keep], iterations[keep]
-            active = active[keep]
-        axes, free = sub.parameterisation(x)
-        information, local = normal_matrix(jacobian, curvature_w, axes, free)
-        gradient = np.einsum("bim,bm->bi", local * gradient_w[:, None, :], r)
-        diag = np.einsum("bii->bi", information)
-        scale = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
-        scaled = information * scale[:, :, None] * scale[:, None, :] + damping[:, None, None] * eye
-        scaled[~active | ~np.all(np.isfinite(scaled), axis=(-2, -1))] = eye
-        step = scale * np.linalg.solve(scaled, (scale * gradient)[..., None])[..., 0]
-        step = np.where(active[:, None], step * free, 0.0)
-        delta = step[:, :3] if axes is None else np.einsum("bi,bij->bj", step[:, :3], axes)
-        x_new = sub.project(x + delta)
-        bias_new = bias + step[:, 3]
-        r_new, cost_new, jacobian_new, gradient_w_new, curvature_w_new = sub.evaluate(x_new, bias_new, loss)
-        accept = active & np.isfinite(cost_new) & (cost_new <= cost * (1.0 + 1e-12) + 1e-300)
-        x = np.where(accept[:, None], x_new, x)
-        bias = np.where(accept, bias_new, bias)
-        r = np.where(accept[:, None], r_new, r)
-        cost = np.where(accept, cost_new, cost)
-        jacobian = np.where(accept[:, None, None], jacobian_new, jacobian)
-        if robust:
-            gradient_w = np.where(accept[:, None], gradient_w_new, gradient_w)
-            curvature_w = np.where(accept[:, None], curvature_w_new, curvature_w)
-        iterations += active
-        damping = np.where(accept, np.maximum(damping / 10.0, _LAMBDA_MIN), np.where(active, damping * 10.0, damping))
-        done = active & (np.sqrt(np.einsum("bi,bi->b", delta, delta)) < tolerance_m)
-        stuck = active & (damping > _LAMBDA_MAX)
-        converged |= done
-        active &= ~(done | stuck)
-    store()
-    return Solution(x_all, bias_all, iterations_all, converged_all, cost_all)
+    stations, rotations = batch.measurement_stations()
+    origin = batch.origin
+    origin_ecef = geodesy.geodetic_to_ecef(origin[:, 0], origin[:, 1], origin[:, 2])
+    origin_rotation = geodesy.ecef_to_enu_rotation(origin[:, 0], origin[:, 1])
+    out = _lm_kernel(np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
+                     np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.model_values()),
+                     np.ascontiguousarray(batch.weights()),
+                     np.ascontiguousarray(start_enu_m, dtype=float), np.asarray(batch.altitude_m, dtype=float),
+                     np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef, origin_rotation,
+                     np.asarray(batch.has_toa, dtype=np.bool_), loss_code(loss[0]), float(loss[1]) ** 2,
+                     int(max_iterations), float(tolerance_m))
+    return Solution(*out)
 
 
 def _loss(options: SolveOptions) -> tuple[str, float]:
@@ -234,16 +339,9 @@ def _loss(options: SolveOptions) -> tuple[str, float]:
 
 
 def iterate(batch: ProblemBatch, starts_enu_m, options: SolveOptions) -> Solution:
-    """:func:`levenberg_marquardt` in cache-sized chunks (results do not depend on the chunking)."""
-    starts = np.asarray(starts_enu_m, dtype=float)
-    rows = max(CHUNK_MIN_PROBLEMS, CHUNK_ENTRIES // max(batch.kinds.shape[1], 1))
-    if rows >= batch.size:
-        return levenberg_marquardt(batch, starts, options.max_iterations, options.tolerance_m, _loss(options))
-    parts = [levenberg_marquardt(batch.take(np.arange(first, min(first + rows, batch.size))),
-                                 starts[first:first + rows], options.max_iterations, options.tolerance_m,
-                                 _loss(options))
-             for first in range(0, batch.size, rows)]
-    return Solution(*(np.concatenate([getattr(p, f) for p in parts]) for f in Solution.__dataclass_fields__))
+    """:func:`levenberg_marquardt` with the options' iteration limits and loss."""
+    return levenberg_marquardt(batch, np.asarray(starts_enu_m, dtype=float), options.max_iterations,
+                               options.tolerance_m, _loss(options))
 
 
 def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, start_names, failures,
