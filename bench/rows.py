@@ -17,8 +17,8 @@ import numpy as np
 import orjson
 
 from bench.load import LoadGenerator
-from bench.server import serve
 from bench.scenarios import four_station_requests
+from bench.server import serve
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,11 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.error_summary import error_summary
-from core.problem_batch import ProblemBatch
 from core.crlb import batch_information, gdop
+from core.error_summary import error_summary
 from core.parallel import chunk_slices, run_chunks
 from core.problem import Problem
+from core.problem_batch import ProblemBatch
 
 #: Cells per chunk: one batch through the information code (a few milliseconds each with ten measurements).
 CHUNK_CELLS = 1024

@@ -16,7 +16,6 @@ import numpy as np
 from core.measurements import MeasurementModel
 from core.problem import local_axes
 
-
 #: Smallest eigenvalue of the unit-diagonal information matrix below which a
 #: direction counts as unobserved (relative, so independent of units).
 OBSERVABILITY_THRESHOLD = 1e-11

@@ -22,7 +22,7 @@ from typing import Sequence
 import numpy as np
 
 from core import geodesy
-from core.measurements import AZIMUTH, ELEVATION, RANGE, SPEED_OF_LIGHT_MPS, TOA, Kind
+from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, Kind
 from core.problem import CommonFrame, GeodeticPoint, Problem, local_axes, onto_altitude
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).

@@ -16,7 +16,6 @@ from core.estimators.loss import LOSSES
 from core.estimators.result import COVARIANCE_SOURCES, SCALED_COVARIANCE_SOURCES, WARNING_CODES
 from service.limits import check_fix
 
-
 #: Local coordinates, heights and a known altitude lie within this distance of the frame (beyond geostationary
 #: orbit); squares and products of such numbers stay far from float64 overflow.
 MAX_COORDINATE_M = 1e8

@@ -21,21 +21,21 @@ import numpy as np
 from pydantic import ValidationError
 
 from core import geodesy
-from core.error_summary import error_summary
-from core.problem_batch import ProblemBatch, build_problem_batch
 from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
+from core.error_summary import error_summary
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import FixBatch, SolveOptions, solve_many
 from core.measurements import Kind
 from core.parallel import Stopped
-from core.simulation.measurements import evaluate
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
+from core.problem_batch import ProblemBatch, build_problem_batch
+from core.simulation.measurements import evaluate
 from service import schemas
-from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
-from service.renderings import Renderings, fix_cot, fix_geojson, of_request
 from service.limits import check_grid, fix_within_limit
 from service.maps import coverage_geojson, coverage_png
+from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
+from service.renderings import Renderings, fix_cot, fix_geojson, of_request
 
 _COMPONENT_NAMES = {int(Kind.AZIMUTH): "azimuth", int(Kind.ELEVATION): "elevation", int(Kind.RANGE): "range",
                     int(Kind.TOA): "toa"}

@@ -15,12 +15,13 @@ import pkgutil
 
 import numpy as np
 
-from core.problem_batch import AZIMUTH, ProblemBatch, size_groups
 from core.errors import InvalidInput, LocalizationError
 from core.estimators.base import REGISTRY, SolveOptions, get_estimator
 from core.estimators.loss import LOSSES
 from core.estimators.result import Fix, FixBatch, FixWarning
+from core.measurements import AZIMUTH
 from core.problem import Problem
+from core.problem_batch import ProblemBatch, size_groups
 
 AUTO = "auto"
 

@@ -37,12 +37,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from core.angles import station_to_common
-from core.problem_batch import AZIMUTH, RANGE, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators.base import SolveOptions, register
 from core.estimators.ml import estimate_from
 from core.estimators.result import Estimates, FixWarning
 from core.estimators.starting_points import fuse_points, initial_position, station_polar_points
+from core.measurements import AZIMUTH, RANGE
+from core.problem_batch import ProblemBatch
 
 #: Relative eigenvalue below which the azimuth planes do not determine ``(x0, y0)``.
 RANK_TOLERANCE = 1e-9

@@ -32,10 +32,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
-from core.problem_batch import ELEVATION, RANGE, TOA, ProblemBatch
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
-from core.measurements import Kind
+from core.measurements import ELEVATION, RANGE, TOA, Kind
 from core.problem import local_axes, onto_altitude
+from core.problem_batch import ProblemBatch
 
 #: Probability with which azimuth lines from a truly collinear geometry are
 #: recognised as such: the crossing test rejects collinearity only when the

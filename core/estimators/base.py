@@ -14,11 +14,11 @@ from typing import Callable
 
 import numpy as np
 
-from core.problem_batch import ProblemBatch
 from core.errors import InvalidInput
 from core.estimators.finish import finish
 from core.estimators.result import Estimates, FixBatch
 from core.measurements import Kind
+from core.problem_batch import ProblemBatch
 
 #: Every measurement kind.
 ALL_KINDS = frozenset(Kind)

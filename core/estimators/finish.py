@@ -14,13 +14,12 @@ import numpy as np
 from scipy.special import chdtrc
 
 from core.angles import line_of_sight_enu
-from core.problem_batch import ProblemBatch
-from core.crlb import (gdop, invert_information, normal_matrix, parameterisation, reference_sigma_m,
-                       sandwich_covariance)
+from core.crlb import gdop, invert_information, normal_matrix, parameterisation, reference_sigma_m, sandwich_covariance
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_weights
 from core.estimators.result import Estimates, FixBatch, FixWarning
 from core.measurements import Kind, MeasurementModel
+from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
 OUTLIER_SIGMAS = 4.0

@@ -29,12 +29,12 @@ from __future__ import annotations
 import numpy as np
 
 from core.angles import line_of_sight_derivatives, line_of_sight_enu, station_to_common
-from core.problem_batch import AZIMUTH, ELEVATION, RANGE, TOA, ProblemBatch
 from core.crlb import invert_information, normal_matrix, parameterisation
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates, FixWarning
-from core.measurements import MeasurementModel
+from core.measurements import AZIMUTH, ELEVATION, RANGE, TOA, MeasurementModel
+from core.problem_batch import ProblemBatch
 
 #: ``R_p`` (largest normalised angle residual at ``X_s``) from which the
 #: linearisation point is moved onto the worst line of sight (paper: 6).

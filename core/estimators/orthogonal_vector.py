@@ -36,12 +36,12 @@ from enum import Enum
 
 import numpy as np
 
-from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
 from core.linalg import jacobi_svd, last_dot, matvec, row_dot
 from core.problem import LinesOfSight, Problem, local_axes, onto_altitude
+from core.problem_batch import ProblemBatch
 
 #: Relative singular value below which the stacked rows are rank-deficient.
 RANK_TOLERANCE = 1e-9

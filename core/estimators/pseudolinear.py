@@ -39,11 +39,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators.azimuth_lines import Lines, azimuth_normals, crossing_errors, has_elevations, solve_2x2
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
+from core.problem_batch import ProblemBatch
 
 #: Horizontal/height passes; fixed so that the estimator is one smooth map of the data.
 PASSES = 6

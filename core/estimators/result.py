@@ -13,8 +13,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError
+from core.problem_batch import ProblemBatch
 
 #: Warning codes a fix may carry, with what each means.
 WARNING_CODES = {

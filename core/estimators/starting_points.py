@@ -19,11 +19,12 @@ from __future__ import annotations
 import numpy as np
 
 from core.angles import line_of_sight_enu
-from core.problem_batch import AZIMUTH, RANGE, TOA, ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.orthogonal_vector import Normals, Weighting, normal_vectors, solve_orthogonal_batch
 from core.linalg import jacobi_svd, last_dot, matvec
+from core.measurements import AZIMUTH, RANGE, TOA
 from core.problem import Problem
+from core.problem_batch import ProblemBatch
 
 #: Smallest standard deviation (m) of a polar point along any axis.
 MIN_POLAR_SD_M = 1e-9

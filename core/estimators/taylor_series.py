@@ -53,13 +53,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.problem_batch import AZIMUTH, ELEVATION, ProblemBatch
 from core.crlb import OBSERVABILITY_THRESHOLD
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, get_estimator, register
 from core.estimators.result import Estimates, FixWarning
-from core.measurements import Kind, MeasurementModel
+from core.measurements import AZIMUTH, ELEVATION, Kind, MeasurementModel
 from core.problem import local_axes
+from core.problem_batch import ProblemBatch
 
 #: Relative cost increase a step may make before it counts as divergence (round-off allowance).
 COST_INCREASE_TOLERANCE = 1e-9

@@ -69,7 +69,6 @@ from dataclasses import replace
 
 import numpy as np
 
-from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.azimuth_lines import (
     AzimuthEquations,
@@ -86,6 +85,7 @@ from core.estimators.azimuth_lines import (
 )
 from core.estimators.base import AZIMUTHS, SolveOptions, get_estimator, register
 from core.estimators.result import Estimates, FixWarning
+from core.problem_batch import ProblemBatch
 
 #: Re-takes of the tangent plane at the solution (exact on the ellipsoid after two).
 PLANE_PASSES = 3

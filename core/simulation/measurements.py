@@ -7,11 +7,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from core.problem_batch import ProblemBatch
 from core.errors import LocalizationError, UnobservableGeometry
 from core.measurements import predict
 from core.parallel import chunk_seeds, chunk_slices, run_chunks
 from core.problem import Problem
+from core.problem_batch import ProblemBatch
 
 NOISE_KINDS = ("gaussian", "uniform", "outlier")
 #: ``"outlier"`` noise, a contaminated gaussian: each measurement's error is N(0, sigma^2), except with this

@@ -15,7 +15,6 @@ from typing import Any, Callable
 import numpy as np
 
 from core.parallel import chunk_slices, run_chunks
-
 from core.simulation.emitter import EmitterScenario, paper_001_scenario, simulate_emitter
 from core.tracking import TrackerConfig, new_state, step
 

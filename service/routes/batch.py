@@ -23,8 +23,8 @@ from pydantic import ValidationError
 
 from service import schemas, tak
 from service.deps import OwnerDep, parse_json, request_id
-from service.renderings import batch_geojson
 from service.limits import check_batch
+from service.renderings import batch_geojson
 from service.responses import JsonResponse
 from service.translate import fix_results
 from service.watch import in_pool, watched
