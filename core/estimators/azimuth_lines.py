@@ -293,7 +293,7 @@ def azimuth_only_errors(batch: ProblemBatch, name: str) -> dict[int, Localizatio
         errors[b] = TooFewMeasurements(
             f"{name} locates from azimuths only, which do not determine the target's height: give the "
             "target altitude (constraints.altitude_m); with elevations use eove, taylor_wls or ml",
-            ("constraints", "altitude_m"))
+            ("altitude_m",))
     other = batch.valid & ((batch.kinds == RANGE) | (batch.kinds == TOA))
     for b in np.flatnonzero(batch.constrained & np.any(other, axis=-1)).tolist():
         m = int(np.flatnonzero(other[b])[0])

@@ -258,7 +258,7 @@ def _checks(batch: ProblemBatch) -> dict[int, LocalizationError]:
     checks = [
         (~batch.constrained & ~np.any(is_el, axis=-1), lambda b: TooFewMeasurements(
             f"{NAME} from azimuths alone needs the target altitude (constraints.altitude_m): azimuths do not "
-            "determine the height; give elevations or the altitude", ("constraints", "altitude_m"))),
+            "determine the height; give elevations or the altitude", ("altitude_m",))),
         (n_angles < n_parameters, lambda b: TooFewMeasurements(
             f"{NAME} needs at least {n_parameters[b]} angles here; got {n_angles[b]}", ("measurements",))),
         (np.any(unknown & ~is_az, axis=-1), lambda b: InvalidInput(
