@@ -212,6 +212,8 @@ def _phase_times(problems: list) -> dict[str, float]:
     return times
 
 
+#: The methods that locate from azimuths only: their problems carry the target altitude.
+AZIMUTH_ONLY = ("tls", "ctls")
 #: The closed forms of the batch row (issue 9's list), each measured like ML.
 CLOSED_FORMS = ("weighted_eove", "eove", "los_intersection", "ple3d", "ws3d", "angle_range", "tls", "ctls",
                 "taylor_wls")
@@ -225,7 +227,7 @@ def batch_row(url: str, size: int, method: str = "ml", repeats: int = 3) -> tupl
 
     target = 25_000 if method == "ml" else 20_000
     problems = four_station_requests(size, np.random.default_rng(22), method=method,
-                                     with_range=method == "angle_range")
+                                     with_range=method == "angle_range", with_altitude=method in AZIMUTH_ONLY)
     body = orjson.dumps({"problems": problems})
     connection = _connection(url)
     status, data = _post(connection, "/v1/fixes/batch", body)
@@ -252,7 +254,10 @@ def batch_row(url: str, size: int, method: str = "ml", repeats: int = 3) -> tupl
     gc.unfreeze()
     core_s = float(np.median(core_runs))
     rate = size / http_s
-    verdict = "met" if rate >= target else f"missed: {rate:,.0f}/s is {1 - rate / target:.0%} short of {target:,}/s"
+    if ok < size:
+        verdict = f"not measured: only {ok:,} of {size:,} problems gave a fix"
+    else:
+        verdict = "met" if rate >= target else f"missed: {rate:,.0f}/s is {1 - rate / target:.0%} short of {target:,}/s"
     notes = [f"{method}: request {len(body) / 1e6:.1f} MB, response {len(data) / 1e6:.1f} MB; {ok}/{size} ok; "
              f"HTTP times (s) of {repeats} posts: " + ", ".join(f"{e:.3f}" for e in elapsed)]
     if method == "ml":

@@ -21,7 +21,7 @@ RANGE_SIGMA = 0.01
 
 
 def four_station_requests(count: int, rng: np.random.Generator, method: str = "ml",
-                          with_range: bool = False) -> list[dict]:
+                          with_range: bool = False, with_altitude: bool = False) -> list[dict]:
     """``count`` FixRequest bodies: four stations within ~40 km, a target 20-60 km away.
 
     Parameters
@@ -31,6 +31,8 @@ def four_station_requests(count: int, rng: np.random.Generator, method: str = "m
     method : str
     with_range : bool
         Add a range from the first station (sigma ``RANGE_SIGMA`` of it), as ``angle_range`` needs.
+    with_altitude : bool
+        Give the target's true altitude (``constraints.altitude_m``), as the azimuth-only methods need.
 
     Returns
     -------
@@ -71,7 +73,10 @@ def four_station_requests(count: int, rng: np.random.Generator, method: str = "m
         if with_range:
             measurements.append({"type": "range", "station_id": "rx-1", "range_m": float(ranges[b]),
                                  "sigma_m": RANGE_SIGMA * float(ranges[b])})
-        requests.append({"frame": "wgs84", "stations": stations, "measurements": measurements, "method": method})
+        request = {"frame": "wgs84", "stations": stations, "measurements": measurements, "method": method}
+        if with_altitude:
+            request["constraints"] = {"altitude_m": float(target_alt[b])}
+        requests.append(request)
     return requests
 
 
