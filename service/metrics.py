@@ -29,6 +29,8 @@ build_info                           gauge      1, labelled with the version and
 
 from __future__ import annotations
 
+import collections
+
 import importlib.metadata
 import os
 import platform
@@ -110,13 +112,16 @@ class Metrics:
         self.fixes.labels(method if method in _METHOD_LABELS else "invalid", outcome).inc()
 
     def batch_fixes(self, problems: list, results: list[dict]) -> None:
-        """The fixes of a batch response: each slot's method and outcome."""
+        """The fixes of a batch response: each slot's method and outcome (one increment per label pair)."""
+        tally: collections.Counter = collections.Counter()
         for problem, result in zip(problems, results):
             if result["ok"]:
-                self.fix(result["fix"]["method"], "ok")
+                tally[result["fix"]["method"], "ok"] += 1
             else:
                 method = problem.get("method", "auto") if isinstance(problem, dict) else None
-                self.fix(method if isinstance(method, str) else None, result["error"]["code"])
+                tally[method if isinstance(method, str) else None, result["error"]["code"]] += 1
+        for (method, outcome), count in tally.items():
+            self.fixes.labels(method if method in _METHOD_LABELS else "invalid", outcome).inc(count)
 
     def render(self) -> bytes:
         """The text exposition (summed over workers in multiprocess mode)."""
