@@ -89,6 +89,66 @@ def _dot(x, y, start, stop):
 
 
 @numba.njit(cache=True, nogil=True)
+def svd_in_place(x, y, s, v, projected, reflector, norms):
+    """:func:`jacobi_svd` of one matrix, given as its columns ``x`` ``(C, R)`` with sides ``y`` ``(K, R)``
+    (both overwritten), into ``s`` ``(C,)``, ``v`` ``(C, C)`` and ``projected`` ``(C, K)``; ``reflector``
+    ``(R,)`` and ``norms`` ``(C,)`` are work space. Compiled; callable from other kernels."""
+    width, rows = x.shape
+    kinds = y.shape[0]
+    depth = rows
+    if rows > width:
+        for k in range(width):
+            norm = np.sqrt(_dot(x[k], x[k], k, rows))
+            alpha = -np.copysign(norm, x[k, k])
+            for r in range(k, rows):
+                reflector[r] = x[k, r]
+            reflector[k] -= alpha
+            length2 = _dot(reflector, reflector, k, rows)
+            beta = 2.0 / length2 if length2 > 0 else 0.0
+            for j in range(k + 1, width + kinds):
+                other = x[j] if j < width else y[j - width]
+                scale = beta * _dot(reflector, other, k, rows)
+                for r in range(k, rows):
+                    other[r] -= scale * reflector[r]
+            x[k, k] = alpha
+            for r in range(k + 1, rows):
+                x[k, r] = 0.0
+        depth = width
+    for i in range(width):
+        for j in range(width):
+            v[i, j] = 1.0 if i == j else 0.0
+        norms[i] = _dot(x[i], x[i], 0, depth)
+    for _ in range(JACOBI_MAX_SWEEPS):
+        rotated = False
+        for p in range(width - 1):
+            for q in range(p + 1, width):
+                gamma = _dot(x[p], x[q], 0, depth)
+                if not abs(gamma) > JACOBI_TOLERANCE * np.sqrt(norms[p] * norms[q]):
+                    continue
+                rotated = True
+                zeta = (norms[q] - norms[p]) / (2.0 * gamma)
+                t = np.copysign(1.0, zeta) / (abs(zeta) + np.hypot(1.0, zeta))
+                cos = 1.0 / np.sqrt(1.0 + t * t)
+                sin = cos * t
+                for r in range(depth):
+                    xp, xq = x[p, r], x[q, r]
+                    x[p, r] = cos * xp - sin * xq
+                    x[q, r] = sin * xp + cos * xq
+                for i in range(width):
+                    vp, vq = v[i, p], v[i, q]
+                    v[i, p] = cos * vp - sin * vq
+                    v[i, q] = sin * vp + cos * vq
+                norms[p] = _dot(x[p], x[p], 0, depth)
+                norms[q] = _dot(x[q], x[q], 0, depth)
+        if not rotated:
+            break
+    for i in range(width):
+        s[i] = np.sqrt(norms[i])
+        for k in range(kinds):
+            projected[i, k] = _dot(x[i], y[k], 0, depth)
+
+
+@numba.njit(cache=True, nogil=True)
 def _jacobi_svd_kernel(columns, sides):
     """:func:`jacobi_svd` of ``(B, C, R)`` column stacks (copied, then worked in place) with ``(B, K, R)`` sides."""
     count, width, rows = columns.shape
@@ -103,58 +163,7 @@ def _jacobi_svd_kernel(columns, sides):
     for b in range(count):
         x[:, :] = columns[b]
         y[:, :] = sides[b]
-        depth = rows
-        if rows > width:
-            for k in range(width):
-                norm = np.sqrt(_dot(x[k], x[k], k, rows))
-                alpha = -np.copysign(norm, x[k, k])
-                for r in range(k, rows):
-                    reflector[r] = x[k, r]
-                reflector[k] -= alpha
-                length2 = _dot(reflector, reflector, k, rows)
-                beta = 2.0 / length2 if length2 > 0 else 0.0
-                for j in range(k + 1, width + kinds):
-                    other = x[j] if j < width else y[j - width]
-                    scale = beta * _dot(reflector, other, k, rows)
-                    for r in range(k, rows):
-                        other[r] -= scale * reflector[r]
-                x[k, k] = alpha
-                for r in range(k + 1, rows):
-                    x[k, r] = 0.0
-            depth = width
-        vb = v[b]
-        for i in range(width):
-            for j in range(width):
-                vb[i, j] = 1.0 if i == j else 0.0
-            norms[i] = _dot(x[i], x[i], 0, depth)
-        for _ in range(JACOBI_MAX_SWEEPS):
-            rotated = False
-            for p in range(width - 1):
-                for q in range(p + 1, width):
-                    gamma = _dot(x[p], x[q], 0, depth)
-                    if not abs(gamma) > JACOBI_TOLERANCE * np.sqrt(norms[p] * norms[q]):
-                        continue
-                    rotated = True
-                    zeta = (norms[q] - norms[p]) / (2.0 * gamma)
-                    t = np.copysign(1.0, zeta) / (abs(zeta) + np.hypot(1.0, zeta))
-                    cos = 1.0 / np.sqrt(1.0 + t * t)
-                    sin = cos * t
-                    for r in range(depth):
-                        xp, xq = x[p, r], x[q, r]
-                        x[p, r] = cos * xp - sin * xq
-                        x[q, r] = sin * xp + cos * xq
-                    for i in range(width):
-                        vp, vq = vb[i, p], vb[i, q]
-                        vb[i, p] = cos * vp - sin * vq
-                        vb[i, q] = sin * vp + cos * vq
-                    norms[p] = _dot(x[p], x[p], 0, depth)
-                    norms[q] = _dot(x[q], x[q], 0, depth)
-            if not rotated:
-                break
-        for i in range(width):
-            s[b, i] = np.sqrt(norms[i])
-            for k in range(kinds):
-                projected[b, i, k] = _dot(x[i], y[k], 0, depth)
+        svd_in_place(x, y, s[b], v[b], projected[b], reflector, norms)
     return s, v, projected
 
 

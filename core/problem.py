@@ -17,6 +17,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Sequence
 
+import numba
 import numpy as np
 
 from core import geodesy
@@ -134,6 +135,95 @@ class CommonFrame:
         return onto_altitude(p, altitude_m, self.origin_array(), self.is_geodetic)
 
 
+@numba.njit(cache=True, nogil=True)
+def _enu_to_geodetic_point(position_enu_m, origin_ecef_m, origin_rotation):
+    p = position_enu_m
+    x = origin_ecef_m[0] + origin_rotation[0, 0] * p[0] + origin_rotation[1, 0] * p[1] + origin_rotation[2, 0] * p[2]
+    y = origin_ecef_m[1] + origin_rotation[0, 1] * p[0] + origin_rotation[1, 1] * p[1] + origin_rotation[2, 1] * p[2]
+    z = origin_ecef_m[2] + origin_rotation[0, 2] * p[0] + origin_rotation[1, 2] * p[1] + origin_rotation[2, 2] * p[2]
+    return geodesy.ecef_to_geodetic_point(x, y, z)
+
+
+@numba.njit(cache=True, nogil=True)
+def onto_altitude_point(position_enu_m, altitude_m, geodetic, origin_ecef_m, origin_rotation):
+    """:func:`onto_altitude` of one point ``(3,)``, in place (compiled; callable from kernels).
+
+    ``origin_ecef_m`` ``(3,)`` and ``origin_rotation`` ``(3, 3)`` place the frame (:func:`frame_placements`).
+    """
+    if not geodetic:
+        position_enu_m[2] = altitude_m
+        return
+    lat, lon, _ = _enu_to_geodetic_point(position_enu_m, origin_ecef_m, origin_rotation)
+    x, y, z = geodesy.geodetic_to_ecef_point(lat, lon, altitude_m)
+    dx, dy, dz = x - origin_ecef_m[0], y - origin_ecef_m[1], z - origin_ecef_m[2]
+    for i in range(3):
+        position_enu_m[i] = origin_rotation[i, 0] * dx + origin_rotation[i, 1] * dy + origin_rotation[i, 2] * dz
+
+
+@numba.njit(cache=True, nogil=True)
+def local_axes_point(position_enu_m, geodetic, origin_ecef_m, origin_rotation, work, axes):
+    """:func:`local_axes` of one point into ``axes`` ``(3, 3)`` (``work``: a ``(3, 3)`` scratch; compiled)."""
+    if not geodetic:
+        for i in range(3):
+            for j in range(3):
+                axes[i, j] = 1.0 if i == j else 0.0
+        return
+    lat, lon, _ = _enu_to_geodetic_point(position_enu_m, origin_ecef_m, origin_rotation)
+    geodesy.ecef_to_enu_rotation_point(lat, lon, work)
+    for i in range(3):
+        for j in range(3):
+            axes[i, j] = work[i, 0] * origin_rotation[j, 0] + work[i, 1] * origin_rotation[j, 1] \
+                + work[i, 2] * origin_rotation[j, 2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _onto_altitude_many(positions_enu_m, altitude_m, geodetic, origin_ecef_m, origin_rotation):
+    out = positions_enu_m.copy()
+    for i in range(out.shape[0]):
+        onto_altitude_point(out[i], altitude_m[i], geodetic[i], origin_ecef_m[i], origin_rotation[i])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _local_axes_many(positions_enu_m, geodetic, origin_ecef_m, origin_rotation):
+    out = np.empty((positions_enu_m.shape[0], 3, 3))
+    work = np.empty((3, 3))
+    for i in range(out.shape[0]):
+        local_axes_point(positions_enu_m[i], geodetic[i], origin_ecef_m[i], origin_rotation[i], work, out[i])
+    return out
+
+
+def frame_placements(origin):
+    """Where frames sit on the earth: each origin's ECEF position and its ECEF -> ENU rotation.
+
+    Parameters
+    ----------
+    origin : ndarray, shape (..., 3)
+        Each frame's ``(lat_rad, lon_rad, alt_m)`` (NaN for a flat plane: the results are then unused).
+
+    Returns
+    -------
+    origin_ecef_m : ndarray, shape (..., 3)
+    rotation : ndarray, shape (..., 3, 3)
+    """
+    origin = np.asarray(origin, dtype=float)
+    return (geodesy.geodetic_to_ecef(origin[..., 0], origin[..., 1], origin[..., 2]),
+            geodesy.ecef_to_enu_rotation(origin[..., 0], origin[..., 1]))
+
+
+def _flat_points(position_enu_m, origin, geodetic, *more):
+    """Broadcast point arguments and flatten them for the compiled loops: (shape, flat arrays...)."""
+    position = np.asarray(position_enu_m, dtype=float)
+    origin = np.asarray(origin, dtype=float)
+    shape = np.broadcast_shapes(position.shape[:-1], origin.shape[:-1], np.shape(geodetic),
+                                *(np.shape(m) for m in more))
+    flat = [np.ascontiguousarray(np.broadcast_to(position, shape + (3,))).reshape(-1, 3),
+            np.ascontiguousarray(np.broadcast_to(origin, shape + (3,))).reshape(-1, 3),
+            np.ascontiguousarray(np.broadcast_to(np.asarray(geodetic, dtype=np.bool_), shape)).ravel()]
+    flat += [np.ascontiguousarray(np.broadcast_to(np.asarray(m, dtype=float), shape)).ravel() for m in more]
+    return shape, flat
+
+
 def local_axes(position_enu_m, origin, geodetic):
     """Local east/north/up unit vectors at points, in their frames' coordinates.
 
@@ -150,10 +240,9 @@ def local_axes(position_enu_m, origin, geodetic):
     ndarray, shape (..., 3, 3)
         Rows east, north, up at each point (point ENU <- frame ENU).
     """
-    origin = np.asarray(origin, dtype=float)
-    lat, lon, _ = geodesy.enu_to_geodetic(position_enu_m, origin[..., 0], origin[..., 1], origin[..., 2])
-    curved = geodesy.enu_to_enu_rotation(origin[..., 0], origin[..., 1], lat, lon)
-    return np.where(np.asarray(geodetic)[..., None, None], curved, np.eye(3))
+    shape, (position, origin, geodetic) = _flat_points(position_enu_m, origin, geodetic)
+    origin_ecef, rotation = frame_placements(origin)
+    return _local_axes_many(position, geodetic, origin_ecef, rotation).reshape(shape + (3, 3))
 
 
 def onto_altitude(position_enu_m, altitude_m, origin, geodetic):
@@ -171,13 +260,9 @@ def onto_altitude(position_enu_m, altitude_m, origin, geodetic):
     -------
     ndarray, shape (..., 3)
     """
-    origin = np.asarray(origin, dtype=float)
-    o_lat, o_lon, o_alt = origin[..., 0], origin[..., 1], origin[..., 2]
-    lat, lon, _ = geodesy.enu_to_geodetic(position_enu_m, o_lat, o_lon, o_alt)
-    curved = geodesy.geodetic_to_enu(lat, lon, np.broadcast_to(altitude_m, np.shape(lat)), o_lat, o_lon, o_alt)
-    flat = np.array(position_enu_m, dtype=float, copy=True)
-    flat[..., 2] = altitude_m
-    return np.where(np.asarray(geodetic)[..., None], curved, flat)
+    shape, (position, origin, geodetic, altitude) = _flat_points(position_enu_m, origin, geodetic, altitude_m)
+    origin_ecef, rotation = frame_placements(origin)
+    return _onto_altitude_many(position, altitude, geodetic, origin_ecef, rotation).reshape(shape + (3,))
 
 
 @dataclass(frozen=True)

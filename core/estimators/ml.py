@@ -43,7 +43,6 @@ import numba
 import numpy as np
 from scipy.special import chdtrc
 
-from core import geodesy
 from core.crlb import batch_information
 from core.errors import AmbiguousGeometry, LocalizationError
 from core.estimators.base import SolveOptions, register
@@ -51,9 +50,10 @@ from core.estimators.loss import CURVATURE_FLOOR, loss_code, loss_point
 from core.estimators.result import Estimates, FixWarning
 from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
-from core.geodesy import ecef_to_enu_rotation_point, ecef_to_geodetic_point, enu_to_geodetic, geodetic_to_ecef_point
+from core.geodesy import enu_to_geodetic
 from core.linalg import jacobi_svd
 from core.measurements import AZIMUTH, ELEVATION, TOA, measure_point
+from core.problem import frame_placements, local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
 #: Plain least squares: ``(loss name, scale in sigmas)``.
@@ -86,46 +86,6 @@ class Solution:
     iterations: np.ndarray
     converged: np.ndarray
     cost: np.ndarray
-
-
-@numba.njit(cache=True, nogil=True)
-def _enu_to_geodetic(position_enu_m, origin_ecef_m, rotation):
-    x = origin_ecef_m[0] + rotation[0, 0] * position_enu_m[0] + rotation[1, 0] * position_enu_m[1] \
-        + rotation[2, 0] * position_enu_m[2]
-    y = origin_ecef_m[1] + rotation[0, 1] * position_enu_m[0] + rotation[1, 1] * position_enu_m[1] \
-        + rotation[2, 1] * position_enu_m[2]
-    z = origin_ecef_m[2] + rotation[0, 2] * position_enu_m[0] + rotation[1, 2] * position_enu_m[1] \
-        + rotation[2, 2] * position_enu_m[2]
-    return ecef_to_geodetic_point(x, y, z)
-
-
-@numba.njit(cache=True, nogil=True)
-def _onto_altitude(position_enu_m, altitude_m, geodetic, origin_ecef_m, rotation):
-    """:func:`core.problem.onto_altitude` of one point, in place."""
-    if not geodetic:
-        position_enu_m[2] = altitude_m
-        return
-    lat, lon, _ = _enu_to_geodetic(position_enu_m, origin_ecef_m, rotation)
-    x, y, z = geodetic_to_ecef_point(lat, lon, altitude_m)
-    dx, dy, dz = x - origin_ecef_m[0], y - origin_ecef_m[1], z - origin_ecef_m[2]
-    for i in range(3):
-        position_enu_m[i] = rotation[i, 0] * dx + rotation[i, 1] * dy + rotation[i, 2] * dz
-
-
-@numba.njit(cache=True, nogil=True)
-def _local_axes(position_enu_m, geodetic, origin_ecef_m, rotation, point_rotation, axes):
-    """:func:`core.problem.local_axes` of one point into ``axes`` (rows east, north, up)."""
-    if not geodetic:
-        for i in range(3):
-            for j in range(3):
-                axes[i, j] = 1.0 if i == j else 0.0
-        return
-    lat, lon, _ = _enu_to_geodetic(position_enu_m, origin_ecef_m, rotation)
-    ecef_to_enu_rotation_point(lat, lon, point_rotation)
-    for i in range(3):
-        for j in range(3):
-            axes[i, j] = (point_rotation[i, 0] * rotation[j, 0] + point_rotation[i, 1] * rotation[j, 1]
-                          + point_rotation[i, 2] * rotation[j, 2])
 
 
 @numba.njit(cache=True, nogil=True)
@@ -206,7 +166,7 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
         constrained = not math.isnan(altitude_m[b])
         x[:] = starts[b]
         if constrained:
-            _onto_altitude(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
+            onto_altitude_point(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
         total = offset = 0.0
         for m in range(count):
             if kd[m] == TOA and wt[m] > 0.0:
@@ -224,7 +184,7 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
         converged = False
         for _ in range(max_iterations):
             if constrained:
-                _local_axes(x, geodetic[b], origin_ecef_m[b], origin_rotation[b], point_rotation, axes)
+                local_axes_point(x, geodetic[b], origin_ecef_m[b], origin_rotation[b], point_rotation, axes)
             for m in range(count):
                 for i in range(3):
                     if constrained:
@@ -269,7 +229,7 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
                 x_new[j] = x[j] + delta[j]
                 length2 += delta[j] * delta[j]
             if constrained:
-                _onto_altitude(x_new, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
+                onto_altitude_point(x_new, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
             bias_new = bias + step[3]
             cost_new = _evaluate(x_new, bias_new, st, rot, kd, val, wt, loss_code, c2, residual_new,
                                  jacobian_new, gradient_w_new, curvature_w_new)
@@ -321,9 +281,7 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     Solution
     """
     stations, rotations = batch.measurement_stations()
-    origin = batch.origin
-    origin_ecef = geodesy.geodetic_to_ecef(origin[:, 0], origin[:, 1], origin[:, 2])
-    origin_rotation = geodesy.ecef_to_enu_rotation(origin[:, 0], origin[:, 1])
+    origin_ecef, origin_rotation = frame_placements(batch.origin)
     out = _lm_kernel(np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
                      np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.model_values()),
                      np.ascontiguousarray(batch.weights()),
