@@ -32,15 +32,17 @@ least squares, the sandwich ``G A^T W S W A G`` with ``G = (A^T W A)^+`` and
 
 from __future__ import annotations
 
+import math
 from enum import Enum
 
+import numba
 import numpy as np
 
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
-from core.linalg import jacobi_svd, last_dot, matvec, row_dot
-from core.problem import LinesOfSight, Problem, local_axes, onto_altitude
+from core.linalg import jacobi_svd, last_dot, matvec, row_dot, svd_in_place
+from core.problem import LinesOfSight, Problem, frame_placements, local_axes, local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
 #: Relative singular value below which the stacked rows are rank-deficient.
@@ -155,24 +157,91 @@ def _where(mask):
     return slice(None) if np.all(mask) else np.flatnonzero(mask)
 
 
-def _least_squares(rows, rhs, weights):
-    """Weighted least squares of stacked systems by SVD, and which are rank-deficient.
+@numba.njit(cache=True, nogil=True)
+def _least_squares(rows, rhs, weights, columns, side, s, v, projected, reflector, norms, out):
+    """Weighted least squares of one stacked system (``rows`` ``(R, 3)``) by its SVD into ``out`` ``(3,)``;
+    returns whether the rows are rank-deficient (smallest singular value below ``RANK_TOLERANCE`` of the
+    largest). The other arguments are work space."""
+    for r in range(rows.shape[0]):
+        w = weights[r]
+        for j in range(3):
+            columns[j, r] = rows[r, j] * w
+        side[0, r] = rhs[r] * w
+    svd_in_place(columns, side, s, v, projected, reflector, norms)
+    if not min(s[0], s[1], s[2]) > RANK_TOLERANCE * max(s[0], s[1], s[2]):
+        return True
+    for i in range(3):
+        total = 0.0
+        for j in range(3):
+            total += v[i, j] * (projected[j, 0] / (s[j] * s[j] if s[j] > 0 else np.inf))
+        out[i] = total
+    return False
 
-    Parameters
-    ----------
-    rows : ndarray, shape (B, R, 3)
-    rhs, weights : ndarray, shape (B, R)
-        Zero weight on rows that do not count.
 
-    Returns
-    -------
-    solution : ndarray, shape (B, 3)
-    singular : ndarray of bool, shape (B,)
+@numba.njit(cache=True, nogil=True)
+def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitude_m, geodetic, origin_ecef_m,
+                      origin_rotation, weighted):
+    """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), and which are rank-deficient.
+
+    ``rows`` ``(B, 2M, 3)``: measurement ``m``'s ``c`` row at ``m``, its ``c'`` row at ``M + m``; the known
+    altitude's up row is the last of the stacked system (zero weight without one).
     """
-    s, v, projected = jacobi_svd(rows * weights[..., None], (rhs * weights)[..., None])
-    singular = ~(s.min(axis=-1) > RANK_TOLERANCE * s.max(axis=-1))
-    coefficients = projected[..., 0] / np.where(s > 0, s, np.inf) ** 2
-    return matvec(v, coefficients), singular
+    size, count, _ = rows.shape
+    width = count // 2
+    position = np.full((size, 3), np.nan)
+    singular = np.zeros(size, dtype=np.bool_)
+    stacked, right, w = np.zeros((count + 1, 3)), np.zeros(count + 1), np.zeros(count + 1)
+    columns, side = np.empty((3, count + 1)), np.empty((1, count + 1))
+    s, v, projected = np.empty(3), np.empty((3, 3)), np.empty((3, 1))
+    reflector, norms = np.empty(count + 1), np.empty(3)
+    x, point, axes, work = np.empty(3), np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+    for b in range(size):
+        if skip[b]:
+            continue
+        constrained = not math.isnan(altitude_m[b])
+        stacked[:count] = rows[b]
+        right[:count] = rhs[b]
+        stacked[count, 0], stacked[count, 1], stacked[count, 2] = 0.0, 0.0, 1.0
+        right[count] = altitude_m[b] if constrained else 0.0
+        for r in range(count):
+            w[r] = 1.0 if used[b, r] else 0.0
+        failed = False
+        for round in range(3):
+            if round > 0:
+                if not (weighted or constrained):
+                    break
+                if constrained:
+                    point[:] = x
+                    onto_altitude_point(point, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
+                    local_axes_point(point, geodetic[b], origin_ecef_m[b], origin_rotation[b], work, axes)
+                    stacked[count] = axes[2]
+                    right[count] = axes[2, 0] * point[0] + axes[2, 1] * point[1] + axes[2, 2] * point[2]
+                for m in range(width):
+                    if weighted:
+                        rot, st = rotations[b, m], stations[b, m]
+                        dx, dy, dz = x[0] - st[0], x[1] - st[1], x[2] - st[2]
+                        e = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+                        n = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+                        u = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+                        horizontal = math.hypot(e, n)
+                        slant = math.hypot(horizontal, u)
+                        w[m] = 1.0 / (sigma[b, m] * max(slant, MIN_DISTANCE_M)) if used[b, m] else 0.0
+                        w[width + m] = 1.0 / (sigma[b, width + m] * max(horizontal, MIN_DISTANCE_M)) \
+                            if used[b, width + m] else 0.0
+            strongest = 0.0
+            for r in range(count):
+                strongest = max(strongest, w[r])
+            w[count] = ALTITUDE_ROW_WEIGHT * strongest if constrained else 0.0
+            if _least_squares(stacked, right, w, columns, side, s, v, projected, reflector, norms, x):
+                failed = True
+                break
+        if failed:
+            singular[b] = True
+            continue
+        if constrained:
+            onto_altitude_point(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
+        position[b] = x
+    return position, singular
 
 
 def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str,
@@ -206,58 +275,21 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     failed = np.zeros(size, dtype=bool)
     failed[list(errors)] = True
 
-    constrained = batch.constrained
-    altitude = np.where(constrained, batch.altitude_m, 0.0)
-    up_axis = np.zeros((size, 3))
-    up_axis[:, 2] = 1.0
-    up_rhs = altitude.copy()
-
-    def solve(k, weights):
-        weights = np.where(eq.used[k], weights, 0.0)
-        rows, rhs = eq.rows[k], eq.rhs[k]
-        if np.any(constrained[k]):
-            strong = ALTITUDE_ROW_WEIGHT * np.max(weights, axis=-1) * constrained[k]
-            rows = np.concatenate([rows, up_axis[k, None]], axis=1)
-            rhs = np.concatenate([rhs, up_rhs[k, None]], axis=1)
-            weights = np.concatenate([weights, strong[:, None]], axis=1)
-        return _least_squares(rows, rhs, weights)
-
-    position = np.full((size, 3), np.nan)
-    every = np.arange(size)
-    k = _where(~failed)
-    position[k], singular = solve(k, np.ones(eq.used[k].shape))
-    failed[every[k][singular]] = True
-    for _ in range(2):
-        more = ~failed & (weighted | constrained)
-        if not np.any(more):
-            break
-        k = _where(more)
-        bound = constrained[k]
-        if np.any(bound):
-            c = every[k][bound]
-            on_surface = onto_altitude(position[c], altitude[c], batch.origin[c], batch.geodetic[c])
-            up_axis[c] = local_axes(on_surface, batch.origin[c], batch.geodetic[c])[:, 2]
-            up_rhs[c] = last_dot(up_axis[c], on_surface)
-        if weighted:
-            weights = 1.0 / (eq.sigma[k] * np.maximum(eq.noise_scale(position[k], k), MIN_DISTANCE_M))
-        else:
-            weights = np.ones(eq.used[k].shape)
-        position[k], singular = solve(k, weights)
-        failed[every[k][singular]] = True
+    origin_ecef, origin_rotation = frame_placements(batch.origin)
+    position, singular = _positions_kernel(
+        np.ascontiguousarray(eq.rows), np.ascontiguousarray(eq.rhs), np.ascontiguousarray(eq.used),
+        np.ascontiguousarray(eq.sigma), np.ascontiguousarray(eq.stations), np.ascontiguousarray(eq.rotations), failed,
+        np.asarray(batch.altitude_m, dtype=float), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
+        origin_rotation, weighted)
+    failed |= singular
     why = f"{name}: the lines of sight do not determine a point (parallel or too few independent lines)"
     for b in np.flatnonzero(failed):
         errors.setdefault(int(b), UnobservableGeometry(why))
-    position[failed] = np.nan
 
     covariance = np.full((size, 3, 3), np.nan)
-    if not np.all(failed):
+    if with_covariance and not np.all(failed):
         k = _where(~failed)
-        bound = constrained[k]
-        if np.any(bound):
-            c = every[k][bound]
-            position[c] = onto_altitude(position[c], altitude[c], batch.origin[c], batch.geodetic[c])
-        if with_covariance:
-            covariance[k] = _propagated_covariance(eq, k, position[k], bound, batch, weighted)
+        covariance[k] = _propagated_covariance(eq, k, position[k], batch.constrained[k], batch, weighted)
     return Estimates(position_enu_m=position, covariance_source="propagated", covariance_enu_m2=covariance,
                      errors=errors)
 
