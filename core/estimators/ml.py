@@ -386,7 +386,10 @@ def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     The plane is the stations' least-squares plane; with fewer than three stations, or collinear ones, the
     most horizontal plane through them.
     """
-    size = batch.size
+    elevation = np.any(batch.valid & (batch.kinds == ELEVATION), axis=-1)
+    applies = ~batch.constrained & ~elevation
+    if not np.any(applies):
+        return np.full((batch.size, 3), np.nan)
     present = np.arange(batch.stations_enu_m.shape[1])[None, :] < batch.n_stations[:, None]
     centroid = np.sum(np.where(present[..., None], batch.stations_enu_m, 0.0), axis=1) / batch.n_stations[:, None]
     spread, axes, _ = jacobi_svd(np.where(present[..., None], batch.stations_enu_m - centroid[:, None, :], 0.0))
@@ -399,8 +402,6 @@ def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     normal = np.where(flat[:, None], horizontal / np.linalg.norm(horizontal, axis=-1, keepdims=True), normal)
     height = np.einsum("bi,bi->b", positions_enu_m - centroid, normal)
     mirrored = positions_enu_m - 2.0 * height[:, None] * normal
-    elevation = np.any(batch.valid & (batch.kinds == ELEVATION), axis=-1)
-    applies = ~batch.constrained & ~elevation & (size > 0)
     return np.where(applies[:, None], mirrored, np.nan)
 
 
