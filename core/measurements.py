@@ -124,6 +124,46 @@ def _predict_kernel(positions_enu_m, bias_m, stations_enu_m, rotations, kinds):
     return predicted, jacobian
 
 
+@numba.njit(cache=True, nogil=True)
+def toa_offset_point(east_m, north_m, up_m, stations_enu_m, kinds, values, weights):
+    """One problem's weighted-mean TOA emission offset ``b`` (m) at a position: the ``b`` that fits its
+    TOA pseudo-ranges best there (0 without TOA; compiled).
+
+    Parameters
+    ----------
+    east_m, north_m, up_m : float
+    stations_enu_m : ndarray, shape (M, 3)
+    kinds : ndarray of int, shape (M,)
+    values, weights : ndarray, shape (M,)
+        Model units (TOA pseudo-range metres); zero weight on padding.
+    """
+    total = offset = 0.0
+    for m in range(kinds.size):
+        if kinds[m] == TOA and weights[m] > 0.0:
+            s = stations_enu_m[m]
+            distance = math.sqrt((east_m - s[0]) ** 2 + (north_m - s[1]) ** 2 + (up_m - s[2]) ** 2)
+            total += weights[m]
+            offset += weights[m] * (values[m] - distance)
+    return offset / total if total > 0.0 else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def _toa_offsets(positions_enu_m, stations_enu_m, kinds, values, weights):
+    out = np.empty(kinds.shape[0])
+    for b in range(out.size):
+        out[b] = toa_offset_point(positions_enu_m[b, 0], positions_enu_m[b, 1], positions_enu_m[b, 2],
+                                  stations_enu_m[b], kinds[b], values[b], weights[b])
+    return out
+
+
+def toa_offsets(positions_enu_m, stations_enu_m, kinds, values, weights):
+    """:func:`toa_offset_point` of B problems ``(B,)``: positions ``(B, 3)``, measurement stations
+    ``(B, M, 3)``, kinds, values and weights ``(B, M)``."""
+    return _toa_offsets(np.ascontiguousarray(positions_enu_m, dtype=float),
+                        np.ascontiguousarray(stations_enu_m, dtype=float), np.ascontiguousarray(kinds, dtype=np.int64),
+                        np.ascontiguousarray(values, dtype=float), np.ascontiguousarray(weights, dtype=float))
+
+
 class MeasurementModel:
     """The measurement model of B measurement sets: ``h(p, b)`` and its Jacobian.
 

@@ -18,7 +18,7 @@ from core.crlb import gdop, invert_information, normal_matrix, parameterisation,
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_weights
 from core.estimators.result import Estimates, FixBatch, FixWarning
-from core.measurements import Kind, MeasurementModel
+from core.measurements import Kind, MeasurementModel, toa_offsets
 from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
@@ -35,21 +35,6 @@ ILL_CONDITIONED_EIGENVALUE = 1e-6
 DOWNWEIGHTED_FACTOR = 0.1
 #: Pairwise line-of-sight cosines are formed for at most this many entries at once.
 _GRAM_ENTRIES = 1 << 21
-
-
-def optimal_bias_m(weights, values_m, ranges_m, is_toa):
-    """Weighted-mean TOA emission offset ``(B,)`` (metres) given ranges; 0 without TOA.
-
-    Parameters
-    ----------
-    weights, values_m, ranges_m : ndarray, shape (B, M)
-        Model units (TOA pseudo-range metres); zero weight on padding.
-    is_toa : ndarray of bool, shape (B, M)
-    """
-    w = weights * is_toa
-    total = w.sum(axis=-1)
-    safe = np.where(total > 0, total, 1.0)
-    return np.where(total > 0, np.einsum("bm,bm->b", w, values_m - ranges_m) / safe, 0.0)
 
 
 def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: MeasurementModel | None = None,
@@ -88,11 +73,9 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     sigmas = batch.sigmas if estimates.sigmas is None else np.where(present, estimates.sigmas, np.nan)
     weights = batch.weights(sigmas)
     values = batch.model_values()
-    is_toa = valid & (batch.kinds == Kind.TOA)
     bias = estimates.bias_m
     if bias is None:
-        ranges = np.linalg.norm(position[:, None, :] - stations, axis=-1)
-        bias = optimal_bias_m(weights, values, ranges, is_toa)
+        bias = toa_offsets(position, stations, batch.kinds, values, weights)
     predicted, jacobian = model.predict(position, bias)
     unit = batch.unit_scale()
     raw = np.where(present, model.residuals(values, predicted) / unit, 0.0)

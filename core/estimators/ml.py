@@ -52,7 +52,7 @@ from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
 from core.geodesy import enu_to_geodetic
 from core.linalg import jacobi_svd
-from core.measurements import AZIMUTH, ELEVATION, TOA, measure_point
+from core.measurements import AZIMUTH, ELEVATION, measure_point, toa_offset_point
 from core.problem import frame_placements, local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
@@ -167,13 +167,7 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
         x[:] = starts[b]
         if constrained:
             onto_altitude_point(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
-        total = offset = 0.0
-        for m in range(count):
-            if kd[m] == TOA and wt[m] > 0.0:
-                distance = math.sqrt((x[0] - st[m, 0]) ** 2 + (x[1] - st[m, 1]) ** 2 + (x[2] - st[m, 2]) ** 2)
-                total += wt[m]
-                offset += wt[m] * (val[m] - distance)
-        bias = offset / total if total > 0.0 else 0.0
+        bias = toa_offset_point(x[0], x[1], x[2], st, kd, val, wt)
         free[0] = free[1] = 1.0
         free[2] = 0.0 if constrained else 1.0
         free[3] = 1.0 if has_toa[b] else 0.0

@@ -1,0 +1,65 @@
+"""``core.kernels.compile_kernels`` (run at install, image build and in the lifespan) compiles every kernel a
+fix can reach with the argument types the estimators pass, so that no request pays numba's compilation
+(seconds). Checked in a fresh process: after it, a varied workload adds no compiled signature anywhere."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+from tests.service.sessions.helpers import REPO
+
+_WORKLOAD = textwrap.dedent('''
+    import importlib, pkgutil
+    import numpy as np
+    import core
+    from numba.core.registry import CPUDispatcher
+
+    def signatures():
+        out = {}
+        for info in pkgutil.walk_packages(core.__path__, "core."):
+            module = importlib.import_module(info.name)
+            for name, value in vars(module).items():
+                if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__:
+                    out[f"{module.__name__}.{name}"] = len(value.signatures)
+        return out
+
+    from core.kernels import compile_kernels
+    compile_kernels()
+    before = signatures()
+
+    from core.crlb import information_at
+    from core.errors import LocalizationError
+    from core.estimators import REGISTRY, SolveOptions, solve
+    from core.estimators.loss import LOSSES
+    from core.problem import Bearing, GeodeticPoint, Range, TimeOfArrival, build_problem
+
+    rng = np.random.default_rng(5)
+    stations = [(f"s{k}", GeodeticPoint(0.59 + 0.004 * rng.standard_normal(), 1.89 + 0.004 * rng.standard_normal(),
+                                        200.0 * k)) for k in range(5)]
+    bearings = [Bearing(sid, float(rng.uniform(0, 6.28)), float(rng.uniform(0.0, 0.2)), 0.01, 0.01)
+                for sid, _ in stations]
+    azimuths = [Bearing(sid, float(rng.uniform(0, 6.28)), None, 0.01) for sid, _ in stations]
+    mixes = [bearings, azimuths, bearings[:2] + [Range("s0", 3e4, 30.0), Range("s1", 2.5e4, 30.0)],
+             [TimeOfArrival(sid, 1e-5 * k, 1e-8) for k, (sid, _) in enumerate(stations)] + bearings[:1]]
+    for measurements in mixes:
+        for altitude in (None, 3000.0):
+            problem = build_problem(stations, measurements, altitude_m=altitude)
+            information_at(problem, problem.stations_enu_m[0] + 1e4)
+            for method in sorted(REGISTRY):
+                for options in [SolveOptions()] + [SolveOptions(loss=loss) for loss in LOSSES[1:]] * (method == "ml"):
+                    try:
+                        solve(problem, method, options)
+                    except LocalizationError:
+                        pass
+    after = signatures()
+    grew = sorted(name for name in after if after[name] > before.get(name, 0))
+    print("GREW", grew)
+''')
+
+
+def test_no_fix_compiles_a_kernel_after_compile_kernels():
+    run = subprocess.run([sys.executable, "-c", _WORKLOAD], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-4000:]
+    assert "GREW []" in run.stdout, run.stdout[-2000:]
