@@ -120,10 +120,19 @@ def orthogonal_rows(los: LinesOfSight, use_vertical: bool = True, use_horizontal
     return rows, rhs, line, vertical
 
 
-def _distances(seen):
-    """Slant and horizontal distances ``(B, M)`` from station-ENU offsets ``(B, M, 3)``."""
-    horizontal = np.hypot(seen[..., 0], seen[..., 1])
-    return np.hypot(horizontal, seen[..., 2]), horizontal
+@numba.njit(cache=True, nogil=True)
+def _noise_scale(position_enu_m, stations_enu_m, rotations, out):
+    """Each row's noise per unit angle at a position into ``out`` ``(2M,)``: the slant distance for
+    measurement ``m``'s ``c`` row (at ``m``), the horizontal distance for its ``c'`` row (at ``M + m``)."""
+    width = stations_enu_m.shape[0]
+    for m in range(width):
+        rot, st = rotations[m], stations_enu_m[m]
+        dx, dy, dz = position_enu_m[0] - st[0], position_enu_m[1] - st[1], position_enu_m[2] - st[2]
+        e = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
+        n = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
+        u = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        horizontal = math.hypot(e, n)
+        out[m], out[width + m] = math.hypot(horizontal, u), horizontal
 
 
 class _Rows:
@@ -144,12 +153,6 @@ class _Rows:
                                     is_line & (normals is not Normals.ELEVATION_PLANE)], axis=1)
         sigma = np.concatenate([sigma_elevation, np.where(is_line, batch.sigmas, np.nan)], axis=1)
         self.sigma = np.where(np.isfinite(sigma), sigma, 1.0)
-
-    def noise_scale(self, position_enu_m, rows=slice(None)):
-        """Each row's noise per unit angle ``(B, 2M)`` at positions ``(B, 3)``: slant (``c``) or horizontal (``c'``)."""
-        seen = matvec(self.rotations[rows], position_enu_m[:, None, :] - self.stations[rows])
-        slant, horizontal = _distances(seen)
-        return np.concatenate([slant, horizontal], axis=1)
 
 
 def _where(mask):
@@ -181,15 +184,16 @@ def _least_squares(rows, rhs, weights, columns, side, s, v, projected, reflector
 @numba.njit(cache=True, nogil=True)
 def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitude_m, geodetic, origin_ecef_m,
                       origin_rotation, weighted):
-    """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), and which are rank-deficient.
+    """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), which are rank-deficient,
+    and each row's noise per unit angle at the fix (:func:`_noise_scale`; 1 where no fix).
 
     ``rows`` ``(B, 2M, 3)``: measurement ``m``'s ``c`` row at ``m``, its ``c'`` row at ``M + m``; the known
     altitude's up row is the last of the stacked system (zero weight without one).
     """
     size, count, _ = rows.shape
-    width = count // 2
     position = np.full((size, 3), np.nan)
     singular = np.zeros(size, dtype=np.bool_)
+    scale = np.ones((size, count))
     stacked, right, w = np.zeros((count + 1, 3)), np.zeros(count + 1), np.zeros(count + 1)
     columns, side = np.empty((3, count + 1)), np.empty((1, count + 1))
     s, v, projected = np.empty(3), np.empty((3, 3)), np.empty((3, 1))
@@ -216,18 +220,10 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
                     local_axes_point(point, geodetic[b], origin_ecef_m[b], origin_rotation[b], work, axes)
                     stacked[count] = axes[2]
                     right[count] = axes[2, 0] * point[0] + axes[2, 1] * point[1] + axes[2, 2] * point[2]
-                for m in range(width):
-                    if weighted:
-                        rot, st = rotations[b, m], stations[b, m]
-                        dx, dy, dz = x[0] - st[0], x[1] - st[1], x[2] - st[2]
-                        e = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
-                        n = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
-                        u = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
-                        horizontal = math.hypot(e, n)
-                        slant = math.hypot(horizontal, u)
-                        w[m] = 1.0 / (sigma[b, m] * max(slant, MIN_DISTANCE_M)) if used[b, m] else 0.0
-                        w[width + m] = 1.0 / (sigma[b, width + m] * max(horizontal, MIN_DISTANCE_M)) \
-                            if used[b, width + m] else 0.0
+                if weighted:
+                    _noise_scale(x, stations[b], rotations[b], scale[b])
+                    for r in range(count):
+                        w[r] = 1.0 / (sigma[b, r] * max(scale[b, r], MIN_DISTANCE_M)) if used[b, r] else 0.0
             strongest = 0.0
             for r in range(count):
                 strongest = max(strongest, w[r])
@@ -241,7 +237,8 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
         if constrained:
             onto_altitude_point(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
         position[b] = x
-    return position, singular
+        _noise_scale(x, stations[b], rotations[b], scale[b])
+    return position, singular, scale
 
 
 def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str,
@@ -276,7 +273,7 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     failed[list(errors)] = True
 
     origin_ecef, origin_rotation = frame_placements(batch.origin)
-    position, singular = _positions_kernel(
+    position, singular, scale = _positions_kernel(
         np.ascontiguousarray(eq.rows), np.ascontiguousarray(eq.rhs), np.ascontiguousarray(eq.used),
         np.ascontiguousarray(eq.sigma), np.ascontiguousarray(eq.stations), np.ascontiguousarray(eq.rotations), failed,
         np.asarray(batch.altitude_m, dtype=float), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
@@ -289,19 +286,19 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     covariance = np.full((size, 3, 3), np.nan)
     if with_covariance and not np.all(failed):
         k = _where(~failed)
-        covariance[k] = _propagated_covariance(eq, k, position[k], batch.constrained[k], batch, weighted)
+        covariance[k] = _propagated_covariance(eq, k, position[k], scale[k], batch.constrained[k], batch, weighted)
     return Estimates(position_enu_m=position, covariance_source="propagated", covariance_enu_m2=covariance,
                      errors=errors)
 
 
-def _propagated_covariance(eq: _Rows, k, position_enu_m, bound, batch: ProblemBatch, weighted: bool):
-    """First-order covariance ``(K, 3, 3)`` of problems ``k`` at their fixes (see the module docstring).
+def _propagated_covariance(eq: _Rows, k, position_enu_m, scale, bound, batch: ProblemBatch, weighted: bool):
+    """First-order covariance ``(K, 3, 3)`` of problems ``k`` at their fixes (see the module docstring), given
+    each row's noise per unit angle there ``scale`` ``(K, 2M)``.
 
     A problem with a known altitude is solved over its local east/north
     axes: its rows are expressed in the local axes and the up column is
     zeroed (a zero singular value, dropped like ``np.linalg.pinv`` drops it).
     """
-    scale = eq.noise_scale(position_enu_m, k)
     used = eq.used[k]
     noise_sd = eq.sigma[k] * scale
     if weighted:
