@@ -42,3 +42,6 @@ def compile_kernels() -> None:
             except LocalizationError:
                 pass
     solve(problems[0], "ml", SolveOptions(loss="huber"))
+    from core.tracking import unscented
+
+    unscented.compile_kernels()
