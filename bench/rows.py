@@ -601,8 +601,8 @@ def filter_step_row(repeats: int = 9) -> Row:
                 + ("; filterpy: 7-state joint UKF (position, velocity, period error) with the raw (B, E, dTOA, "
                    "Bdot), Merwe points, the same epochs; the step includes core's input validation and immutable "
                    "state."),
-                f"Before that, joint_ukf runs its range mixture (epochs {mixture[0]}-{mixture[-1]} here): "
-                f"{median['mixture'] * 1e6:,.0f} us per step, {ratio['mixture']:.2f}x filterpy's step (not judged)."])
+                (f"Before that, joint_ukf runs its range mixture (epochs {mixture[0]}-{mixture[-1]} here): "
+                 f"{median['mixture'] * 1e6:,.0f} us per step, {ratio['mixture']:.2f}x filterpy's step (not judged).")])
 
 
 def evaluation_throughput_row(trials: int = 20_000, chunk_trials: int = 1_000) -> Row:
