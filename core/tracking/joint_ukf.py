@@ -25,7 +25,7 @@ strongly nonlinear map.
   The joint UKF then borrows the velocity method's range to start with.
 - ``"range_mixture"`` (the default): at the first epoch, one such UKF per
   range sub-interval of ``range_min_m`` .. ``range_max_m``, a Gaussian sum
-  reweighted by each update's innovation density, pruned and merged
+  reweighted by each update's innovation density and pruned
   (:mod:`core.tracking.range_mixture`; stage ``"mixture"``) until one is left.
 
 From then on one UKF runs (:func:`joint_epoch`), or, with
@@ -130,7 +130,7 @@ def _mixture_start(state: TrackState, values, config: TrackerConfig) -> TrackSta
 def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple) -> TrackState:
     """One epoch of the Gaussian sum: (with IMM modes, the modes of each range component mixed first) every
     component updated with the same pulse count, reweighted by its innovation density, range components
-    pruned and merged; a single survivor continues as the joint UKF or the IMM (see :mod:`range_mixture`)."""
+    pruned; a single survivor continues as the joint UKF or the IMM (see :mod:`range_mixture`)."""
     time_s, azimuth, elevation, rate, toa_s = values
     dt_s, dtoa_s = time_s - state.time_s, toa_s - state.toa_s
     period_s = state.pulse_period_s
@@ -161,7 +161,6 @@ def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: t
     means = np.array([r.mean for r in results]).reshape(-1, modes, size)[kept]
     covariances = np.array([r.cov for r in results]).reshape(-1, modes, size, size)[kept]
     covariances = 0.5 * (covariances + np.swapaxes(covariances, -1, -2))
-    weights, means, covariances = range_mixture.merge_neighbours(weights, means, covariances)
     if weights.shape[0] == 1 and modes > 1:
         weights = imm.floored(weights[0] / weights[0].sum())
         means, covariances = means[0], covariances[0]
