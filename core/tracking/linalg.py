@@ -1,4 +1,4 @@
-"""The session filters' small dense linear algebra: Cholesky factor, repair, symmetrise."""
+"""The session filters' small dense linear algebra: Cholesky factor, triangular inverse, repair, symmetrise."""
 
 from __future__ import annotations
 
@@ -51,6 +51,22 @@ def cholesky_into(matrix, factor):
                 total -= factor[i, k] * factor[j, k]
             factor[i, j] = total / diagonal
     return True
+
+
+@numba.njit(cache=True, nogil=True)
+def lower_inverse_into(factor, inverse):
+    """Write the inverse of the lower-triangular ``factor`` (``(n, n)``, its diagonal nonzero) into
+    ``inverse`` (the upper triangle zeroed); row by row, each sum added in index order."""
+    n = factor.shape[0]
+    for i in range(n):
+        inverse[i, i] = 1.0 / factor[i, i]
+        for j in range(i):
+            total = 0.0
+            for k in range(j, i):
+                total += factor[i, k] * inverse[k, j]
+            inverse[i, j] = -total * inverse[i, i]
+        for j in range(i + 1, n):
+            inverse[i, j] = 0.0
 
 
 def cholesky_repaired(cov):

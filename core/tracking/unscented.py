@@ -21,13 +21,19 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
-from core.tracking.linalg import cholesky_into, symmetrized
+from core.tracking.linalg import cholesky_into, lower_inverse_into, symmetrized
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi
 #: Chi-square 99.9 % points for 2, 3 and 4 degrees of freedom: a normalised innovation squared above
 #: them raises ``innovation_outlier``.
 NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
+
+
+@numba.njit(cache=True, nogil=True)
+def _wrapped(angle_rad):
+    """``angle_rad`` wrapped into ``[-pi, pi)``."""
+    return (angle_rad + PI) % TWO_PI - PI
 
 
 def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elevation_rad: float,
@@ -179,21 +185,6 @@ def polar_transform(mean, position_cov, step1_position, pseudo, azimuth_rad: flo
 
 
 @numba.njit(cache=True, nogil=True)
-def _lower_inverse(factor, inverse):
-    """``inverse`` = the inverse of the lower-triangular ``factor`` (upper triangle zeroed)."""
-    n = factor.shape[0]
-    for i in range(n):
-        inverse[i, i] = 1.0 / factor[i, i]
-        for j in range(i):
-            total = 0.0
-            for k in range(j, i):
-                total += factor[i, k] * inverse[k, j]
-            inverse[i, j] = -total * inverse[i, i]
-        for j in range(i + 1, n):
-            inverse[i, j] = 0.0
-
-
-@numba.njit(cache=True, nogil=True)
 def _polar_kernel(position, position_cov, step1_position, range_terms, with_range, azimuth_rad, elevation_rad,
                   var_azimuth, var_elevation, to_innovation, from_angles, whitened):
     """:func:`polar_transform`: writes its three arrays and returns ``(status, nis)``, status 0, or 1 (2) when
@@ -212,7 +203,7 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
     chol, inverse = np.empty((3, 3)), np.empty((3, 3))
     if not cholesky_into(position_cov, chol):
         return 1, 0.0
-    _lower_inverse(chol, inverse)
+    lower_inverse_into(chol, inverse)
     x0, y0, z0 = position[0], position[1], position[2]
     rho0 = math.sqrt(x0 * x0 + y0 * y0)
     r0 = math.sqrt(rho0 * rho0 + z0 * z0)
@@ -280,7 +271,7 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
     innovation_chol, k = np.empty((rows, rows)), np.empty((rows, rows))
     if not cholesky_into(s[first:, first:], innovation_chol):
         return 2, 0.0
-    _lower_inverse(innovation_chol, k)
+    lower_inverse_into(innovation_chol, k)
     nis = 0.0
     for i in range(rows):
         total = 0.0
@@ -311,12 +302,6 @@ _THREE = np.array([0, 1, 2])
 #: :func:`joint_ukf_kernel`'s outcome per state: updated; the predicted covariance, the innovation covariance
 #: or the updated covariance not positive definite; the update not finite.
 UPDATED, PREDICTED_NOT_PD, INNOVATION_NOT_PD, UPDATED_NOT_PD, NOT_FINITE = range(5)
-
-
-@numba.njit(cache=True, nogil=True)
-def _wrapped(angle_rad):
-    """``angle_rad`` wrapped into ``[-pi, pi)``."""
-    return (angle_rad + PI) % TWO_PI - PI
 
 
 @numba.njit(cache=True, nogil=True)

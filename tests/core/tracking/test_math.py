@@ -16,7 +16,7 @@ from core.tracking.config import SPEED_OF_LIGHT_MPS
 from core.tracking.joint_ukf import joint_epoch
 from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, initial_position_state,
                                      line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
-from core.tracking.linalg import EIGENVALUE_FLOOR, cholesky_lower, repaired_block, symmetrized
+from core.tracking.linalg import EIGENVALUE_FLOOR, cholesky_lower, lower_inverse_into, repaired_block, symmetrized
 from core.tracking.motion import constant_velocity_predict, transition
 from core.tracking.unscented import polar_update
 from core.simulation.tracking import paper_config
@@ -344,7 +344,7 @@ def test_joint_epoch_is_the_prediction_then_the_brute_force_transform(period_kno
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 4, 5, 8])
-def test_cholesky_lower_is_numpys_factor_and_refuses_an_indefinite_or_nan_matrix(size):
+def test_cholesky_and_triangular_inverse_are_numpys_and_refuse_an_indefinite_or_nan_matrix(size):
     rng = np.random.default_rng(size)
     a = rng.normal(size=(size, size))
     scale = np.logspace(0, 6, size)
@@ -352,6 +352,10 @@ def test_cholesky_lower_is_numpys_factor_and_refuses_an_indefinite_or_nan_matrix
     got = cholesky_lower(matrix)
     np.testing.assert_array_equal(got, np.tril(got))
     np.testing.assert_allclose(got / scale[:, None], np.linalg.cholesky(matrix) / scale[:, None], rtol=0, atol=1e-12)
+    inverse = np.full((size, size), np.nan)
+    lower_inverse_into(got, inverse)
+    np.testing.assert_array_equal(inverse, np.tril(inverse))
+    np.testing.assert_allclose(inverse * scale[None, :], np.linalg.inv(got) * scale[None, :], rtol=0, atol=1e-12)
     indefinite = matrix.copy()
     indefinite[-1, -1] = -1.0
     assert cholesky_lower(indefinite) is None
