@@ -48,7 +48,7 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
                                      ToaEpoch, count_pulses, fresh_toa_reference, initial_position_state,
                                      line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
 from core.tracking.state import TrackState, freeze, symmetric
-from core.tracking.linalg import cholesky_repaired
+from core.tracking.linalg import cholesky_repaired, symmetrized
 from core.tracking.motion import constant_velocity_predict, transition
 from core.tracking.unscented import (INNOVATION_NOT_PD, NIS_LIMIT, NOT_FINITE, PREDICTED_NOT_PD, UPDATED_NOT_PD,
                                      joint_ukf_kernel)
@@ -222,7 +222,7 @@ class JointEpoch(NamedTuple):
     ----------
     mean : list of F floats
     cov : ndarray, shape (F, F)
-        Symmetric to rounding.
+        Exactly symmetric.
     period_s : float
         Period estimate, the period error folded in (unless ``fold_period`` was False).
     log_likelihood : float
@@ -288,8 +288,8 @@ def joint_epoch(mean, cov, period_s: float, dt_s: float, dtoa_s: float, azimuth:
     result, = joint_epochs(np.array((mean,)), cov[None], (accel,), period_s, dt_s, dtoa_s, azimuth,
                            elevation, rate, config, count)
     if fold_period and len(mean) == 8 and result.log_likelihood > -math.inf:
-        result.mean[6], period_s = 0.0, period_s + result.mean[6] / C
-        return result._replace(period_s=period_s)
+        folded, period_s = range_mixture.fold_period(result.mean, period_s, False)
+        return result._replace(mean=folded, period_s=period_s)
     return result
 
 
@@ -392,7 +392,7 @@ def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, 
         for i in range(m):
             x, p = constant_velocity_predict(means[i].tolist(), covariances[i], dt_s, accel_sigmas_mps2[i] ** 2,
                                              (3,), True)
-            x, p = fresh_toa_reference(x, p, config)
+            x, p = fresh_toa_reference(x, symmetrized(p), config)
             results.append(JointEpoch(x, p, period_s, -math.inf, tuple(count_warnings) + (
                 ("numerical_failure", f"the update failed ({error})"),)))
         return results
