@@ -160,7 +160,6 @@ def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: t
     weights = weights / weights.sum()
     means = np.array([r.mean for r in results]).reshape(-1, modes, size)[kept]
     covariances = np.array([r.cov for r in results]).reshape(-1, modes, size, size)[kept]
-    covariances = 0.5 * (covariances + np.swapaxes(covariances, -1, -2))
     if weights.shape[0] == 1 and modes > 1:
         weights = imm.floored(weights[0] / weights[0].sum())
         means, covariances = means[0], covariances[0]
@@ -205,7 +204,6 @@ def _imm_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple
     warnings = warnings + results[int(np.argmax(weights))].warnings
     means = np.array([r.mean for r in results])
     covariances = np.array([r.cov for r in results])
-    covariances = 0.5 * (covariances + np.swapaxes(covariances, 1, 2))
     if not config.period_known:
         shared = float(weights @ means[:, 6])
         period_s += shared / C
