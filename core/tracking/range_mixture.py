@@ -72,12 +72,13 @@ def components_of(weights, means, covariances) -> Components:
 
 
 def reweighted(weights: np.ndarray, log_likelihoods: np.ndarray) -> np.ndarray:
-    """Posterior weights ``(M,)`` (zero for a failed update's ``-inf``), or None when every update failed."""
-    finite = np.isfinite(log_likelihoods)
-    if not finite.any():
+    """Posterior weights ``(M,)`` from log-likelihoods that are finite or ``-inf`` (a failed update: weight
+    zero), or None when every update failed."""
+    log_w = np.log(weights) + log_likelihoods
+    top = log_w.max()
+    if top == -np.inf:
         return None
-    log_w = np.where(finite, np.log(weights) + np.where(finite, log_likelihoods, 0.0), -np.inf)
-    w = np.exp(log_w - log_w.max())
+    w = np.exp(log_w - top)
     return w / w.sum()
 
 
