@@ -544,8 +544,11 @@ def filter_step_row(repeats: int = 9) -> Row:
         runs[model] = (history, config)
     # Steady state: from the first epoch after which both models stay in "tracking" (joint_ukf's range
     # mixture has collapsed to one UKF).
-    start = max(next(i for i in range(len(history)) if all(s.stage == "tracking" for s in history[i:]))
-                for history, _ in runs.values())
+    start = max(next((i for i in range(len(history)) if all(s.stage == "tracking" for s in history[i:])),
+                     len(history)) for history, _ in runs.values())
+    if start >= len(track.epochs) - 5:
+        return Row(5, what, "not measured", "-", "-", target, "not measured",
+                   [f"a model is not in its steady stage (\"tracking\") by epoch {len(track.epochs) - 5}"])
     rest = track.epochs[start:]
     passes = max(1, 200 // len(rest))
     mixture = [i for i, s in enumerate(runs["joint_ukf"][0][:start]) if s.stage == "mixture"]
