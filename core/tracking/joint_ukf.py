@@ -50,8 +50,8 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
 from core.tracking.state import TrackState, freeze, symmetric
 from core.tracking.linalg import cholesky_repaired, symmetrized
 from core.tracking.motion import constant_velocity_predict, transition
-from core.tracking.unscented import (INNOVATION_NOT_PD, NIS_LIMIT, NOT_FINITE, PREDICTED_NOT_PD, UPDATED_NOT_PD,
-                                     joint_ukf_kernel)
+from core.tracking.unscented import (INNOVATION_NOT_PD, NIS_LIMIT, NOT_FINITE, PREDICTED_NOT_PD, UPDATED,
+                                     UPDATED_NOT_PD, joint_ukf_kernel)
 
 
 def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
@@ -148,18 +148,18 @@ def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: t
         prior_weights = prior.ravel()
     else:
         prior_weights = weights[:, 0]
-    results = joint_epochs(means.reshape(-1, size), covariances.reshape(-1, size, size), levels * weights.shape[0],
-                           period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count)
-    posterior = range_mixture.reweighted(prior_weights, np.array([r.log_likelihood for r in results]))
+    batch = joint_epochs(means.reshape(-1, size), covariances.reshape(-1, size, size), levels * weights.shape[0],
+                         period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count)
+    posterior = range_mixture.reweighted(prior_weights, batch.log_likelihoods)
     if posterior is None:
         posterior = prior_weights
-    warnings = warnings + results[int(np.argmax(posterior))].warnings
+    warnings = warnings + batch.warnings[int(np.argmax(posterior))]
     weights = posterior.reshape(-1, modes)
     kept = range_mixture.pruned(weights.sum(axis=1))
     weights = np.array([imm.floored(w) * w.sum() for w in weights[kept]]) if modes > 1 else weights[kept]
     weights = weights / weights.sum()
-    means = np.array([r.mean for r in results]).reshape(-1, modes, size)[kept]
-    covariances = np.array([r.cov for r in results]).reshape(-1, modes, size, size)[kept]
+    means = batch.means.reshape(-1, modes, size)[kept]
+    covariances = batch.covariances.reshape(-1, modes, size, size)[kept]
     if weights.shape[0] == 1 and modes > 1:
         weights = imm.floored(weights[0] / weights[0].sum())
         means, covariances = means[0], covariances[0]
@@ -195,15 +195,14 @@ def _imm_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple
     prior, start_means, start_covs = imm.mixed(parts.weights, parts.means, parts.covariances,
                                                imm.switching_matrix(len(levels), dt_s, config.imm_mean_sojourn_s))
     count = predicted_pulse_count(state.mean.tolist(), period_s, dt_s, dtoa_s)
-    results = joint_epochs(start_means, start_covs, levels, period_s, dt_s, dtoa_s, azimuth, elevation, rate,
-                           config, count)
-    weights = range_mixture.reweighted(prior, np.array([r.log_likelihood for r in results]))
+    batch = joint_epochs(start_means, start_covs, levels, period_s, dt_s, dtoa_s, azimuth, elevation, rate,
+                         config, count)
+    weights = range_mixture.reweighted(prior, batch.log_likelihoods)
     if weights is None:
         weights = prior
     weights = imm.floored(weights)
-    warnings = warnings + results[int(np.argmax(weights))].warnings
-    means = np.array([r.mean for r in results])
-    covariances = np.array([r.cov for r in results])
+    warnings = warnings + batch.warnings[int(np.argmax(weights))]
+    means, covariances = batch.means, batch.covariances
     if not config.period_known:
         shared = float(weights @ means[:, 6])
         period_s += shared / C
@@ -234,6 +233,25 @@ class JointEpoch(NamedTuple):
     period_s: float
     log_likelihood: float
     warnings: tuple
+
+
+class JointEpochs(NamedTuple):
+    """One epoch of ``M`` joint states (:func:`joint_epochs`), the period error not folded.
+
+    Attributes
+    ----------
+    means : ndarray, shape (M, F)
+    covariances : ndarray, shape (M, F, F)
+        Exactly symmetric.
+    log_likelihoods : ndarray, shape (M,)
+        As :attr:`JointEpoch.log_likelihood`.
+    warnings : list of M tuples of (str, str)
+    """
+
+    means: np.ndarray
+    covariances: np.ndarray
+    log_likelihoods: np.ndarray
+    warnings: list
 
 
 def pulse_count(mean, period_s: float, dt_s: float, dtoa_s: float):
@@ -283,12 +301,12 @@ def joint_epoch(mean, cov, period_s: float, dt_s: float, dtoa_s: float, azimuth:
     if count is None:
         count = predicted_pulse_count(mean, period_s, dt_s, dtoa_s)
     accel = config.accel_sigma_mps2 if accel_sigma_mps2 is None else accel_sigma_mps2
-    result, = joint_epochs(np.array((mean,)), cov[None], (accel,), period_s, dt_s, dtoa_s, azimuth,
-                           elevation, rate, config, count)
-    if fold_period and len(mean) == 8 and result.log_likelihood > -math.inf:
-        folded, period_s = range_mixture.fold_period(result.mean, period_s, False)
-        return result._replace(mean=folded, period_s=period_s)
-    return result
+    batch = joint_epochs(np.array((mean,)), cov[None], (accel,), period_s, dt_s, dtoa_s, azimuth, elevation, rate,
+                         config, count)
+    mean, log_likelihood = batch.means[0].tolist(), float(batch.log_likelihoods[0])
+    if fold_period and len(mean) == 8 and log_likelihood > -math.inf:
+        mean, period_s = range_mixture.fold_period(mean, period_s, False)
+    return JointEpoch(mean, batch.covariances[0], period_s, log_likelihood, batch.warnings[0])
 
 
 def predicted_pulse_count(mean, period_s: float, dt_s: float, dtoa_s: float):
@@ -362,8 +380,7 @@ def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, 
 
     Returns
     -------
-    list of JointEpoch
-        One per state (``period_s`` unchanged).
+    JointEpochs
     """
     m, f = means.shape
     n_pulses, use_toa, count_warnings = count
@@ -383,41 +400,49 @@ def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, 
                          bool(use_toa), measured, variances, new_means[i:j], new_covs[i:j], nis[i:j], log_det[i:j],
                          status[i:j])
 
-    results = []
+    log_likelihoods = np.full(m, -math.inf)
+    warnings = [tuple(count_warnings)] * m
     try:
         update(0, m, True)
     except (ArithmeticError, ValueError, np.linalg.LinAlgError) as error:
         for i in range(m):
             x, p = constant_velocity_predict(means[i].tolist(), covariances[i], dt_s, accel_sigmas_mps2[i] ** 2,
                                              (3,), True)
-            x, p = fresh_toa_reference(x, symmetrized(p), config)
-            results.append(JointEpoch(x, p, period_s, -math.inf, tuple(count_warnings) + (
-                ("numerical_failure", f"the update failed ({error})"),)))
-        return results
+            new_means[i], new_covs[i] = fresh_toa_reference(x, symmetrized(p), config)
+            warnings[i] = tuple(count_warnings) + (("numerical_failure", f"the update failed ({error})"),)
+        return JointEpochs(new_means, new_covs, log_likelihoods, warnings)
     dof = 4 if use_toa else 3
-    for i in range(m):
-        warnings = list(count_warnings)
-        if status[i] == PREDICTED_NOT_PD:
+    for i, outcome in enumerate(status.tolist()):
+        if outcome == UPDATED:
+            if nis[i] > NIS_LIMIT[dof]:
+                warnings[i] = tuple(count_warnings) + (_outlier(nis[i], dof),)
+            log_likelihoods[i] = -0.5 * (nis[i] + log_det[i])
+            continue
+        found = list(count_warnings)
+        if outcome == PREDICTED_NOT_PD:
             _, predicted_covs[i], _ = cholesky_repaired(predicted_covs[i])
-            warnings.append(("covariance_repaired", "predicted covariance was not positive definite"))
+            found.append(("covariance_repaired", "predicted covariance was not positive definite"))
             update(i, i + 1, False)
-        if status[i] == INNOVATION_NOT_PD:
-            x, p = fresh_toa_reference(predicted_means[i].tolist(), predicted_covs[i], config)
-            results.append(JointEpoch(x, p, period_s, -math.inf, tuple(warnings) + (
-                ("numerical_failure", "the update failed (innovation covariance is not positive definite)"),)))
-            continue
-        if nis[i] > NIS_LIMIT[dof]:
-            warnings.append(("innovation_outlier", f"normalised innovation squared {nis[i]:.1f} on {dof} degrees "
-                                                   "of freedom: a manoeuvre or a bad measurement"))
-        if status[i] == NOT_FINITE:
-            x, p = fresh_toa_reference(predicted_means[i].tolist(), predicted_covs[i], config)
-            results.append(JointEpoch(x, p, period_s, -math.inf, tuple(warnings) + (
-                ("numerical_failure", "the update was not finite and was skipped"),)))
-            continue
-        p = new_covs[i]
-        if status[i] == UPDATED_NOT_PD:
-            _, p, _ = cholesky_repaired(p)
-            warnings.append(("covariance_repaired", "updated covariance was not positive definite"))
-        results.append(JointEpoch(new_means[i].tolist(), p, period_s, -0.5 * (nis[i] + log_det[i]),
-                                  tuple(warnings)))
-    return results
+            outcome = int(status[i])
+        if outcome in (PREDICTED_NOT_PD, INNOVATION_NOT_PD):
+            which = "predicted" if outcome == PREDICTED_NOT_PD else "innovation"
+            found.append(("numerical_failure", f"the update failed ({which} covariance is not positive definite)"))
+        else:
+            if nis[i] > NIS_LIMIT[dof]:
+                found.append(_outlier(nis[i], dof))
+            if outcome == NOT_FINITE:
+                found.append(("numerical_failure", "the update was not finite and was skipped"))
+            else:
+                log_likelihoods[i] = -0.5 * (nis[i] + log_det[i])
+                if outcome == UPDATED_NOT_PD:
+                    _, new_covs[i], _ = cholesky_repaired(new_covs[i])
+                    found.append(("covariance_repaired", "updated covariance was not positive definite"))
+        if log_likelihoods[i] == -math.inf:
+            new_means[i], new_covs[i] = fresh_toa_reference(predicted_means[i].tolist(), predicted_covs[i], config)
+        warnings[i] = tuple(found)
+    return JointEpochs(new_means, new_covs, log_likelihoods, warnings)
+
+
+def _outlier(nis: float, dof: int):
+    return ("innovation_outlier", f"normalised innovation squared {nis:.1f} on {dof} degrees of freedom: a "
+                                  "manoeuvre or a bad measurement")

@@ -123,8 +123,8 @@ def test_the_batched_update_equals_one_joint_epoch_per_component(period_known, u
         one = joint_epoch(mean, cov, state.pulse_period_s, dt, dtoa, *measured, config, count, fold_period=False,
                           accel_sigma_mps2=levels[i])
         scale = np.sqrt(np.diag(one.cov))
-        np.testing.assert_allclose(np.array(batch[i].mean) / scale, np.array(one.mean) / scale, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(batch[i].cov / np.outer(scale, scale), one.cov / np.outer(scale, scale), rtol=0,
-                                   atol=1e-12)
-        assert batch[i].log_likelihood == pytest.approx(one.log_likelihood, rel=1e-12, abs=1e-12)
-        assert batch[i].warnings == one.warnings
+        np.testing.assert_allclose(batch.means[i] / scale, np.array(one.mean) / scale, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch.covariances[i] / np.outer(scale, scale), one.cov / np.outer(scale, scale),
+                                   rtol=0, atol=1e-12)
+        assert batch.log_likelihoods[i] == pytest.approx(one.log_likelihood, rel=1e-12, abs=1e-12)
+        assert batch.warnings[i] == one.warnings
