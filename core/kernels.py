@@ -21,6 +21,7 @@ def compile_kernels() -> None:
     from core.errors import LocalizationError
     from core.estimators import REGISTRY, SolveOptions, solve
     from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
+    from core.tracking import unscented
 
     local = [(name, LocalPoint(east, north, 0.0)) for name, east, north in
              (("a", 0.0, 0.0), ("b", 10_000.0, 0.0), ("c", 0.0, 10_000.0), ("d", 10_000.0, 10_000.0))]
@@ -42,3 +43,4 @@ def compile_kernels() -> None:
             except LocalizationError:
                 pass
     solve(problems[0], "ml", SolveOptions(loss="huber"))
+    unscented.compile_kernels()

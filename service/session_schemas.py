@@ -78,8 +78,8 @@ class SessionCreate(Strict):
                                                   "error fed with the raw measurements, started over 10-400 km as a "
                                                   "range-parameterised Gaussian sum; it is the default because it is "
                                                   "at the bound: on paper 001's geometry (truths from the model, "
-                                                  "RMSE over the last 50 of 200 s) 1.01x the posterior CRLB at "
-                                                  "accel_sigma 0.05 m/s^2 and 1.13-1.21x at 0.5 (200 runs), where "
+                                                  "RMSE over the last 50 of 200 s) 1.01-1.02x the posterior CRLB at "
+                                                  "accel_sigma 0.05 m/s^2 and 1.02-1.04x at 0.5 (200 runs), where "
                                                   "velocity_kinematic is 1.3-2.3x. velocity_kinematic: paper 001's "
                                                   "method (velocity from TOA differences, range from the azimuth "
                                                   "rate, UKF on position)")

@@ -104,12 +104,12 @@ class TrackerConfig:
         ``joint_ukf`` only: where its first range comes from.
         ``"range_mixture"`` (default): from the first epoch, a Gaussian sum of
         joint UKFs over ``range_min_m`` .. ``range_max_m`` (sub-intervals of
-        ratio 1.5, see :mod:`core.tracking.range_mixture`), reweighted by each
-        one's innovation density, pruned and merged until one is left. On paper
+        ratio 2, see :mod:`core.tracking.range_mixture`), reweighted by each
+        one's innovation density and pruned until one is left. On paper
         001's geometry, with truths drawn from the filter's own model, its
-        position RMSE over the last 50 of 200 s is 1.01x the posterior CRLB
-        (:mod:`core.tracking.bound`) at q = 0.05 m/s^2 and 1.13x / 1.21x
-        (known / unknown period) at 0.5, 200 runs, with a consistent NEES
+        position RMSE over the last 50 of 200 s is 1.02x / 1.01x (known /
+        unknown period) the posterior CRLB (:mod:`core.tracking.bound`) at
+        q = 0.05 m/s^2 and 1.02x / 1.04x at 0.5, 200 runs, with a consistent NEES
         (``tests/core/tracking/test_at_the_bound.py`` has the table).
         ``"kinematic"``: from the first range that ``velocity_kinematic``'s
         steps 1-2 give (the state is ``velocity`` until then); the joint UKF

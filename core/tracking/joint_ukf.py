@@ -25,7 +25,7 @@ strongly nonlinear map.
   The joint UKF then borrows the velocity method's range to start with.
 - ``"range_mixture"`` (the default): at the first epoch, one such UKF per
   range sub-interval of ``range_min_m`` .. ``range_max_m``, a Gaussian sum
-  reweighted by each update's innovation density, pruned and merged
+  reweighted by each update's innovation density and pruned
   (:mod:`core.tracking.range_mixture`; stage ``"mixture"``) until one is left.
 
 From then on one UKF runs (:func:`joint_epoch`), or, with
@@ -48,11 +48,10 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
                                      ToaEpoch, count_pulses, fresh_toa_reference, initial_position_state,
                                      line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
 from core.tracking.state import TrackState, freeze, symmetric
-from core.tracking.linalg import cholesky_repaired, inverse_cholesky
+from core.tracking.linalg import cholesky_repaired, symmetrized
 from core.tracking.motion import constant_velocity_predict, transition
-from core.tracking.unscented import NIS_LIMIT, TWO_PI
-
-_WITHOUT_TOA = np.array([0, 1, 3])
+from core.tracking.unscented import (INNOVATION_NOT_PD, NIS_LIMIT, NOT_FINITE, PREDICTED_NOT_PD, UPDATED,
+                                     UPDATED_NOT_PD, joint_ukf_kernel)
 
 
 def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
@@ -131,15 +130,13 @@ def _mixture_start(state: TrackState, values, config: TrackerConfig) -> TrackSta
 def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple) -> TrackState:
     """One epoch of the Gaussian sum: (with IMM modes, the modes of each range component mixed first) every
     component updated with the same pulse count, reweighted by its innovation density, range components
-    pruned and merged; a single survivor continues as the joint UKF or the IMM (see :mod:`range_mixture`)."""
+    pruned; a single survivor continues as the joint UKF or the IMM (see :mod:`range_mixture`)."""
     time_s, azimuth, elevation, rate, toa_s = values
     dt_s, dtoa_s = time_s - state.time_s, toa_s - state.toa_s
     period_s = state.pulse_period_s
     levels = _levels(config)
     modes = len(levels)
-    merged = state.mean.tolist()
-    predicted = [merged[i] + dt_s * merged[i + 3] for i in range(3)] + merged[3:]
-    count = pulse_count(predicted, period_s + (0.0 if config.period_known else merged[6] / C), dt_s, dtoa_s)
+    count = predicted_pulse_count(state.mean.tolist(), period_s, dt_s, dtoa_s)
     parts = state.components
     size = parts.means.shape[1]
     weights = parts.weights.reshape(-1, modes)
@@ -151,20 +148,18 @@ def _mixture_epoch(state: TrackState, values, config: TrackerConfig, warnings: t
         prior_weights = prior.ravel()
     else:
         prior_weights = weights[:, 0]
-    results = joint_epochs(means.reshape(-1, size), covariances.reshape(-1, size, size), levels * weights.shape[0],
-                           period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count)
-    posterior = range_mixture.reweighted(prior_weights, np.array([r.log_likelihood for r in results]))
+    batch = joint_epochs(means.reshape(-1, size), covariances.reshape(-1, size, size), levels * weights.shape[0],
+                         period_s, dt_s, dtoa_s, azimuth, elevation, rate, config, count)
+    posterior = range_mixture.reweighted(prior_weights, batch.log_likelihoods)
     if posterior is None:
         posterior = prior_weights
-    warnings = warnings + results[int(np.argmax(posterior))].warnings
+    warnings = warnings + batch.warnings[int(np.argmax(posterior))]
     weights = posterior.reshape(-1, modes)
     kept = range_mixture.pruned(weights.sum(axis=1))
     weights = np.array([imm.floored(w) * w.sum() for w in weights[kept]]) if modes > 1 else weights[kept]
     weights = weights / weights.sum()
-    means = np.array([r.mean for r in results]).reshape(-1, modes, size)[kept]
-    covariances = np.array([r.cov for r in results]).reshape(-1, modes, size, size)[kept]
-    covariances = 0.5 * (covariances + np.swapaxes(covariances, -1, -2))
-    weights, means, covariances = range_mixture.merge_neighbours(weights, means, covariances)
+    means = batch.means.reshape(-1, modes, size)[kept]
+    covariances = batch.covariances.reshape(-1, modes, size, size)[kept]
     if weights.shape[0] == 1 and modes > 1:
         weights = imm.floored(weights[0] / weights[0].sum())
         means, covariances = means[0], covariances[0]
@@ -199,19 +194,15 @@ def _imm_epoch(state: TrackState, values, config: TrackerConfig, warnings: tuple
         parts = state.components
     prior, start_means, start_covs = imm.mixed(parts.weights, parts.means, parts.covariances,
                                                imm.switching_matrix(len(levels), dt_s, config.imm_mean_sojourn_s))
-    merged = state.mean.tolist()
-    predicted = [merged[i] + dt_s * merged[i + 3] for i in range(3)] + merged[3:]
-    count = pulse_count(predicted, period_s + (0.0 if config.period_known else merged[6] / C), dt_s, dtoa_s)
-    results = joint_epochs(start_means, start_covs, levels, period_s, dt_s, dtoa_s, azimuth, elevation, rate,
-                           config, count)
-    weights = range_mixture.reweighted(prior, np.array([r.log_likelihood for r in results]))
+    count = predicted_pulse_count(state.mean.tolist(), period_s, dt_s, dtoa_s)
+    batch = joint_epochs(start_means, start_covs, levels, period_s, dt_s, dtoa_s, azimuth, elevation, rate,
+                         config, count)
+    weights = range_mixture.reweighted(prior, batch.log_likelihoods)
     if weights is None:
         weights = prior
     weights = imm.floored(weights)
-    warnings = warnings + results[int(np.argmax(weights))].warnings
-    means = np.array([r.mean for r in results])
-    covariances = np.array([r.cov for r in results])
-    covariances = 0.5 * (covariances + np.swapaxes(covariances, 1, 2))
+    warnings = warnings + batch.warnings[int(np.argmax(weights))]
+    means, covariances = batch.means, batch.covariances
     if not config.period_known:
         shared = float(weights @ means[:, 6])
         period_s += shared / C
@@ -228,7 +219,7 @@ class JointEpoch(NamedTuple):
     ----------
     mean : list of F floats
     cov : ndarray, shape (F, F)
-        Symmetric to rounding.
+        Exactly symmetric.
     period_s : float
         Period estimate, the period error folded in (unless ``fold_period`` was False).
     log_likelihood : float
@@ -242,6 +233,25 @@ class JointEpoch(NamedTuple):
     period_s: float
     log_likelihood: float
     warnings: tuple
+
+
+class JointEpochs(NamedTuple):
+    """One epoch of ``M`` joint states (:func:`joint_epochs`), the period error not folded.
+
+    Attributes
+    ----------
+    means : ndarray, shape (M, F)
+    covariances : ndarray, shape (M, F, F)
+        Exactly symmetric.
+    log_likelihoods : ndarray, shape (M,)
+        As :attr:`JointEpoch.log_likelihood`.
+    warnings : list of M tuples of (str, str)
+    """
+
+    means: np.ndarray
+    covariances: np.ndarray
+    log_likelihoods: np.ndarray
+    warnings: list
 
 
 def pulse_count(mean, period_s: float, dt_s: float, dtoa_s: float):
@@ -288,46 +298,22 @@ def joint_epoch(mean, cov, period_s: float, dt_s: float, dtoa_s: float, azimuth:
     -------
     JointEpoch
     """
-    warnings = []
-    k = len(mean) - 3
-    accel = config.accel_sigma_mps2 if accel_sigma_mps2 is None else accel_sigma_mps2
-    mean, cov = constant_velocity_predict(mean, cov, dt_s, accel * accel, (3,), True)
     if count is None:
-        effective = period_s + (mean[6] / C if k == 5 else 0.0)
-        count = pulse_count(mean, effective, dt_s, dtoa_s)
-    n_pulses, use_toa, count_warnings = count
-    warnings += count_warnings
-    measured = (azimuth, elevation, C * (dtoa_s - n_pulses * period_s) if use_toa else 0.0, rate)
-    log_likelihood = -math.inf
-    try:
-        chol, cov, repaired = cholesky_repaired(cov)
-        if repaired:
-            warnings.append(("covariance_repaired", "predicted covariance was not positive definite"))
-        new_mean, new_cov, nis, log_det = joint_update(mean, cov, chol, measured, n_pulses, period_s, use_toa,
-                                                       config)
-        log_likelihood = -0.5 * (nis + log_det)
-    except (np.linalg.LinAlgError, ArithmeticError, ValueError) as error:
-        new_mean, new_cov = [math.nan], np.full(1, math.nan)
-        nis = 0.0
-        warnings.append(("numerical_failure", f"the update failed ({error})"))
-    dof = 4 if use_toa else 3
-    if nis > NIS_LIMIT[dof]:
-        warnings.append(("innovation_outlier", f"normalised innovation squared {nis:.1f} on {dof} degrees of "
-                                               "freedom: a manoeuvre or a bad measurement"))
-    if math.isfinite(sum(new_mean) + float(np.add.reduce(new_cov, None))):
-        _, new_cov, repaired = cholesky_repaired(new_cov)
-        if repaired:
-            warnings.append(("covariance_repaired", "updated covariance was not positive definite"))
-        mean, cov = new_mean, new_cov
-        if k == 5 and fold_period:
-            period_s = period_s + mean[6] / C
-            mean[6] = 0.0
-    else:
-        if not any(code == "numerical_failure" for code, _ in warnings):
-            warnings.append(("numerical_failure", "the update was not finite and was skipped"))
-        mean, cov = fresh_toa_reference(mean, cov, config)
-        log_likelihood = -math.inf
-    return JointEpoch(mean, cov, period_s, log_likelihood, tuple(warnings))
+        count = predicted_pulse_count(mean, period_s, dt_s, dtoa_s)
+    accel = config.accel_sigma_mps2 if accel_sigma_mps2 is None else accel_sigma_mps2
+    batch = joint_epochs(np.array((mean,)), cov[None], (accel,), period_s, dt_s, dtoa_s, azimuth, elevation, rate,
+                         config, count)
+    mean, log_likelihood = batch.means[0].tolist(), float(batch.log_likelihoods[0])
+    if fold_period and len(mean) == 8 and log_likelihood > -math.inf:
+        mean, period_s = range_mixture.fold_period(mean, period_s, False)
+    return JointEpoch(mean, batch.covariances[0], period_s, log_likelihood, batch.warnings[0])
+
+
+def predicted_pulse_count(mean, period_s: float, dt_s: float, dtoa_s: float):
+    """:func:`pulse_count` from the joint state ``mean`` (list of F floats) predicted over ``dt_s``, with its
+    period error (if any) added to ``period_s``."""
+    predicted = [mean[i] + dt_s * mean[i + 3] for i in range(3)] + list(mean[3:6])
+    return pulse_count(predicted, period_s + (mean[6] / C if len(mean) == 8 else 0.0), dt_s, dtoa_s)
 
 
 def range_prior_state(mean, cov, azimuth_rad: float, elevation_rad: float, config: TrackerConfig,
@@ -369,166 +355,17 @@ def range_prior_state(mean, cov, azimuth_rad: float, elevation_rad: float, confi
     return [r * c for c in los] + list(mean), new_cov
 
 
-def joint_update(mean, cov, chol, measured, n_pulses: int, period_s: float, use_toa: bool,
-                 config: TrackerConfig):
-    """Unscented update with ``(B, E, c (dTOA - n Tr_hat), Bdot)``.
-
-    The new TOA's noise enters the TOA row additively and is also the next
-    reference's noise: it is appended to the state for the update (prior
-    ``N(0, (c sigma_toa)^2)``, so its posterior is correlated with the rest)
-    and replaces the old ``toa_noise_m`` afterwards. Without a usable TOA the
-    TOA row is left out and ``toa_noise_m`` becomes a fresh, independent noise.
-
-    Parameters
-    ----------
-    mean : list of F floats
-    cov : ndarray, shape (F, F)
-    chol : ndarray, shape (F, F)
-        Cholesky factor of ``cov``.
-    measured : tuple of 4 floats
-        Azimuth (rad), elevation (rad), TOA difference less ``n Tr_hat`` in
-        metres, azimuth rate (rad/s).
-    n_pulses : int
-    period_s : float
-    use_toa : bool
-    config : TrackerConfig
-
-    Returns
-    -------
-    mean : list of F floats
-    cov : ndarray, shape (F, F)
-        Updated state (covariance symmetric to rounding); the last component is now the new TOA's noise.
-    nis : float
-        Normalised innovation squared (chi-square with 4, or 3 without the
-        TOA, degrees of freedom when the model holds).
-    log_det : float
-        ``log det S`` of the innovation covariance.
-    """
-    f = len(mean)
-    spread = math.sqrt(f)
-    weight = 1.0 / (2 * f)
-    interval_s = n_pulses * period_s
-    points = chol.dot(_sigma_directions(f))
-    points += np.array(mean)[:, None]
-    predicted = _measurement_model(points, n_pulses, interval_s, f == 8)
-
-    state = mean
-    x, y, z, vx, vy, vz = state[:6]
-    rho2 = x * x + y * y
-    qx, qy, qz = x - interval_s * vx, y - interval_s * vy, z - interval_s * vz
-    change = math.sqrt(rho2 + z * z) - math.sqrt(qx * qx + qy * qy + qz * qz) - state[-1]
-    if f == 8:
-        change += n_pulses * state[6]
-    azimuth0 = math.atan2(x, y)
-    rate0 = (y * vx - x * vy) / rho2
-    centre = (azimuth0, math.atan2(z, math.sqrt(rho2)), change, rate0) if use_toa else (
-        azimuth0, math.atan2(z, math.sqrt(rho2)), rate0)
-
-    if not use_toa:
-        predicted = predicted[_WITHOUT_TOA]
-    deviation = predicted - np.array(centre)[:, None]
-    wrapped = deviation[0]
-    wrapped += math.pi
-    wrapped %= TWO_PI
-    wrapped -= math.pi
-    var_toa = (C * config.sigma_toa_s) ** 2
-    if use_toa:
-        innovation = (math.remainder(measured[0] - centre[0], TWO_PI), measured[1] - centre[1],
-                      measured[2] - centre[2], measured[3] - centre[3])
-        noise = _noise(config, True)
-    else:
-        innovation = (math.remainder(measured[0] - centre[0], TWO_PI), measured[1] - centre[1],
-                      measured[3] - centre[2])
-        noise = _noise(config, False)
-    mean_deviation = deviation.sum(axis=1)
-    mean_deviation *= weight
-    centred = deviation - mean_deviation[:, None]
-    innovation_cov = centred.dot(centred.T)
-    innovation_cov *= weight
-    innovation_cov += noise
-    # Covariance of the state with the measurement; with a usable TOA its last row is that of the new
-    # TOA's noise (it enters the TOA row additively and becomes the next reference's noise).
-    cross_cov = chol.dot((deviation[:, :f] - deviation[:, f:]).T)
-    cross_cov *= spread * weight
-    if use_toa:
-        cross_cov[f - 1] = (0.0, 0.0, var_toa, 0.0)
-    innovation = np.subtract(innovation, mean_deviation)
-
-    # Whitened form: with S = L L^T, v = cross_cov L^-T and t = L^-1 innovation, the gain is v L^-1,
-    # the state moves by v t and the covariance loses v v^T; the NIS is |t|^2.
-    whitening = np.array(inverse_cholesky(innovation_cov.tolist()))
-    v_t = whitening.dot(cross_cov.T)
-    t = whitening.dot(innovation)
-    nis = float(t.dot(t))
-    log_det = -2.0 * float(np.log(np.diagonal(whitening)).sum())
-    x = list(mean)
-    p = cov.copy()
-    if use_toa:
-        x[f - 1] = 0.0
-        p[f - 1] = 0.0
-        p[:, f - 1] = 0.0
-        p[f - 1, f - 1] = var_toa
-    for i, change in enumerate(t.dot(v_t).tolist()):
-        x[i] += change
-    p -= v_t.T.dot(v_t)
-    if not use_toa:
-        x, p = fresh_toa_reference(x, p, config)
-    return x, p, nis, log_det
-
-
-_DIRECTIONS: dict = {}
-
-
-def _sigma_directions(f: int) -> np.ndarray:
-    """``sqrt(f) [I, -I]``, shape ``(f, 2 f)``: ``chol @`` it gives the sigma-point offsets."""
-    found = _DIRECTIONS.get(f)
-    if found is None:
-        eye = np.eye(f) * math.sqrt(f)
-        found = _DIRECTIONS[f] = np.hstack((eye, -eye))
-        found.flags.writeable = False
-    return found
-
-
-_NOISES: dict = {}
-
-
-def _noise(config: TrackerConfig, use_toa: bool) -> np.ndarray:
-    """Diagonal measurement noise ``(B, E, [c dTOA,] Bdot)`` as a matrix, memoised per config."""
-    key = (config.sigma_azimuth_rad, config.sigma_elevation_rad, config.sigma_toa_s, config.sigma_azimuth_rate_rad_s,
-           use_toa)
-    found = _NOISES.get(key)
-    if found is None:
-        variances = [config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2]
-        if use_toa:
-            variances.append((C * config.sigma_toa_s) ** 2)
-        variances.append(config.sigma_azimuth_rate_rad_s**2)
-        if len(_NOISES) >= 64:
-            _NOISES.clear()
-        found = _NOISES[key] = np.diag(variances)
-        found.flags.writeable = False
-    return found
-
-
-def _measurement_model(points, n_pulses: int, interval_s: float, has_period_error: bool):
-    """``(B, E, c dS, Bdot)`` of the state columns ``points`` ``(F, m)``, shape ``(4, m)``."""
-    position = points[:3]
-    squares = position * position
-    rho2 = squares[0] + squares[1]
-    previous = position - interval_s * points[3:6]
-    out = np.empty((4, points.shape[1]))
-    out[0] = np.arctan2(position[0], position[1])
-    out[1] = np.arctan2(position[2], np.sqrt(rho2))
-    out[2] = np.sqrt(rho2 + squares[2]) - np.sqrt((previous * previous).sum(axis=0)) - points[-1]
-    if has_period_error:
-        out[2] += n_pulses * points[6]
-    out[3] = (position[1] * points[3] - position[0] * points[4]) / rho2
-    return out
-
-
 def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, period_s: float, dt_s: float,
                  dtoa_s: float, azimuth: float, elevation: float, rate: float, config: TrackerConfig, count):
-    """:func:`joint_epoch` for ``M`` joint states at once (the components of a mixture or an IMM), with one
-    pulse count and the period error left unfolded; the same arithmetic in batched form.
+    """Predict and update ``M`` joint states (the components of a mixture or an IMM, or the one state of
+    :func:`joint_epoch`) with one epoch and one pulse count, the period error left unfolded.
+
+    The arithmetic is :func:`core.tracking.unscented.joint_ukf_kernel`'s; here
+    its outcomes become warnings: a predicted or updated covariance that is
+    not positive definite is repaired (``covariance_repaired``); an update
+    that fails or is not finite is skipped, the state predicted only, with
+    the TOA noise a fresh one (``numerical_failure``); a NIS above
+    :data:`~core.tracking.unscented.NIS_LIMIT` raises ``innovation_outlier``.
 
     Parameters
     ----------
@@ -543,80 +380,69 @@ def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, 
 
     Returns
     -------
-    list of JointEpoch
-        One per state (``period_s`` unchanged).
+    JointEpochs
     """
     m, f = means.shape
     n_pulses, use_toa, count_warnings = count
-    phis, noises = zip(*(transition(f, (3,), True, dt_s, a * a) for a in accel_sigmas_mps2))
-    phi = phis[0]
-    cov = np.matmul(np.matmul(phi, covariances), phi.T) + np.array(noises)
-    mean = means.copy()
-    mean[:, :3] += dt_s * mean[:, 3:6]
-    warnings = [list(count_warnings) for _ in range(m)]
-    try:
-        chol = np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        chol = np.empty_like(cov)
-        for i in range(m):
-            chol[i], cov[i], repaired = cholesky_repaired(cov[i])
-            if repaired:
-                warnings[i].append(("covariance_repaired", "predicted covariance was not positive definite"))
+    motion = [transition(f, (3,), True, dt_s, a * a) for a in accel_sigmas_mps2]
     interval_s = n_pulses * period_s
-    spread, weight = math.sqrt(f), 1.0 / (2 * f)
-    points = np.matmul(chol, _sigma_directions(f)) + mean[:, :, None]
-    columns = np.concatenate((points.transpose(1, 0, 2).reshape(f, -1), mean.T), axis=1)
-    modelled = _measurement_model(columns, n_pulses, interval_s, f == 8)
-    rows = slice(None) if use_toa else _WITHOUT_TOA
-    predicted = modelled[rows, :m * 2 * f].reshape(-1, m, 2 * f).transpose(1, 0, 2)
-    centre = modelled[rows, m * 2 * f:].T
-    deviation = predicted - centre[:, :, None]
-    deviation[:, 0] = np.remainder(deviation[:, 0] + math.pi, TWO_PI) - math.pi
-    measured = np.array((azimuth, elevation, C * (dtoa_s - interval_s), rate) if use_toa else
-                        (azimuth, elevation, rate))
-    innovation = measured - centre
-    innovation[:, 0] = np.remainder(innovation[:, 0] + math.pi, TWO_PI) - math.pi
-    mean_deviation = deviation.mean(axis=2)
-    centred = deviation - mean_deviation[:, :, None]
-    innovation_cov = np.matmul(centred, centred.transpose(0, 2, 1)) * weight + _noise(config, use_toa)
-    cross_cov = np.matmul(chol, (deviation[:, :, :f] - deviation[:, :, f:]).transpose(0, 2, 1)) * (spread * weight)
     var_toa = (C * config.sigma_toa_s) ** 2
-    # The last state becomes the new TOA's noise: with a usable TOA it enters the TOA row additively; without,
-    # it is a fresh independent noise (zero covariance with everything).
-    cross_cov[:, f - 1] = (0.0, 0.0, var_toa, 0.0) if use_toa else 0.0
-    innovation -= mean_deviation
-    predicted_mean, predicted_cov = mean.copy(), cov.copy()
-    results = []
-    for i in range(m):
-        try:
-            whitening = np.array(inverse_cholesky(innovation_cov[i].tolist()))
-        except np.linalg.LinAlgError as error:
-            x, p = fresh_toa_reference(predicted_mean[i].tolist(), predicted_cov[i], config)
-            results.append(JointEpoch(x, p, period_s, -math.inf, tuple(warnings[i]) + (
-                ("numerical_failure", f"the update failed ({error})"),)))
+    measured = np.array((azimuth, elevation, C * (dtoa_s - interval_s) if use_toa else 0.0, rate))
+    variances = np.array((config.sigma_azimuth_rad**2, config.sigma_elevation_rad**2, var_toa,
+                          config.sigma_azimuth_rate_rad_s**2))
+    predicted_means, predicted_covs = np.array(means, dtype=float), np.array(covariances, dtype=float)
+    new_means, new_covs = np.empty_like(predicted_means), np.empty_like(predicted_covs)
+    nis, log_det, status = np.empty(m), np.empty(m), np.empty(m, dtype=np.int64)
+
+    def update(i, j, predict):
+        joint_ukf_kernel(predicted_means[i:j], predicted_covs[i:j], np.array(motion[0][0]),
+                         np.array([noise for _, noise in motion[i:j]]), predict, int(n_pulses), float(interval_s),
+                         bool(use_toa), measured, variances, new_means[i:j], new_covs[i:j], nis[i:j], log_det[i:j],
+                         status[i:j])
+
+    log_likelihoods = np.full(m, -math.inf)
+    warnings = [tuple(count_warnings)] * m
+    try:
+        update(0, m, True)
+    except (ArithmeticError, ValueError, np.linalg.LinAlgError) as error:
+        for i in range(m):
+            x, p = constant_velocity_predict(means[i].tolist(), covariances[i], dt_s, accel_sigmas_mps2[i] ** 2,
+                                             (3,), True)
+            new_means[i], new_covs[i] = fresh_toa_reference(x, symmetrized(p), config)
+            warnings[i] = tuple(count_warnings) + (("numerical_failure", f"the update failed ({error})"),)
+        return JointEpochs(new_means, new_covs, log_likelihoods, warnings)
+    dof = 4 if use_toa else 3
+    for i, outcome in enumerate(status.tolist()):
+        if outcome == UPDATED:
+            if nis[i] > NIS_LIMIT[dof]:
+                warnings[i] = tuple(count_warnings) + (_outlier(nis[i], dof),)
+            log_likelihoods[i] = -0.5 * (nis[i] + log_det[i])
             continue
-        v_t = whitening.dot(cross_cov[i].T)
-        t = whitening.dot(innovation[i])
-        nis = float(t.dot(t))
-        log_det = -2.0 * float(np.log(np.diagonal(whitening)).sum())
-        x, p = mean[i], cov[i]
-        x[f - 1] = 0.0
-        p[f - 1] = 0.0
-        p[:, f - 1] = 0.0
-        p[f - 1, f - 1] = var_toa
-        x += t.dot(v_t)
-        p -= v_t.T.dot(v_t)
-        dof = 4 if use_toa else 3
-        if nis > NIS_LIMIT[dof]:
-            warnings[i].append(("innovation_outlier", f"normalised innovation squared {nis:.1f} on {dof} degrees "
-                                                      "of freedom: a manoeuvre or a bad measurement"))
-        if not math.isfinite(float(x.sum()) + float(p.sum())):
-            x, p = fresh_toa_reference(predicted_mean[i].tolist(), predicted_cov[i], config)
-            results.append(JointEpoch(x, p, period_s, -math.inf, tuple(warnings[i]) + (
-                ("numerical_failure", "the update was not finite and was skipped"),)))
-            continue
-        _, p, repaired = cholesky_repaired(p)
-        if repaired:
-            warnings[i].append(("covariance_repaired", "updated covariance was not positive definite"))
-        results.append(JointEpoch(x.tolist(), p, period_s, -0.5 * (nis + log_det), tuple(warnings[i])))
-    return results
+        found = list(count_warnings)
+        if outcome == PREDICTED_NOT_PD:
+            _, predicted_covs[i], _ = cholesky_repaired(predicted_covs[i])
+            found.append(("covariance_repaired", "predicted covariance was not positive definite"))
+            update(i, i + 1, False)
+            outcome = int(status[i])
+        if outcome in (PREDICTED_NOT_PD, INNOVATION_NOT_PD):
+            which = "predicted" if outcome == PREDICTED_NOT_PD else "innovation"
+            found.append(("numerical_failure", f"the update failed ({which} covariance is not positive definite)"))
+        else:
+            if nis[i] > NIS_LIMIT[dof]:
+                found.append(_outlier(nis[i], dof))
+            if outcome == NOT_FINITE:
+                found.append(("numerical_failure", "the update was not finite and was skipped"))
+            else:
+                log_likelihoods[i] = -0.5 * (nis[i] + log_det[i])
+                if outcome == UPDATED_NOT_PD:
+                    _, new_covs[i], _ = cholesky_repaired(new_covs[i])
+                    found.append(("covariance_repaired", "updated covariance was not positive definite"))
+        if log_likelihoods[i] == -math.inf:
+            new_means[i], new_covs[i] = fresh_toa_reference(predicted_means[i].tolist(), predicted_covs[i], config)
+        warnings[i] = tuple(found)
+    return JointEpochs(new_means, new_covs, log_likelihoods, warnings)
+
+
+def _outlier(nis: float, dof: int):
+    return ("innovation_outlier", f"normalised innovation squared {nis:.1f} on {dof} degrees of freedom: a "
+                                  "manoeuvre or a bad measurement")

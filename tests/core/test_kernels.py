@@ -1,6 +1,7 @@
 """``core.kernels.compile_kernels`` (run at install, image build and in the lifespan) compiles every kernel a
-fix can reach with the argument types the estimators pass, so that no request pays numba's compilation
-(seconds). Checked in a fresh process: after it, a varied workload adds no compiled signature anywhere."""
+fix or a session step can reach with the argument types the estimators and filters pass, so that no request
+pays numba's compilation (seconds). Checked in a fresh process: after it, a varied workload adds no compiled
+signature anywhere."""
 
 from __future__ import annotations
 
@@ -53,6 +54,17 @@ _WORKLOAD = textwrap.dedent('''
                         solve(problem, method, options)
                     except LocalizationError:
                         pass
+    from core.simulation.emitter import paper_001_scenario, simulate_emitter
+    from core.simulation.tracking import paper_config
+    from core.tracking import new_state, step
+
+    track = simulate_emitter(paper_001_scenario(), np.random.default_rng(5))
+    for config in (paper_config("joint_ukf", False), paper_config("joint_ukf", True, joint_initial_range="kinematic"),
+                   paper_config("joint_ukf", False, imm_accel_sigmas_mps2=(0.05, 1.0)),
+                   paper_config("velocity_kinematic", False)):
+        state = new_state(config)
+        for epoch in track.epochs:
+            state = step(state, epoch, config)
     after = signatures()
     grew = sorted(name for name in after if after[name] > before.get(name, 0))
     print("GREW", grew)

@@ -12,7 +12,7 @@ off in range; pooled = RMS of the block ratios; NEES = position NEES over runs a
 ================================  ===========================  ===========================
 ratio to the PCRB (NEES)          q = 0.05 m/s^2 known/unknown  q = 0.5 m/s^2 known/unknown
 ================================  ===========================  ===========================
-joint_ukf, range mixture (dflt)   1.01 / 1.01 (2.5-3.7)         1.13 / 1.21 (2.3-3.2)
+joint_ukf, range mixture (dflt)   1.02 / 1.01 (2.5-3.7)         1.02 / 1.04 (2.3-3.3)
 joint_ukf, kinematic start        0.95 / 1.00 (2.6-3.0) [100]   1.67 / 1.64 (3.6-5.6) [100]
 joint_ukf, prior 150 +- 50 km     0.91 / 0.92 (2.5-2.8) [100]   1.02 / 1.08 (2.5-3.2) [100]
 velocity_kinematic                1.29 / 2.15 (2.4-3.0) [100]   2.09 / 2.25 (3.8-5.3) [100]
@@ -20,8 +20,9 @@ velocity_kinematic                1.29 / 2.15 (2.4-3.0) [100]   2.09 / 2.25 (3.8
 
 ([100]: 100 runs, the first two blocks; the default's figures are 200 runs.) The prior start sits on
 this emitter (156 km): it holds range information the bound, with a diffuse position prior, does not.
-The 1.1x target holds at q = 0.05 and is missed at q = 0.5 (1.13 / 1.21); the tests assert 1.1x and
-1.3x respectively on their fixed seeds, and that no ratio is below 0.8 (below the bound by that much
+The 1.1x target holds at both (at q = 0.5 since the range mixture stopped merging its components, see
+:mod:`core.tracking.range_mixture`; it was 1.13 / 1.21 before); the tests assert 1.1x on their fixed
+seeds (1.07 / 1.07 and 1.03 / 1.03 there), and that no ratio is below 0.8 (below the bound by that much
 is a bug in the bound or the bookkeeping, not luck).
 """
 
@@ -46,7 +47,7 @@ def nees_interval(runs: int, dof: int = 3) -> tuple[float, float]:
     return float(low), float(high)
 
 
-@pytest.mark.parametrize("q, ceiling", [(0.05, 1.1), (0.5, 1.3)])
+@pytest.mark.parametrize("q, ceiling", [(0.05, 1.1), (0.5, 1.1)])
 @pytest.mark.parametrize("period_known", [True, False])
 def test_default_joint_ukf_is_near_the_bound_and_consistent(q, ceiling, period_known):
     config = paper_config("joint_ukf", period_known, accel_sigma_mps2=q)

@@ -13,11 +13,10 @@ from core.angles import line_of_sight_enu, wrap_to_pi
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import new_state, step
 from core.tracking.config import SPEED_OF_LIGHT_MPS
-from core.tracking.joint_ukf import joint_update
+from core.tracking.joint_ukf import joint_epoch
 from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, initial_position_state,
                                      line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
-from core.tracking.linalg import (EIGENVALUE_FLOOR, cholesky_lower, inverse_cholesky, repaired_block,
-                                  symmetrized)
+from core.tracking.linalg import EIGENVALUE_FLOOR, cholesky_lower, lower_inverse_into, repaired_block, symmetrized
 from core.tracking.motion import constant_velocity_predict, transition
 from core.tracking.unscented import polar_update
 from core.simulation.tracking import paper_config
@@ -313,7 +312,7 @@ def reference_joint_update(mean, cov, measured, n_pulses, period_s, use_toa, con
 
 @pytest.mark.parametrize("period_known", [True, False])
 @pytest.mark.parametrize("use_toa", [True, False])
-def test_joint_update_equals_the_brute_force_transform(period_known, use_toa):
+def test_joint_epoch_is_the_prediction_then_the_brute_force_transform(period_known, use_toa):
     config = paper_config("joint_ukf", period_known, joint_initial_range="kinematic")
     track = simulate_emitter(paper_001_scenario(epochs=61), np.random.default_rng(11))
     state = new_state(config)
@@ -328,8 +327,9 @@ def test_joint_update_equals_the_brute_force_transform(period_known, use_toa):
     n_pulses = round(dtoa / state.pulse_period_s)
     measured = (epoch.azimuth_rad, epoch.elevation_rad, C * (dtoa - n_pulses * state.pulse_period_s),
                 epoch.azimuth_rate_rad_s)
-    got_mean, got_cov, got_nis, got_log_det = joint_update(mean, cov, np.linalg.cholesky(cov), measured, n_pulses,
-                                                           state.pulse_period_s, use_toa, config)
+    got = joint_epoch(state.mean.tolist(), state.covariance, state.pulse_period_s, dt, dtoa, epoch.azimuth_rad,
+                      epoch.elevation_rad, epoch.azimuth_rate_rad_s, config, (n_pulses, use_toa, ()), False)
+    got_mean, got_cov = got.mean, got.cov
     want_mean, want_cov, want_nis, want_log_det = reference_joint_update(np.array(mean), cov, measured, n_pulses,
                                                                          state.pulse_period_s, use_toa, config)
     if not use_toa:
@@ -340,28 +340,28 @@ def test_joint_update_equals_the_brute_force_transform(period_known, use_toa):
     np.testing.assert_allclose(got_mean, want_mean, rtol=0, atol=1e-9 * scale.max())
     np.testing.assert_allclose(got_cov / np.outer(scale, scale), want_cov / np.outer(scale, scale), rtol=0,
                                atol=1e-9)
-    assert got_nis == pytest.approx(want_nis, rel=1e-9)
-    assert got_log_det == pytest.approx(want_log_det, rel=1e-12, abs=1e-9)
+    assert got.log_likelihood == pytest.approx(-0.5 * (want_nis + want_log_det), rel=1e-9, abs=1e-9)
 
 
-@pytest.mark.parametrize("size", [1, 2, 3, 4, 5])
-def test_inverse_cholesky_is_the_inverse_of_numpys_factor(size):
+@pytest.mark.parametrize("size", [1, 2, 3, 4, 5, 8])
+def test_cholesky_and_triangular_inverse_are_numpys_and_refuse_an_indefinite_or_nan_matrix(size):
     rng = np.random.default_rng(size)
     a = rng.normal(size=(size, size))
     scale = np.logspace(0, 6, size)
     matrix = (a @ a.T + np.eye(size)) * np.outer(scale, scale)
-    got = np.array(inverse_cholesky(matrix.tolist()))
-    want = np.linalg.inv(np.linalg.cholesky(matrix))
-    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
-    assert np.all(np.triu(got, 1) == 0.0)
+    got = cholesky_lower(matrix)
+    np.testing.assert_array_equal(got, np.tril(got))
+    np.testing.assert_allclose(got / scale[:, None], np.linalg.cholesky(matrix) / scale[:, None], rtol=0, atol=1e-12)
+    inverse = np.full((size, size), np.nan)
+    lower_inverse_into(got, inverse)
+    np.testing.assert_array_equal(inverse, np.tril(inverse))
+    np.testing.assert_allclose(inverse * scale[None, :], np.linalg.inv(got) * scale[None, :], rtol=0, atol=1e-12)
     indefinite = matrix.copy()
     indefinite[-1, -1] = -1.0
-    with pytest.raises(np.linalg.LinAlgError):
-        inverse_cholesky(indefinite.tolist())
-    np.testing.assert_array_equal(cholesky_lower(matrix), np.tril(cholesky_lower(matrix)))
-    np.testing.assert_allclose(np.tril(cholesky_lower(matrix)), np.linalg.cholesky(matrix), rtol=1e-12,
-                               atol=1e-12 * np.sqrt(matrix.max()))
     assert cholesky_lower(indefinite) is None
+    poisoned = matrix.copy()
+    poisoned[-1, 0] = poisoned[0, -1] = math.nan
+    assert size == 1 or cholesky_lower(poisoned) is None
 
 
 def test_repaired_block_floors_the_correlation_eigenvalues_of_that_block_only():

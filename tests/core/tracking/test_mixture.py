@@ -12,8 +12,7 @@ from core.errors import InvalidInput
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import TrackState, new_state, step
 from core.tracking.joint_ukf import joint_epoch, joint_epochs, pulse_count
-from core.tracking.range_mixture import (MERGE_COST, RANGE_RATIO, component_ranges, merge_neighbours, moments,
-                                         relative_sigma)
+from core.tracking.range_mixture import RANGE_RATIO, component_ranges, moments, relative_sigma
 from core.simulation.tracking import paper_config
 
 
@@ -43,24 +42,8 @@ def test_component_intervals_tile_the_range_interval():
     assert relative_sigma(1.0) == 0.0
 
 
-def test_identical_neighbours_merge_and_distant_ones_do_not():
-    cov = np.diag([4.0, 1.0])
-    same = merge_neighbours(np.array([0.5, 0.5]), np.array([[1.0, 2.0], [1.0, 2.0]]), np.array([cov, cov]))
-    assert same[0].tolist() == [1.0]
-    np.testing.assert_allclose(same[1][0], [1.0, 2.0])
-    np.testing.assert_allclose(same[2][0], cov)
-    apart = merge_neighbours(np.array([0.5, 0.5]), np.array([[0.0, 0.0], [20.0, 0.0]]), np.array([cov, cov]))
-    assert apart[0].size == 2
-    # The cost is that of Runnalls' bound: for a separation d along a unit-variance axis with equal weights,
-    # 0.5 log(1 + d^2 / 4); the largest d that merges is where that equals MERGE_COST.
-    d = 2.0 * math.sqrt(math.exp(2.0 * MERGE_COST) - 1.0)
-    for offset, merged in ((0.99 * d, True), (1.01 * d, False)):
-        out = merge_neighbours(np.array([0.5, 0.5]), np.array([[0.0], [offset]]), np.array([[[1.0]], [[1.0]]]))
-        assert (out[0].size == 1) == merged
-
-
 def test_one_component_is_the_direct_joint_ukf_with_that_range_prior():
-    """A range interval of ratio at most 1.5 gives one component: the sum collapses at the second epoch and
+    """A range interval of ratio at most RANGE_RATIO gives one component: the sum collapses at the second epoch and
     the filter is then the direct joint UKF started from the interval's middle and its sigma."""
     middle, ratio = 150e3, 1.4
     mixture = paper_config("joint_ukf", False, range_min_m=middle / math.sqrt(ratio),
@@ -140,8 +123,8 @@ def test_the_batched_update_equals_one_joint_epoch_per_component(period_known, u
         one = joint_epoch(mean, cov, state.pulse_period_s, dt, dtoa, *measured, config, count, fold_period=False,
                           accel_sigma_mps2=levels[i])
         scale = np.sqrt(np.diag(one.cov))
-        np.testing.assert_allclose(np.array(batch[i].mean) / scale, np.array(one.mean) / scale, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(batch[i].cov / np.outer(scale, scale), one.cov / np.outer(scale, scale), rtol=0,
-                                   atol=1e-12)
-        assert batch[i].log_likelihood == pytest.approx(one.log_likelihood, rel=1e-12, abs=1e-12)
-        assert batch[i].warnings == one.warnings
+        np.testing.assert_allclose(batch.means[i] / scale, np.array(one.mean) / scale, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(batch.covariances[i] / np.outer(scale, scale), one.cov / np.outer(scale, scale),
+                                   rtol=0, atol=1e-12)
+        assert batch.log_likelihoods[i] == pytest.approx(one.log_likelihood, rel=1e-12, abs=1e-12)
+        assert batch.warnings[i] == one.warnings

@@ -192,7 +192,7 @@ def test_a_repaired_covariance_is_reported_not_fatal():
 
 @pytest.mark.parametrize("model, targets", [
     ("velocity_kinematic", ("core.tracking.unscented.polar_transform",)),
-    ("joint_ukf", ("core.tracking.joint_ukf.joint_update",)),
+    ("joint_ukf", ("core.tracking.joint_ukf.joint_ukf_kernel",)),
 ])
 def test_an_update_that_fails_outright_is_skipped_and_reported(monkeypatch, model, targets):
     """The step-3 transform or the joint update raises: the epoch is applied without it and ``numerical_failure`` says so."""
