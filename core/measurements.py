@@ -261,12 +261,37 @@ def residuals(measured, predicted, kinds):
     return np.where(is_angle, wrap_to_pi(raw), raw)
 
 
+@numba.njit(cache=True, nogil=True)
+def azimuth_rate_point(east_m, north_m, v_east_mps, v_north_mps):
+    """One target's azimuth rate seen from a fixed station and its derivatives (compiled; see
+    :func:`azimuth_rate`).
+
+    Returns
+    -------
+    rate_rad_s, d_east, d_north, d_v_east, d_v_north : float
+    """
+    rho2 = max(east_m * east_m + north_m * north_m, MIN_HORIZONTAL_DISTANCE_M ** 2)
+    rate = (north_m * v_east_mps - east_m * v_north_mps) / rho2
+    return (rate, (-v_north_mps - 2.0 * east_m * rate) / rho2, (v_east_mps - 2.0 * north_m * rate) / rho2,
+            north_m / rho2, -east_m / rho2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _azimuth_rates(positions_enu_m, velocities_enu_mps):
+    size = positions_enu_m.shape[0]
+    rate, jacobian = np.empty(size), np.zeros((size, 6))
+    for i in range(size):
+        rate[i], jacobian[i, 0], jacobian[i, 1], jacobian[i, 3], jacobian[i, 4] = azimuth_rate_point(
+            positions_enu_m[i, 0], positions_enu_m[i, 1], velocities_enu_mps[i, 0], velocities_enu_mps[i, 1])
+    return rate, jacobian
+
+
 def azimuth_rate(position_enu_m, velocity_enu_mps):
     """Rate of change of the azimuth of a moving target seen from a fixed station at the origin, and its
     Jacobian (ALGORITHMS.md sections 2 and 6).
 
     ``Bdot = (n v_e - e v_n) / rho^2`` with ``(e, n, u)`` the position and
-    ``rho^2 = e^2 + n^2`` (floored like :func:`predict`'s azimuth).
+    ``rho^2 = e^2 + n^2`` (floored like :func:`predict`'s azimuth); :func:`azimuth_rate_point` per target.
 
     Parameters
     ----------
@@ -281,13 +306,7 @@ def azimuth_rate(position_enu_m, velocity_enu_mps):
     jacobian : ndarray, shape (..., 6)
         Derivatives w.r.t. ``(e, n, u, v_e, v_n, v_u)``.
     """
-    p = np.asarray(position_enu_m, dtype=float)
-    v = np.asarray(velocity_enu_mps, dtype=float)
-    e, n = p[..., 0], p[..., 1]
-    ve, vn = v[..., 0], v[..., 1]
-    rho2 = np.maximum(e * e + n * n, MIN_HORIZONTAL_DISTANCE_M**2)
-    rate = (n * ve - e * vn) / rho2
-    zero = np.zeros_like(rate)
-    jacobian = np.stack([(-vn - 2.0 * e * rate) / rho2, (ve - 2.0 * n * rate) / rho2, zero,
-                         n / rho2, -e / rho2, zero], axis=-1)
-    return rate, jacobian
+    p, v = np.broadcast_arrays(np.asarray(position_enu_m, dtype=float), np.asarray(velocity_enu_mps, dtype=float))
+    shape = p.shape[:-1]
+    rate, jacobian = _azimuth_rates(np.ascontiguousarray(p).reshape(-1, 3), np.ascontiguousarray(v).reshape(-1, 3))
+    return rate.reshape(shape)[()], jacobian.reshape(shape + (6,))

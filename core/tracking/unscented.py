@@ -21,6 +21,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from core.measurements import AZIMUTH, ELEVATION, RANGE, azimuth_rate_point, measure_point
 from core.tracking.linalg import cholesky_into, lower_inverse_into, symmetrized
 
 PI = math.pi
@@ -34,6 +35,19 @@ NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
 def _wrapped(angle_rad):
     """``angle_rad`` wrapped into ``[-pi, pi)``."""
     return (angle_rad + PI) % TWO_PI - PI
+
+
+#: The session's observer: the origin of its own ENU frame (the measurement model's station and rotation).
+_OBSERVER = np.zeros(3)
+_OBSERVER_AXES = np.eye(3)
+
+
+@numba.njit(cache=True, nogil=True)
+def _polar(east_m, north_m, up_m):
+    """Range, azimuth and elevation of a point seen from the observer (:func:`core.measurements.measure_point`)."""
+    return (measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, RANGE)[0],
+            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, AZIMUTH)[0],
+            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, ELEVATION)[0])
 
 
 def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elevation_rad: float,
@@ -205,22 +219,17 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
         return 1, 0.0
     lower_inverse_into(chol, inverse)
     x0, y0, z0 = position[0], position[1], position[2]
-    rho0 = math.sqrt(x0 * x0 + y0 * y0)
-    r0 = math.sqrt(rho0 * rho0 + z0 * z0)
-    azimuth0 = math.atan2(x0, y0)
-    elevation0 = math.atan2(z0, rho0)
+    r0, azimuth0, elevation0 = _polar(x0, y0, z0)
     deviation = np.empty((3, 6))
     for j in range(6):
         c = j % 3
         sign = 1.0 if j < 3 else -1.0
-        x = x0 + sign * (spread * chol[0, c])
-        y = y0 + sign * (spread * chol[1, c])
-        z = z0 + sign * (spread * chol[2, c])
-        rho = math.sqrt(x * x + y * y)
-        deviation[0, j] = math.sqrt(rho * rho + z * z) - r0
-        azimuth = math.atan2(x, y) - azimuth0
+        r, azimuth, elevation = _polar(x0 + sign * (spread * chol[0, c]), y0 + sign * (spread * chol[1, c]),
+                                       z0 + sign * (spread * chol[2, c]))
+        deviation[0, j] = r - r0
+        azimuth -= azimuth0
         deviation[1, j] = azimuth if -PI <= azimuth <= PI else _wrapped(azimuth)
-        deviation[2, j] = math.atan2(z, rho) - elevation0
+        deviation[2, j] = elevation - elevation0
     mean_deviation = np.empty(3)
     s = np.empty((3, 3))
     d = np.empty((3, 3))
@@ -312,13 +321,13 @@ def _joint_measurement(state, n_pulses, interval_s, use_toa, out):
     from the current state; ``period_error_m`` only in an 8-component state).
     """
     x, y, z, vx, vy, vz = state[0], state[1], state[2], state[3], state[4], state[5]
-    rho2 = x * x + y * y
-    out[0] = math.atan2(x, y)
-    out[1] = math.atan2(z, math.sqrt(rho2))
-    rate = (y * vx - x * vy) / rho2
+    out[0] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, AZIMUTH)[0]
+    out[1] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, ELEVATION)[0]
+    rate = azimuth_rate_point(x, y, vx, vy)[0]
     if use_toa:
         qx, qy, qz = x - interval_s * vx, y - interval_s * vy, z - interval_s * vz
-        change = math.sqrt(rho2 + z * z) - math.sqrt(qx * qx + qy * qy + qz * qz) - state[state.shape[0] - 1]
+        change = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, RANGE)[0] \
+            - math.sqrt(qx * qx + qy * qy + qz * qz) - state[state.shape[0] - 1]
         if state.shape[0] == 8:
             change += n_pulses * state[6]
         out[2] = change
