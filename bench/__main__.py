@@ -167,24 +167,32 @@ def main(argv=None) -> int:
 EXTRA_NOTES = """
 ## Where the time goes, and what would close the misses
 
-The machine is shared and its speed moved by about 3x between sessions (this
-run's orjson parse of the same 11 MB batch took 0.134 s against 0.049 s on
-2026-11-23, with no change to that code): compare ratios within one run only.
+The machine is shared and its speed moves between sessions (and within one:
+orjson's parse of the same 11 MB batch took 0.049 s on 2026-11-23, 0.134 s on
+2026-12-01 and 0.059 s on 2026-12-02): compare ratios within one run only.
 
-**Rows 1 and 7, one fix.** A fix at B = 1 is about 2,000 numpy calls (the
-start's SVDs are now one compiled kernel; the LM, the CRLB, the finisher and
-the reader are numpy on arrays of four rows), i.e. milliseconds where the
-target is 50 us. The targets need the whole per-problem pipeline compiled
-(reader geodesy, start, LM, CRLB, finisher, error summary) as one kernel,
-which the batch would then use too; that rewrite was not done.
+**Rows 1 and 7, one fix.** The per-problem inner loops are compiled now (the
+ML iteration, the orthogonal-vector passes of the start, the measurement
+model, geodesy, the altitude surface): one fix in core went from 2,445 us to
+about 1,450 us on 2026-12-02 (same machine, quiet). What is left is numpy call
+overhead on arrays of four rows: the reader and the batch builder (~300 us),
+the start's row building (~200 us), the finisher (~400 us: residuals, CRLB,
+leverage, warnings) and the bodies (~200-350 us). The 50 us target needs those
+compiled too (the finisher's CRLB and residuals as one per-problem kernel, the
+reader filling the batch arrays directly): not done.
 
-**Row 2, batches over HTTP.** Core (estimate + finish) runs at 20,000-49,000
-fixes/s for every method; end to end the POST is 3-5x slower, spent in the
-reader (Python per problem), the response bodies (about 100 Python objects
-per fix) and orjson both ways. Closing it needs the bodies written from the
-arrays in compiled code and a reader that fills the batch arrays directly.
+**Row 2, batches over HTTP.** Core (estimate + finish) runs at 19,000-80,000
+fixes/s for every method; end to end the POST is 2-4x slower. In one thread
+the server's phases for 10,000 ml fixes are: parse 0.06 s, read 0.14 s, core
+0.18 s, bodies 0.13 s, serialise 0.07 s (notes above); the parse, read, bodies
+and serialise are Python object work under the GIL (about 100 objects per
+fix), so they do not overlap across the two cores, and they alone take about
+0.4 s, the 25,000 fixes/s budget. Closing it needs bodies written from the
+arrays without Python objects per field.
 
-**Row 3, the scipy ratio.** 41-43x in this run (33x on 2026-11-23).
+**Row 3, the scipy ratio.** The batched core per fix against scipy's
+``least_squares`` per fix: 42x in this run (36x on 2026-12-02 under load, 33x
+on 2026-11-23).
 """
 
 if __name__ == "__main__":
