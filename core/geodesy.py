@@ -29,7 +29,7 @@ WGS84_EP2 = WGS84_E2 / (1.0 - WGS84_E2)
 BOWRING_ROUNDS = 5
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def geodetic_to_ecef_point(lat_rad, lon_rad, alt_m):
     """One point's ECEF ``(x, y, z)`` (m) from geodetic coordinates (compiled; callable from kernels)."""
     sin_lat, cos_lat = math.sin(lat_rad), math.cos(lat_rad)
@@ -39,7 +39,7 @@ def geodetic_to_ecef_point(lat_rad, lon_rad, alt_m):
             (n * (1.0 - WGS84_E2) + alt_m) * sin_lat)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def ecef_to_geodetic_point(x, y, z):
     """One point's ``(lat_rad, lon_rad, alt_m)`` from ECEF (compiled; see :func:`ecef_to_geodetic`)."""
     lon = math.atan2(y, x)
@@ -55,7 +55,7 @@ def ecef_to_geodetic_point(x, y, z):
     return lat, lon, p * cos_lat + (z + WGS84_E2 * n * sin_lat) * sin_lat - n
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def ecef_to_enu_rotation_point(lat_rad, lon_rad, out):
     """Write into ``out`` ``(3, 3)`` the rotation ECEF -> east/north/up at one point (compiled; see
     :func:`ecef_to_enu_rotation`)."""
@@ -65,7 +65,7 @@ def ecef_to_enu_rotation_point(lat_rad, lon_rad, out):
     out[2, 0], out[2, 1], out[2, 2] = cp * cl, cp * sl, sp
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _rotations_many(lat_rad, lon_rad):
     out = np.empty((lat_rad.size, 3, 3))
     for i in range(lat_rad.size):
@@ -73,7 +73,7 @@ def _rotations_many(lat_rad, lon_rad):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _to_ecef_many(lat_rad, lon_rad, alt_m):
     out = np.empty((lat_rad.size, 3))
     for i in range(lat_rad.size):
@@ -81,7 +81,7 @@ def _to_ecef_many(lat_rad, lon_rad, alt_m):
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _to_geodetic_many(position_ecef_m):
     out = np.empty((3, position_ecef_m.shape[0]))
     for i in range(position_ecef_m.shape[0]):

@@ -80,7 +80,7 @@ def row_dot(x, y):
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _dot(x, y, start, stop):
     total = x[start] * y[start]
     for r in range(start + 1, stop):
@@ -88,7 +88,7 @@ def _dot(x, y, start, stop):
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def svd_in_place(x, y, s, v, projected, reflector, norms):
     """:func:`jacobi_svd` of one matrix, given as its columns ``x`` ``(C, R)`` with sides ``y`` ``(K, R)``
     (both overwritten), into ``s`` ``(C,)``, ``v`` ``(C, C)`` and ``projected`` ``(C, K)``; ``reflector``
@@ -148,7 +148,7 @@ def svd_in_place(x, y, s, v, projected, reflector, norms):
             projected[i, k] = _dot(x[i], y[k], 0, depth)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _jacobi_svd_kernel(columns, sides):
     """:func:`jacobi_svd` of ``(B, C, R)`` column stacks (copied, then worked in place) with ``(B, K, R)`` sides."""
     count, width, rows = columns.shape

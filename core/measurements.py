@@ -62,7 +62,7 @@ def relative_position(position_enu_m, stations_enu_m, rotations):
     return np.einsum("...ij,...j->...i", rotations, delta)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def measure_point(east_m, north_m, up_m, bias_m, station_enu_m, rotation, kind):
     """One measurement's prediction and its Jacobian w.r.t. ``(east, north, up, bias)`` of the common frame.
 
@@ -111,7 +111,7 @@ def measure_point(east_m, north_m, up_m, bias_m, station_enu_m, rotation, kind):
             d_bias)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _predict_kernel(positions_enu_m, bias_m, stations_enu_m, rotations, kinds):
     size, width = kinds.shape
     predicted = np.empty((size, width))
@@ -124,7 +124,7 @@ def _predict_kernel(positions_enu_m, bias_m, stations_enu_m, rotations, kinds):
     return predicted, jacobian
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def toa_offset_point(east_m, north_m, up_m, stations_enu_m, kinds, values, weights):
     """One problem's weighted-mean TOA emission offset ``b`` (m) at a position: the ``b`` that fits its
     TOA pseudo-ranges best there (0 without TOA; compiled).
@@ -147,7 +147,7 @@ def toa_offset_point(east_m, north_m, up_m, stations_enu_m, kinds, values, weigh
     return offset / total if total > 0.0 else 0.0
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _toa_offsets(positions_enu_m, stations_enu_m, kinds, values, weights):
     out = np.empty(kinds.shape[0])
     for b in range(out.size):
@@ -261,7 +261,7 @@ def residuals(measured, predicted, kinds):
     return np.where(is_angle, wrap_to_pi(raw), raw)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def azimuth_rate_point(east_m, north_m, v_east_mps, v_north_mps):
     """One target's azimuth rate seen from a fixed station and its derivatives (compiled; see
     :func:`azimuth_rate`).
@@ -276,7 +276,7 @@ def azimuth_rate_point(east_m, north_m, v_east_mps, v_north_mps):
             north_m / rho2, -east_m / rho2)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _azimuth_rates(positions_enu_m, velocities_enu_mps):
     size = positions_enu_m.shape[0]
     rate, jacobian = np.empty(size), np.zeros((size, 6))

@@ -135,7 +135,7 @@ class CommonFrame:
         return onto_altitude(p, altitude_m, self.origin_array(), self.is_geodetic)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _enu_to_geodetic_point(position_enu_m, origin_ecef_m, origin_rotation):
     p = position_enu_m
     x = origin_ecef_m[0] + origin_rotation[0, 0] * p[0] + origin_rotation[1, 0] * p[1] + origin_rotation[2, 0] * p[2]
@@ -144,7 +144,7 @@ def _enu_to_geodetic_point(position_enu_m, origin_ecef_m, origin_rotation):
     return geodesy.ecef_to_geodetic_point(x, y, z)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def onto_altitude_point(position_enu_m, altitude_m, geodetic, origin_ecef_m, origin_rotation):
     """:func:`onto_altitude` of one point ``(3,)``, in place (compiled; callable from kernels).
 
@@ -160,7 +160,7 @@ def onto_altitude_point(position_enu_m, altitude_m, geodetic, origin_ecef_m, ori
         position_enu_m[i] = origin_rotation[i, 0] * dx + origin_rotation[i, 1] * dy + origin_rotation[i, 2] * dz
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def local_axes_point(position_enu_m, geodetic, origin_ecef_m, origin_rotation, work, axes):
     """:func:`local_axes` of one point into ``axes`` ``(3, 3)`` (``work``: a ``(3, 3)`` scratch; compiled)."""
     if not geodetic:
@@ -176,7 +176,7 @@ def local_axes_point(position_enu_m, geodetic, origin_ecef_m, origin_rotation, w
                 + work[i, 2] * origin_rotation[j, 2]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _onto_altitude_many(positions_enu_m, altitude_m, geodetic, origin_ecef_m, origin_rotation):
     out = positions_enu_m.copy()
     for i in range(out.shape[0]):
@@ -184,7 +184,7 @@ def _onto_altitude_many(positions_enu_m, altitude_m, geodetic, origin_ecef_m, or
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _local_axes_many(positions_enu_m, geodetic, origin_ecef_m, origin_rotation):
     out = np.empty((positions_enu_m.shape[0], 3, 3))
     work = np.empty((3, 3))

@@ -24,7 +24,7 @@ LOSSES = ("linear", "huber", "soft_l1", "cauchy", "arctan")
 CURVATURE_FLOOR = np.finfo(float).eps
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def loss_point(z, code, c2):
     """One measurement's ``C^2 rho(z / C^2)`` and its first two derivatives by ``z`` (compiled).
 
@@ -53,7 +53,7 @@ def loss_point(z, code, c2):
     return c2 * rho, rho1, rho2 / c2
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _loss_many(z, code, c2):
     rho, rho1, rho2 = np.empty_like(z), np.empty_like(z), np.empty_like(z)
     for i in range(z.size):

@@ -88,7 +88,7 @@ class Solution:
     cost: np.ndarray
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _evaluate(position_enu_m, bias_m, stations, rotations, kinds, values, weights, loss_code, c2,
               residual, jacobian, gradient_w, curvature_w):
     """Residuals, Jacobian and the gradient and Gauss-Newton weights of one problem's measurements (written
@@ -119,7 +119,7 @@ def _evaluate(position_enu_m, bias_m, stations, rotations, kinds, values, weight
     return cost
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _solve_small(a, rhs, out):
     """``a x = rhs`` for one small matrix by Gaussian elimination with partial pivoting (``a``, ``rhs`` overwritten)."""
     size = rhs.size
@@ -144,7 +144,7 @@ def _solve_small(a, rhs, out):
         out[k] = total / a[k, k]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, geodetic, origin_ecef_m,
                origin_rotation, has_toa, loss_code, c2, max_iterations, tolerance_m):
     size, count = kinds.shape

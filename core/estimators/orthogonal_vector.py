@@ -120,7 +120,7 @@ def orthogonal_rows(los: LinesOfSight, use_vertical: bool = True, use_horizontal
     return rows, rhs, line, vertical
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _noise_scale(position_enu_m, stations_enu_m, rotations, out):
     """Each row's noise per unit angle at a position into ``out`` ``(2M,)``: the slant distance for
     measurement ``m``'s ``c`` row (at ``m``), the horizontal distance for its ``c'`` row (at ``M + m``)."""
@@ -160,7 +160,7 @@ def _where(mask):
     return slice(None) if np.all(mask) else np.flatnonzero(mask)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _least_squares(rows, rhs, weights, columns, side, s, v, projected, reflector, norms, out):
     """Weighted least squares of one stacked system (``rows`` ``(R, 3)``) by its SVD into ``out`` ``(3,)``;
     returns whether the rows are rank-deficient (smallest singular value below ``RANK_TOLERANCE`` of the
@@ -181,7 +181,7 @@ def _least_squares(rows, rhs, weights, columns, side, s, v, projected, reflector
     return False
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitude_m, geodetic, origin_ecef_m,
                       origin_rotation, weighted):
     """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), which are rank-deficient,

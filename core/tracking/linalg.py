@@ -26,7 +26,7 @@ def cholesky_lower(matrix):
     return factor if cholesky_into(np.array(matrix, dtype=float), factor) else None
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def cholesky_into(matrix, factor):
     """Write the lower Cholesky factor of ``matrix`` into ``factor`` (both ``(n, n)``; the upper triangle
     zeroed); False, with ``factor`` partly written, when ``matrix`` is not positive definite.
@@ -53,7 +53,7 @@ def cholesky_into(matrix, factor):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def lower_inverse_into(factor, inverse):
     """Write the inverse of the lower-triangular ``factor`` (``(n, n)``, its diagonal nonzero) into
     ``inverse`` (the upper triangle zeroed); row by row, each sum added in index order."""

@@ -31,7 +31,7 @@ TWO_PI = 2.0 * math.pi
 NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _wrapped(angle_rad):
     """``angle_rad`` wrapped into ``[-pi, pi)``."""
     return (angle_rad + PI) % TWO_PI - PI
@@ -42,7 +42,7 @@ _OBSERVER = np.zeros(3)
 _OBSERVER_AXES = np.eye(3)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _polar(east_m, north_m, up_m):
     """Range, azimuth and elevation of a point seen from the observer (:func:`core.measurements.measure_point`)."""
     return (measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, RANGE)[0],
@@ -198,7 +198,7 @@ def polar_transform(mean, position_cov, step1_position, pseudo, azimuth_rad: flo
     return PolarTransform(to_innovation if pseudo is not None else to_innovation[:, :3], from_angles, whitened, nis)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _polar_kernel(position, position_cov, step1_position, range_terms, with_range, azimuth_rad, elevation_rad,
                   var_azimuth, var_elevation, to_innovation, from_angles, whitened):
     """:func:`polar_transform`: writes its three arrays and returns ``(status, nis)``, status 0, or 1 (2) when
@@ -313,7 +313,7 @@ _THREE = np.array([0, 1, 2])
 UPDATED, PREDICTED_NOT_PD, INNOVATION_NOT_PD, UPDATED_NOT_PD, NOT_FINITE = range(5)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _joint_measurement(state, n_pulses, interval_s, use_toa, out):
     """``(B, E, c dS, Bdot)`` (without ``c dS`` unless ``use_toa``) of one joint state into ``out``.
 
@@ -336,7 +336,7 @@ def _joint_measurement(state, n_pulses, interval_s, use_toa, out):
         out[2] = rate
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def joint_ukf_kernel(means, covs, transition, noises, predict, n_pulses, interval_s, use_toa, measured, variances,
                      new_means, new_covs, nis, log_det, status):
     """Predict and update ``M`` joint UKF states (layout in :mod:`core.tracking.state`) with one epoch.

@@ -75,3 +75,27 @@ def test_no_fix_compiles_a_kernel_after_compile_kernels():
     run = subprocess.run([sys.executable, "-c", _WORKLOAD], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-4000:]
     assert "GREW []" in run.stdout, run.stdout[-2000:]
+
+
+def test_every_kernel_divides_as_numpy_does():
+    """numba's default error model raises ZeroDivisionError where numpy gives inf or nan (a degenerate
+    geometry would then be a 500); every kernel of the core uses numpy's."""
+    import importlib
+    import pkgutil
+
+    import numpy as np
+    from numba.core.registry import CPUDispatcher
+
+    import core
+    from core.estimators.ml import _solve_small
+
+    kernels = {}
+    for info in pkgutil.walk_packages(core.__path__, "core."):
+        module = importlib.import_module(info.name)
+        kernels.update({f"{module.__name__}.{name}": value for name, value in vars(module).items()
+                        if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__})
+    assert len(kernels) >= 20
+    assert not [name for name, kernel in kernels.items() if kernel.targetoptions.get("error_model") != "numpy"]
+    out = np.empty(4)
+    _solve_small(np.zeros((4, 4)), np.ones(4), out)
+    assert np.all(np.isnan(out))
