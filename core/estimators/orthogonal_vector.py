@@ -210,8 +210,8 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
         for r in range(count):
             w[r] = 1.0 if used[b, r] else 0.0
         failed = False
-        for round in range(3):
-            if round > 0:
+        for sweep in range(3):
+            if sweep > 0:
                 if not (weighted or constrained):
                     break
                 if constrained:
