@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from core.linalg import weighted_gram
 from core.measurements import MeasurementModel
 from core.problem import local_axes
 
@@ -73,7 +74,7 @@ def normal_matrix(jacobian, weights, axes, free):
         local = jacobian.copy()
         local[:, :3] = axes @ jacobian[:, :3]
     local = local * free[:, :, None]
-    information = (local * weights[:, None, :]) @ np.swapaxes(local, -1, -2)
+    information = weighted_gram(local, weights)
     information += np.eye(4) * ~free[:, None, :]
     return information, local
 
@@ -162,7 +163,7 @@ def sandwich_covariance(jacobian, bread_weights, meat_weights, axes, free):
     """
     bread, local = normal_matrix(jacobian, bread_weights, axes, free)
     inverse = invert_information(bread, axes, free).covariance_params
-    meat = (local * meat_weights[:, None, :]) @ np.swapaxes(local, -1, -2)
+    meat = weighted_gram(local, meat_weights)
     params = inverse @ meat @ inverse
     block = 0.5 * (params[:, :3, :3] + np.swapaxes(params[:, :3, :3], -1, -2))
     return block if axes is None else np.swapaxes(axes, -1, -2) @ block @ axes

@@ -10,6 +10,8 @@ or in a stack, with the same bits either way.
 
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -165,6 +167,47 @@ def _jacobi_svd_kernel(columns, sides):
         y[:, :] = sides[b]
         svd_in_place(x, y, s[b], v[b], projected[b], reflector, norms)
     return s, v, projected
+
+
+def row_sums(x):
+    """Sums ``(...)`` over the last axis of ``(..., M)``, added in order (compiled).
+
+    ``np.sum`` (and ``einsum``) add a row of eight or more pairwise, so zero padding at its end changes
+    the rounding: a problem's chi-square would then differ in its last bits alone and in a batch.
+    """
+    x = np.asarray(x, dtype=float)
+    return _row_sums(np.ascontiguousarray(x).reshape(math.prod(x.shape[:-1]), x.shape[-1])).reshape(x.shape[:-1])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _row_sums(x):
+    out = np.zeros(x.shape[0])
+    for b in range(x.shape[0]):
+        total = 0.0
+        for m in range(x.shape[1]):
+            total += x[b, m]
+        out[b] = total
+    return out
+
+
+def weighted_gram(a, weights):
+    """``a W a^T`` ``(B, P, P)`` of ``(B, P, M)`` rows and ``(B, M)`` weights, summed over ``M`` in order
+    (compiled; unlike ``matmul``, bit for bit the same with zero-weight padding at the end)."""
+    return _weighted_gram(np.ascontiguousarray(a, dtype=float), np.ascontiguousarray(weights, dtype=float))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _weighted_gram(a, weights):
+    size, rows, width = a.shape
+    out = np.empty((size, rows, rows))
+    for b in range(size):
+        for i in range(rows):
+            for j in range(i + 1):
+                total = 0.0
+                for m in range(width):
+                    total += a[b, i, m] * weights[b, m] * a[b, j, m]
+                out[b, i, j] = out[b, j, i] = total
+    return out
 
 
 def last_dot(x, y):

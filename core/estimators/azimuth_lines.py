@@ -33,6 +33,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
+from core.linalg import row_sums
 from core.measurements import ELEVATION, RANGE, TOA, Kind
 from core.problem import local_axes, onto_altitude
 from core.problem_batch import ProblemBatch
@@ -127,7 +128,7 @@ class Lines:
 
     def mean_origin(self) -> np.ndarray:
         """Mean station position ``(B, 3)`` over each problem's lines."""
-        return np.sum(self.origins_enu_m, axis=1) / np.maximum(self.count, 1)[:, None]
+        return row_sums(np.swapaxes(self.origins_enu_m, 1, 2)) / np.maximum(self.count, 1)[:, None]
 
     def onto_altitude(self, position_enu_m) -> np.ndarray:
         """Points ``(B, ..., 3)`` moved onto each problem's known altitude."""
@@ -185,7 +186,7 @@ def _point_chi2(lines: Lines, normals_enu, weights) -> np.ndarray:
         horizontal2 = np.maximum(east**2 + north**2, 1e-18)
         twice = 2.0 * (lines.azimuth_rad - np.arctan2(east, north))
         miss = 0.5 * np.arctan2(np.sin(twice), np.cos(twice))
-        chi2 = np.sum((miss * weights) ** 2, axis=-1)
+        chi2 = row_sums((miss * weights) ** 2)
         improved = chi2 < best * (1.0 - 1e-9)
         best = np.where(active & ~improved, np.minimum(best, chi2), best)
         active &= improved
@@ -201,16 +202,16 @@ def _point_chi2(lines: Lines, normals_enu, weights) -> np.ndarray:
 def _weighted_fit(column0, column1, rhs, weights):
     """Weighted least squares ``(B, 2)`` of ``[column0 column1] x = rhs``, all ``(B, K)``, by its normal equations."""
     w2 = weights * weights
-    a00, a11 = np.sum(w2 * column0 * column0, -1), np.sum(w2 * column1 * column1, -1)
-    a01 = np.sum(w2 * column0 * column1, -1)
+    a00, a11 = row_sums(w2 * column0 * column0), row_sums(w2 * column1 * column1)
+    a01 = row_sums(w2 * column0 * column1)
     normal = np.stack([np.stack([a00, a01], -1), np.stack([a01, a11], -1)], -2)
-    return solve_2x2(normal, np.stack([np.sum(w2 * column0 * rhs, -1), np.sum(w2 * column1 * rhs, -1)], -1))
+    return solve_2x2(normal, np.stack([row_sums(w2 * column0 * rhs), row_sums(w2 * column1 * rhs)], -1))
 
 
 def _eigenvalues_2x2(rows) -> np.ndarray:
     """Eigenvalues ``(B, 2)``, ascending, of ``sum_k x_k x_k^T`` for rows ``(B, K, 2)``."""
-    a, c = np.sum(rows[..., 0] ** 2, -1), np.sum(rows[..., 1] ** 2, -1)
-    b = np.sum(rows[..., 0] * rows[..., 1], -1)
+    a, c = row_sums(rows[..., 0] ** 2), row_sums(rows[..., 1] ** 2)
+    b = row_sums(rows[..., 0] * rows[..., 1])
     mean, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
     return np.stack([mean - radius, mean + radius], axis=-1)
 
@@ -349,7 +350,8 @@ def tangent_plane(lines: Lines, position_enu_m) -> TangentPlane:
 def plane_spread_m(lines: Lines, plane: TangentPlane) -> np.ndarray:
     """RMS distance ``(B,)`` of the stations from the plane's centre (at least 1 m)."""
     offsets = plane.coordinates(lines.origins_enu_m) * lines.mask[..., None]
-    return np.maximum(np.sqrt(np.sum(offsets**2, axis=(1, 2)) / np.maximum(lines.count, 1)), 1.0)
+    squares = (offsets**2).reshape(offsets.shape[0], offsets.shape[1] * offsets.shape[2])
+    return np.maximum(np.sqrt(row_sums(squares) / np.maximum(lines.count, 1)), 1.0)
 
 
 @dataclass(frozen=True)

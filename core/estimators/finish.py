@@ -18,6 +18,7 @@ from core.crlb import gdop, invert_information, normal_matrix, parameterisation,
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_weights
 from core.estimators.result import Estimates, FixBatch, FixWarning
+from core.linalg import row_sums
 from core.measurements import Kind, MeasurementModel, toa_offsets
 from core.problem_batch import ProblemBatch
 
@@ -82,7 +83,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     stated = present & np.isfinite(sigmas)
     normalized = np.where(stated, raw / np.where(stated, sigmas, 1.0), 0.0)
     known = valid & stated
-    chi2 = np.sum(np.where(known, normalized, 0.0) ** 2, axis=-1)
+    chi2 = row_sums(np.where(known, normalized, 0.0) ** 2)
     n_parameters = np.where(batch.constrained, 2, 3) + batch.has_toa
     dof = np.count_nonzero(known, axis=-1) - n_parameters
     positive = dof > 0
@@ -92,7 +93,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     robust_factor = None
     if estimates.loss is not None:
         rho, robust_factor, _ = loss_weights(np.where(known, normalized, 0.0) ** 2, *estimates.loss)
-        robust_cost = np.sum(np.where(known, rho, 0.0), axis=-1)
+        robust_cost = row_sums(np.where(known, rho, 0.0))
         sigma_scale = np.where(positive, np.sqrt(robust_cost / np.maximum(dof, 1)), np.nan)
 
     axes, free = parameterisation(position, batch.altitude_m, batch.has_toa, batch.origin, batch.geodetic)

@@ -33,6 +33,7 @@ from core.crlb import invert_information, normal_matrix, parameterisation
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates, FixWarning
+from core.linalg import row_sums
 from core.measurements import AZIMUTH, ELEVATION, RANGE, TOA, MeasurementModel
 from core.problem_batch import ProblemBatch
 
@@ -364,7 +365,7 @@ def _intersect(batch: ProblemBatch) -> Estimates:
                                   batch.geodetic)
     information, local_jacobian = normal_matrix(jac, w, axes, free)
     inverse = invert_information(information, axes, free)
-    gradient = np.einsum("bim,bm->bi", local_jacobian, w * delta_z)
+    gradient = row_sums(local_jacobian * (w * delta_z)[:, None, :])
     step = np.einsum("bij,bj->bi", inverse.covariance_params, gradient)[:, :3]
     position = batch.onto_altitude(reference + (step if axes is None else np.einsum("bi,bij->bj", step, axes)))
     valid = has_pair & inverse.observable & np.all(np.isfinite(position), axis=-1)

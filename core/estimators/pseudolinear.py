@@ -43,6 +43,7 @@ from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators.azimuth_lines import Lines, azimuth_normals, crossing_errors, has_elevations, solve_2x2
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
+from core.linalg import row_sums, weighted_gram
 from core.problem_batch import ProblemBatch
 
 #: Horizontal/height passes; fixed so that the estimator is one smooth map of the data.
@@ -98,14 +99,14 @@ def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weigh
     along_rhs = np.sum(along * origins, axis=-1)
     hw, dhw = horizontal_weights, d_horizontal_weights
     hw2 = hw * hw
-    g00, g01, g11 = np.sum(n0 * n0 * hw2, -1), np.sum(n0 * n1 * hw2, -1), np.sum(n1 * n1 * hw2, -1)
+    g00, g01, g11 = row_sums(n0 * n0 * hw2), row_sums(n0 * n1 * hw2), row_sums(n1 * n1 * hw2)
     gram = np.stack([np.stack([g00, g01], -1), np.stack([g01, g11], -1)], -2)
     dg00, dg01, dg11 = slots(-2 * h0 * n0 * hw2), slots(-(h0 * n1 + n0 * h1) * hw2), slots(-2 * h1 * n1 * hw2)
     if dhw is not None:
         dg00 = dg00 + _contract(2 * n0 * n0 * hw, dhw)
         dg01 = dg01 + _contract(2 * n0 * n1 * hw, dhw)
         dg11 = dg11 + _contract(2 * n1 * n1 * hw, dhw)
-    c0, c1 = np.sum(n0 * n2 * hw2, -1), np.sum(n1 * n2 * hw2, -1)
+    c0, c1 = row_sums(n0 * n2 * hw2), row_sums(n1 * n2 * hw2)
 
     constrained = lines.constrained
     free = ~constrained
@@ -116,7 +117,7 @@ def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weigh
     d_slope_az = rotations[..., 0, 2] * cos_az - rotations[..., 1, 2] * sin_az
     d_slope_el = rotations[..., 2, 2] / np.cos(el) ** 2 * lines.has_elevation
     vw, dvw = height_weights, d_height_weights
-    vw_total = np.sum(vw, axis=-1)
+    vw_total = row_sums(vw)
     vw_total = np.where(vw_total > 0, vw_total, 1.0)
     foot_rows = np.flatnonzero(constrained)
     foot_lines = lines.take(foot_rows) if foot_rows.size else None
@@ -125,7 +126,7 @@ def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weigh
         residual = rhs - n2 * up[:, None]
         data = residual * hw
         own = (h2 * up[:, None] - along_rhs) * hw
-        right0, right1 = np.sum(n0 * hw * data, -1), np.sum(n1 * hw * data, -1)
+        right0, right1 = row_sums(n0 * hw * data), row_sums(n1 * hw * data)
         d_right0 = slots(-h0 * hw * data + n0 * hw * own) - c0[:, None] * d_up
         d_right1 = slots(-h1 * hw * data + n1 * hw * own) - c1[:, None] * d_up
         if dhw is not None:
@@ -140,8 +141,8 @@ def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weigh
         if any_free:
             horizontal, gradient = _horizontal(lines, candidate)
             heights = origins[..., 2] + horizontal * slope
-            new_up = np.sum(vw * heights, axis=-1) / vw_total
-            toward = np.sum((vw * slope)[..., None] * gradient, axis=1)
+            new_up = row_sums(vw * heights) / vw_total
+            toward = row_sums(np.swapaxes((vw * slope)[..., None] * gradient, 1, 2))
             d_new_up = (np.einsum("bi,bip->bp", toward, d_candidate)
                         + slots(vw * horizontal * d_slope_az, vw * horizontal * d_slope_el))
             if dvw is not None:
@@ -159,8 +160,9 @@ def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weigh
 
 
 def _contract(per_line, d_per_line):
-    """``sum_k x_k dy_k`` ``(B, P)`` of ``x`` ``(B, K)`` and ``dy`` ``(B, K, P)``."""
-    return np.matmul(per_line[:, None, :], d_per_line)[:, 0]
+    """``sum_k x_k dy_k`` ``(B, P)`` of ``x`` ``(B, K)`` and ``dy`` ``(B, K, P)``, added in line order (so
+    that padding lines change no bit)."""
+    return row_sums(np.swapaxes(per_line[..., None] * d_per_line, 1, 2))
 
 
 def _horizontal(lines: Lines, position_enu_m):
@@ -206,7 +208,7 @@ def pseudolinear_positions(lines: Lines, weighted: bool):
         position, d_position, _, _ = _stages(lines, hw, dhw, vw, dvw)
     elevation_variance = np.where(lines.has_elevation & ~lines.constrained[:, None], lines.sigma_elevation_rad**2, 0)
     variance = np.concatenate([np.where(mask, lines.sigma_azimuth_rad**2, 0.0), elevation_variance], axis=-1)
-    covariance = np.matmul(d_position * variance[:, None, :], np.swapaxes(d_position, -1, -2))
+    covariance = weighted_gram(d_position, variance)
     return position, covariance
 
 

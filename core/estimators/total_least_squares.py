@@ -85,6 +85,7 @@ from core.estimators.azimuth_lines import (
 )
 from core.estimators.base import AZIMUTHS, SolveOptions, get_estimator, register
 from core.estimators.result import Estimates, FixWarning
+from core.linalg import row_sums, weighted_gram
 from core.problem_batch import ProblemBatch
 
 #: Re-takes of the tangent plane at the solution (exact on the ellipsoid after two).
@@ -193,7 +194,7 @@ def _tls(batch: ProblemBatch, options: SolveOptions):
         return points, (matrix, spread), at_infinity
 
     plane, equations, _, (matrix, spread) = run.passes(solve_in_plane)
-    eigenvalues, vectors = np.linalg.eigh(np.einsum("bki,bkj->bij", matrix, matrix))
+    eigenvalues, vectors = np.linalg.eigh(weighted_gram(np.swapaxes(matrix, 1, 2), np.ones(matrix.shape[:2])))
     v = vectors[..., 0]
     derivative_rows = -np.concatenate([equations.along_rows, (equations.along_rhs / spread[:, None])[..., None]],
                                       axis=-1)
@@ -204,7 +205,7 @@ def _tls(batch: ProblemBatch, options: SolveOptions):
         dv = -np.einsum("bki,bij,blj->bkl", ds_v, resolvent, vectors[..., 1:])
         v2 = v[:, 2, None, None]
         d_plane = -spread[:, None, None] * (dv[..., :2] * v2 - v[:, None, :2] * dv[..., 2:3]) / v2**2
-    covariance_plane = np.einsum("bki,bk,bkj->bij", d_plane, _variance(run.lines), d_plane)
+    covariance_plane = weighted_gram(np.swapaxes(d_plane, 1, 2), _variance(run.lines))
     return run, plane, covariance_plane
 
 
@@ -225,7 +226,7 @@ def _residuals(equations: AzimuthEquations, plane_m, weights):
 def _ctls_cost(equations: AzimuthEquations, plane_m, weights):
     e, rho = _residuals(equations, plane_m, weights)
     f = e / rho
-    return np.sum(weights * f * f, axis=-1)
+    return row_sums(weights * f * f)
 
 
 def _ctls_terms(equations: AzimuthEquations, plane_m, weights):
@@ -247,14 +248,14 @@ def _ctls_terms(equations: AzimuthEquations, plane_m, weights):
     rho2 = rho * rho
     g0, g1 = (a0 * rho - d0 * e) / rho2, (a1 * rho - d1 * e) / rho2
     wf = weights * f
-    cost = np.sum(wf * f, axis=-1)
-    gradient = 2.0 * np.stack([np.sum(wf * g0, -1), np.sum(wf * g1, -1)], -1)
+    cost = row_sums(wf * f)
+    gradient = 2.0 * np.stack([row_sums(wf * g0), row_sums(wf * g1)], -1)
     wg0, wg1 = weights * g0, weights * g1
-    gn00, gn01, gn11 = 2.0 * np.sum(wg0 * g0, -1), 2.0 * np.sum(wg0 * g1, -1), 2.0 * np.sum(wg1 * g1, -1)
+    gn00, gn01, gn11 = 2.0 * row_sums(wg0 * g0), 2.0 * row_sums(wg0 * g1), 2.0 * row_sums(wg1 * g1)
     curvature = 2.0 * e / (rho2 * rho)
-    h00 = np.sum(wf * (-2.0 * a0 * d0 / rho2 + curvature * d0 * d0), -1)
-    h01 = np.sum(wf * (-(a0 * d1 + a1 * d0) / rho2 + curvature * d0 * d1), -1)
-    h11 = np.sum(wf * (-2.0 * a1 * d1 / rho2 + curvature * d1 * d1), -1)
+    h00 = row_sums(wf * (-2.0 * a0 * d0 / rho2 + curvature * d0 * d0))
+    h01 = row_sums(wf * (-(a0 * d1 + a1 * d0) / rho2 + curvature * d0 * d1))
+    h11 = row_sums(wf * (-2.0 * a1 * d1 / rho2 + curvature * d1 * d1))
 
     def matrix(m00, m01, m11):
         return np.stack([np.stack([m00, m01], -1), np.stack([m01, m11], -1)], -2)
@@ -316,7 +317,7 @@ def _newton_ctls(batch: ProblemBatch, options: SolveOptions):
     plane, equations, plane_m, (iterations, converged) = run.passes(solve_in_plane)
     _, _, hessian, _, f, grad_f = _ctls_terms(equations, plane_m, weights)
     gain = 2.0 * (weights * (1.0 + 3.0 * f * f))[..., None] * np.einsum("bki,bij->bkj", grad_f, inverse_2x2(hessian))
-    covariance_plane = np.einsum("bki,bk,bkj->bij", gain, _variance(run.lines), gain)
+    covariance_plane = weighted_gram(np.swapaxes(gain, 1, 2), _variance(run.lines))
     return run, plane, covariance_plane, iterations, converged
 
 
@@ -397,7 +398,7 @@ def _projected_ctls(batch: ProblemBatch, options: SolveOptions):
     run = _Solution(batch, "ctls", options)
     lines = run.lines
     inverse_sigma = np.where(lines.mask, 1.0 / lines.sigma_azimuth_rad, 0.0)
-    weights_sqrt = inverse_sigma / (np.sum(inverse_sigma, axis=-1) / np.maximum(lines.count, 1))[:, None]
+    weights_sqrt = inverse_sigma / (row_sums(inverse_sigma) / np.maximum(lines.count, 1))[:, None]
     allowed = np.full(lines.count.size, options.max_iterations)
 
     def solve_in_plane(plane, _equations, _current, _state):
@@ -423,7 +424,7 @@ def _projected_ctls(batch: ProblemBatch, options: SolveOptions):
              "ctls: the total-least-squares solution lies at infinity (the azimuth lines are parallel)")
     gain = (points[:, :k] - points[:, k:]) / (2 * DIFFERENCE_STEP_RAD)
     with np.errstate(invalid="ignore"):
-        covariance_plane = np.einsum("bki,bk,bkj->bij", gain, _variance(lines), gain)
+        covariance_plane = weighted_gram(np.swapaxes(gain, 1, 2), _variance(lines))
     return run, plane, covariance_plane, used, converged
 
 

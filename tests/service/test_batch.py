@@ -315,3 +315,62 @@ def _models_in(annotation):
         yield annotation
     for arg in typing.get_args(annotation):
         yield from _models_in(arg)
+
+
+def _padded_request(stations: int, seed: int, mix: str) -> dict:
+    """A wgs84 request with ``stations`` bearing stations around the bench geometry, of measurement mix
+    ``mix``: elevations, azimuths only (with altitude), bearings with ranges, bearings with TOAs."""
+    from bench.scenarios import four_station_requests
+
+    rng = np.random.default_rng(seed)
+    template = four_station_requests(1, np.random.default_rng(seed), with_range=True)[0]
+    bearings = [m for m in template["measurements"] if m["type"] == "bearing"]
+    a_range = next(m for m in template["measurements"] if m["type"] == "range")
+    request = {"frame": "wgs84", "stations": [], "measurements": []}
+    for k in range(stations):
+        station = copy.deepcopy(template["stations"][k % 4])
+        station["id"] = f"s{k}"
+        station["position"]["lat_deg"] += 1e-3 * (k // 4)
+        request["stations"].append(station)
+        bearing = dict(bearings[k % 4], station_id=f"s{k}")
+        bearing["azimuth_deg"] += 0.3 * rng.standard_normal()
+        if mix == "azimuths":
+            bearing.pop("elevation_deg"), bearing.pop("sigma_elevation_deg")
+        else:
+            bearing["elevation_deg"] += 0.3 * rng.standard_normal()
+        request["measurements"].append(bearing)
+        if mix == "ranges" and k < 3:
+            request["measurements"].append(dict(a_range, station_id=f"s{k}",
+                                                range_m=a_range["range_m"] * (1 + 0.01 * rng.standard_normal())))
+        if mix == "toas":
+            request["measurements"].append({"type": "toa", "station_id": f"s{k}", "toa_s": 1e-4 * rng.random(),
+                                            "sigma_s": 1e-6})
+    if mix == "azimuths":
+        request["constraints"] = {"altitude_m": 3000.0}
+    return request
+
+
+@pytest.mark.parametrize("mix", ["elevations", "azimuths", "ranges", "toas"])
+def test_a_fix_is_the_same_bytes_when_a_larger_problem_pads_it(mix):
+    """Padding to a batch's widest problem changes no bit of any method's fix: every sum over measurements,
+    lines or pairs is added in order (numpy's pairwise sums over eight or more terms round differently once
+    zeros are appended)."""
+    from service.translate import fix_results
+
+    def body(result):
+        out = result.get("fix") or {k: v for k, v in result["error"].items() if k not in ("request_id", "instance")}
+        return orjson.dumps(out, option=orjson.OPT_SERIALIZE_NUMPY)
+
+    options = [None, {"loss": "huber"}, {"outliers": "exclude"}]
+    for trial in range(4):
+        small, wide = _padded_request(3 + 3 * trial, trial, mix), _padded_request(16, 100 + trial, mix)
+        for method in sorted(REGISTRY):
+            small["method"] = wide["method"] = method
+            for option in options if method == "ml" else [None]:
+                for request in (small, wide):
+                    request.pop("options", None)
+                    if option:
+                        request["options"] = option
+                alone = fix_results([small])[0]
+                padded = fix_results([wide, small])[1]
+                assert body(alone) == body(padded), (mix, trial, method, option)
