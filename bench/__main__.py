@@ -174,7 +174,7 @@ orjson's parse of the same 11 MB batch took 0.049 s on 2026-11-23, 0.134 s on
 **Rows 1 and 7, one fix.** The per-problem inner loops are compiled now (the
 ML iteration, the orthogonal-vector passes of the start, the measurement
 model, geodesy, the altitude surface): one fix in core went from 2,445 us to
-about 1,450 us on 2026-12-02 (same machine, quiet). What is left is numpy call
+about 1,400 us on 2026-12-02 (1,397 us at 04:16, same machine, quiet). What is left is numpy call
 overhead on arrays of four rows: the reader and the batch builder (~300 us),
 the start's row building (~200 us), the finisher (~400 us: residuals, CRLB,
 leverage, warnings) and the bodies (~200-350 us). The 50 us target needs those
