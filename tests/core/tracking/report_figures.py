@@ -1,4 +1,5 @@
-"""Print the figures quoted for the session filters: ``python -m tests.core.tracking.report_figures [runs]``.
+"""Print the figures quoted for the session filters: ``python -m tests.core.tracking.report_figures [runs]``
+(``bound [runs] [switching runs]``: against the PCRB; ``sweep [runs]``: the default model over q = 0.01..2).
 
 Not a test module: it measures, it asserts nothing. The tests in this package
 assert bounds on the same quantities.
@@ -244,7 +245,27 @@ def switching(runs: int) -> None:
               + f")  position NEES {np.nanmean(result.nees[:, 60:]):5.2f}", flush=True)
 
 
+#: Process-noise levels of the sweep (m/s^2): the issue's range 0.01..2.
+SWEEP_MPS2 = (0.01, 0.05, 0.2, 0.5, 1.0, 2.0)
+
+
+def sweep(runs: int) -> None:
+    """The default model against the PCRB over the process-noise range, truths from the model (seed 30000)."""
+    from core.simulation.tracking import against_bound
+
+    print(f"\nDefault model (joint_ukf, range mixture) over q, {runs} runs, seed 30000, last 50 of 200 reports")
+    for q in SWEEP_MPS2:
+        for known in (True, False):
+            result = against_bound(paper_config("joint_ukf", known, accel_sigma_mps2=q),
+                                   paper_001_scenario(accel_sigma_mps2=q), runs, 30000)
+            print(f"q={q:<5} {'known  ' if known else 'unknown'}  ratio {result.ratio(slice(-50, None)):6.2f}  "
+                  f"position NEES {np.nanmean(result.nees[:, -50:]):5.2f}", flush=True)
+
+
 if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "sweep":
+        sweep(int(sys.argv[2]) if len(sys.argv) > 2 else 50)
+        sys.exit(0)
     if len(sys.argv) > 1 and sys.argv[1] == "bound":
         bound(int(sys.argv[2]) if len(sys.argv) > 2 else 200)
         switching(int(sys.argv[3]) if len(sys.argv) > 3 else 40)
