@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from core.linalg import weighted_gram
+from core.linalg import row_sums, weighted_gram
 from core.measurements import MeasurementModel
 from core.problem import local_axes
 
@@ -108,8 +108,7 @@ def reference_sigma_m(jacobian, weights):
     with np.errstate(invalid="ignore", over="ignore"):
         information = weights * np.sum(jacobian[:, :3] ** 2, axis=1)
     usable = (weights > 0) & np.isfinite(information) & (information > 0)
-    # sequential (cumsum), so that padding a problem with more zero-weight rows cannot change the rounding
-    total = np.cumsum(np.where(usable, information, 0.0), axis=-1)[..., -1]
+    total = row_sums(np.where(usable, information, 0.0))
     count = np.count_nonzero(usable, axis=-1)
     return np.where(count > 0, np.sqrt(count / np.where(count > 0, total, 1.0)), np.nan)
 

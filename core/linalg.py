@@ -68,20 +68,6 @@ def jacobi_svd(a, rhs=None):
     return s, v, projected.reshape(stack + (width, sides.shape[1]))
 
 
-def row_dot(x, y):
-    """``sum_r x[r] y[r]`` over the leading axis, added in row order.
-
-    ``np.sum`` adds a lone contiguous vector pairwise but the columns of a
-    stack one row at a time, so a matrix would round differently alone and
-    in a stack, and differently again with zero rows of padding; added in
-    row order, the bits are the same in every case.
-    """
-    total = x[0] * y[0]
-    for r in range(1, x.shape[0]):
-        total += x[r] * y[r]
-    return total
-
-
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _dot(x, y, start, stop):
     total = x[start] * y[start]
@@ -182,9 +168,11 @@ def row_sums(x):
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _row_sums(x):
     out = np.zeros(x.shape[0])
+    if x.shape[1] == 0:
+        return out
     for b in range(x.shape[0]):
-        total = 0.0
-        for m in range(x.shape[1]):
+        total = x[b, 0]
+        for m in range(1, x.shape[1]):
             total += x[b, m]
         out[b] = total
     return out
@@ -211,16 +199,12 @@ def _weighted_gram(a, weights):
 
 
 def last_dot(x, y):
-    """``sum_i x[..., i] y[..., i]`` over the (short) last axis, added in order; broadcasts.
+    """``sum_i x[..., i] y[..., i]`` over the last axis, added in order (:func:`row_sums`); broadcasts.
 
     ``np.einsum`` picks its inner loop by shape, so it can round a matrix
     differently alone and in a stack; this cannot.
     """
-    x, y = np.broadcast_arrays(np.asarray(x, dtype=float), np.asarray(y, dtype=float))
-    total = x[..., 0] * y[..., 0]
-    for i in range(1, x.shape[-1]):
-        total = total + x[..., i] * y[..., i]
-    return total
+    return row_sums(np.asarray(x, dtype=float) * np.asarray(y, dtype=float))
 
 
 def matvec(m, x):

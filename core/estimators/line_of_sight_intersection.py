@@ -232,7 +232,7 @@ def _sum_over_pairs(values, used, start):
         The sum over the pairs before these.
     """
     terms = np.concatenate([start[:, None], np.where(used[..., None], values, 0.0)], axis=1)
-    return np.add.accumulate(terms, axis=1)[:, -1]
+    return row_sums(np.swapaxes(terms, 1, 2))
 
 
 def intersect_lines_of_sight(batch: ProblemBatch, options: SolveOptions | None = None) -> Estimates:

@@ -41,7 +41,7 @@ import numpy as np
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
-from core.linalg import jacobi_svd, last_dot, matvec, row_dot, svd_in_place
+from core.linalg import jacobi_svd, last_dot, matvec, svd_in_place, weighted_gram
 from core.problem import LinesOfSight, Problem, frame_placements, local_axes, local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
@@ -318,11 +318,7 @@ def _propagated_covariance(eq: _Rows, k, position_enu_m, scale, bound, batch: Pr
     kept = eigenvalues > PINV_CUTOFF * eigenvalues.max(axis=-1, keepdims=True)
     scaled = v * np.where(kept, 1.0 / np.where(kept, eigenvalues, 1.0), 0.0)[:, None, :]
     gain = scaled @ np.swapaxes(v, -1, -2)
-    noisy = np.moveaxis(rows * np.where(used, weights * weights * noise_sd, 0.0)[..., None], (-1, -2), (0, 1))
-    middle = np.empty_like(gain)
-    for i in range(3):
-        for j in range(i, 3):
-            middle[:, i, j] = middle[:, j, i] = row_dot(noisy[i], noisy[j])
+    middle = weighted_gram(np.swapaxes(rows, -1, -2), np.where(used, weights * weights * noise_sd, 0.0) ** 2)
     local = gain @ middle @ gain
     return np.swapaxes(axes, -1, -2) @ local @ axes
 
