@@ -2,11 +2,29 @@
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def wrap_point(angle_rad):
+    """One angle wrapped to (-pi, pi] (compiled; the one coding that :func:`wrap_to_pi` and the kernels use)."""
+    wrapped = (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+    return math.pi if wrapped == -math.pi else wrapped
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _wrap_many(angles_rad):
+    out = np.empty_like(angles_rad)
+    for i in range(angles_rad.size):
+        out[i] = wrap_point(angles_rad[i])
+    return out
+
+
 def wrap_to_pi(angle_rad):
-    """Wrap angles to the half-open interval (-pi, pi].
+    """Wrap angles to the half-open interval (-pi, pi] (:func:`wrap_point` on each).
 
     Parameters
     ----------
@@ -18,9 +36,9 @@ def wrap_to_pi(angle_rad):
     float or ndarray
         Same shape, wrapped.
     """
-    wrapped = np.mod(np.asarray(angle_rad, dtype=float) + np.pi, 2.0 * np.pi) - np.pi
-    wrapped = np.where(wrapped == -np.pi, np.pi, wrapped)
-    return wrapped if np.ndim(wrapped) else float(wrapped)
+    angles = np.asarray(angle_rad, dtype=float)
+    wrapped = _wrap_many(np.ascontiguousarray(angles).ravel()).reshape(angles.shape)
+    return wrapped if wrapped.ndim else float(wrapped)
 
 
 def line_of_sight_enu(azimuth_rad, elevation_rad):

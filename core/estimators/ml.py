@@ -45,6 +45,7 @@ from scipy.special import chdtrc
 
 from core.crlb import batch_information
 from core.errors import AmbiguousGeometry, LocalizationError
+from core.angles import wrap_point
 from core.estimators.base import SolveOptions, register
 from core.estimators.loss import CURVATURE_FLOOR, loss_code, loss_point
 from core.estimators.result import Estimates, FixWarning
@@ -107,9 +108,7 @@ def _evaluate(position_enu_m, bias_m, stations, rotations, kinds, values, weight
             position_enu_m[0], position_enu_m[1], position_enu_m[2], bias_m, stations[m], rotations[m], kind)
         r = values[m] - predicted
         if kind == AZIMUTH or kind == ELEVATION:
-            r = (r + math.pi) % (2.0 * math.pi) - math.pi
-            if r == -math.pi:
-                r = math.pi
+            r = wrap_point(r)
         residual[m] = r
         z = w * r * r
         rho, rho1, rho2 = loss_point(z, loss_code, c2)

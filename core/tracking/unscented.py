@@ -21,6 +21,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from core.angles import wrap_point
 from core.measurements import AZIMUTH, ELEVATION, RANGE, azimuth_rate_point, measure_point
 from core.tracking.linalg import cholesky_into, lower_inverse_into, symmetrized
 
@@ -29,12 +30,6 @@ TWO_PI = 2.0 * math.pi
 #: Chi-square 99.9 % points for 2, 3 and 4 degrees of freedom: a normalised innovation squared above
 #: them raises ``innovation_outlier``.
 NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _wrapped(angle_rad):
-    """``angle_rad`` wrapped into ``[-pi, pi)``."""
-    return (angle_rad + PI) % TWO_PI - PI
 
 
 #: The session's observer: the origin of its own ENU frame (the measurement model's station and rotation).
@@ -228,7 +223,7 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
                                        z0 + sign * (spread * chol[2, c]))
         deviation[0, j] = r - r0
         azimuth -= azimuth0
-        deviation[1, j] = azimuth if -PI <= azimuth <= PI else _wrapped(azimuth)
+        deviation[1, j] = azimuth if -PI <= azimuth <= PI else wrap_point(azimuth)
         deviation[2, j] = elevation - elevation0
     mean_deviation = np.empty(3)
     s = np.empty((3, 3))
@@ -259,7 +254,7 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
             w[a, m] = total
     innovation = np.empty(3)
     innovation[0] = range_terms[0] - r0 - mean_deviation[0]
-    innovation[1] = _wrapped(azimuth_rad - azimuth0) - mean_deviation[1]
+    innovation[1] = wrap_point(azimuth_rad - azimuth0) - mean_deviation[1]
     innovation[2] = elevation_rad - elevation0 - mean_deviation[2]
     d_vx, d_vy = range_terms[1], range_terms[2]
     if with_range:
@@ -439,14 +434,14 @@ def joint_ukf_kernel(means, covs, transition, noises, predict, n_pulses, interva
             _joint_measurement(point, n_pulses, interval_s, use_toa, z)
             for r in range(rows):
                 deviation[r, j] = z[r] - centre[r]
-            deviation[0, j] = _wrapped(deviation[0, j])
+            deviation[0, j] = wrap_point(deviation[0, j])
         for r in range(rows):
             total = 0.0
             for j in range(2 * f):
                 total += deviation[r, j]
             mean_deviation[r] = total * weight
             innovation[r] = measured_rows[r] - centre[r]
-        innovation[0] = _wrapped(innovation[0])
+        innovation[0] = wrap_point(innovation[0])
         for r in range(rows):
             innovation[r] -= mean_deviation[r]
             for q in range(r + 1):
