@@ -66,6 +66,56 @@ def ecef_to_enu_rotation_point(lat_rad, lon_rad, out):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def enu_to_ecef_point(east_m, north_m, up_m, origin_ecef_m, rotation):
+    """One ENU point of the frame at ``origin_ecef_m`` ``(3,)`` with ECEF -> ENU ``rotation`` ``(3, 3)``, in
+    ECEF (compiled; see :func:`enu_to_ecef`)."""
+    return (origin_ecef_m[0] + rotation[0, 0] * east_m + rotation[1, 0] * north_m + rotation[2, 0] * up_m,
+            origin_ecef_m[1] + rotation[0, 1] * east_m + rotation[1, 1] * north_m + rotation[2, 1] * up_m,
+            origin_ecef_m[2] + rotation[0, 2] * east_m + rotation[1, 2] * north_m + rotation[2, 2] * up_m)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def ecef_to_enu_point(x_m, y_m, z_m, origin_ecef_m, rotation):
+    """One ECEF point in the ENU frame at ``origin_ecef_m`` with ECEF -> ENU ``rotation`` (compiled; see
+    :func:`ecef_to_enu`)."""
+    dx, dy, dz = x_m - origin_ecef_m[0], y_m - origin_ecef_m[1], z_m - origin_ecef_m[2]
+    return (rotation[0, 0] * dx + rotation[0, 1] * dy + rotation[0, 2] * dz,
+            rotation[1, 0] * dx + rotation[1, 1] * dy + rotation[1, 2] * dz,
+            rotation[2, 0] * dx + rotation[2, 1] * dy + rotation[2, 2] * dz)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _between_frames_many(points, origin_ecef_m, rotations, to_ecef):
+    out = np.empty_like(points)
+    shared = origin_ecef_m.shape[0] == 1
+    for i in range(points.shape[0]):
+        k = 0 if shared else i
+        p, o, r = points[i], origin_ecef_m[k], rotations[k]
+        if to_ecef:
+            out[i, 0], out[i, 1], out[i, 2] = enu_to_ecef_point(p[0], p[1], p[2], o, r)
+        else:
+            out[i, 0], out[i, 1], out[i, 2] = ecef_to_enu_point(p[0], p[1], p[2], o, r)
+    return out
+
+
+def _between_frames(points_m, origin_lat_rad, origin_lon_rad, origin_alt_m, to_ecef: bool):
+    """:func:`enu_to_ecef_point` (``to_ecef``) or :func:`ecef_to_enu_point` over broadcast points and origins
+    (one origin for all points is not repeated)."""
+    points = np.asarray(points_m, dtype=float)
+    origin_ecef = geodetic_to_ecef(origin_lat_rad, origin_lon_rad, origin_alt_m)
+    rotation = ecef_to_enu_rotation(origin_lat_rad, origin_lon_rad)
+    shape = np.broadcast_shapes(points.shape[:-1], origin_ecef.shape[:-1])
+    if points.shape[:-1] != shape:
+        points = np.broadcast_to(points, shape + (3,))
+    if origin_ecef.ndim > 1 and origin_ecef.shape[:-1] != shape:
+        origin_ecef = np.broadcast_to(origin_ecef, shape + (3,))
+        rotation = np.broadcast_to(rotation, shape + (3, 3))
+    return _between_frames_many(np.ascontiguousarray(points).reshape(-1, 3),
+                                np.ascontiguousarray(origin_ecef).reshape(-1, 3),
+                                np.ascontiguousarray(rotation).reshape(-1, 3, 3), to_ecef).reshape(shape + (3,))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _rotations_many(lat_rad, lon_rad):
     out = np.empty((lat_rad.size, 3, 3))
     for i in range(lat_rad.size):
@@ -162,17 +212,12 @@ def ecef_to_enu(position_ecef_m, origin_lat_rad, origin_lon_rad, origin_alt_m):
     -------
     ndarray, shape (..., 3)
     """
-    origin_ecef = geodetic_to_ecef(origin_lat_rad, origin_lon_rad, origin_alt_m)
-    rotation = ecef_to_enu_rotation(origin_lat_rad, origin_lon_rad)
-    delta = np.asarray(position_ecef_m, dtype=float) - origin_ecef
-    return np.einsum("...ij,...j->...i", rotation, delta)
+    return _between_frames(position_ecef_m, origin_lat_rad, origin_lon_rad, origin_alt_m, to_ecef=False)
 
 
 def enu_to_ecef(position_enu_m, origin_lat_rad, origin_lon_rad, origin_alt_m):
     """ENU coordinates at an origin back to ECEF; the inverse of :func:`ecef_to_enu`."""
-    origin_ecef = geodetic_to_ecef(origin_lat_rad, origin_lon_rad, origin_alt_m)
-    rotation = ecef_to_enu_rotation(origin_lat_rad, origin_lon_rad)
-    return origin_ecef + np.einsum("...ji,...j->...i", rotation, np.asarray(position_enu_m, dtype=float))
+    return _between_frames(position_enu_m, origin_lat_rad, origin_lon_rad, origin_alt_m, to_ecef=True)
 
 
 def geodetic_to_enu(lat_rad, lon_rad, alt_m, origin_lat_rad, origin_lon_rad, origin_alt_m):

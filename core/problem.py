@@ -137,10 +137,8 @@ class CommonFrame:
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _enu_to_geodetic_point(position_enu_m, origin_ecef_m, origin_rotation):
-    p = position_enu_m
-    x = origin_ecef_m[0] + origin_rotation[0, 0] * p[0] + origin_rotation[1, 0] * p[1] + origin_rotation[2, 0] * p[2]
-    y = origin_ecef_m[1] + origin_rotation[0, 1] * p[0] + origin_rotation[1, 1] * p[1] + origin_rotation[2, 1] * p[2]
-    z = origin_ecef_m[2] + origin_rotation[0, 2] * p[0] + origin_rotation[1, 2] * p[1] + origin_rotation[2, 2] * p[2]
+    x, y, z = geodesy.enu_to_ecef_point(position_enu_m[0], position_enu_m[1], position_enu_m[2], origin_ecef_m,
+                                        origin_rotation)
     return geodesy.ecef_to_geodetic_point(x, y, z)
 
 
@@ -155,9 +153,8 @@ def onto_altitude_point(position_enu_m, altitude_m, geodetic, origin_ecef_m, ori
         return
     lat, lon, _ = _enu_to_geodetic_point(position_enu_m, origin_ecef_m, origin_rotation)
     x, y, z = geodesy.geodetic_to_ecef_point(lat, lon, altitude_m)
-    dx, dy, dz = x - origin_ecef_m[0], y - origin_ecef_m[1], z - origin_ecef_m[2]
-    for i in range(3):
-        position_enu_m[i] = origin_rotation[i, 0] * dx + origin_rotation[i, 1] * dy + origin_rotation[i, 2] * dz
+    position_enu_m[0], position_enu_m[1], position_enu_m[2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef_m,
+                                                                                         origin_rotation)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
