@@ -42,24 +42,13 @@ class Kind(IntEnum):
 AZIMUTH, ELEVATION, RANGE, TOA = (int(k) for k in Kind)
 
 
-def relative_position(position_enu_m, stations_enu_m, rotations):
-    """Target position in each station's own ENU frame.
-
-    Parameters
-    ----------
-    position_enu_m : ndarray, shape (..., 3)
-        Target in the common frame.
-    stations_enu_m : ndarray, shape (..., M, 3)
-        Station of each measurement in the common frame.
-    rotations : ndarray, shape (..., M, 3, 3)
-        Station ENU <- common ENU.
-
-    Returns
-    -------
-    ndarray, shape (..., M, 3)
-    """
-    delta = np.asarray(position_enu_m)[..., None, :] - stations_enu_m
-    return np.einsum("...ij,...j->...i", rotations, delta)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def seen_from_station(east_m, north_m, up_m, station_enu_m, rotation):
+    """A common-frame point in a station's own ENU: ``R (p - s)`` (compiled)."""
+    dx, dy, dz = east_m - station_enu_m[0], north_m - station_enu_m[1], up_m - station_enu_m[2]
+    return (rotation[0, 0] * dx + rotation[0, 1] * dy + rotation[0, 2] * dz,
+            rotation[1, 0] * dx + rotation[1, 1] * dy + rotation[1, 2] * dz,
+            rotation[2, 0] * dx + rotation[2, 1] * dy + rotation[2, 2] * dz)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -85,10 +74,7 @@ def measure_point(east_m, north_m, up_m, bias_m, station_enu_m, rotation, kind):
     -------
     predicted, d_east, d_north, d_up, d_bias : float
     """
-    dx, dy, dz = east_m - station_enu_m[0], north_m - station_enu_m[1], up_m - station_enu_m[2]
-    e = rotation[0, 0] * dx + rotation[0, 1] * dy + rotation[0, 2] * dz
-    n = rotation[1, 0] * dx + rotation[1, 1] * dy + rotation[1, 2] * dz
-    u = rotation[2, 0] * dx + rotation[2, 1] * dy + rotation[2, 2] * dz
+    e, n, u = seen_from_station(east_m, north_m, up_m, station_enu_m, rotation)
     rho2 = max(e * e + n * n, MIN_HORIZONTAL_DISTANCE_M ** 2)
     rho = math.sqrt(rho2)
     r2 = rho2 + u * u

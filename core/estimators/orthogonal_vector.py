@@ -42,6 +42,7 @@ from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeome
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
 from core.linalg import jacobi_svd, last_dot, matvec, svd_in_place, weighted_gram
+from core.measurements import seen_from_station
 from core.problem import LinesOfSight, Problem, frame_placements, local_axes, local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
@@ -126,11 +127,8 @@ def _noise_scale(position_enu_m, stations_enu_m, rotations, out):
     measurement ``m``'s ``c`` row (at ``m``), the horizontal distance for its ``c'`` row (at ``M + m``)."""
     width = stations_enu_m.shape[0]
     for m in range(width):
-        rot, st = rotations[m], stations_enu_m[m]
-        dx, dy, dz = position_enu_m[0] - st[0], position_enu_m[1] - st[1], position_enu_m[2] - st[2]
-        e = rot[0, 0] * dx + rot[0, 1] * dy + rot[0, 2] * dz
-        n = rot[1, 0] * dx + rot[1, 1] * dy + rot[1, 2] * dz
-        u = rot[2, 0] * dx + rot[2, 1] * dy + rot[2, 2] * dz
+        e, n, u = seen_from_station(position_enu_m[0], position_enu_m[1], position_enu_m[2], stations_enu_m[m],
+                                    rotations[m])
         horizontal = math.hypot(e, n)
         out[m], out[width + m] = math.hypot(horizontal, u), horizontal
 
