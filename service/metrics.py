@@ -30,20 +30,12 @@ build_info                           gauge      1, labelled with the version and
 from __future__ import annotations
 
 import collections
-
 import importlib.metadata
 import os
 import platform
 
-from prometheus_client import (
-    CollectorRegistry,
-    Counter,
-    Gauge,
-    Histogram,
-    disable_created_metrics,
-    generate_latest,
-    multiprocess,
-)
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics, generate_latest
+from prometheus_client import multiprocess
 
 from core.estimators import REGISTRY as METHODS
 
@@ -107,9 +99,9 @@ class Metrics:
         if amount:
             self._counters[name].inc(amount)
 
-    def fix(self, method, outcome: str) -> None:
-        """One fix (``outcome`` ``ok`` or a problem code); an unknown method name is counted as ``invalid``."""
-        self.fixes.labels(method if method in _METHOD_LABELS else "invalid", outcome).inc()
+    def fix(self, method, outcome: str, count: int = 1) -> None:
+        """``count`` fixes (``outcome`` ``ok`` or a problem code); an unknown method name is counted as ``invalid``."""
+        self.fixes.labels(method if method in _METHOD_LABELS else "invalid", outcome).inc(count)
 
     def batch_fixes(self, problems: list, results: list[dict]) -> None:
         """The fixes of a batch response: each slot's method and outcome (one increment per label pair)."""
@@ -121,7 +113,7 @@ class Metrics:
                 method = problem.get("method", "auto") if isinstance(problem, dict) else None
                 tally[method if isinstance(method, str) else None, result["error"]["code"]] += 1
         for (method, outcome), count in tally.items():
-            self.fixes.labels(method if method in _METHOD_LABELS else "invalid", outcome).inc(count)
+            self.fix(method, outcome, count)
 
     def render(self) -> bytes:
         """The text exposition (summed over workers in multiprocess mode)."""

@@ -10,20 +10,9 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, Field, model_validator
 
-from service.schemas import (
-    MAX_ABS_TIME_S,
-    MIN_SIGMA_DEG,
-    MIN_SIGMA_S,
-    CotOptions,
-    FeatureCollection,
-    GeodeticPosition,
-    GeodeticPositionResult,
-    LocalPosition,
-    LocalPositionResult,
-    Position,
-    Strict,
-    Warning,
-)
+from service.schemas import (MAX_ABS_TIME_S, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions, FeatureCollection,
+                             GeodeticPosition, GeodeticPositionResult, LocalPosition, LocalPositionResult, Position,
+                             Strict, Warning)
 
 #: JavaScript's largest exact integer: a seq above it would be mangled by many JSON clients.
 MAX_SEQ = 2**53 - 1

@@ -503,7 +503,7 @@ def joint_ukf_kernel(means, covs, transition, noises, predict, n_pulses, interva
 
 def compile_kernels() -> None:
     """Compile (or load from numba's on-disk cache) this module's kernels and the Cholesky they call, with
-    the argument types the filters pass (see :func:`core.linalg.compile_kernels`)."""
+    the argument types the filters pass (called by :func:`core.kernels.compile_kernels`)."""
     cholesky_into(np.eye(2), np.empty((2, 2)))
     for pseudo in (None, (1.5e5, 1.0, 1.0, 1.0, 1.0, 0.0, (1e6, 0.0, 0.0, 0.0, 0.0, 0.0), 0.01)):
         polar_transform([1.2e5, 1.0e5, 8.0e3], np.eye(3) * 1e6, np.zeros((2, 3)), pseudo, 0.87, 0.04, 1e-5, 1e-5)
