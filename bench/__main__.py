@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     if load is not None:
         print(f"load generator: {load.description}", flush=True)
     results: list[bench_rows.Row] = []
-    core_s, problems = None, None
+    problems = None
     if wanted & {1, 2, 3}:
         with serve() as url:
             if 1 in wanted:
@@ -103,9 +103,9 @@ def main(argv=None) -> int:
                                    ">= 25,000 fixes/s" if method == "ml" else ">= 20,000 fixes/s",
                                    lambda: bench_rows.batch_row(url, size, method))
                     if isinstance(out, tuple):
-                        row, batch_core_s, batch_problems = out
+                        row, _, batch_problems = out
                         if method == "ml":
-                            core_s, problems = batch_core_s, batch_problems
+                            problems = batch_problems
                     else:
                         row = out
                     if 2 in wanted:

@@ -565,6 +565,8 @@ def filter_step_row(repeats: int = 9) -> Row:
         return (time.perf_counter() - t) / (passes * len(rest))
 
     def mixture_steps():
+        if not mixture:
+            return math.nan
         history, config = runs["joint_ukf"]
         t = time.perf_counter()
         for i in mixture:
@@ -605,7 +607,8 @@ def filter_step_row(repeats: int = 9) -> Row:
                    "Bdot), Merwe points, the same epochs; the step includes core's input validation and immutable "
                    "state."),
                 (f"Before that, joint_ukf runs its range mixture (epochs {mixture[0]}-{mixture[-1]} here): "
-                 f"{median['mixture'] * 1e6:,.0f} us per step, {ratio['mixture']:.2f}x filterpy's step (not judged).")])
+                 f"{median['mixture'] * 1e6:,.0f} us per step, {ratio['mixture']:.2f}x filterpy's step (not judged)."
+                 if mixture else "joint_ukf's range mixture collapsed before the first epoch timed.")])
 
 
 def evaluation_throughput_row(trials: int = 20_000, chunk_trials: int = 1_000) -> Row:
