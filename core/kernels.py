@@ -3,7 +3,7 @@
 The per-problem inner loops are compiled: the point conversions of
 :mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem`,
 the measurement model and TOA offset of :mod:`core.measurements`, the robust
-losses, the small SVD of :mod:`core.linalg`, the orthogonal-vector passes, the
+losses, the small SVD and eigen-decomposition of :mod:`core.linalg`, the error summaries, the orthogonal-vector passes, the
 ML iteration and the tracking filters' kernels. :func:`compile_kernels` runs
 every estimator on a few small problems (every measurement kind, a known
 altitude, a robust loss), so that each kernel meets the argument types the
@@ -18,6 +18,7 @@ import numpy as np
 def compile_kernels() -> None:
     """Compile (or load from the cache) every kernel: called at install and image build time (which fill the
     cache) and in the service's lifespan."""
+    from core.error_summary import error_summary
     from core.errors import LocalizationError
     from core.estimators import REGISTRY, SolveOptions, solve
     from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
@@ -43,4 +44,6 @@ def compile_kernels() -> None:
             except LocalizationError:
                 pass
     solve(problems[0], "ml", SolveOptions(loss="huber"))
+    error_summary(np.eye(3))
+    error_summary(np.eye(3), exact=True)
     unscented.compile_kernels()

@@ -210,3 +210,43 @@ def last_dot(x, y):
 def matvec(m, x):
     """``m @ x`` for stacks of small matrices ``(..., I, J)`` and vectors ``(..., J)``, bit-stable as :func:`last_dot`."""
     return last_dot(m, np.asarray(x)[..., None, :])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def symmetric_eigen_in_place(a, v):
+    """Eigen-decomposition of one small symmetric matrix ``a`` ``(C, C)`` by cyclic Jacobi rotations.
+
+    On return ``a``'s diagonal holds the eigenvalues (unsorted, the off-diagonal is rounding) and ``v``
+    ``(C, C)`` the eigenvectors as columns, in the same order; the eigenvalues are accurate to a few ulps
+    of the largest, as LAPACK's. A diagonal matrix is left as it is. Compiled; callable from other kernels.
+    """
+    width = a.shape[0]
+    for i in range(width):
+        for j in range(width):
+            v[i, j] = 1.0 if i == j else 0.0
+    for _ in range(JACOBI_MAX_SWEEPS):
+        rotated = False
+        for p in range(width - 1):
+            for q in range(p + 1, width):
+                apq = a[p, q]
+                if not abs(apq) > JACOBI_TOLERANCE * math.sqrt(abs(a[p, p] * a[q, q])) or apq == 0.0:
+                    continue
+                rotated = True
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = math.copysign(1.0, theta) / (abs(theta) + math.hypot(1.0, theta))
+                cos = 1.0 / math.sqrt(1.0 + t * t)
+                sin = t * cos
+                for k in range(width):
+                    akp, akq = a[k, p], a[k, q]
+                    a[k, p] = cos * akp - sin * akq
+                    a[k, q] = sin * akp + cos * akq
+                for k in range(width):
+                    apk, aqk = a[p, k], a[q, k]
+                    a[p, k] = cos * apk - sin * aqk
+                    a[q, k] = sin * apk + cos * aqk
+                for k in range(width):
+                    vkp, vkq = v[k, p], v[k, q]
+                    v[k, p] = cos * vkp - sin * vkq
+                    v[k, q] = sin * vkp + cos * vkq
+        if not rotated:
+            break

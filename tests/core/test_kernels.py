@@ -54,6 +54,9 @@ _WORKLOAD = textwrap.dedent('''
                         solve(problem, method, options)
                     except LocalizationError:
                         pass
+    from core.error_summary import error_summary
+    error_summary(np.tile(np.diag([4.0, 1.0, 9.0]), (3, 1, 1))[:, ::-1])
+    error_summary(np.eye(3), exact=True)
     from core.simulation.emitter import paper_001_scenario, simulate_emitter
     from core.simulation.tracking import paper_config
     from core.tracking import new_state, step
