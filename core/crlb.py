@@ -9,13 +9,15 @@ position is parameterised by its local east/north offsets and the bound is
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 
-from core.linalg import row_sums, weighted_gram
+from core.linalg import symmetric_eigen_in_place
 from core.measurements import MeasurementModel
-from core.problem import local_axes
+from core.problem import frame_placements, local_axes_point
 
 #: Smallest eigenvalue of the unit-diagonal information matrix below which a
 #: direction counts as unobserved (relative, so independent of units).
@@ -46,8 +48,201 @@ class Information:
     reference_sigma_m: np.ndarray | None = None
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def parameters_point(position_enu_m, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, work, axes, free):
+    """One problem's :func:`parameterisation` into ``axes`` ``(3, 3)`` and ``free`` ``(4,)`` (``work``: a
+    ``(3, 3)`` scratch); returns whether the altitude is known (compiled)."""
+    constrained = not math.isnan(altitude_m)
+    if constrained:
+        local_axes_point(position_enu_m, geodetic, origin_ecef_m, origin_rotation, work, axes)
+    else:
+        for i in range(3):
+            for j in range(3):
+                axes[i, j] = 1.0 if i == j else 0.0
+    free[0] = free[1] = True
+    free[2] = not constrained
+    free[3] = has_toa
+    return constrained
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def normal_point(jacobian, weights, axes, rotate, free, local, information):
+    """One problem's :func:`normal_matrix`: ``local`` ``(4, M)`` and ``information`` ``(4, 4)`` from its
+    ``jacobian`` ``(4, M)`` and ``weights`` ``(M,)``; ``rotate``: move the position along ``axes`` (compiled)."""
+    width = weights.size
+    for m in range(width):
+        for i in range(3):
+            if rotate:
+                local[i, m] = axes[i, 0] * jacobian[0, m] + axes[i, 1] * jacobian[1, m] + axes[i, 2] * jacobian[2, m]
+            else:
+                local[i, m] = jacobian[i, m]
+        local[3, m] = jacobian[3, m]
+        for i in range(4):
+            if not free[i]:
+                local[i, m] = 0.0
+    gram_point(local, weights, information)
+    for i in range(4):
+        if not free[i]:
+            information[i, i] += 1.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def gram_point(a, weights, out):
+    """``a W a^T`` ``(P, P)`` of rows ``a`` ``(P, M)``, summed over ``M`` in order (compiled)."""
+    rows, width = a.shape
+    for i in range(rows):
+        for j in range(i + 1):
+            total = 0.0
+            for m in range(width):
+                total += a[i, m] * weights[m] * a[j, m]
+            out[i, j] = out[j, i] = total
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def invert_point(information, axes, rotate, free, params, position, work, vectors):
+    """One problem's :func:`invert_information`: ``params`` ``(4, 4)`` and ``position`` ``(3, 3)`` (the
+    position block in the common frame); returns the unit-diagonal information's smallest eigenvalue (0
+    where a diagonal is not positive or an entry not finite). ``work`` and ``vectors``: ``(4, 4)`` scratch.
+
+    The Jacobi-scaled matrix is inverted through its eigen-decomposition
+    (:func:`core.linalg.symmetric_eigen_in_place`), which also gives the
+    eigenvalue; an unobservable one's inverse is taken as the identity's.
+    """
+    size = information.shape[0]
+    positive, finite = True, True
+    for i in range(size):
+        d = information[i, i]
+        positive &= d > 0
+        work[i, 0] = 1.0 / math.sqrt(d if d > 0 else 1.0)
+    scale = np.empty(size)
+    scale[:] = work[:, 0]
+    for i in range(size):
+        for j in range(size):
+            work[i, j] = information[i, j] * scale[i] * scale[j]
+            finite &= math.isfinite(work[i, j])
+    if not finite:
+        for i in range(size):
+            for j in range(size):
+                work[i, j] = 1.0 if i == j else 0.0
+    symmetric_eigen_in_place(work, vectors)
+    smallest = work[0, 0]
+    for i in range(1, size):
+        smallest = min(smallest, work[i, i])
+    smallest = smallest if positive and finite else 0.0
+    observable = smallest > OBSERVABILITY_THRESHOLD
+    for i in range(size):
+        for j in range(i + 1):
+            if observable:
+                total = 0.0
+                for k in range(size):
+                    total += vectors[i, k] * vectors[j, k] / work[k, k]
+            else:
+                total = 1.0 if i == j else 0.0
+            value = total * scale[i] * scale[j] if free[i] and free[j] else 0.0
+            params[i, j] = params[j, i] = value
+    rotate_block(params, axes, rotate, position)
+    return smallest
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def rotate_block(params, axes, rotate, position):
+    """The position block of ``params`` ``(4, 4)`` in the common frame, ``axes^T P axes`` when ``rotate``,
+    into ``position`` ``(3, 3)`` (symmetrised; compiled)."""
+    for i in range(3):
+        for j in range(3):
+            if rotate:
+                total = 0.0
+                for k in range(3):
+                    for m in range(3):
+                        total += axes[k, i] * params[k, m] * axes[m, j]
+                position[i, j] = total
+            else:
+                position[i, j] = params[i, j]
+    for i in range(3):
+        for j in range(i):
+            position[i, j] = position[j, i] = 0.5 * (position[i, j] + position[j, i])
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def reference_sigma_point(jacobian, weights):
+    """One problem's :func:`reference_sigma_m` from its ``jacobian`` ``(4, M)`` and ``weights`` ``(M,)``."""
+    total, count = 0.0, 0
+    for m in range(weights.size):
+        w = weights[m]
+        information = w * (jacobian[0, m] ** 2 + jacobian[1, m] ** 2 + jacobian[2, m] ** 2)
+        if w > 0 and math.isfinite(information) and information > 0:
+            total += information
+            count += 1
+    return math.sqrt(count / total) if count > 0 else math.nan
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _parameters_many(positions_enu_m, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation):
+    size = positions_enu_m.shape[0]
+    axes, free, work = np.empty((size, 3, 3)), np.empty((size, 4), dtype=np.bool_), np.empty((3, 3))
+    for b in range(size):
+        parameters_point(positions_enu_m[b], altitude_m[b], has_toa[b], geodetic[b], origin_ecef_m[b],
+                         origin_rotation[b], work, axes[b], free[b])
+    return axes, free
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _normal_many(jacobian, weights, axes, rotate, free):
+    size, _, width = jacobian.shape
+    local, information = np.empty((size, 4, width)), np.empty((size, 4, 4))
+    for b in range(size):
+        normal_point(jacobian[b], weights[b], axes[b], rotate, free[b], local[b], information[b])
+    return information, local
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _invert_many(information, axes, rotate, free):
+    size = information.shape[0]
+    params, position, smallest = np.empty((size, 4, 4)), np.empty((size, 3, 3)), np.empty(size)
+    work, vectors = np.empty((4, 4)), np.empty((4, 4))
+    for b in range(size):
+        smallest[b] = invert_point(information[b], axes[b], rotate, free[b], params[b], position[b], work, vectors)
+    return params, position, smallest
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _sandwich_many(jacobian, bread_weights, meat_weights, axes, rotate, free):
+    size, _, width = jacobian.shape
+    local, bread, meat = np.empty((4, width)), np.empty((4, 4)), np.empty((4, 4))
+    params, work, vectors = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
+    out = np.empty((size, 3, 3))
+    for b in range(size):
+        sandwich_point(jacobian[b], bread_weights[b], meat_weights[b], axes[b], rotate, free[b], local, bread, meat,
+                       params, work, vectors, out[b])
+    return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def sandwich_point(jacobian, bread_weights, meat_weights, axes, rotate, free, local, bread, meat, params, work,
+                   vectors, position):
+    """One problem's :func:`sandwich_covariance` into ``position`` ``(3, 3)`` (the rest: scratch; compiled)."""
+    normal_point(jacobian, bread_weights, axes, rotate, free, local, bread)
+    invert_point(bread, axes, False, free, params, position, work, vectors)
+    gram_point(local, meat_weights, meat)
+    for i in range(4):
+        for j in range(4):
+            total = 0.0
+            for k in range(4):
+                for m in range(4):
+                    total += params[i, k] * meat[k, m] * params[m, j]
+            bread[i, j] = total
+    rotate_block(bread, axes, rotate, position)
+
+
+def _axes(axes, size):
+    """``(axes, rotate)`` for the kernels: the identity (and no rotation) where ``axes`` is None."""
+    if axes is None:
+        return np.tile(np.eye(3), (size, 1, 1)), False
+    return np.ascontiguousarray(axes, dtype=float), True
+
+
 def normal_matrix(jacobian, weights, axes, free):
-    """``J'^T W J'`` over the local parameters, and the local Jacobian.
+    """``J'^T W J'`` over the local parameters, and the local Jacobian (:func:`normal_point` per problem).
 
     Parameters
     ----------
@@ -69,14 +264,10 @@ def normal_matrix(jacobian, weights, axes, free):
     local_jacobian : ndarray, shape (B, 4, M)
         Zero rows for frozen parameters.
     """
-    local = jacobian
-    if axes is not None:
-        local = jacobian.copy()
-        local[:, :3] = axes @ jacobian[:, :3]
-    local = local * free[:, :, None]
-    information = weighted_gram(local, weights)
-    information += np.eye(4) * ~free[:, None, :]
-    return information, local
+    jacobian = np.ascontiguousarray(jacobian, dtype=float)
+    axes, rotate = _axes(axes, jacobian.shape[0])
+    return _normal_many(jacobian, np.ascontiguousarray(weights, dtype=float), axes, rotate,
+                        np.ascontiguousarray(free, dtype=np.bool_))
 
 
 def reference_sigma_m(jacobian, weights):
@@ -92,6 +283,7 @@ def reference_sigma_m(jacobian, weights):
     measurement, would carry the same total position information. With
     equal ``r_i`` it is that common value, and :func:`gdop` is then the
     classical ``sqrt(trace((H^T H)^-1))`` of unit line-of-sight rows.
+    :func:`reference_sigma_point` per problem.
 
     Parameters
     ----------
@@ -105,12 +297,15 @@ def reference_sigma_m(jacobian, weights):
     ndarray, shape (B,)
         NaN where no measurement has a finite, non-zero gradient.
     """
-    with np.errstate(invalid="ignore", over="ignore"):
-        information = weights * np.sum(jacobian[:, :3] ** 2, axis=1)
-    usable = (weights > 0) & np.isfinite(information) & (information > 0)
-    total = row_sums(np.where(usable, information, 0.0))
-    count = np.count_nonzero(usable, axis=-1)
-    return np.where(count > 0, np.sqrt(count / np.where(count > 0, total, 1.0)), np.nan)
+    return _reference_sigmas(np.ascontiguousarray(jacobian, dtype=float), np.ascontiguousarray(weights, dtype=float))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _reference_sigmas(jacobian, weights):
+    out = np.empty(jacobian.shape[0])
+    for b in range(out.size):
+        out[b] = reference_sigma_point(jacobian[b], weights[b])
+    return out
 
 
 def gdop(covariance_enu_m2, sigma_ref_m):
@@ -133,43 +328,32 @@ def gdop(covariance_enu_m2, sigma_ref_m):
 
 
 def invert_information(information, axes, free) -> Information:
-    """Invert information matrices with Jacobi scaling and an observability test.
+    """Invert information matrices with Jacobi scaling and an observability test (:func:`invert_point`).
 
     ``axes`` as in :func:`normal_matrix` (None: the common frame's axes).
     """
-    diag = np.einsum("bii->bi", information)
-    scale = 1.0 / np.sqrt(np.where(diag > 0, diag, 1.0))
-    scaled = information * scale[:, :, None] * scale[:, None, :]
-    finite = np.all(np.isfinite(scaled), axis=(-2, -1))
-    scaled = np.where(finite[:, None, None], scaled, np.eye(4))
-    eig = np.linalg.eigvalsh(scaled)
-    min_eig = np.where(np.all(diag > 0, axis=-1) & finite, eig[:, 0], 0.0)
-    observable = min_eig > OBSERVABILITY_THRESHOLD
-    safe = np.where(observable[:, None, None], scaled, np.eye(4))
-    inverse = np.linalg.inv(safe) * scale[:, :, None] * scale[:, None, :]
-    inverse = inverse * (free[:, :, None] & free[:, None, :])
-    inverse = 0.5 * (inverse + np.swapaxes(inverse, -1, -2))
-    block = inverse[:, :3, :3]
-    position = block if axes is None else np.swapaxes(axes, -1, -2) @ block @ axes
-    return Information(position, inverse, observable, min_eig)
+    information = np.ascontiguousarray(information, dtype=float)
+    axes, rotate = _axes(axes, information.shape[0])
+    params, position, smallest = _invert_many(information, axes, rotate, np.ascontiguousarray(free, dtype=np.bool_))
+    return Information(position, params, smallest > OBSERVABILITY_THRESHOLD, smallest)
 
 
 def sandwich_covariance(jacobian, bread_weights, meat_weights, axes, free):
     """``A^-1 B A^-1`` over the local parameters with ``A = J'^T W_a J'``, ``B = J'^T W_b J'``: the
     position covariance ``(B, 3, 3)`` of a weighted least-squares fit whose weights ``W_a`` are not the
     inverse variances (``W_b = W_a^2 Sigma``). Arguments as in :func:`normal_matrix`; ``A`` is inverted by
-    :func:`invert_information`.
+    :func:`invert_point` (:func:`sandwich_point` per problem).
     """
-    bread, local = normal_matrix(jacobian, bread_weights, axes, free)
-    inverse = invert_information(bread, axes, free).covariance_params
-    meat = weighted_gram(local, meat_weights)
-    params = inverse @ meat @ inverse
-    block = 0.5 * (params[:, :3, :3] + np.swapaxes(params[:, :3, :3], -1, -2))
-    return block if axes is None else np.swapaxes(axes, -1, -2) @ block @ axes
+    jacobian = np.ascontiguousarray(jacobian, dtype=float)
+    axes, rotate = _axes(axes, jacobian.shape[0])
+    return _sandwich_many(jacobian, np.ascontiguousarray(bread_weights, dtype=float),
+                          np.ascontiguousarray(meat_weights, dtype=float), axes, rotate,
+                          np.ascontiguousarray(free, dtype=np.bool_))
 
 
 def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic):
-    """Axes and free parameters of the ``(east, north, up, b)`` parameterisation of B problems.
+    """Axes and free parameters of the ``(east, north, up, b)`` parameterisation of B problems
+    (:func:`parameters_point` per problem).
 
     With a known altitude the position moves along the local east and north
     at the current point and ``up`` is frozen; TOA adds the free bias ``b``.
@@ -190,15 +374,12 @@ def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic):
         None when no problem is constrained (the common frame's axes).
     free : ndarray of bool, shape (B, 4)
     """
-    constrained = ~np.isnan(altitude_m)
-    free = np.empty((positions_enu_m.shape[0], 4), dtype=bool)
-    free[:, :2] = True
-    free[:, 2] = ~constrained
-    free[:, 3] = has_toa
-    if not np.any(constrained):
-        return None, free
-    axes = np.where(constrained[:, None, None], local_axes(positions_enu_m, origin, geodetic), np.eye(3))
-    return axes, free
+    positions = np.ascontiguousarray(positions_enu_m, dtype=float).reshape(-1, 3)
+    altitude = np.ascontiguousarray(altitude_m, dtype=float)
+    origin_ecef, origin_rotation = frame_placements(origin)
+    axes, free = _parameters_many(positions, altitude, np.ascontiguousarray(has_toa, dtype=np.bool_),
+                                  np.ascontiguousarray(geodetic, dtype=np.bool_), origin_ecef, origin_rotation)
+    return (axes if np.any(~np.isnan(altitude)) else None), free
 
 
 def batch_information(batch, positions_enu_m, sigmas=None) -> Information:

@@ -10,16 +10,21 @@ error's culprit) and the conditioning and geometry warnings, and returns a
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 from scipy.special import chdtrc
 
-from core.angles import line_of_sight_enu
-from core.crlb import gdop, invert_information, normal_matrix, parameterisation, reference_sigma_m, sandwich_covariance
+from core.angles import wrap_point
+from core.crlb import (OBSERVABILITY_THRESHOLD, Information, gdop, invert_point, normal_point, parameters_point,
+                       reference_sigma_point, sandwich_point)
 from core.errors import LocalizationError, UnobservableGeometry
-from core.estimators.loss import loss_weights
+from core.estimators.loss import loss_code, loss_point
 from core.estimators.result import Estimates, FixBatch, FixWarning
-from core.linalg import row_sums
-from core.measurements import Kind, MeasurementModel, toa_offsets
+from core.measurements import (AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, Kind, measure_point, seen_from_station,
+                               toa_offset_point)
+from core.problem import frame_placements
 from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
@@ -34,12 +39,9 @@ INEFFICIENCY_RATIO = 10.0
 ILL_CONDITIONED_EIGENVALUE = 1e-6
 #: Robust-loss weight factor (``rho'``) below which a measurement is named as downweighted.
 DOWNWEIGHTED_FACTOR = 0.1
-#: Pairwise line-of-sight cosines are formed for at most this many entries at once.
-_GRAM_ENTRIES = 1 << 21
 
 
-def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: MeasurementModel | None = None,
-           excluded=None) -> FixBatch:
+def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None) -> FixBatch:
     """Everything a fix reports, for every problem of a batch.
 
     Parameters
@@ -48,8 +50,6 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     method : str
         The API name of the method that ran.
     estimates : Estimates
-    model : MeasurementModel, optional
-        The batch's measurement model, when the estimator already built it.
     excluded : ndarray of bool, shape (B, M), optional
         Measurements outlier exclusion set aside (not in ``batch.valid``); each is named in a warning.
 
@@ -68,44 +68,40 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
     position[failed] = batch.stations_enu_m[failed, 0] + [0.0, 0.0, 1.0]
 
     stations, rotations = batch.measurement_stations()
-    if model is None:
-        model = MeasurementModel(stations, rotations, batch.kinds)
-    present, valid = batch.present, batch.valid
-    sigmas = batch.sigmas if estimates.sigmas is None else np.where(present, estimates.sigmas, np.nan)
-    weights = batch.weights(sigmas)
-    values = batch.model_values()
+    sigmas = batch.sigmas if estimates.sigmas is None else np.where(batch.present, estimates.sigmas, np.nan)
     bias = estimates.bias_m
-    if bias is None:
-        bias = toa_offsets(position, stations, batch.kinds, values, weights)
-    predicted, jacobian = model.predict(position, bias)
-    unit = batch.unit_scale()
-    raw = np.where(present, model.residuals(values, predicted) / unit, 0.0)
-    stated = present & np.isfinite(sigmas)
-    normalized = np.where(stated, raw / np.where(stated, sigmas, 1.0), 0.0)
-    known = valid & stated
-    chi2 = row_sums(np.where(known, normalized, 0.0) ** 2)
+    is_line, elevation, _ = batch.lines_of_sight()
+    origin_ecef, origin_rotation = frame_placements(batch.origin)
+    loss = estimates.loss
+    (raw, normalized, studentized, chi2, known_count, crlb, covariance, min_eigenvalue, robust_factor,
+     robust_cost, sigma_ref, behind, zenith, spread) = _finish_kernel(
+        np.ascontiguousarray(position), np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
+        bias is not None, np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
+        np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.values, dtype=float),
+        np.ascontiguousarray(sigmas, dtype=float), np.asarray(batch.n_measurements, dtype=np.int64),
+        np.ascontiguousarray(batch.valid), np.asarray(batch.altitude_m, dtype=float),
+        np.asarray(batch.has_toa, dtype=np.bool_), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
+        origin_rotation, -1 if loss is None else loss_code(loss[0]), 1.0 if loss is None else float(loss[1]) ** 2,
+        np.ascontiguousarray(is_line), np.ascontiguousarray(elevation))
+    present, valid = batch.present, batch.valid
+    known = valid & present & np.isfinite(sigmas)
     n_parameters = np.where(batch.constrained, 2, 3) + batch.has_toa
-    dof = np.count_nonzero(known, axis=-1) - n_parameters
+    dof = known_count - n_parameters
     positive = dof > 0
     p_value = np.where(positive, chdtrc(np.maximum(dof, 1), chi2), np.nan)
     plain_scale = np.where(positive, np.sqrt(chi2 / np.maximum(dof, 1)), np.nan)
     sigma_scale = plain_scale
-    robust_factor = None
-    if estimates.loss is not None:
-        rho, robust_factor, _ = loss_weights(np.where(known, normalized, 0.0) ** 2, *estimates.loss)
-        robust_cost = row_sums(np.where(known, rho, 0.0))
+    if loss is not None:
         sigma_scale = np.where(positive, np.sqrt(robust_cost / np.maximum(dof, 1)), np.nan)
+    else:
+        robust_factor = None
 
-    axes, free = parameterisation(position, batch.altitude_m, batch.has_toa, batch.origin, batch.geodetic)
-    information, local = normal_matrix(jacobian, weights, axes, free)
-    info = invert_information(information, axes, free)
-    crlb = info.covariance_enu_m2
+    info = Information(crlb, None, min_eigenvalue > OBSERVABILITY_THRESHOLD, min_eigenvalue)
     source = estimates.covariance_source
     if source == "information":
         for b in np.flatnonzero(~failed & ~info.observable):
             errors[int(b)] = UnobservableGeometry(_singular_reason(batch, int(b), position[b], info.min_eigenvalue[b]))
     if robust_factor is not None:
-        covariance = sandwich_covariance(jacobian, weights * robust_factor, weights * robust_factor**2, axes, free)
         source = "robust"
     elif estimates.covariance_enu_m2 is None:
         covariance = crlb
@@ -114,8 +110,6 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
         covariance = np.asarray(estimates.covariance_enu_m2, dtype=float).reshape(size, 3, 3)
     covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
 
-    leverage = weights * np.einsum("bim,bij,bjm->bm", local, info.covariance_params, local)
-    studentized = np.where(known, normalized, 0.0) / np.sqrt(np.clip(1.0 - leverage, 1e-12, None))
     worst = np.argmax(np.abs(studentized), axis=-1)
     worst_value = studentized[np.arange(size), worst]
     outlier = positive & (np.abs(worst_value) > OUTLIER_SIGMAS)
@@ -128,7 +122,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
         bound_trace = np.trace(crlb, axis1=-2, axis2=-1)
         own_trace = np.trace(covariance, axis1=-2, axis2=-1)
         inefficient = (bound_trace > 0) & (own_trace > INEFFICIENCY_RATIO * bound_trace)
-    behind, zenith, spread, collinear = _geometry(batch, position, stations, rotations)
+    collinear = (np.count_nonzero(is_line, axis=-1) >= 2) & (spread < COLLINEAR_SPREAD_RAD)
 
     excluded = np.zeros_like(present) if excluded is None else excluded & present
     unused = present & ~valid & ~excluded
@@ -220,48 +214,13 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, model: Measur
         details=estimates.details or [{} for _ in range(size)],
         used=valid,
         excluded=excluded,
-        gdop=gdop(crlb, reference_sigma_m(jacobian, weights)),
+        gdop=gdop(crlb, sigma_ref),
     )
-
-
-def _geometry(batch: ProblemBatch, position, stations, rotations):
-    """Per line of sight: behind the station, at its zenith; per problem: spread and collinearity."""
-    size = batch.size
-    is_line, elevation, _ = batch.lines_of_sight()
-    has_el = ~np.isnan(elevation)
-    to_target = position[:, None, :] - stations
-    distance = np.linalg.norm(to_target, axis=-1)
-    local_target = np.einsum("bmij,bmj->bmi", rotations, to_target)
-    measured = line_of_sight_enu(batch.values, np.where(has_el, elevation, 0.0))
-    in_plane = np.where(has_el[..., None], local_target, local_target * [1.0, 1.0, 0.0])
-    behind = is_line & (np.einsum("bmi,bmi->bm", measured, in_plane) < 0)
-    n_lines = np.count_nonzero(is_line, axis=-1)
-    spread = np.full(size, np.pi / 2)
-    several = n_lines >= 2
-    if np.any(several):
-        seen = to_target / np.maximum(distance, 1e-9)[..., None]
-        spread[several] = _collinear_spread(seen[several], is_line[several])
-    collinear = several & (spread < COLLINEAR_SPREAD_RAD)
-    zenith = is_line & (np.hypot(local_target[..., 0], local_target[..., 1]) < 1e-4 * np.maximum(distance, 1e-9))
-    return behind, zenith, spread, collinear
 
 
 def _station_list(batch: ProblemBatch, b: int, rows) -> str:
     ids = batch.station_ids[b]
     return ", ".join(sorted({ids[i] for i in batch.station_index[b, rows]}))
-
-
-def _collinear_spread(seen, is_line):
-    """Smallest pairwise angle spread ``(B,)`` of unit vectors ``(B, M, 3)`` on line rows (rad)."""
-    size, width = is_line.shape
-    smallest = np.ones(size)
-    chunk = max(1, _GRAM_ENTRIES // max(width * width, 1))
-    for start in range(0, size, chunk):
-        part = slice(start, start + chunk)
-        cosines = np.clip(np.abs(seen[part] @ np.swapaxes(seen[part], -1, -2)), 0.0, 1.0)
-        pair = is_line[part, :, None] & is_line[part, None, :]
-        smallest[part] = np.where(pair, cosines, 1.0).min(axis=(-2, -1))
-    return np.arccos(smallest)
 
 
 def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue: float) -> str:
@@ -285,3 +244,111 @@ def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue
             f"(min scaled eigenvalue {min_eigenvalue:.1e}); add stations, elevations or an altitude constraint")
 
 
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
+                   n_measurements, valid, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2,
+                   is_line, elevation_rad):
+    """The numbers of :func:`finish`, each problem on its own: residuals (problem units), normalized and
+    studentized residuals, chi-square and the count of measurements in it, the CRLB, the covariance (the
+    CRLB, or with a robust ``loss`` (code, ``-1`` for none) the sandwich of its weights), the smallest
+    unit-diagonal information eigenvalue, the loss's weight factors and cost, the reference sigma, and per
+    line of sight whether the fix is behind its station or at its zenith, and the lines' smallest spread."""
+    size, width = kinds.shape
+    raw, normalized, studentized = np.zeros((size, width)), np.zeros((size, width)), np.zeros((size, width))
+    chi2, known_count = np.zeros(size), np.zeros(size, dtype=np.int64)
+    crlb, covariance = np.empty((size, 3, 3)), np.empty((size, 3, 3))
+    smallest, robust_factor, robust_cost = np.empty(size), np.ones((size, width)), np.zeros(size)
+    sigma_ref, spread = np.empty(size), np.full(size, np.pi / 2)
+    behind, zenith = np.zeros((size, width), dtype=np.bool_), np.zeros((size, width), dtype=np.bool_)
+    weights, model_values, jacobian, local = np.empty(width), np.empty(width), np.empty((4, width)), np.empty((4, width))
+    seen = np.empty((width, 3))
+    axes, work3, free = np.empty((3, 3)), np.empty((3, 3)), np.empty(4, dtype=np.bool_)
+    information, params, work, vectors = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
+    bread, meat = np.empty((4, 4)), np.empty((4, 4))
+    bread_weights, meat_weights = np.empty(width), np.empty(width)
+    for b in range(size):
+        p = positions_enu_m[b]
+        east, north, up = p[0], p[1], p[2]
+        for m in range(width):
+            unit = SPEED_OF_LIGHT_MPS if kinds[b, m] == TOA else 1.0
+            sigma = sigmas[b, m]
+            weights[m] = 1.0 / (sigma * unit) ** 2 if valid[b, m] and math.isfinite(sigma) else 0.0
+            model_values[m] = values[b, m] * unit
+        bias = bias_in_m[b] if has_bias else toa_offset_point(east, north, up, stations_enu_m[b], kinds[b],
+                                                               model_values, weights)
+        for m in range(width):
+            kind = kinds[b, m]
+            predicted, jacobian[0, m], jacobian[1, m], jacobian[2, m], jacobian[3, m] = measure_point(
+                east, north, up, bias, stations_enu_m[b, m], rotations[b, m], kind)
+            if m >= n_measurements[b]:
+                continue
+            unit = SPEED_OF_LIGHT_MPS if kind == TOA else 1.0
+            r = model_values[m] - predicted
+            if kind == AZIMUTH or kind == ELEVATION:
+                r = wrap_point(r)
+            raw[b, m] = r / unit
+            sigma = sigmas[b, m]
+            if math.isfinite(sigma):
+                normalized[b, m] = raw[b, m] / sigma
+                if valid[b, m]:
+                    chi2[b] += normalized[b, m] ** 2
+                    known_count[b] += 1
+        constrained = parameters_point(p, altitude_m[b], has_toa[b], geodetic[b], origin_ecef_m[b],
+                                       origin_rotation[b], work3, axes, free)
+        normal_point(jacobian, weights, axes, constrained, free, local, information)
+        smallest[b] = invert_point(information, axes, constrained, free, params, crlb[b], work, vectors)
+        sigma_ref[b] = reference_sigma_point(jacobian, weights)
+        for m in range(width):
+            known = m < n_measurements[b] and valid[b, m] and math.isfinite(sigmas[b, m])
+            if not known:
+                continue
+            leverage = 0.0
+            for i in range(4):
+                for j in range(4):
+                    leverage += local[i, m] * params[i, j] * local[j, m]
+            leverage *= weights[m]
+            room = 1.0 - leverage
+            studentized[b, m] = normalized[b, m] / math.sqrt(room if not room < 1e-12 else 1e-12)
+            if loss >= 0:
+                rho, robust_factor[b, m], _ = loss_point(normalized[b, m] ** 2, loss, c2)
+                robust_cost[b] += rho
+        if loss >= 0:
+            for m in range(width):
+                bread_weights[m] = weights[m] * robust_factor[b, m]
+                meat_weights[m] = weights[m] * robust_factor[b, m] ** 2
+            sandwich_point(jacobian, bread_weights, meat_weights, axes, constrained, free, local, bread, meat,
+                           params, work, vectors, covariance[b])
+        else:
+            covariance[b] = crlb[b]
+        lines = 0
+        for m in range(n_measurements[b]):
+            if not is_line[b, m]:
+                continue
+            lines += 1
+            s = stations_enu_m[b, m]
+            dx, dy, dz = east - s[0], north - s[1], up - s[2]
+            distance = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
+            e, n, u = seen_from_station(east, north, up, s, rotations[b, m])
+            azimuth, el = values[b, m], elevation_rad[b, m]
+            has_el = not math.isnan(el)
+            cos_el = math.cos(el) if has_el else 1.0
+            along = cos_el * math.sin(azimuth) * e + cos_el * math.cos(azimuth) * n
+            if has_el:
+                along += math.sin(el) * u
+            behind[b, m] = along < 0
+            zenith[b, m] = math.hypot(e, n) < 1e-4 * distance
+            seen[m, 0], seen[m, 1], seen[m, 2] = dx / distance, dy / distance, dz / distance
+        if lines >= 2:
+            cosine = 1.0
+            for i in range(n_measurements[b]):
+                if not is_line[b, i]:
+                    continue
+                for j in range(i):
+                    if is_line[b, j]:
+                        dot = abs(seen[i, 0] * seen[j, 0] + seen[i, 1] * seen[j, 1] + seen[i, 2] * seen[j, 2])
+                        cosine = min(cosine, dot)
+            spread[b] = math.acos(cosine)
+    return (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
+            sigma_ref, behind, zenith, spread)
