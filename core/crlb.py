@@ -351,7 +351,7 @@ def sandwich_covariance(jacobian, bread_weights, meat_weights, axes, free):
                           np.ascontiguousarray(free, dtype=np.bool_))
 
 
-def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic):
+def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic, placements=None):
     """Axes and free parameters of the ``(east, north, up, b)`` parameterisation of B problems
     (:func:`parameters_point` per problem).
 
@@ -367,6 +367,8 @@ def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic):
     origin : ndarray, shape (B, 3)
         Each frame's ``(lat_rad, lon_rad, alt_m)``.
     geodetic : ndarray of bool, shape (B,)
+    placements : tuple of ndarray, optional
+        :func:`core.problem.frame_placements` of ``origin``, when known.
 
     Returns
     -------
@@ -376,7 +378,7 @@ def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic):
     """
     positions = np.ascontiguousarray(positions_enu_m, dtype=float).reshape(-1, 3)
     altitude = np.ascontiguousarray(altitude_m, dtype=float)
-    origin_ecef, origin_rotation = frame_placements(origin)
+    origin_ecef, origin_rotation = frame_placements(origin) if placements is None else placements
     axes, free = _parameters_many(positions, altitude, np.ascontiguousarray(has_toa, dtype=np.bool_),
                                   np.ascontiguousarray(geodetic, dtype=np.bool_), origin_ecef, origin_rotation)
     return (axes if np.any(~np.isnan(altitude)) else None), free
@@ -401,7 +403,8 @@ def batch_information(batch, positions_enu_m, sigmas=None) -> Information:
     stations, rotations = batch.measurement_stations()
     model = MeasurementModel(stations, rotations, batch.kinds)
     _, jacobian = model.predict(positions_enu_m, np.zeros(batch.size))
-    axes, free = parameterisation(positions_enu_m, batch.altitude_m, batch.has_toa, batch.origin, batch.geodetic)
+    axes, free = parameterisation(positions_enu_m, batch.altitude_m, batch.has_toa, batch.origin, batch.geodetic,
+                                  batch.frame_placements())
     weights = batch.weights(sigmas)
     information, _ = normal_matrix(jacobian, weights, axes, free)
     return replace(invert_information(information, axes, free), reference_sigma_m=reference_sigma_m(jacobian, weights))

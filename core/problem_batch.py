@@ -19,11 +19,12 @@ from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Sequence
 
+import numba
 import numpy as np
 
 from core import geodesy
 from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, Kind
-from core.problem import CommonFrame, GeodeticPoint, Problem, local_axes, onto_altitude
+from core.problem import CommonFrame, GeodeticPoint, Problem, frame_placements, local_axes_point, onto_altitude
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).
 PAD_KIND = Kind.RANGE
@@ -150,6 +151,15 @@ class ProblemBatch:
             b = rows[chosen]
             out[chosen] = onto_altitude(out[chosen], self.altitude_m[b], self.origin[b], self.geodetic[b])
         return out
+
+    def frame_placements(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each frame's origin in ECEF ``(B, 3)`` and its ECEF -> ENU rotation ``(B, 3, 3)``
+        (:func:`core.problem.frame_placements`, computed once)."""
+        return self._frame_placements
+
+    @cached_property
+    def _frame_placements(self):
+        return frame_placements(self.origin)
 
     def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
         """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement (computed once)."""
@@ -328,12 +338,13 @@ class ProblemBatch:
             return cls._from_one(problems[0])
         n_stations = np.array([p.stations_enu_m.shape[0] for p in problems], dtype=np.intp)
         n_measurements = np.array([p.kinds.size for p in problems], dtype=np.intp)
-        stations = _pad(np.concatenate([p.stations_enu_m for p in problems]), n_stations, 0.0)
-        rotations = _pad(np.concatenate([p.station_rotations for p in problems]), n_stations, 0.0)
+        by_station, by_measurement = _scatter(n_stations), _scatter(n_measurements)
+        stations = _pad(np.concatenate([p.stations_enu_m for p in problems]), by_station, 0.0)
+        rotations = _pad(np.concatenate([p.station_rotations for p in problems]), by_station, 0.0)
         rotations[~(np.arange(rotations.shape[1]) < n_stations[:, None])] = np.eye(3)
 
         def measured(name, fill):
-            return _pad(np.concatenate([getattr(p, name) for p in problems]), n_measurements, fill)
+            return _pad(np.concatenate([getattr(p, name) for p in problems]), by_measurement, fill)
 
         frames = [p.frame for p in problems]
         return cls(
@@ -380,17 +391,48 @@ class ProblemBatch:
         )
 
 
-def _pad(flat, counts, fill):
-    """Scatter rows of a flat array ``(sum(counts), ...)`` into ``(B, max(counts), ...)``."""
-    flat = np.asarray(flat)
+def _scatter(counts) -> tuple[np.ndarray, np.ndarray, int]:
+    """Where the rows of a flat array ``(sum(counts), ...)`` go in ``(B, width, ...)``: row and column
+    indices, ``B`` and ``width = max(counts)`` (at least 1)."""
     counts = np.asarray(counts, dtype=np.intp)
-    width = int(counts.max(initial=1))
-    out = np.full((counts.size, max(width, 1), *flat.shape[1:]), fill, dtype=flat.dtype)
     rows = np.repeat(np.arange(counts.size), counts)
     starts = np.cumsum(counts) - counts
-    cols = np.arange(rows.size) - starts[rows]
+    return rows, np.arange(rows.size) - starts[rows], counts.size, max(int(counts.max(initial=1)), 1)
+
+
+def _pad(flat, scatter, fill):
+    """Scatter rows of a flat array ``(sum(counts), ...)`` into ``(B, max(counts), ...)`` (``scatter``:
+    :func:`_scatter` of the counts)."""
+    flat = np.asarray(flat)
+    rows, cols, size, width = scatter
+    out = np.full((size, width, *flat.shape[1:]), fill, dtype=flat.dtype)
     out[rows, cols] = flat
     return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _place_stations(coordinates, owner, geodetic_station, origin_ecef_m, origin_rotation, geodetic_frame):
+    """Stations ``(S, 3)`` in their problem's common frame and their rotations ``(S, 3, 3)`` (station ENU <-
+    common ENU): a geodetic station ``(lat_rad, lon_rad, alt_m)`` by exact geodesy, a local one
+    ``(east_m, north_m, up_m)`` as given, with the local axes at it (compiled)."""
+    count = coordinates.shape[0]
+    enu, rotations = np.empty((count, 3)), np.empty((count, 3, 3))
+    own, work = np.empty((3, 3)), np.empty((3, 3))
+    for i in range(count):
+        b = owner[i]
+        c = coordinates[i]
+        if geodetic_station[b]:
+            x, y, z = geodesy.geodetic_to_ecef_point(c[0], c[1], c[2])
+            enu[i, 0], enu[i, 1], enu[i, 2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef_m[b], origin_rotation[b])
+            geodesy.ecef_to_enu_rotation_point(c[0], c[1], own)
+            for r in range(3):
+                for k in range(3):
+                    rotations[i, r, k] = own[r, 0] * origin_rotation[b, k, 0] + own[r, 1] * origin_rotation[b, k, 1] \
+                        + own[r, 2] * origin_rotation[b, k, 2]
+        else:
+            enu[i, 0], enu[i, 1], enu[i, 2] = c[0], c[1], c[2]
+            local_axes_point(enu[i], geodetic_frame[b], origin_ecef_m[b], origin_rotation[b], work, rotations[i])
+    return enu, rotations
 
 
 def size_groups(n_measurements, n_stations=None) -> list[np.ndarray]:
@@ -480,23 +522,12 @@ def build_problem_batch(
     geodetic = ~np.isnan(origin[:, 0])
     origin = np.where(geodetic[:, None], origin, 0.0)
 
-    o = origin[owner]
-    is_geodetic_station = geodetic_stations[owner]
-    enu = coords.copy()
-    rotations = np.empty((owner.size, 3, 3))
-    g = np.flatnonzero(is_geodetic_station)
-    if g.size:
-        lat, lon, alt = coords[g, 0], coords[g, 1], coords[g, 2]
-        enu[g] = geodesy.geodetic_to_enu(lat, lon, alt, o[g, 0], o[g, 1], o[g, 2])
-        rotations[g] = geodesy.enu_to_enu_rotation(o[g, 0], o[g, 1], lat, lon)
-    loc = np.flatnonzero(~is_geodetic_station)
-    if loc.size:
-        rotations[loc] = local_axes(enu[loc], o[loc], geodetic[owner[loc]])
+    origin_ecef, origin_rotation = frame_placements(origin)
+    enu, rotations = _place_stations(coords, owner, geodetic_stations, origin_ecef, origin_rotation, geodetic)
 
-    kinds = np.asarray(kinds, dtype=np.int8)
-    values = np.asarray(values, dtype=float)
-    kinds_padded = _pad(kinds, measurement_counts, PAD_KIND)
-    values_padded = _pad(values, measurement_counts, 0.0)
+    measurements = _scatter(measurement_counts)
+    kinds_padded = _pad(np.asarray(kinds, dtype=np.int8), measurements, PAD_KIND)
+    values_padded = _pad(np.asarray(values, dtype=float), measurements, 0.0)
     is_toa = kinds_padded == Kind.TOA
     reference = np.where(is_toa, values_padded, np.inf).min(axis=-1)
     reference = np.where(np.isfinite(reference), reference, 0.0)
@@ -509,23 +540,26 @@ def build_problem_batch(
         guess[k] = geodesy.geodetic_to_enu(guess[k, 0], guess[k, 1], guess[k, 2],
                                            origin[k, 0], origin[k, 1], origin[k, 2])
 
-    rotations_padded = _pad(rotations, station_counts, 0.0)
+    stations = _scatter(station_counts)
+    rotations_padded = _pad(rotations, stations, 0.0)
     rotations_padded[~(np.arange(rotations_padded.shape[1]) < station_counts[:, None])] = np.eye(3)
-    return ProblemBatch(
+    built = ProblemBatch(
         station_ids=tuple(station_ids),
         origin=origin,
         geodetic=geodetic,
         n_stations=station_counts,
-        stations_enu_m=_pad(enu, station_counts, 0.0),
+        stations_enu_m=_pad(enu, stations, 0.0),
         station_rotations=rotations_padded,
         n_measurements=measurement_counts,
         kinds=kinds_padded,
-        station_index=_pad(np.asarray(station_index, dtype=np.intp), measurement_counts, 0),
+        station_index=_pad(np.asarray(station_index, dtype=np.intp), measurements, 0),
         values=values_padded,
-        sigmas=_pad(np.asarray(sigmas, dtype=float), measurement_counts, np.nan),
-        bearing_index=_pad(np.asarray(bearing_index, dtype=np.intp), measurement_counts, -1),
-        source_index=_pad(np.asarray(source_index, dtype=np.intp), measurement_counts, -1),
+        sigmas=_pad(np.asarray(sigmas, dtype=float), measurements, np.nan),
+        bearing_index=_pad(np.asarray(bearing_index, dtype=np.intp), measurements, -1),
+        source_index=_pad(np.asarray(source_index, dtype=np.intp), measurements, -1),
         toa_reference_s=reference,
         altitude_m=np.asarray(altitude_m, dtype=float).reshape(-1),
         initial_guess_enu_m=guess,
     )
+    built.__dict__["_frame_placements"] = origin_ecef, origin_rotation  # the cache of frame_placements()
+    return built

@@ -24,7 +24,6 @@ from core.estimators.loss import loss_code, loss_point
 from core.estimators.result import Estimates, FixBatch, FixWarning
 from core.measurements import (AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, Kind, measure_point, seen_from_station,
                                toa_offset_point)
-from core.problem import frame_placements
 from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
@@ -71,7 +70,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     sigmas = batch.sigmas if estimates.sigmas is None else np.where(batch.present, estimates.sigmas, np.nan)
     bias = estimates.bias_m
     is_line, elevation, _ = batch.lines_of_sight()
-    origin_ecef, origin_rotation = frame_placements(batch.origin)
+    origin_ecef, origin_rotation = batch.frame_placements()
     loss = estimates.loss
     (raw, normalized, studentized, chi2, known_count, crlb, covariance, min_eigenvalue, robust_factor,
      robust_cost, sigma_ref, behind, zenith, spread) = _finish_kernel(

@@ -362,7 +362,7 @@ def _intersect(batch: ProblemBatch) -> Estimates:
     delta_z = np.where(angle, model.residuals(batch.values, predicted), 0.0)
     w = np.where(angle, 1.0 / sigma**2, 0.0)
     axes, free = parameterisation(reference, batch.altitude_m, np.zeros(size, dtype=bool), batch.origin,
-                                  batch.geodetic)
+                                  batch.geodetic, batch.frame_placements())
     information, local_jacobian = normal_matrix(jac, w, axes, free)
     inverse = invert_information(information, axes, free)
     gradient = row_sums(local_jacobian * (w * delta_z)[:, None, :])

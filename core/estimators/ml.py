@@ -54,7 +54,7 @@ from core.estimators.starting_points import initial_positions
 from core.geodesy import enu_to_geodetic
 from core.linalg import jacobi_svd
 from core.measurements import AZIMUTH, ELEVATION, measure_point, toa_offset_point
-from core.problem import frame_placements, local_axes_point, onto_altitude_point
+from core.problem import local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
 #: Plain least squares: ``(loss name, scale in sigmas)``.
@@ -274,7 +274,7 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     Solution
     """
     stations, rotations = batch.measurement_stations()
-    origin_ecef, origin_rotation = frame_placements(batch.origin)
+    origin_ecef, origin_rotation = batch.frame_placements()
     out = _lm_kernel(np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
                      np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.model_values()),
                      np.ascontiguousarray(batch.weights()),

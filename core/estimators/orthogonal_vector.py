@@ -43,7 +43,7 @@ from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
 from core.linalg import jacobi_svd, last_dot, matvec, svd_in_place, weighted_gram
 from core.measurements import seen_from_station
-from core.problem import LinesOfSight, Problem, frame_placements, local_axes, local_axes_point, onto_altitude_point
+from core.problem import LinesOfSight, Problem, local_axes, local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
 #: Relative singular value below which the stacked rows are rank-deficient.
@@ -270,7 +270,7 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     failed = np.zeros(size, dtype=bool)
     failed[list(errors)] = True
 
-    origin_ecef, origin_rotation = frame_placements(batch.origin)
+    origin_ecef, origin_rotation = batch.frame_placements()
     position, singular, scale = _positions_kernel(
         np.ascontiguousarray(eq.rows), np.ascontiguousarray(eq.rhs), np.ascontiguousarray(eq.used),
         np.ascontiguousarray(eq.sigma), np.ascontiguousarray(eq.stations), np.ascontiguousarray(eq.rotations), failed,
