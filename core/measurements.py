@@ -40,6 +40,8 @@ class Kind(IntEnum):
 #: Kind codes as plain ints (for compiled code, and because comparing an array with an IntEnum member goes
 #: through the enum machinery).
 AZIMUTH, ELEVATION, RANGE, TOA = (int(k) for k in Kind)
+#: Each kind's name as the API and the warnings spell it, by code.
+KIND_NAMES = tuple(k.name.lower() for k in Kind)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

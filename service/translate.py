@@ -26,7 +26,7 @@ from core.crlb import gdop, information_at
 from core.error_summary import error_summary
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import FixBatch, SolveOptions, solve_many
-from core.measurements import Kind
+from core.measurements import KIND_NAMES, Kind
 from core.parallel import Stopped
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from core.problem_batch import ProblemBatch, build_problem_batch
@@ -37,8 +37,6 @@ from service.maps import coverage_geojson, coverage_png
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
 
-_COMPONENT_NAMES = {int(Kind.AZIMUTH): "azimuth", int(Kind.ELEVATION): "elevation", int(Kind.RANGE): "range",
-                    int(Kind.TOA): "toa"}
 _AZ, _EL, _RG, _TOA = int(Kind.AZIMUTH), int(Kind.ELEVATION), int(Kind.RANGE), int(Kind.TOA)
 
 
@@ -700,7 +698,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     residual_l = np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals).tolist()
     normalized_l = fixes.normalized_residuals.tolist()
     used_l, excluded_l = fixes.used.tolist(), fixes.excluded.tolist()
-    component_l = [[_COMPONENT_NAMES[k] for k in row] for row in batch.kinds.tolist()]
+    component_l = [[KIND_NAMES[k] for k in row] for row in batch.kinds.tolist()]
     station_l = batch.station_index.tolist()
     source_l = batch.source_index.tolist()
     counts = batch.n_measurements.tolist()

@@ -34,7 +34,7 @@ from scipy.stats import chi2 as chi2_distribution
 
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.linalg import row_sums
-from core.measurements import ELEVATION, RANGE, TOA, Kind
+from core.measurements import ELEVATION, KIND_NAMES, RANGE, TOA
 from core.problem import local_axes, onto_altitude
 from core.problem_batch import ProblemBatch
 
@@ -300,7 +300,7 @@ def azimuth_only_errors(batch: ProblemBatch, name: str) -> dict[int, Localizatio
         m = int(np.flatnonzero(other[b])[0])
         source = int(batch.source_index[b, m])
         errors[b] = InvalidInput(
-            f"{name} uses bearings only; measurement {source} is a {Kind(batch.kinds[b, m]).name.lower()}: "
+            f"{name} uses bearings only; measurement {source} is a {KIND_NAMES[batch.kinds[b, m]]}: "
             "use ml for a mix", ("measurements", source))
     return errors
 

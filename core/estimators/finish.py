@@ -10,6 +10,7 @@ error's culprit) and the conditioning and geometry warnings, and returns a
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numba
@@ -22,8 +23,8 @@ from core.crlb import (OBSERVABILITY_THRESHOLD, Information, gdop, invert_point,
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_code, loss_point
 from core.estimators.result import Estimates, FixBatch, FixWarning
-from core.measurements import (AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, Kind, measure_point, seen_from_station,
-                               toa_offset_point)
+from core.measurements import (AZIMUTH, ELEVATION, KIND_NAMES, SPEED_OF_LIGHT_MPS, TOA, measure_point,
+                               seen_from_station, toa_offset_point)
 from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
@@ -132,6 +133,9 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     any_downweighted = np.any(downweighted, axis=-1)
     flagged = ~converged | ill | inefficient | outlier | mismatch | collinear | any_behind | any_zenith
     flagged |= any_unused | any_excluded | any_downweighted
+    if np.any(any_unused):
+        unused_count = np.count_nonzero(unused, axis=-1)
+        unused_kinds = np.bitwise_or.reduce(np.where(unused, 1 << batch.kinds.astype(np.int64), 0), axis=-1)
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
     for b in np.flatnonzero(flagged & ~failed):
         found = list(own[b])
@@ -162,7 +166,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
             station = batch.station_ids[b][batch.station_index[b, w]]
             found.append(FixWarning(
                 "outlier_suspected",
-                f"measurement {int(batch.source_index[b, w])} ({Kind(batch.kinds[b, w]).name.lower()} at "
+                f"measurement {int(batch.source_index[b, w])} ({KIND_NAMES[batch.kinds[b, w]]} at "
                 f"{station}) has a studentized residual of {worst_value[b]:.1f}"))
         if mismatch[b]:
             found.append(FixWarning(
@@ -178,15 +182,14 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
                 station = batch.station_ids[b][batch.station_index[b, m]]
                 found.append(FixWarning(
                     "measurement_downweighted",
-                    f"measurement {int(batch.source_index[b, m])} ({Kind(batch.kinds[b, m]).name.lower()} at {station}) "
+                    f"measurement {int(batch.source_index[b, m])} ({KIND_NAMES[batch.kinds[b, m]]} at {station}) "
                     f"keeps {100.0 * robust_factor[b, m]:.1f} % of its weight under the {estimates.loss[0]} loss "
                     f"(scale {estimates.loss[1]:g} sigma)"))
         if any_unused[b]:
-            kinds = sorted({Kind(k).name.lower() for k in batch.kinds[b, unused[b]].tolist()})
             found.append(FixWarning(
                 "measurements_unused",
-                f"{method} does not use the {', '.join(kinds)} measurements "
-                f"({np.count_nonzero(unused[b])} left out of the fit and its verdicts); ml uses every kind"))
+                f"{method} does not use the {_kind_list(int(unused_kinds[b]))} measurements "
+                f"({unused_count[b]} left out of the fit and its verdicts); ml uses every kind"))
         warnings[b] = tuple(found)
 
     coarse = estimates.coarse_position_enu_m
@@ -215,6 +218,12 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         excluded=excluded,
         gdop=gdop(crlb, sigma_ref),
     )
+
+
+@functools.cache
+def _kind_list(bits: int) -> str:
+    """The names of the kinds whose bits (``1 << code``) are set, sorted, comma-separated."""
+    return ", ".join(sorted(name for code, name in enumerate(KIND_NAMES) if bits >> code & 1))
 
 
 def _station_list(batch: ProblemBatch, b: int, rows) -> str:

@@ -57,7 +57,7 @@ from core.crlb import OBSERVABILITY_THRESHOLD
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, get_estimator, register
 from core.estimators.result import Estimates, FixWarning
-from core.measurements import AZIMUTH, ELEVATION, Kind, MeasurementModel
+from core.measurements import AZIMUTH, ELEVATION, KIND_NAMES, MeasurementModel
 from core.problem import local_axes
 from core.problem_batch import ProblemBatch
 
@@ -254,7 +254,7 @@ def _checks(batch: ProblemBatch) -> dict[int, LocalizationError]:
         m = int(first_other[b])
         i = int(batch.source_index[b, m])
         errors[b] = InvalidInput(f"{NAME} uses bearings only; measurement {i} is a "
-                                 f"{Kind(batch.kinds[b, m]).name.lower()}: use ml for a mix", ("measurements", i))
+                                 f"{KIND_NAMES[batch.kinds[b, m]]}: use ml for a mix", ("measurements", i))
     checks = [
         (~batch.constrained & ~np.any(is_el, axis=-1), lambda b: TooFewMeasurements(
             f"{NAME} from azimuths alone needs the target altitude (constraints.altitude_m): azimuths do not "

@@ -85,7 +85,7 @@ from core.estimators.azimuth_lines import (
 )
 from core.estimators.base import AZIMUTHS, SolveOptions, get_estimator, register
 from core.estimators.result import Estimates, FixWarning
-from core.linalg import row_sums, weighted_gram
+from core.linalg import jacobi_svd, row_sums, weighted_gram
 from core.problem_batch import ProblemBatch
 
 #: Re-takes of the tangent plane at the solution (exact on the ellipsoid after two).
@@ -189,8 +189,9 @@ def _tls(batch: ProblemBatch, options: SolveOptions):
     def solve_in_plane(plane, equations, _current, _state):
         spread = plane_spread_m(run.lines, plane)
         matrix = _scaled_matrix(equations, spread)
-        _, _, vt = np.linalg.svd(matrix)
-        points, at_infinity = run.null_vector_points(vt[:, -1], spread)
+        singular, vectors, _ = jacobi_svd(matrix)
+        smallest = np.take_along_axis(vectors, np.argmin(singular, axis=-1)[:, None, None], axis=-1)[..., 0]
+        points, at_infinity = run.null_vector_points(smallest, spread)
         return points, (matrix, spread), at_infinity
 
     plane, equations, _, (matrix, spread) = run.passes(solve_in_plane)
