@@ -41,9 +41,9 @@ import numpy as np
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
-from core.linalg import jacobi_svd, last_dot, matvec, svd_in_place, weighted_gram
+from core.linalg import jacobi_svd, matvec, svd_in_place, weighted_gram
 from core.measurements import seen_from_station
-from core.problem import LinesOfSight, Problem, local_axes, local_axes_point, onto_altitude_point
+from core.problem import Problem, local_axes, local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
 #: Relative singular value below which the stacked rows are rank-deficient.
@@ -96,31 +96,6 @@ def normal_vectors(azimuth_rad, elevation_rad):
     return vertical, horizontal
 
 
-def orthogonal_rows(los: LinesOfSight, use_vertical: bool = True, use_horizontal: bool = True):
-    """Stack the orthogonal-vector equations of one problem's lines of sight.
-
-    Returns
-    -------
-    rows : ndarray, shape (R, 3)
-        Unit normals ``c`` in the common frame.
-    rhs : ndarray, shape (R,)
-        ``c . r_i``.
-    line : ndarray of int, shape (R,)
-        Line of sight of each row.
-    vertical : ndarray of bool, shape (R,)
-        True for a ``c`` (elevation) row, False for a ``c'`` (azimuth) row.
-    """
-    a_vertical, a_horizontal = normal_vectors(los.azimuth_rad, np.where(los.has_elevation, los.elevation_rad, 0.0))
-    k_vertical = np.flatnonzero(los.has_elevation) if use_vertical else np.zeros(0, int)
-    k_horizontal = np.arange(los.count) if use_horizontal else np.zeros(0, int)
-    local = np.concatenate([a_vertical[k_vertical], a_horizontal[k_horizontal]]).reshape(-1, 3)
-    line = np.concatenate([k_vertical, k_horizontal]).astype(int)
-    vertical = np.arange(line.size) < k_vertical.size
-    rows = matvec(np.swapaxes(los.rotations[line], -1, -2), local)
-    rhs = last_dot(rows, los.origins_enu_m[line])
-    return rows, rhs, line, vertical
-
-
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _noise_scale(position_enu_m, stations_enu_m, rotations, out):
     """Each row's noise per unit angle at a position into ``out`` ``(2M,)``: the slant distance for
@@ -138,19 +113,48 @@ class _Rows:
 
     def __init__(self, batch: ProblemBatch, normals: Normals):
         is_line, elevation, sigma_elevation = batch.lines_of_sight()
-        has_el = ~np.isnan(elevation)
         stations, rotations = batch.measurement_stations()
-        vertical, horizontal = normal_vectors(np.where(is_line, batch.values, 0.0), np.where(has_el, elevation, 0.0))
-        self.rotations = rotations
-        self.stations = stations
-        to_common = np.swapaxes(rotations, -1, -2)
-        rows = [matvec(to_common, local) for local in (vertical, horizontal)]
-        self.rows = np.concatenate(rows, axis=1)
-        self.rhs = np.concatenate([last_dot(r, stations) for r in rows], axis=1)
-        self.used = np.concatenate([has_el & (normals is not Normals.AZIMUTH_PLANE),
-                                    is_line & (normals is not Normals.ELEVATION_PLANE)], axis=1)
-        sigma = np.concatenate([sigma_elevation, np.where(is_line, batch.sigmas, np.nan)], axis=1)
-        self.sigma = np.where(np.isfinite(sigma), sigma, 1.0)
+        self.rotations = np.ascontiguousarray(rotations, dtype=float)
+        self.stations = np.ascontiguousarray(stations, dtype=float)
+        self.rows, self.rhs, self.used, self.sigma = _rows_kernel(
+            np.ascontiguousarray(is_line), np.ascontiguousarray(batch.values, dtype=float),
+            np.ascontiguousarray(elevation), np.ascontiguousarray(sigma_elevation),
+            np.ascontiguousarray(batch.sigmas, dtype=float), self.stations, self.rotations,
+            normals is not Normals.AZIMUTH_PLANE, normals is not Normals.ELEVATION_PLANE)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _rows_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad, stations_enu_m, rotations,
+                 use_vertical, use_horizontal):
+    """Each line of sight's normals ``c`` (in its vertical plane, where it has an elevation) and ``c'``
+    (horizontal) in the common frame, ``(B, 2M, 3)``, their right-hand sides ``c . r`` ``(B, 2M)``, which
+    are used and their angle sigmas (1 where none); the normals of :func:`normal_vectors`, compiled."""
+    size, width = is_line.shape
+    rows, rhs = np.zeros((size, 2 * width, 3)), np.zeros((size, 2 * width))
+    used, sigma = np.zeros((size, 2 * width), dtype=np.bool_), np.ones((size, 2 * width))
+    local = np.empty((2, 3))
+    for b in range(size):
+        for m in range(width):
+            line = is_line[b, m]
+            has_el = not math.isnan(elevation_rad[b, m])
+            az = azimuth_rad[b, m] if line else 0.0
+            el = elevation_rad[b, m] if has_el else 0.0
+            sin_az, cos_az, sin_el, cos_el = math.sin(az), math.cos(az), math.sin(el), math.cos(el)
+            local[0, 0], local[0, 1], local[0, 2] = -sin_el * sin_az, -sin_el * cos_az, cos_el
+            local[1, 0], local[1, 1], local[1, 2] = cos_az, -sin_az, 0.0
+            r, s = rotations[b, m], stations_enu_m[b, m]
+            for k in range(2):
+                row = m + k * width
+                for i in range(3):
+                    rows[b, row, i] = r[0, i] * local[k, 0] + r[1, i] * local[k, 1] + r[2, i] * local[k, 2]
+                rhs[b, row] = rows[b, row, 0] * s[0] + rows[b, row, 1] * s[1] + rows[b, row, 2] * s[2]
+            used[b, m] = has_el and use_vertical
+            used[b, width + m] = line and use_horizontal
+            if math.isfinite(sigma_elevation_rad[b, m]):
+                sigma[b, m] = sigma_elevation_rad[b, m]
+            if line and math.isfinite(sigma_rad[b, m]):
+                sigma[b, width + m] = sigma_rad[b, m]
+    return rows, rhs, used, sigma
 
 
 def _where(mask):
