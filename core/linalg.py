@@ -77,6 +77,33 @@ def _dot(x, y, start, stop):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _rotation(alpha, beta, gamma):
+    """Cosine and sine of the Jacobi rotation that zeroes the off-diagonal ``gamma`` of ``[[alpha, gamma],
+    [gamma, beta]]`` (the smaller of the two angles)."""
+    zeta = (beta - alpha) / (2.0 * gamma)
+    t = math.copysign(1.0, zeta) / (abs(zeta) + math.hypot(1.0, zeta))
+    cos = 1.0 / math.sqrt(1.0 + t * t)
+    return cos, cos * t
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _rotate_columns(m, p, q, cos, sin):
+    for i in range(m.shape[0]):
+        mp, mq = m[i, p], m[i, q]
+        m[i, p] = cos * mp - sin * mq
+        m[i, q] = sin * mp + cos * mq
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _rotate_rows(m, p, q, cos, sin, count):
+    """Rows ``p`` and ``q`` of ``m``, their first ``count`` entries."""
+    for r in range(count):
+        mp, mq = m[p, r], m[q, r]
+        m[p, r] = cos * mp - sin * mq
+        m[q, r] = sin * mp + cos * mq
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def svd_in_place(x, y, s, v, projected, reflector, norms):
     """:func:`jacobi_svd` of one matrix, given as its columns ``x`` ``(C, R)`` with sides ``y`` ``(K, R)``
     (both overwritten), into ``s`` ``(C,)``, ``v`` ``(C, C)`` and ``projected`` ``(C, K)``; ``reflector``
@@ -114,18 +141,9 @@ def svd_in_place(x, y, s, v, projected, reflector, norms):
                 if not abs(gamma) > JACOBI_TOLERANCE * np.sqrt(norms[p] * norms[q]):
                     continue
                 rotated = True
-                zeta = (norms[q] - norms[p]) / (2.0 * gamma)
-                t = np.copysign(1.0, zeta) / (abs(zeta) + np.hypot(1.0, zeta))
-                cos = 1.0 / np.sqrt(1.0 + t * t)
-                sin = cos * t
-                for r in range(depth):
-                    xp, xq = x[p, r], x[q, r]
-                    x[p, r] = cos * xp - sin * xq
-                    x[q, r] = sin * xp + cos * xq
-                for i in range(width):
-                    vp, vq = v[i, p], v[i, q]
-                    v[i, p] = cos * vp - sin * vq
-                    v[i, q] = sin * vp + cos * vq
+                cos, sin = _rotation(norms[p], norms[q], gamma)
+                _rotate_rows(x, p, q, cos, sin, depth)
+                _rotate_columns(v, p, q, cos, sin)
                 norms[p] = _dot(x[p], x[p], 0, depth)
                 norms[q] = _dot(x[q], x[q], 0, depth)
         if not rotated:
@@ -232,21 +250,9 @@ def symmetric_eigen_in_place(a, v):
                 if not abs(apq) > JACOBI_TOLERANCE * math.sqrt(abs(a[p, p] * a[q, q])) or apq == 0.0:
                     continue
                 rotated = True
-                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
-                t = math.copysign(1.0, theta) / (abs(theta) + math.hypot(1.0, theta))
-                cos = 1.0 / math.sqrt(1.0 + t * t)
-                sin = t * cos
-                for k in range(width):
-                    akp, akq = a[k, p], a[k, q]
-                    a[k, p] = cos * akp - sin * akq
-                    a[k, q] = sin * akp + cos * akq
-                for k in range(width):
-                    apk, aqk = a[p, k], a[q, k]
-                    a[p, k] = cos * apk - sin * aqk
-                    a[q, k] = sin * apk + cos * aqk
-                for k in range(width):
-                    vkp, vkq = v[k, p], v[k, q]
-                    v[k, p] = cos * vkp - sin * vkq
-                    v[k, q] = sin * vkp + cos * vkq
+                cos, sin = _rotation(a[p, p], a[q, q], apq)
+                _rotate_columns(a, p, q, cos, sin)
+                _rotate_rows(a, p, q, cos, sin, width)
+                _rotate_columns(v, p, q, cos, sin)
         if not rotated:
             break
