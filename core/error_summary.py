@@ -129,7 +129,7 @@ def _radius50_tables() -> tuple[np.ndarray, np.ndarray]:
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _lagrange_point(ratio, weights):
     """First of the four table nodes around ``sqrt(ratio)`` and their Lagrange weights (into ``weights`` (4,))."""
-    x = math.sqrt(min(max(ratio, 0.0), 1.0)) * _TABLE_INTERVALS
+    x = math.sqrt(min(max(ratio, 0.0), 1.0)) * _TABLE_INTERVALS if ratio == ratio else 0.0  # NaN: no index
     first = min(max(int(math.floor(x)), 1), _TABLE_INTERVALS - 2)
     t = x - first
     a, b, c, d = t + 1.0, t, t - 1.0, t - 2.0
@@ -172,6 +172,8 @@ def _summary_kernel(covariance_enu_m2, circle, sphere, interpolate):
         if not interpolate:
             continue
         scale = horizontal[b, 1]
+        if not (math.isfinite(scale) and math.isfinite(spatial[b, 2])):
+            continue  # NaN radii for a covariance that is not finite
         if scale > 0:
             rows = _lagrange_point(horizontal[b, 0] / scale, w_rows)
             unit = 0.0
@@ -245,7 +247,11 @@ def error_summary(covariance_enu_m2, exact: bool = False) -> ErrorSummary:
     circle, sphere = _radius50_tables()
     lam_h, lam_3, orientation, cep, sep = _summary_kernel(cov, circle, sphere, not exact)
     if exact:
-        cep, sep = _radius_containing(lam_h, 0.5), _radius_containing(lam_3, 0.5)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a non-finite one is NaN below
+            cep, sep = _radius_containing(lam_h, 0.5), _radius_containing(lam_3, 0.5)
+    finite = np.isfinite(cov).all(axis=(-2, -1))
+    if not finite.all():
+        cep, sep = np.where(finite, cep, np.nan), np.where(finite, sep, np.nan)
     diagonal = np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0)
     return ErrorSummary(
         cep50_m=cep,

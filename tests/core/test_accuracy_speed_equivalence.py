@@ -88,3 +88,10 @@ def test_batched_equals_one_by_one():
         one = error_summary(covariances[i])
         assert one.cep50_m[0] == pytest.approx(batch.cep50_m[i], rel=1e-12)
         assert one.sep50_m[0] == pytest.approx(batch.sep50_m[i], rel=1e-12)
+
+
+@pytest.mark.parametrize("cov", [np.full((3, 3), np.nan), np.diag([np.inf, 1.0, 1.0])], ids=["nan", "inf"])
+def test_a_covariance_that_is_not_finite_has_nan_radii(cov):
+    for exact in (False, True):
+        summary = error_summary(cov, exact=exact)
+        assert np.isnan(summary.cep50_m[0]) and np.isnan(summary.sep50_m[0])
