@@ -11,10 +11,7 @@ tests check that every response validates against it.
 from __future__ import annotations
 
 import math
-import os
 import typing
-from concurrent.futures import ThreadPoolExecutor
-from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,9 +22,8 @@ from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
 from core.error_summary import error_summary
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
-from core.estimators import FixBatch, SolveOptions, solve_many
+from core.estimators import FixBatch, SolveOptions, iter_solutions
 from core.measurements import KIND_NAMES, Kind
-from core.parallel import Stopped
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from core.problem_batch import ProblemBatch, build_problem_batch
 from core.simulation.measurements import evaluate
@@ -762,12 +758,6 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     return out
 
 
-#: A large batch is solved in parts of this many problems; with more than one part, worker threads solve
-#: the next parts (numpy releases the GIL in its loops) while the calling thread builds the bodies of the last.
-PART_PROBLEMS = 2048
-MAX_WORKERS = min(2, os.cpu_count() or 1)
-
-
 def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
     """Results of parsed FixRequest bodies: read, solved and written as one batch.
 
@@ -778,7 +768,8 @@ def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
     request_ids : str or sequence of str, optional
         Written into each error body (one for all, or one per body).
     should_stop : callable returning bool, optional
-        Asked before each part of :data:`PART_PROBLEMS` problems is solved (deadline, disconnect, shutdown).
+        Asked before each part is solved (:func:`core.estimators.iter_solutions`: deadline, disconnect,
+        shutdown).
 
     Returns
     -------
@@ -802,27 +793,12 @@ def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
     read = read_fix_requests(bodies)
     for slot, error in read.errors.items():
         put(slot, {"ok": False, "error": error})
-    batch = read.batch
-    if batch is not None:
-        rows = np.arange(batch.size)
-        parts = [rows[i:i + PART_PROBLEMS] for i in range(0, batch.size, PART_PROBLEMS)]
-
-        def solve_part(chosen):
-            if should_stop is not None and should_stop():
-                raise Stopped()
-            part = batch if chosen.size == batch.size else batch.take(chosen)
-            return chosen, solve_many(part, [read.methods[r] for r in chosen], [read.options[r] for r in chosen])
-
-        workers = min(MAX_WORKERS, len(parts))
-        with ThreadPoolExecutor(workers) if workers > 1 else nullcontext() as pool:
-            solved = pool.map(solve_part, parts) if pool is not None else map(solve_part, parts)
-            for chosen, groups in solved:
-                for rows_in_part, fixes in groups:
-                    taken = chosen[rows_in_part]
-                    if isinstance(fixes, LocalizationError):
-                        for r in taken.tolist():
-                            put(read.slots[r], {"ok": False, "error": localization_problem(fixes)})
-                        continue
-                    for r, result in zip(taken.tolist(), fix_bodies(fixes, [read.formats[r] for r in taken])):
-                        put(read.slots[r], result)
+    if read.batch is not None:
+        for rows, fixes in iter_solutions(read.batch, read.methods, read.options, should_stop):
+            if isinstance(fixes, LocalizationError):
+                for r in rows.tolist():
+                    put(read.slots[r], {"ok": False, "error": localization_problem(fixes)})
+                continue
+            for r, result in zip(rows.tolist(), fix_bodies(fixes, [read.formats[r] for r in rows])):
+                put(read.slots[r], result)
     return results

@@ -11,7 +11,10 @@ Importing this package registers every estimator module.
 from __future__ import annotations
 
 import importlib
+import os
 import pkgutil
+import threading
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -20,6 +23,7 @@ from core.estimators.base import REGISTRY, SolveOptions, get_estimator
 from core.estimators.loss import LOSSES
 from core.estimators.result import Fix, FixBatch, FixWarning
 from core.measurements import AZIMUTH
+from core.parallel import Stopped
 from core.problem import Problem
 from core.problem_batch import ProblemBatch, size_groups
 
@@ -45,11 +49,36 @@ def resolve_methods(batch: ProblemBatch, methods: list[str]) -> list[str]:
     return [("taylor_wls" if estimates_sigmas[b] else "ml") if m == AUTO else m for b, m in enumerate(methods)]
 
 
-def solve_many(batch: ProblemBatch, methods, options) -> list[tuple[np.ndarray, FixBatch | LocalizationError]]:
-    """Fixes of every problem of a batch, each with its own method and options.
+#: Problems per call of an estimator's ``solve_batch``: a larger group is solved in parts of this many.
+PART_PROBLEMS = 2048
+#: Threads that solve the parts of one call at once (the kernels release the GIL).
+MAX_WORKERS = min(2, os.cpu_count() or 1)
+_pool: ThreadPoolExecutor | None = None
+_pool_lock = threading.Lock()
 
-    Problems with the same method and options are solved in one batched
-    call per size class (padding stays under 2x).
+
+def _workers() -> ThreadPoolExecutor:
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(MAX_WORKERS, thread_name_prefix="solve")
+        return _pool
+
+
+def solve_many(batch: ProblemBatch, methods, options, should_stop=None) -> list[tuple[np.ndarray, FixBatch | LocalizationError]]:
+    """Fixes of every problem of a batch, each with its own method and options: :func:`iter_solutions` as a list."""
+    return list(iter_solutions(batch, methods, options, should_stop))
+
+
+def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
+    """Fixes of every problem of a batch, each with its own method and options, part by part.
+
+    Problems with the same method and options are solved together, one
+    batched call per size class (padding stays under 2x) and per
+    :data:`PART_PROBLEMS` problems. With more than one part, up to
+    :data:`MAX_WORKERS` threads solve them at once, and each part is
+    yielded, in order, as soon as it and those before it are done (a
+    caller can write the first parts while the next ones are solved).
 
     Parameters
     ----------
@@ -57,10 +86,12 @@ def solve_many(batch: ProblemBatch, methods, options) -> list[tuple[np.ndarray, 
     methods : str or sequence of str, length B
         API method names (``auto`` allowed).
     options : SolveOptions or sequence of SolveOptions, length B, optional
+    should_stop : callable returning bool, optional
+        Asked before each part is solved; True raises :class:`core.parallel.Stopped`.
 
-    Returns
-    -------
-    list of (rows, FixBatch or LocalizationError)
+    Yields
+    ------
+    (rows, FixBatch or LocalizationError)
         ``rows`` indexes ``batch``; a LocalizationError stands for every
         problem of its rows (an unknown method or variant, a missing sigma).
     """
@@ -68,11 +99,11 @@ def solve_many(batch: ProblemBatch, methods, options) -> list[tuple[np.ndarray, 
     methods = [methods] * size if isinstance(methods, str) else list(methods)
     if options is None or isinstance(options, SolveOptions):
         options = [options or SolveOptions()] * size
-    out: list[tuple[np.ndarray, FixBatch | LocalizationError]] = []
     missing = batch.valid & np.isnan(batch.sigmas)
     groups: dict[tuple, list[int]] = {}
     for b, (name, opts) in enumerate(zip(resolve_methods(batch, methods), options)):
         groups.setdefault((name, opts), []).append(b)
+    work: list = []
     for (name, opts), rows in groups.items():
         rows = np.asarray(rows, dtype=np.intp)
         try:
@@ -80,26 +111,43 @@ def solve_many(batch: ProblemBatch, methods, options) -> list[tuple[np.ndarray, 
             _check_variant(spec, opts)
             _check_loss(spec, opts)
         except LocalizationError as error:
-            out.append((rows, error))
+            work.append((rows, error))
             continue
         if spec.needs_sigmas:
             lacking = np.any(missing[rows], axis=-1)
             for b in rows[lacking].tolist():
                 m = int(np.flatnonzero(missing[b])[0])
-                out.append((np.array([b]), InvalidInput(
+                work.append((np.array([b]), InvalidInput(
                     f"method {name} needs the azimuth sigma of every bearing",
                     ("measurements", int(batch.source_index[b, m]), "sigma_azimuth_rad"))))
             rows = rows[~lacking]
-        if rows.size == 0:
-            continue
         for group in size_groups(batch.n_measurements[rows], batch.n_stations[rows]):
-            chosen = rows[group]
-            part = batch if chosen.size == size else batch.take(chosen)
-            fixes = spec.solve_batch(part, opts)
-            if opts.outliers == "exclude":
-                fixes = exclude_outliers(spec, part, opts, fixes)
-            out.append((chosen, fixes if opts.absolute_sigma else fixes.scaled_by_fit()))
-    return out
+            for start in range(0, group.size, PART_PROBLEMS):
+                work.append((rows[group[start:start + PART_PROBLEMS]], spec, opts))
+
+    def solve_part(chosen, spec, opts):
+        if should_stop is not None and should_stop():
+            raise Stopped()
+        part = batch if chosen.size == size else batch.take(chosen)
+        fixes = spec.solve_batch(part, opts)
+        if opts.outliers == "exclude":
+            fixes = exclude_outliers(spec, part, opts, fixes)
+        return fixes if opts.absolute_sigma else fixes.scaled_by_fit()
+
+    parts = sum(len(item) == 3 for item in work)
+    if parts <= 1 or MAX_WORKERS == 1:
+        for item in work:
+            yield item if len(item) == 2 else (item[0], solve_part(*item))
+        return
+    pool = _workers()
+    futures = [None if len(item) == 2 else pool.submit(solve_part, *item) for item in work]
+    try:
+        for item, future in zip(work, futures):
+            yield item if future is None else (item[0], future.result())
+    finally:
+        for future in futures:
+            if future is not None:
+                future.cancel()
 
 
 #: Chi-square p-value below which a fit fails the consistency test and its worst measurement is excluded.
@@ -199,4 +247,4 @@ def _check_loss(spec, options: SolveOptions) -> None:
 
 
 __all__ = ["AUTO", "REGISTRY", "Fix", "FixBatch", "FixWarning", "SolveOptions", "exclude_outliers", "resolve_methods", "solve",
-           "solve_batch", "solve_many"]
+           "iter_solutions", "solve_batch", "solve_many"]

@@ -268,14 +268,14 @@ def test_route_is_documented():
 
 
 def test_parts_on_worker_threads_give_the_same_bodies(client, monkeypatch):
-    import service.translate as batch_route
+    import core.estimators as estimators
 
     problems = [_noisy(bearing_request(STATIONS_300KM, TARGET), seed) for seed in range(7)]
     problems.insert(3, {"stations": []})
     same_id = {"x-request-id": "parts"}
     whole = client.post("/v1/fixes/batch", json={"problems": problems}, headers=same_id).json()
-    monkeypatch.setattr(batch_route, "PART_PROBLEMS", 2)
-    monkeypatch.setattr(batch_route, "MAX_WORKERS", 2)
+    monkeypatch.setattr(estimators, "PART_PROBLEMS", 2)
+    monkeypatch.setattr(estimators, "MAX_WORKERS", 2)
     parts = client.post("/v1/fixes/batch", json={"problems": problems}, headers=same_id).json()
     assert_close(parts, whole, "batch")
     assert [r["ok"] for r in parts["results"]] == [True] * 3 + [False] + [True] * 4

@@ -10,7 +10,8 @@ from types import SimpleNamespace
 
 import pytest
 
-import service.translate as translate
+import core.estimators as estimators
+from core.estimators.base import EstimatorSpec
 from core.parallel import Stopped
 from service.coalesce import Coalescer
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
@@ -19,18 +20,24 @@ from tests.service.test_fixes_api import assert_problem
 
 @pytest.fixture
 def slow_parts(monkeypatch):
-    """Parts of one problem, each ``state["delay_s"]`` slower; ``solved`` lists the parts solved."""
-    parts = SimpleNamespace(solved=[], state={"delay_s": 0.2})
-    real = translate.solve_many
+    """Once ``start(delay_s)`` is called (after the app's startup, whose kernel warm-up solves too), every
+    part is ``state["delay_s"]`` slower and ``solved`` lists the parts solved."""
+    parts = SimpleNamespace(solved=[], state={"delay_s": 0.0, "on": False})
+    real = EstimatorSpec.solve_batch
 
-    def slow(batch, methods, options):
-        time.sleep(parts.state["delay_s"])  # a part that takes long (the deadline is what is tested)
-        parts.solved.append(batch.size)
-        return real(batch, methods, options)
+    def slow(spec, batch, options, excluded=None):
+        if parts.state["on"]:
+            time.sleep(parts.state["delay_s"])  # a part that takes long (the deadline is what is tested)
+            parts.solved.append(batch.size)
+        return real(spec, batch, options, excluded)
 
-    monkeypatch.setattr(translate, "solve_many", slow)
-    monkeypatch.setattr(translate, "PART_PROBLEMS", 1)
-    monkeypatch.setattr(translate, "MAX_WORKERS", 1)
+    def start(delay_s):
+        parts.state.update(delay_s=delay_s, on=True)
+
+    parts.start = start
+    monkeypatch.setattr(EstimatorSpec, "solve_batch", slow)
+    monkeypatch.setattr(estimators, "PART_PROBLEMS", 1)
+    monkeypatch.setattr(estimators, "MAX_WORKERS", 1)
     return parts
 
 
@@ -43,6 +50,7 @@ def _deadline_problem(response):
 
 def test_a_batch_over_its_deadline_is_503_and_stops_between_parts(make_client, slow_parts):
     client = make_client(request_deadline_s=0.3)
+    slow_parts.start(0.2)
     problems = [bearing_request(STATIONS_300KM, TARGET)] * 20
     _deadline_problem(client.post("/v1/fixes/batch", json={"problems": problems}))
     assert len(slow_parts.solved) < 10, slow_parts.solved  # 20 parts of 0.2 s would take 4 s
@@ -50,7 +58,7 @@ def test_a_batch_over_its_deadline_is_503_and_stops_between_parts(make_client, s
 
 def test_a_single_fix_over_its_deadline_is_503_and_the_next_one_is_solved(make_client, slow_parts):
     client = make_client(request_deadline_s=0.2)
-    slow_parts.state["delay_s"] = 1.5  # longer than the deadline and the grace after it
+    slow_parts.start(1.5)  # longer than the deadline and the grace after it
     _deadline_problem(client.post("/v1/fixes", json=bearing_request(STATIONS_300KM, TARGET)))
     slow_parts.state["delay_s"] = 0.0
     time.sleep(0.5)  # the abandoned solve finishes
@@ -60,7 +68,7 @@ def test_a_single_fix_over_its_deadline_is_503_and_the_next_one_is_solved(make_c
 
 def test_a_batch_within_its_deadline_is_solved_whole(make_client, slow_parts):
     client = make_client(request_deadline_s=30)
-    slow_parts.state["delay_s"] = 0.0
+    slow_parts.start(0.0)
     response = client.post("/v1/fixes/batch", json={"problems": [bearing_request(STATIONS_300KM, TARGET)] * 3})
     assert response.status_code == 200 and all(r["ok"] for r in response.json()["results"])
     assert slow_parts.solved == [1, 1, 1]
