@@ -2,7 +2,7 @@
 
 Fix requests, single or batched, take one road: :func:`fix_results` reads
 parsed bodies into one core batch (:func:`read_fix_requests`), solves it with
-:func:`core.estimators.solve_many` and writes every fix from the batch's
+:func:`core.estimators.iter_solutions` and writes every fix from the batch's
 arrays (:func:`fix_bodies`). Responses are plain dicts (serialised by
 orjson) rather than re-validated models: the schema documents them and the
 tests check that every response validates against it.
