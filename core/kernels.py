@@ -2,9 +2,12 @@
 
 The per-problem inner loops are compiled: the point conversions of
 :mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem`,
+the frame and station placement and the padding of :mod:`core.problem_batch`,
 the measurement model and TOA offset of :mod:`core.measurements`, the robust
-losses, the small SVD and eigen-decomposition of :mod:`core.linalg`, the error summaries, the orthogonal-vector passes, the
-ML iteration and the tracking filters' kernels. :func:`compile_kernels` runs
+losses, the small SVD and eigen-decomposition of :mod:`core.linalg`, the
+information pieces of :mod:`core.crlb`, the error summaries, the
+orthogonal-vector passes, the ML iteration, the finisher and the tracking
+filters' kernels. :func:`compile_kernels` runs
 every estimator on a few small problems (every measurement kind, a known
 altitude, a robust loss), so that each kernel meets the argument types the
 estimators pass and no fix pays for a compilation.

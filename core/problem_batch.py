@@ -15,6 +15,7 @@ done once for every station of every problem.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Sequence
@@ -28,6 +29,7 @@ from core.problem import CommonFrame, GeodeticPoint, Problem, frame_placements, 
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).
 PAD_KIND = Kind.RANGE
+_PAD_KIND_CODE = int(PAD_KIND)
 
 
 @dataclass(frozen=True)
@@ -411,28 +413,101 @@ def _pad(flat, scatter, fill):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _place_stations(coordinates, owner, geodetic_station, origin_ecef_m, origin_rotation, geodetic_frame):
-    """Stations ``(S, 3)`` in their problem's common frame and their rotations ``(S, 3, 3)`` (station ENU <-
-    common ENU): a geodetic station ``(lat_rad, lon_rad, alt_m)`` by exact geodesy, a local one
-    ``(east_m, north_m, up_m)`` as given, with the local axes at it (compiled)."""
-    count = coordinates.shape[0]
-    enu, rotations = np.empty((count, 3)), np.empty((count, 3, 3))
+def _place(coordinates, counts, geodetic_stations, origin_given):
+    """Each problem's common frame and its stations in it, padded (compiled).
+
+    A geodetic problem without an origin takes its stations' ECEF centroid on
+    the ellipsoid (the first station where the centroid is at the earth's
+    centre); a geodetic station ``(lat_rad, lon_rad, alt_m)`` is placed by
+    exact geodesy, a local one ``(east_m, north_m, up_m)`` as given, with
+    the local axes at it.
+
+    Returns
+    -------
+    origin : ndarray, shape (B, 3)
+        Zeros for a flat plane.
+    geodetic : ndarray of bool, shape (B,)
+    origin_ecef_m, origin_rotation : ndarray, shape (B, 3) and (B, 3, 3)
+        As :func:`core.problem.frame_placements` of ``origin``.
+    stations_enu_m, rotations : ndarray, shape (B, N, 3) and (B, N, 3, 3)
+        Zero and identity on padding.
+    """
+    size = counts.size
+    width = max(1, counts.max()) if size else 1
+    origin, geodetic = np.zeros((size, 3)), np.zeros(size, dtype=np.bool_)
+    origin_ecef, origin_rotation = np.empty((size, 3)), np.empty((size, 3, 3))
+    enu, rotations = np.zeros((size, width, 3)), np.zeros((size, width, 3, 3))
     own, work = np.empty((3, 3)), np.empty((3, 3))
-    for i in range(count):
-        b = owner[i]
-        c = coordinates[i]
-        if geodetic_station[b]:
-            x, y, z = geodesy.geodetic_to_ecef_point(c[0], c[1], c[2])
-            enu[i, 0], enu[i, 1], enu[i, 2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef_m[b], origin_rotation[b])
-            geodesy.ecef_to_enu_rotation_point(c[0], c[1], own)
+    first = 0
+    for b in range(size):
+        count = counts[b]
+        stations = coordinates[first:first + count]
+        if geodetic_stations[b] and math.isnan(origin_given[b, 0]):
+            x = y = z = 0.0
+            for i in range(count):
+                sx, sy, sz = geodesy.geodetic_to_ecef_point(stations[i, 0], stations[i, 1], 0.0)
+                x, y, z = x + sx, y + sy, z + sz
+            x, y, z = x / count, y / count, z / count
+            if math.sqrt(x * x + y * y + z * z) < 1.0:
+                x, y, z = geodesy.geodetic_to_ecef_point(stations[0, 0], stations[0, 1], 0.0)
+            origin[b, 0], origin[b, 1], _ = geodesy.ecef_to_geodetic_point(x, y, z)
+            geodetic[b] = True
+        elif not math.isnan(origin_given[b, 0]):
+            origin[b] = origin_given[b]
+            geodetic[b] = True
+        o = origin[b]
+        origin_ecef[b, 0], origin_ecef[b, 1], origin_ecef[b, 2] = geodesy.geodetic_to_ecef_point(o[0], o[1], o[2])
+        geodesy.ecef_to_enu_rotation_point(o[0], o[1], origin_rotation[b])
+        for i in range(count):
+            c = stations[i]
+            if geodetic_stations[b]:
+                x, y, z = geodesy.geodetic_to_ecef_point(c[0], c[1], c[2])
+                enu[b, i, 0], enu[b, i, 1], enu[b, i, 2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef[b],
+                                                                                     origin_rotation[b])
+                geodesy.ecef_to_enu_rotation_point(c[0], c[1], own)
+                for r in range(3):
+                    for k in range(3):
+                        rotations[b, i, r, k] = own[r, 0] * origin_rotation[b, k, 0] \
+                            + own[r, 1] * origin_rotation[b, k, 1] + own[r, 2] * origin_rotation[b, k, 2]
+            else:
+                enu[b, i, 0], enu[b, i, 1], enu[b, i, 2] = c[0], c[1], c[2]
+                local_axes_point(enu[b, i], geodetic[b], origin_ecef[b], origin_rotation[b], work, rotations[b, i])
+        for i in range(count, width):
             for r in range(3):
-                for k in range(3):
-                    rotations[i, r, k] = own[r, 0] * origin_rotation[b, k, 0] + own[r, 1] * origin_rotation[b, k, 1] \
-                        + own[r, 2] * origin_rotation[b, k, 2]
-        else:
-            enu[i, 0], enu[i, 1], enu[i, 2] = c[0], c[1], c[2]
-            local_axes_point(enu[i], geodetic_frame[b], origin_ecef_m[b], origin_rotation[b], work, rotations[i])
-    return enu, rotations
+                rotations[b, i, r, r] = 1.0
+        first += count
+    return origin, geodetic, origin_ecef, origin_rotation, enu, rotations
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pad_measurements(counts, kinds, station_index, values, sigmas, bearing_index, source_index):
+    """The flat measurements of B problems padded to ``(B, M)`` (padding: kind ``PAD_KIND``, station 0, value
+    0, sigma NaN, indices -1), TOA values less each problem's earliest, and that reference ``(B,)`` (0
+    without TOA; compiled)."""
+    size = counts.size
+    width = max(1, counts.max()) if size else 1
+    kinds_out = np.full((size, width), _PAD_KIND_CODE, dtype=np.int8)
+    station_out = np.zeros((size, width), dtype=np.intp)
+    values_out, sigmas_out = np.zeros((size, width)), np.full((size, width), np.nan)
+    bearing_out, source_out = np.full((size, width), -1, dtype=np.intp), np.full((size, width), -1, dtype=np.intp)
+    reference = np.zeros(size)
+    first = 0
+    for b in range(size):
+        earliest = np.inf
+        for m in range(counts[b]):
+            j = first + m
+            kinds_out[b, m], station_out[b, m] = kinds[j], station_index[j]
+            values_out[b, m], sigmas_out[b, m] = values[j], sigmas[j]
+            bearing_out[b, m], source_out[b, m] = bearing_index[j], source_index[j]
+            if kinds[j] == TOA:
+                earliest = min(earliest, values[j])
+        if earliest < np.inf:
+            reference[b] = earliest
+            for m in range(counts[b]):
+                if kinds_out[b, m] == TOA:
+                    values_out[b, m] -= earliest
+        first += counts[b]
+    return kinds_out, station_out, values_out, sigmas_out, bearing_out, source_out, reference
 
 
 def size_groups(n_measurements, n_stations=None) -> list[np.ndarray]:
@@ -505,33 +580,12 @@ def build_problem_batch(
     measurement_counts = np.asarray(measurement_counts, dtype=np.intp)
     coords = np.asarray(station_coordinates, dtype=float).reshape(-1, 3)
     geodetic_stations = np.asarray(geodetic_stations, dtype=bool)
-    origin = np.array(origin, dtype=float).reshape(-1, 3)
-    batch = station_counts.size
-    owner = np.repeat(np.arange(batch), station_counts)
-    starts = np.cumsum(station_counts) - station_counts
-
-    needs_centroid = geodetic_stations & np.isnan(origin[:, 0])
-    if np.any(needs_centroid):
-        surface = geodesy.geodetic_to_ecef(coords[:, 0], coords[:, 1], np.zeros(owner.size))
-        mean = np.add.reduceat(surface, starts, axis=0) / station_counts[:, None]
-        degenerate = np.linalg.norm(mean, axis=-1) < 1.0
-        if np.any(degenerate):
-            mean[degenerate] = surface[starts[degenerate]]
-        lat, lon, _ = geodesy.ecef_to_geodetic(mean[needs_centroid])
-        origin[needs_centroid] = np.stack([lat, lon, np.zeros_like(lat)], axis=-1)
-    geodetic = ~np.isnan(origin[:, 0])
-    origin = np.where(geodetic[:, None], origin, 0.0)
-
-    origin_ecef, origin_rotation = frame_placements(origin)
-    enu, rotations = _place_stations(coords, owner, geodetic_stations, origin_ecef, origin_rotation, geodetic)
-
-    measurements = _scatter(measurement_counts)
-    kinds_padded = _pad(np.asarray(kinds, dtype=np.int8), measurements, PAD_KIND)
-    values_padded = _pad(np.asarray(values, dtype=float), measurements, 0.0)
-    is_toa = kinds_padded == Kind.TOA
-    reference = np.where(is_toa, values_padded, np.inf).min(axis=-1)
-    reference = np.where(np.isfinite(reference), reference, 0.0)
-    values_padded = np.where(is_toa, values_padded - reference[:, None], values_padded)
+    origin, geodetic, origin_ecef, origin_rotation, stations_enu, rotations = _place(
+        coords, station_counts, geodetic_stations, np.ascontiguousarray(origin, dtype=float).reshape(-1, 3))
+    kinds, station_index, values, sigmas, bearing_index, source_index, reference = _pad_measurements(
+        measurement_counts, np.asarray(kinds, dtype=np.int8), np.asarray(station_index, dtype=np.intp),
+        np.asarray(values, dtype=float), np.asarray(sigmas, dtype=float), np.asarray(bearing_index, dtype=np.intp),
+        np.asarray(source_index, dtype=np.intp))
 
     guess = np.array(initial_guess, dtype=float).reshape(-1, 3)
     geodetic_guess = np.asarray(geodetic_guess, dtype=bool) & ~np.isnan(guess[:, 0])
@@ -540,23 +594,20 @@ def build_problem_batch(
         guess[k] = geodesy.geodetic_to_enu(guess[k, 0], guess[k, 1], guess[k, 2],
                                            origin[k, 0], origin[k, 1], origin[k, 2])
 
-    stations = _scatter(station_counts)
-    rotations_padded = _pad(rotations, stations, 0.0)
-    rotations_padded[~(np.arange(rotations_padded.shape[1]) < station_counts[:, None])] = np.eye(3)
     built = ProblemBatch(
         station_ids=tuple(station_ids),
         origin=origin,
         geodetic=geodetic,
         n_stations=station_counts,
-        stations_enu_m=_pad(enu, stations, 0.0),
-        station_rotations=rotations_padded,
+        stations_enu_m=stations_enu,
+        station_rotations=rotations,
         n_measurements=measurement_counts,
-        kinds=kinds_padded,
-        station_index=_pad(np.asarray(station_index, dtype=np.intp), measurements, 0),
-        values=values_padded,
-        sigmas=_pad(np.asarray(sigmas, dtype=float), measurements, np.nan),
-        bearing_index=_pad(np.asarray(bearing_index, dtype=np.intp), measurements, -1),
-        source_index=_pad(np.asarray(source_index, dtype=np.intp), measurements, -1),
+        kinds=kinds,
+        station_index=station_index,
+        values=values,
+        sigmas=sigmas,
+        bearing_index=bearing_index,
+        source_index=source_index,
         toa_reference_s=reference,
         altitude_m=np.asarray(altitude_m, dtype=float).reshape(-1),
         initial_guess_enu_m=guess,

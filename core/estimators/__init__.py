@@ -65,7 +65,8 @@ def _workers() -> ThreadPoolExecutor:
         return _pool
 
 
-def solve_many(batch: ProblemBatch, methods, options, should_stop=None) -> list[tuple[np.ndarray, FixBatch | LocalizationError]]:
+def solve_many(batch: ProblemBatch, methods, options,
+               should_stop=None) -> list[tuple[np.ndarray, FixBatch | LocalizationError]]:
     """Fixes of every problem of a batch, each with its own method and options: :func:`iter_solutions` as a list."""
     return list(iter_solutions(batch, methods, options, should_stop))
 
