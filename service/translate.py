@@ -303,6 +303,11 @@ _TOLERANCE = _bounds(schemas.Options, "tolerance_m")
 _ITERATIONS = _bounds(schemas.Options, "max_iterations")
 _LOSS_SCALE = _bounds(schemas.Options, "loss_scale")
 _ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
+#: The bounds above as tables for the bulk checks: per frame (local, geodetic) and coordinate, and per kind code.
+_COORDINATE_BOUNDS = np.array([[_EAST, _NORTH, _UP], [_LAT, _LON, _ALT]], dtype=float)
+_VALUE_BOUNDS = np.array([{_AZ: _AZIMUTH, _EL: _ELEVATION, _RG: _RANGE, _TOA: _TOA_S}[k] for k in range(4)])
+_SIGMA_BOUNDS = np.array([{_AZ: _SIGMA_AZIMUTH, _EL: _SIGMA_ELEVATION, _RG: _SIGMA_RANGE, _TOA: _SIGMA_TOA}[k]
+                          for k in range(4)])
 _MEASUREMENTS_MAX = schemas.MAX_FIX_MEASUREMENTS
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
                        if getattr(rule, "max_length", None) is not None)
@@ -500,10 +505,9 @@ def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _within(values, bounds) -> np.ndarray:
-    low, high, low_in, high_in = bounds
-    above = values >= low if low_in else values > low
-    below = values <= high if high_in else values < high
-    return above & below
+    """Whether each value is inside its bounds ``(..., 4)`` (rows as :func:`_bounds` gives them)."""
+    low, high, low_in, high_in = np.moveaxis(bounds, -1, 0)
+    return np.where(low_in > 0, values >= low, values > low) & np.where(high_in > 0, values <= high, values < high)
 
 
 @dataclass(frozen=True)
@@ -556,15 +560,10 @@ def read_fix_requests(bodies: list) -> FixRequests:
         kinds = table[:, 0].astype(np.int8)
         values, sigmas = table[:, 2], table[:, 3]
         on_earth = geodetic[station_owner]
-        coords_ok &= np.where(on_earth[:, None], np.array([_within(coords[:, 0], _LAT), _within(coords[:, 1], _LON),
-                                                          _within(coords[:, 2], _ALT)]).T,
-                              np.array([_within(coords[:, 0], _EAST), _within(coords[:, 1], _NORTH),
-                                        _within(coords[:, 2], _UP)]).T).all(axis=-1)
-        is_az, is_el, is_range, is_toa = kinds == _AZ, kinds == _EL, kinds == _RG, kinds == _TOA
-        scalars_ok &= ~is_az | (_within(values, _AZIMUTH) & (_within(sigmas, _SIGMA_AZIMUTH) | np.isnan(sigmas)))
-        scalars_ok &= ~is_el | (_within(values, _ELEVATION) & _within(sigmas, _SIGMA_ELEVATION))
-        scalars_ok &= ~is_range | (_within(values, _RANGE) & _within(sigmas, _SIGMA_RANGE))
-        scalars_ok &= ~is_toa | (_within(values, _TOA_S) & _within(sigmas, _SIGMA_TOA))
+        coords_ok &= _within(coords, _COORDINATE_BOUNDS[on_earth.astype(np.intp)]).all(axis=-1)
+        is_az, is_el = kinds == _AZ, kinds == _EL
+        scalars_ok &= _within(values, _VALUE_BOUNDS[kinds]) & (_within(sigmas, _SIGMA_BOUNDS[kinds])
+                                                               | (is_az & np.isnan(sigmas)))
         bad = np.zeros(len(accepted), dtype=bool)
         bad[station_owner[~coords_ok]] = True
         bad[scalar_owner[~scalars_ok]] = True
