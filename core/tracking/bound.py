@@ -25,8 +25,11 @@ the range differences, so one number, the first range, is left to the motion: th
 (``each_truth``) grows with the process noise as the filters' errors do. The PCRB averages the
 measurement information over the truths; once their lines of sight spread across runs by more than
 the angle noise, that average holds range information that no run has (the runs together see the
-emitter from several directions) and the bound falls instead. On paper 001 (20 runs, seed 30000, the
-position RMS at reports 150, 175 and 200, known period; ``report_figures oracle``):
+emitter from several directions) and the bound falls instead. At q = 2 m/s^2 the runs' azimuths spread
+by 19 to 29 mrad (standard deviation) over the last 50 reports, against 5 mrad of noise, and averaging
+the first truth of seed 30000 with the second already takes the bound there from 17.1 to 3.8 km (50
+truths: 1.3 km). On paper 001 (20 runs, seed 30000, the position RMS at reports 150, 175 and 200, known
+period; ``report_figures oracle``):
 
 =====  =======  =============  ==============================  =================
 q      PCRB     own bounds     batch oracle (Laplace MMSE)     joint_ukf (dflt)
