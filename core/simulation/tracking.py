@@ -182,6 +182,10 @@ class AgainstBound:
         Trace of the PCRB's position block.
     times_s : ndarray, shape (K,)
     ranges_m : ndarray, shape (R, K)
+    own_bound_m2 : ndarray, shape (R, K)
+        The same trace for the bound of each run's truth on its own (``session_pcrb(..., each_truth=True)``):
+        what an efficient estimator reaches where the PCRB, which averages the information over the truths,
+        is not attainable.
     """
 
     squared_errors_m2: np.ndarray
@@ -189,6 +193,7 @@ class AgainstBound:
     bound_m2: np.ndarray
     times_s: np.ndarray | None = None
     ranges_m: np.ndarray | None = None
+    own_bound_m2: np.ndarray | None = None
 
     def rmse_m(self) -> np.ndarray:
         """Per epoch ``(K,)``, the position RMSE over runs (NaN while a run is not initialised)."""
@@ -197,6 +202,10 @@ class AgainstBound:
     def ratio(self, window: slice) -> float:
         """RMSE over runs and the epochs of ``window`` over the PCRB's RMS there."""
         return float(np.sqrt(np.mean(self.squared_errors_m2[:, window]) / np.mean(self.bound_m2[window])))
+
+    def own_ratio(self, window: slice) -> float:
+        """RMSE over runs and the epochs of ``window`` over the RMS there of each run's own bound."""
+        return float(np.sqrt(np.mean(self.squared_errors_m2[:, window]) / np.mean(self.own_bound_m2[:, window])))
 
     def mean_nees(self, window: slice) -> np.ndarray:
         """Per epoch of ``window``, the mean position NEES over runs."""
@@ -218,10 +227,12 @@ def against_bound(config: TrackerConfig, scenario: EmitterScenario, runs: int, s
     if sigmas is None:
         sigmas = (scenario.accel_sigma_mps2,) * (scenario.epochs - 1)
     bound = session_pcrb(states, tracks["times_s"], config, np.array(sigmas))
+    own = session_pcrb(states, tracks["times_s"], config, np.array(sigmas), each_truth=True)
     error = tracks["estimates"][..., :3] - states[..., :3]
     squared = np.einsum("rki,rki->rk", error, error)
     position_cov = tracks["covariances"][..., :3, :3]
     ready = ~np.isnan(error[..., 0])
     nees = np.full(squared.shape, np.nan)
     nees[ready] = np.einsum("ni,ni->n", error[ready], np.linalg.solve(position_cov[ready], error[ready][..., None])[..., 0])
-    return AgainstBound(squared, nees, bound.position_rmse_m**2, tracks["times_s"], tracks["ranges_m"])
+    return AgainstBound(squared, nees, bound.position_rmse_m**2, tracks["times_s"], tracks["ranges_m"],
+                        own.position_rmse_m**2)

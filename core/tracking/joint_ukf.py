@@ -49,7 +49,7 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
                                      line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
 from core.tracking.state import TrackState, freeze, symmetric
 from core.tracking.linalg import cholesky_repaired, symmetrized
-from core.tracking.motion import constant_velocity_predict, transition
+from core.tracking.motion import constant_velocity_predict, transitions
 from core.tracking.unscented import (INNOVATION_NOT_PD, NIS_LIMIT, NOT_FINITE, PREDICTED_NOT_PD, UPDATED,
                                      UPDATED_NOT_PD, joint_ukf_kernel)
 
@@ -384,7 +384,7 @@ def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, 
     """
     m, f = means.shape
     n_pulses, use_toa, count_warnings = count
-    motion = [transition(f, (3,), True, dt_s, a * a) for a in accel_sigmas_mps2]
+    phi, noises = transitions(f, (3,), True, dt_s, tuple(a * a for a in accel_sigmas_mps2))
     interval_s = n_pulses * period_s
     var_toa = (C * config.sigma_toa_s) ** 2
     measured = np.array((azimuth, elevation, C * (dtoa_s - interval_s) if use_toa else 0.0, rate))
@@ -395,12 +395,12 @@ def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, 
     nis, log_det, status = np.empty(m), np.empty(m), np.empty(m, dtype=np.int64)
 
     def update(i, j, predict):
-        joint_ukf_kernel(predicted_means[i:j], predicted_covs[i:j], np.array(motion[0][0]),
-                         np.array([noise for _, noise in motion[i:j]]), predict, int(n_pulses), float(interval_s),
-                         bool(use_toa), measured, variances, new_means[i:j], new_covs[i:j], nis[i:j], log_det[i:j],
-                         status[i:j])
+        joint_ukf_kernel(predicted_means[i:j], predicted_covs[i:j], phi, noises[i:j], predict, int(n_pulses),
+                         float(interval_s), bool(use_toa), measured, variances, new_means[i:j], new_covs[i:j],
+                         nis[i:j], log_det[i:j], status[i:j])
 
-    log_likelihoods = np.full(m, -math.inf)
+    log_likelihoods = np.empty(m)
+    log_likelihoods.fill(-math.inf)
     warnings = [tuple(count_warnings)] * m
     try:
         update(0, m, True)

@@ -66,6 +66,32 @@ def transition(n: int, velocity_blocks: tuple[int, ...], moves_position: bool, d
 _TRANSITIONS: dict = {}
 
 
+def transitions(n: int, velocity_blocks: tuple[int, ...], moves_position: bool, dt_s: float,
+                accel_psds: tuple[float, ...]):
+    """:func:`transition` for several acceleration intensities at once (the components of a mixture or the
+    modes of an IMM), memoised.
+
+    Returns
+    -------
+    transition : ndarray, shape (n, n)
+    noises : ndarray, shape (M, n, n)
+        One per intensity of ``accel_psds``; read-only.
+    """
+    key = (n, velocity_blocks, moves_position, dt_s, accel_psds)
+    found = _STACKED.get(key)
+    if found is None:
+        pairs = [transition(n, velocity_blocks, moves_position, dt_s, q) for q in accel_psds]
+        noises = np.array([noise for _, noise in pairs])
+        noises.flags.writeable = False
+        if len(_STACKED) >= 256:
+            _STACKED.clear()
+        found = _STACKED[key] = (pairs[0][0], noises)
+    return found
+
+
+_STACKED: dict = {}
+
+
 def constant_velocity_predict(mean, cov, dt_s: float, accel_psd: float, velocity_blocks: tuple[int, ...],
                               moves_position: bool, separate_block: int | None = None):
     """Propagate a state and covariance over ``dt_s`` (see :func:`transition`).

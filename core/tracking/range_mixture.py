@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 
 from core.tracking.config import SPEED_OF_LIGHT_MPS as C
@@ -58,12 +59,44 @@ def relative_sigma(ratio: float) -> float:
 
 def moments(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean ``(..., F)`` and covariance ``(..., F, F)`` of Gaussian sums over the axis before the components'
-    (``weights`` ``(..., M)`` summing to one along the last axis)."""
-    mean = np.einsum("...m,...mi->...i", weights, means)
-    spread = means - mean[..., None, :]
-    cov = (np.einsum("...m,...mij->...ij", weights, covariances)
-           + np.einsum("...mi,...mj->...ij", spread * weights[..., None], spread))
-    return mean, 0.5 * (cov + np.swapaxes(cov, -1, -2))
+    (``weights`` ``(..., M)`` summing to one along the last axis; leading axes broadcast).
+
+    The covariance ``sum_m w_m (P_m + (x_m - x)(x_m - x)^T)`` is exactly symmetric (only the lower
+    triangles of the ``P_m`` are read). Compiled
+    (:func:`_moments_kernel`): a handful of numpy calls on these small arrays cost ten times the arithmetic.
+    """
+    m, f = means.shape[-2:]
+    lead = weights.shape[:-1]
+    if means.shape[:-2] != lead or covariances.shape[:-3] != lead:
+        lead = np.broadcast_shapes(lead, means.shape[:-2], covariances.shape[:-3])
+        weights, means = np.broadcast_to(weights, (*lead, m)), np.broadcast_to(means, (*lead, m, f))
+        covariances = np.broadcast_to(covariances, (*lead, m, f, f))
+    batch = math.prod(lead)
+    mean, cov = np.empty((*lead, f)), np.empty((*lead, f, f))
+    _moments_kernel(weights.reshape(batch, m), means.reshape(batch, m, f), covariances.reshape(batch, m, f, f),
+                    mean.reshape(batch, f), cov.reshape(batch, f, f))
+    return mean, cov
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _moments_kernel(weights, means, covariances, mean, cov):
+    """:func:`moments` of ``B`` sums ``(B, M)``, ``(B, M, F)``, ``(B, M, F, F)`` into ``mean`` ``(B, F)`` and
+    ``cov`` ``(B, F, F)`` (lower triangle summed in component order, then mirrored)."""
+    batch, m, f = means.shape
+    for b in range(batch):
+        for i in range(f):
+            total = 0.0
+            for k in range(m):
+                total += weights[b, k] * means[b, k, i]
+            mean[b, i] = total
+        for i in range(f):
+            for j in range(i + 1):
+                total = 0.0
+                for k in range(m):
+                    total += weights[b, k] * (covariances[b, k, i, j] + (means[b, k, i] - mean[b, i])
+                                              * (means[b, k, j] - mean[b, j]))
+                cov[b, i, j] = total
+                cov[b, j, i] = total
 
 
 def components_of(weights, means, covariances) -> Components:
@@ -84,7 +117,7 @@ def reweighted(weights: np.ndarray, log_likelihoods: np.ndarray) -> np.ndarray:
 
 def pruned(weights: np.ndarray) -> np.ndarray:
     """Indices of the components kept (weight at least :data:`MIN_WEIGHT`)."""
-    return np.flatnonzero(weights >= MIN_WEIGHT)
+    return (weights >= MIN_WEIGHT).nonzero()[0]
 
 
 def fold_period(mean, period_s: float, period_known: bool):

@@ -510,5 +510,12 @@ def compile_kernels() -> None:
     f = 8
     mean = np.array([[1.2e5, 1.0e5, 8.0e3, -300.0, 100.0, 2.0, 0.0, 0.0]])
     cov = np.diag([1e6, 1e6, 1e6, 1e2, 1e2, 1e2, 1e-2, 9.0])[None]
-    joint_ukf_kernel(mean, cov, np.eye(f), np.zeros((1, f, f)), True, 1000, 1.0, True, np.zeros(4), np.ones(4),
-                     np.empty((1, f)), np.empty((1, f, f)), np.empty(1), np.empty(1), np.empty(1, dtype=np.int64))
+    from core.tracking.motion import transitions
+    from core.tracking.range_mixture import moments
+    from core.tracking.state import frozen_array
+
+    phi, noises = transitions(f, (3,), True, 1.0, (1.0,))
+    joint_ukf_kernel(mean, cov, phi, noises, True, 1000, 1.0, True, np.zeros(4), np.ones(4), np.empty((1, f)),
+                     np.empty((1, f, f)), np.empty(1), np.empty(1), np.empty(1, dtype=np.int64))
+    for arrays in ((np.ones(1), mean, cov), tuple(frozen_array(a) for a in (np.ones(1), mean, cov))):
+        moments(*arrays)

@@ -1,5 +1,6 @@
 """Print the figures quoted for the session filters: ``python -m tests.core.tracking.report_figures [runs]``
-(``bound [runs] [switching runs]``: against the PCRB; ``sweep [runs]``: the default model over q = 0.01..2).
+(``bound [runs] [switching runs]``: against the PCRB; ``sweep [runs]``: the default model over q = 0.01..2;
+``oracle [runs] [q,q,...]``: the PCRB, each run's own bound, the batch oracle and the filter on the same truths).
 
 Not a test module: it measures, it asserts nothing. The tests in this package
 assert bounds on the same quantities.
@@ -253,16 +254,59 @@ def sweep(runs: int) -> None:
     """The default model against the PCRB over the process-noise range, truths from the model (seed 30000)."""
     from core.simulation.tracking import against_bound
 
-    print(f"\nDefault model (joint_ukf, range mixture) over q, {runs} runs, seed 30000, last 50 of 200 reports")
+    print(f"\nDefault model (joint_ukf, range mixture) over q, {runs} runs, seed 30000, last 50 of 200 reports; "
+          "ratio of the RMSE to the PCRB and to the RMS of each run's own bound")
     for q in SWEEP_MPS2:
         for known in (True, False):
             result = against_bound(paper_config("joint_ukf", known, accel_sigma_mps2=q),
                                    paper_001_scenario(accel_sigma_mps2=q), runs, 30000)
             print(f"q={q:<5} {'known  ' if known else 'unknown'}  ratio {result.ratio(slice(-50, None)):6.2f}  "
-                  f"position NEES {np.nanmean(result.nees[:, -50:]):5.2f}", flush=True)
+                  f"own {result.own_ratio(slice(-50, None)):5.2f}  position NEES "
+                  f"{np.nanmean(result.nees[:, -50:]):5.2f}", flush=True)
+
+
+#: Reports at which the oracle is computed (the last 50 of 200, every 25th).
+ORACLE_EPOCHS = (150, 175, 200)
+
+
+def oracle(runs: int, levels=(0.05, 0.5, 1.0, 2.0)) -> None:
+    """The default filter, the PCRB, each run's own bound and the batch oracle (:mod:`batch_map`: the MMSE
+    estimate over the range offset, Laplace-marginalised, every report up to then) on the same truths
+    (seeds 30000 + r), at reports :data:`ORACLE_EPOCHS`."""
+    from core.simulation.tracking import against_bound
+    from tests.core.tracking.batch_map import offset_marginal
+
+    at = list(ORACLE_EPOCHS)
+    print(f"\nOracle: {runs} runs, seed 30000, reports {at}; RMS of the position error (m) and ratios to the PCRB; "
+          "own bound = RMS over runs of each run's bound (the recursion on that truth alone)")
+    for q in levels:
+        for known in (True, False):
+            config = paper_config("joint_ukf", known, accel_sigma_mps2=q)
+            scenario = paper_001_scenario(accel_sigma_mps2=q)
+            result = against_bound(config, scenario, runs, 30000)
+            pcrb = float(np.sqrt(np.mean(result.bound_m2[at])))
+            filter_rmse = float(np.sqrt(np.mean(result.squared_errors_m2[:, at])))
+            squared, nees = [], []
+            for r in range(runs):
+                track = simulate_emitter(scenario, np.random.default_rng(30000 + r))
+                for k in at:
+                    mean, cov, _ = offset_marginal(track, config, k)
+                    error = mean[:3] - track.states_enu[k, :3]
+                    squared.append(error @ error)
+                    nees.append(error @ np.linalg.solve(cov[:3, :3], error))
+            own_bound = float(np.sqrt(np.mean(result.own_bound_m2[:, at])))
+            oracle_rmse = float(np.sqrt(np.mean(squared)))
+            print(f"q={q:<5} {'known  ' if known else 'unknown'}  PCRB {pcrb:7.0f}  own bound {own_bound:7.0f}  "
+                  f"oracle {oracle_rmse:7.0f} (NEES {np.mean(nees):4.2f})  filter {filter_rmse:7.0f} (NEES "
+                  f"{np.nanmean(result.nees[:, at]):4.2f})   ratios to the PCRB: own bound {own_bound / pcrb:5.2f}  "
+                  f"oracle {oracle_rmse / pcrb:5.2f}  filter {filter_rmse / pcrb:5.2f}", flush=True)
 
 
 if __name__ == "__main__":
+    if len(sys.argv) > 1 and sys.argv[1] == "oracle":
+        oracle(int(sys.argv[2]) if len(sys.argv) > 2 else 50,
+               tuple(float(q) for q in sys.argv[3].split(",")) if len(sys.argv) > 3 else (0.05, 0.5, 1.0, 2.0))
+        sys.exit(0)
     if len(sys.argv) > 1 and sys.argv[1] == "sweep":
         sweep(int(sys.argv[2]) if len(sys.argv) > 2 else 50)
         sys.exit(0)

@@ -61,6 +61,21 @@ def test_default_joint_ukf_is_near_the_bound_and_consistent(q, ceiling, period_k
     assert ((mean_nees >= low) & (mean_nees <= high)).mean() >= 0.9
 
 
+@pytest.mark.parametrize("q", [1.0, 2.0])
+@pytest.mark.parametrize("period_known", [True, False])
+def test_where_the_pcrb_is_not_attainable_the_default_is_near_each_runs_own_bound_and_consistent(q, period_known):
+    """At q >= 1 m/s^2 no estimator nears the PCRB (it averages the information over truths whose lines of
+    sight spread far more than the angle noise; the batch oracle sits 3.5-28x above it: see
+    :mod:`core.tracking.bound`); the yardstick there is the RMS of each run's own bound. 0.68-0.90x of
+    it on these seeds (the PCRB ratio is 2.8-19x)."""
+    config = paper_config("joint_ukf", period_known, accel_sigma_mps2=q)
+    result = against_bound(config, paper_001_scenario(accel_sigma_mps2=q), RUNS, seed=1000)
+    assert 0.5 < result.own_ratio(LAST_50) <= 1.2, result.own_ratio(LAST_50)
+    mean_nees = result.mean_nees(LAST_50)
+    low, high = nees_interval(RUNS)
+    assert low <= mean_nees.mean() <= high, mean_nees.mean()
+
+
 #: The switching target: quiet 70 s, manoeuvring 40 s, quiet 50 s, manoeuvring 40 s (m/s^2).
 QUIET_MPS2, MANOEUVRE_MPS2 = 0.05, 1.0
 SWITCHING_SCHEDULE = (QUIET_MPS2,) * 70 + (MANOEUVRE_MPS2,) * 40 + (QUIET_MPS2,) * 50 + (MANOEUVRE_MPS2,) * 40
