@@ -73,8 +73,11 @@ def moments(weights: np.ndarray, means: np.ndarray, covariances: np.ndarray) -> 
         covariances = np.broadcast_to(covariances, (*lead, m, f, f))
     batch = math.prod(lead)
     mean, cov = np.empty((*lead, f)), np.empty((*lead, f, f))
-    _moments_kernel(weights.reshape(batch, m), means.reshape(batch, m, f), covariances.reshape(batch, m, f, f),
-                    mean.reshape(batch, f), cov.reshape(batch, f, f))
+    # Fresh C-ordered copies: one argument type for the kernel whatever the callers' arrays (frozen, broadcast).
+    _moments_kernel(np.array(weights, dtype=float, order="C").reshape(batch, m),
+                    np.array(means, dtype=float, order="C").reshape(batch, m, f),
+                    np.array(covariances, dtype=float, order="C").reshape(batch, m, f, f), mean.reshape(batch, f),
+                    cov.reshape(batch, f, f))
     return mean, cov
 
 
