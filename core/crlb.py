@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numba
 import numpy as np
 
-from core.linalg import symmetric_eigen_in_place
+from core.linalg import gram_point, symmetric_eigen_in_place
 from core.measurements import MeasurementModel
 from core.problem import frame_placements, local_axes_point
 
@@ -84,18 +84,6 @@ def normal_point(jacobian, weights, axes, rotate, free, local, information):
     for i in range(4):
         if not free[i]:
             information[i, i] += 1.0
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def gram_point(a, weights, out):
-    """``a W a^T`` ``(P, P)`` of rows ``a`` ``(P, M)``, summed over ``M`` in order (compiled)."""
-    rows, width = a.shape
-    for i in range(rows):
-        for j in range(i + 1):
-            total = 0.0
-            for m in range(width):
-                total += a[i, m] * weights[m] * a[j, m]
-            out[i, j] = out[j, i] = total
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")

@@ -204,16 +204,23 @@ def weighted_gram(a, weights):
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _weighted_gram(a, weights):
-    size, rows, width = a.shape
-    out = np.empty((size, rows, rows))
-    for b in range(size):
-        for i in range(rows):
-            for j in range(i + 1):
-                total = 0.0
-                for m in range(width):
-                    total += a[b, i, m] * weights[b, m] * a[b, j, m]
-                out[b, i, j] = out[b, j, i] = total
+    out = np.empty((a.shape[0], a.shape[1], a.shape[1]))
+    for b in range(a.shape[0]):
+        gram_point(a[b], weights[b], out[b])
     return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def gram_point(a, weights, out):
+    """``a W a^T`` ``(P, P)`` of rows ``a`` ``(P, M)``, summed over ``M`` in order (compiled; one problem's
+    :func:`weighted_gram`)."""
+    rows, width = a.shape
+    for i in range(rows):
+        for j in range(i + 1):
+            total = 0.0
+            for m in range(width):
+                total += a[i, m] * weights[m] * a[j, m]
+            out[i, j] = out[j, i] = total
 
 
 def last_dot(x, y):

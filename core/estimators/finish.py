@@ -18,7 +18,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from core.angles import wrap_point
-from core.crlb import (OBSERVABILITY_THRESHOLD, Information, gdop, invert_point, normal_point, parameters_point,
+from core.crlb import (OBSERVABILITY_THRESHOLD, gdop, invert_point, normal_point, parameters_point,
                        reference_sigma_point, sandwich_point)
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_code, loss_point
@@ -96,11 +96,10 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     else:
         robust_factor = None
 
-    info = Information(crlb, None, min_eigenvalue > OBSERVABILITY_THRESHOLD, min_eigenvalue)
     source = estimates.covariance_source
     if source == "information":
-        for b in np.flatnonzero(~failed & ~info.observable):
-            errors[int(b)] = UnobservableGeometry(_singular_reason(batch, int(b), position[b], info.min_eigenvalue[b]))
+        for b in np.flatnonzero(~failed & ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)):
+            errors[int(b)] = UnobservableGeometry(_singular_reason(batch, int(b), position[b], min_eigenvalue[b]))
     if robust_factor is not None:
         source = "robust"
     elif estimates.covariance_enu_m2 is None:
@@ -114,7 +113,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     worst_value = studentized[np.arange(size), worst]
     outlier = positive & (np.abs(worst_value) > OUTLIER_SIGMAS)
     mismatch = positive & (p_value < SIGMA_MISMATCH_P)
-    ill = info.min_eigenvalue < ILL_CONDITIONED_EIGENVALUE
+    ill = min_eigenvalue < ILL_CONDITIONED_EIGENVALUE
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
     iterations = np.zeros(size, dtype=int) if estimates.iterations is None else np.asarray(estimates.iterations)
     inefficient = np.zeros(size, dtype=bool)
@@ -144,7 +143,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
                                                      "the last accepted iterate is returned"))
         if ill[b]:
             found.append(FixWarning("ill_conditioned", "information matrix nearly singular "
-                                                       f"(min scaled eigenvalue {info.min_eigenvalue[b]:.1e})"))
+                                                       f"(min scaled eigenvalue {min_eigenvalue[b]:.1e})"))
         if inefficient[b]:
             ratio = np.trace(covariance[b]) / np.trace(crlb[b])
             found.append(FixWarning(
