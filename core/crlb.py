@@ -49,12 +49,12 @@ class Information:
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def parameters_point(position_enu_m, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, work, axes, free):
-    """One problem's :func:`parameterisation` into ``axes`` ``(3, 3)`` and ``free`` ``(4,)`` (``work``: a
-    ``(3, 3)`` scratch); returns whether the altitude is known (compiled)."""
+def parameters_point(position_enu_m, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, axes, free):
+    """One problem's :func:`parameterisation` into ``axes`` ``(3, 3)`` and ``free`` ``(4,)``; returns whether
+    the altitude is known (compiled)."""
     constrained = not math.isnan(altitude_m)
     if constrained:
-        local_axes_point(position_enu_m, geodetic, origin_ecef_m, origin_rotation, work, axes)
+        local_axes_point(position_enu_m, geodetic, origin_ecef_m, origin_rotation, axes)
     else:
         for i in range(3):
             for j in range(3):
@@ -98,12 +98,11 @@ def invert_point(information, axes, rotate, free, params, position, work, vector
     """
     size = information.shape[0]
     positive, finite = True, True
+    scale = np.empty(size)
     for i in range(size):
         d = information[i, i]
         positive &= d > 0
-        work[i, 0] = 1.0 / math.sqrt(d if d > 0 else 1.0)
-    scale = np.empty(size)
-    scale[:] = work[:, 0]
+        scale[i] = 1.0 / math.sqrt(d if d > 0 else 1.0)
     for i in range(size):
         for j in range(size):
             work[i, j] = information[i, j] * scale[i] * scale[j]
@@ -167,10 +166,10 @@ def reference_sigma_point(jacobian, weights):
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _parameters_many(positions_enu_m, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation):
     size = positions_enu_m.shape[0]
-    axes, free, work = np.empty((size, 3, 3)), np.empty((size, 4), dtype=np.bool_), np.empty((3, 3))
+    axes, free = np.empty((size, 3, 3)), np.empty((size, 4), dtype=np.bool_)
     for b in range(size):
         parameters_point(positions_enu_m[b], altitude_m[b], has_toa[b], geodetic[b], origin_ecef_m[b],
-                         origin_rotation[b], work, axes[b], free[b])
+                         origin_rotation[b], axes[b], free[b])
     return axes, free
 
 

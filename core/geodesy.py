@@ -244,6 +244,31 @@ def enu_to_enu_rotation(from_lat_rad, from_lon_rad, to_lat_rad, to_lon_rad):
     return r_to @ np.swapaxes(r_from, -1, -2)
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def rotation_from_point(lat_rad, lon_rad, origin_rotation, out):
+    """Into ``out`` ``(3, 3)``: the rotation from the common ENU frame (ECEF -> ENU ``origin_rotation``) to the
+    tangent frame at ``(lat_rad, lon_rad)``, ``R(lat, lon) R_origin^T`` (compiled)."""
+    ecef_to_enu_rotation_point(lat_rad, lon_rad, out)
+    for i in range(3):
+        a, b, c = out[i, 0], out[i, 1], out[i, 2]
+        for j in range(3):
+            out[i, j] = a * origin_rotation[j, 0] + b * origin_rotation[j, 1] + c * origin_rotation[j, 2]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def centroid_on_ellipsoid_point(lat_rad, lon_rad):
+    """:func:`centroid_on_ellipsoid` of points ``(N,)`` (compiled; callable from kernels)."""
+    x = y = z = 0.0
+    for i in range(lat_rad.size):
+        px, py, pz = geodetic_to_ecef_point(lat_rad[i], lon_rad[i], 0.0)
+        x, y, z = x + px, y + py, z + pz
+    x, y, z = x / lat_rad.size, y / lat_rad.size, z / lat_rad.size
+    if math.sqrt(x * x + y * y + z * z) < 1.0:
+        x, y, z = geodetic_to_ecef_point(lat_rad[0], lon_rad[0], 0.0)
+    lat, lon, _ = ecef_to_geodetic_point(x, y, z)
+    return lat, lon
+
+
 def centroid_on_ellipsoid(lat_rad, lon_rad):
     """Geodetic (lat, lon) of the ECEF centroid of points, projected to the ellipsoid.
 
@@ -257,8 +282,6 @@ def centroid_on_ellipsoid(lat_rad, lon_rad):
     -------
     lat_rad, lon_rad : float
     """
-    centroid = geodetic_to_ecef(lat_rad, lon_rad, np.zeros_like(np.asarray(lat_rad, dtype=float))).mean(axis=0)
-    if np.linalg.norm(centroid) < 1.0:
-        centroid = geodetic_to_ecef(np.asarray(lat_rad)[0], np.asarray(lon_rad)[0], 0.0)
-    lat, lon, _ = ecef_to_geodetic(centroid)
+    lat, lon = centroid_on_ellipsoid_point(np.ascontiguousarray(lat_rad, dtype=float).reshape(-1),
+                                           np.ascontiguousarray(lon_rad, dtype=float).reshape(-1))
     return float(lat), float(lon)

@@ -158,19 +158,15 @@ def onto_altitude_point(position_enu_m, altitude_m, geodetic, origin_ecef_m, ori
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def local_axes_point(position_enu_m, geodetic, origin_ecef_m, origin_rotation, work, axes):
-    """:func:`local_axes` of one point into ``axes`` ``(3, 3)`` (``work``: a ``(3, 3)`` scratch; compiled)."""
+def local_axes_point(position_enu_m, geodetic, origin_ecef_m, origin_rotation, axes):
+    """:func:`local_axes` of one point into ``axes`` ``(3, 3)`` (compiled)."""
     if not geodetic:
         for i in range(3):
             for j in range(3):
                 axes[i, j] = 1.0 if i == j else 0.0
         return
     lat, lon, _ = _enu_to_geodetic_point(position_enu_m, origin_ecef_m, origin_rotation)
-    geodesy.ecef_to_enu_rotation_point(lat, lon, work)
-    for i in range(3):
-        for j in range(3):
-            axes[i, j] = work[i, 0] * origin_rotation[j, 0] + work[i, 1] * origin_rotation[j, 1] \
-                + work[i, 2] * origin_rotation[j, 2]
+    geodesy.rotation_from_point(lat, lon, origin_rotation, axes)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -184,9 +180,8 @@ def _onto_altitude_many(positions_enu_m, altitude_m, geodetic, origin_ecef_m, or
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _local_axes_many(positions_enu_m, geodetic, origin_ecef_m, origin_rotation):
     out = np.empty((positions_enu_m.shape[0], 3, 3))
-    work = np.empty((3, 3))
     for i in range(out.shape[0]):
-        local_axes_point(positions_enu_m[i], geodetic[i], origin_ecef_m[i], origin_rotation[i], work, out[i])
+        local_axes_point(positions_enu_m[i], geodetic[i], origin_ecef_m[i], origin_rotation[i], out[i])
     return out
 
 

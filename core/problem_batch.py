@@ -437,20 +437,13 @@ def _place(coordinates, counts, geodetic_stations, origin_given):
     origin, geodetic = np.zeros((size, 3)), np.zeros(size, dtype=np.bool_)
     origin_ecef, origin_rotation = np.empty((size, 3)), np.empty((size, 3, 3))
     enu, rotations = np.zeros((size, width, 3)), np.zeros((size, width, 3, 3))
-    own, work = np.empty((3, 3)), np.empty((3, 3))
     first = 0
     for b in range(size):
         count = counts[b]
         stations = coordinates[first:first + count]
         if geodetic_stations[b] and math.isnan(origin_given[b, 0]):
-            x = y = z = 0.0
-            for i in range(count):
-                sx, sy, sz = geodesy.geodetic_to_ecef_point(stations[i, 0], stations[i, 1], 0.0)
-                x, y, z = x + sx, y + sy, z + sz
-            x, y, z = x / count, y / count, z / count
-            if math.sqrt(x * x + y * y + z * z) < 1.0:
-                x, y, z = geodesy.geodetic_to_ecef_point(stations[0, 0], stations[0, 1], 0.0)
-            origin[b, 0], origin[b, 1], _ = geodesy.ecef_to_geodetic_point(x, y, z)
+            origin[b, 0], origin[b, 1] = geodesy.centroid_on_ellipsoid_point(stations[:, 0].copy(),
+                                                                             stations[:, 1].copy())
             geodetic[b] = True
         elif not math.isnan(origin_given[b, 0]):
             origin[b] = origin_given[b]
@@ -464,14 +457,10 @@ def _place(coordinates, counts, geodetic_stations, origin_given):
                 x, y, z = geodesy.geodetic_to_ecef_point(c[0], c[1], c[2])
                 enu[b, i, 0], enu[b, i, 1], enu[b, i, 2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef[b],
                                                                                      origin_rotation[b])
-                geodesy.ecef_to_enu_rotation_point(c[0], c[1], own)
-                for r in range(3):
-                    for k in range(3):
-                        rotations[b, i, r, k] = own[r, 0] * origin_rotation[b, k, 0] \
-                            + own[r, 1] * origin_rotation[b, k, 1] + own[r, 2] * origin_rotation[b, k, 2]
+                geodesy.rotation_from_point(c[0], c[1], origin_rotation[b], rotations[b, i])
             else:
                 enu[b, i, 0], enu[b, i, 1], enu[b, i, 2] = c[0], c[1], c[2]
-                local_axes_point(enu[b, i], geodetic[b], origin_ecef[b], origin_rotation[b], work, rotations[b, i])
+                local_axes_point(enu[b, i], geodetic[b], origin_ecef[b], origin_rotation[b], rotations[b, i])
         for i in range(count, width):
             for r in range(3):
                 rotations[b, i, r, r] = 1.0

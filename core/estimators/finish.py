@@ -272,7 +272,7 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
     weights, model_values = np.empty(width), np.empty(width)
     jacobian, local = np.empty((4, width)), np.empty((4, width))
     seen = np.empty((width, 3))
-    axes, work3, free = np.empty((3, 3)), np.empty((3, 3)), np.empty(4, dtype=np.bool_)
+    axes, free = np.empty((3, 3)), np.empty(4, dtype=np.bool_)
     information, params, work, vectors = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
     bread, meat = np.empty((4, 4)), np.empty((4, 4))
     bread_weights, meat_weights = np.empty(width), np.empty(width)
@@ -304,7 +304,7 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
                     chi2[b] += normalized[b, m] ** 2
                     known_count[b] += 1
         constrained = parameters_point(p, altitude_m[b], has_toa[b], geodetic[b], origin_ecef_m[b],
-                                       origin_rotation[b], work3, axes, free)
+                                       origin_rotation[b], axes, free)
         normal_point(jacobian, weights, axes, constrained, free, local, information)
         smallest[b] = invert_point(information, axes, constrained, free, params, crlb[b], work, vectors)
         sigma_ref[b] = reference_sigma_point(jacobian, weights)

@@ -156,7 +156,7 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
     residual_new, gradient_w_new, curvature_w_new = np.empty(count), np.empty(count), np.empty(count)
     jacobian, jacobian_new = np.empty((4, count)), np.empty((4, count))
     local = np.empty((4, count))
-    axes, point_rotation = np.empty((3, 3)), np.empty((3, 3))
+    axes = np.empty((3, 3))
     information, scaled = np.empty((4, 4)), np.empty((4, 4))
     gradient, scale, right, step, free = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
     x, x_new, delta = np.empty(3), np.empty(3), np.empty(3)
@@ -177,7 +177,7 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
         converged = False
         for _ in range(max_iterations):
             if constrained:
-                local_axes_point(x, geodetic[b], origin_ecef_m[b], origin_rotation[b], point_rotation, axes)
+                local_axes_point(x, geodetic[b], origin_ecef_m[b], origin_rotation[b], axes)
             for m in range(count):
                 for i in range(3):
                     if constrained:

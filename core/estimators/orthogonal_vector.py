@@ -200,7 +200,7 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
     columns, side = np.empty((3, count + 1)), np.empty((1, count + 1))
     s, v, projected = np.empty(3), np.empty((3, 3)), np.empty((3, 1))
     reflector, norms = np.empty(count + 1), np.empty(3)
-    x, point, axes, work = np.empty(3), np.empty(3), np.empty((3, 3)), np.empty((3, 3))
+    x, point, axes = np.empty(3), np.empty(3), np.empty((3, 3))
     for b in range(size):
         if skip[b]:
             continue
@@ -219,7 +219,7 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
                 if constrained:
                     point[:] = x
                     onto_altitude_point(point, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
-                    local_axes_point(point, geodetic[b], origin_ecef_m[b], origin_rotation[b], work, axes)
+                    local_axes_point(point, geodetic[b], origin_ecef_m[b], origin_rotation[b], axes)
                     stacked[count] = axes[2]
                     right[count] = axes[2, 0] * point[0] + axes[2, 1] * point[1] + axes[2, 2] * point[2]
                 if weighted:
