@@ -40,6 +40,9 @@ ILL_CONDITIONED_EIGENVALUE = 1e-6
 #: Robust-loss weight factor (``rho'``) below which a measurement is named as downweighted.
 DOWNWEIGHTED_FACTOR = 0.1
 
+# Bits of the verdicts a problem's measurements raise (:func:`_verdicts_kernel`).
+ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED = (1 << k for k in range(8))
+
 
 def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None) -> FixBatch:
     """Everything a fix reports, for every problem of a batch.
@@ -84,22 +87,21 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         origin_rotation, -1 if loss is None else loss_code(loss[0]), 1.0 if loss is None else float(loss[1]) ** 2,
         np.ascontiguousarray(is_line), np.ascontiguousarray(elevation))
     present, valid = batch.present, batch.valid
-    known = valid & present & np.isfinite(sigmas)
-    n_parameters = np.where(batch.constrained, 2, 3) + batch.has_toa
-    dof = known_count - n_parameters
+    excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
+    dof, plain_scale, sigma_scale, worst, worst_value, flags = _verdicts_kernel(
+        studentized, chi2, known_count, robust_cost, robust_factor, min_eigenvalue, spread, behind, zenith,
+        np.ascontiguousarray(is_line), np.asarray(batch.n_measurements, dtype=np.int64),
+        np.ascontiguousarray(valid), np.ascontiguousarray(excluded), np.ascontiguousarray(sigmas, dtype=float),
+        np.asarray(batch.altitude_m, dtype=float), np.asarray(batch.has_toa, dtype=np.bool_), loss is not None)
     positive = dof > 0
     p_value = np.where(positive, chdtrc(np.maximum(dof, 1), chi2), np.nan)
-    plain_scale = np.where(positive, np.sqrt(chi2 / np.maximum(dof, 1)), np.nan)
-    sigma_scale = plain_scale
-    if loss is not None:
-        sigma_scale = np.where(positive, np.sqrt(robust_cost / np.maximum(dof, 1)), np.nan)
-    else:
+    if loss is None:
         robust_factor = None
 
     source = estimates.covariance_source
     if source == "information":
-        for b in np.flatnonzero(~failed & ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)):
-            errors[int(b)] = UnobservableGeometry(_singular_reason(batch, int(b), position[b], min_eigenvalue[b]))
+        for b in np.flatnonzero(~failed & ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)).tolist():
+            errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b]))
     if robust_factor is not None:
         source = "robust"
     elif estimates.covariance_enu_m2 is None:
@@ -109,39 +111,26 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         covariance = np.asarray(estimates.covariance_enu_m2, dtype=float).reshape(size, 3, 3)
     covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
 
-    worst = np.argmax(np.abs(studentized), axis=-1)
-    worst_value = studentized[np.arange(size), worst]
-    outlier = positive & (np.abs(worst_value) > OUTLIER_SIGMAS)
     mismatch = positive & (p_value < SIGMA_MISMATCH_P)
-    ill = min_eigenvalue < ILL_CONDITIONED_EIGENVALUE
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
     iterations = np.zeros(size, dtype=int) if estimates.iterations is None else np.asarray(estimates.iterations)
-    inefficient = np.zeros(size, dtype=bool)
+    flagged = (flags != 0) | mismatch | ~converged
     if source == "propagated":
         bound_trace = np.trace(crlb, axis1=-2, axis2=-1)
         own_trace = np.trace(covariance, axis1=-2, axis2=-1)
         inefficient = (bound_trace > 0) & (own_trace > INEFFICIENCY_RATIO * bound_trace)
-    collinear = (np.count_nonzero(is_line, axis=-1) >= 2) & (spread < COLLINEAR_SPREAD_RAD)
-
-    excluded = np.zeros_like(present) if excluded is None else excluded & present
-    unused = present & ~valid & ~excluded
+        flagged |= inefficient
+    else:
+        inefficient = np.zeros(size, dtype=bool)
     own = estimates.warnings or [()] * size
-    any_behind, any_zenith = np.any(behind, axis=-1), np.any(zenith, axis=-1)
-    any_excluded, any_unused = np.any(excluded, axis=-1), np.any(unused, axis=-1)
-    downweighted = np.zeros_like(known) if robust_factor is None else known & (robust_factor < DOWNWEIGHTED_FACTOR)
-    any_downweighted = np.any(downweighted, axis=-1)
-    flagged = ~converged | ill | inefficient | outlier | mismatch | collinear | any_behind | any_zenith
-    flagged |= any_unused | any_excluded | any_downweighted
-    if np.any(any_unused):
-        unused_count = np.count_nonzero(unused, axis=-1)
-        unused_kinds = np.bitwise_or.reduce(np.where(unused, 1 << batch.kinds.astype(np.int64), 0), axis=-1)
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
     for b in np.flatnonzero(flagged & ~failed):
         found = list(own[b])
         if not converged[b] and not any(w.code == "not_converged" for w in found):
             found.append(FixWarning("not_converged", f"{method} did not converge in {int(iterations[b])} iterations; "
                                                      "the last accepted iterate is returned"))
-        if ill[b]:
+        bits = int(flags[b])
+        if bits & ILL:
             found.append(FixWarning("ill_conditioned", "information matrix nearly singular "
                                                        f"(min scaled eigenvalue {min_eigenvalue[b]:.1e})"))
         if inefficient[b]:
@@ -150,17 +139,17 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
                 "inefficient_method",
                 f"{method}'s covariance is {ratio:.0f} x the CRLB in this geometry "
                 "(its equations are nearly degenerate here); ml or weighted_eove reach the bound"))
-        if any_behind[b]:
+        if bits & BEHIND:
             found.append(FixWarning("behind_station",
                                     f"the fix is behind the line of sight of {_station_list(batch, b, behind[b])}"))
-        if collinear[b]:
+        if bits & COLLINEAR:
             found.append(FixWarning(
                 "collinear_geometry",
                 f"lines of sight to the fix span only {np.rad2deg(spread[b]):.2f} deg: range is poorly determined"))
-        if any_zenith[b]:
+        if bits & ZENITH:
             found.append(FixWarning("azimuth_undefined",
                                     f"the fix is at the zenith of {_station_list(batch, b, zenith[b])}"))
-        if outlier[b]:
+        if bits & OUTLIER:
             w = worst[b]
             station = batch.station_ids[b][batch.station_index[b, w]]
             found.append(FixWarning(
@@ -172,23 +161,26 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
                 "sigma_mismatch",
                 f"chi2 = {chi2[b]:.1f} on {dof[b]} dof (p = {p_value[b]:.1e}): residuals are "
                 f"{plain_scale[b]:.2f} x what the stated sigmas allow"))
-        if any_excluded[b]:
+        if bits & EXCLUDED:
             for source in sorted(set(batch.source_index[b, excluded[b]].tolist())):
                 found.append(FixWarning("measurement_excluded",
                                         f"measurement {source} failed the consistency test and was excluded"))
-        if any_downweighted[b]:
-            for m in np.flatnonzero(downweighted[b]).tolist():
+        if bits & DOWNWEIGHTED:
+            known = valid[b] & np.isfinite(sigmas[b])
+            for m in np.flatnonzero(known & (robust_factor[b] < DOWNWEIGHTED_FACTOR)).tolist():
                 station = batch.station_ids[b][batch.station_index[b, m]]
                 found.append(FixWarning(
                     "measurement_downweighted",
                     f"measurement {int(batch.source_index[b, m])} ({KIND_NAMES[batch.kinds[b, m]]} at {station}) "
                     f"keeps {100.0 * robust_factor[b, m]:.1f} % of its weight under the {estimates.loss[0]} loss "
                     f"(scale {estimates.loss[1]:g} sigma)"))
-        if any_unused[b]:
+        if bits & UNUSED:
+            unused = present[b] & ~valid[b] & ~excluded[b]
+            kinds = frozenset(batch.kinds[b, unused].tolist())
             found.append(FixWarning(
                 "measurements_unused",
-                f"{method} does not use the {_kind_list(int(unused_kinds[b]))} measurements "
-                f"({unused_count[b]} left out of the fit and its verdicts); ml uses every kind"))
+                f"{method} does not use the {_kind_list(kinds)} measurements "
+                f"({np.count_nonzero(unused)} left out of the fit and its verdicts); ml uses every kind"))
         warnings[b] = tuple(found)
 
     coarse = estimates.coarse_position_enu_m
@@ -220,9 +212,9 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
 
 
 @functools.cache
-def _kind_list(bits: int) -> str:
-    """The names of the kinds whose bits (``1 << code``) are set, sorted, comma-separated."""
-    return ", ".join(sorted(name for code, name in enumerate(KIND_NAMES) if bits >> code & 1))
+def _kind_list(codes: frozenset) -> str:
+    """The names of kind codes, sorted, comma-separated."""
+    return ", ".join(sorted(KIND_NAMES[code] for code in codes))
 
 
 def _station_list(batch: ProblemBatch, b: int, rows) -> str:
@@ -360,3 +352,47 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
             spread[b] = math.acos(cosine)
     return (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
             sigma_ref, behind, zenith, spread)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith,
+                     is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, robust):
+    """Per problem, from :func:`_finish_kernel`'s numbers: the degrees of freedom, the plain and the reported
+    sigma scale (NaN without dof), the measurement with the largest ``|studentized|`` (numpy's ``argmax``:
+    the first NaN, else the first largest) and its value, and the verdict bits (``ILL`` ...)."""
+    size, width = studentized.shape
+    dof, worst = np.empty(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
+    plain_scale, sigma_scale = np.full(size, np.nan), np.full(size, np.nan)
+    worst_value, flags = np.empty(size), np.zeros(size, dtype=np.int64)
+    for b in range(size):
+        dof[b] = known_count[b] - (3 if math.isnan(altitude_m[b]) else 2) - (1 if has_toa[b] else 0)
+        if dof[b] > 0:
+            plain_scale[b] = math.sqrt(chi2[b] / dof[b])
+            sigma_scale[b] = math.sqrt(robust_cost[b] / dof[b]) if robust else plain_scale[b]
+        largest = -1.0
+        for m in range(width):
+            size_m = abs(studentized[b, m])
+            if math.isnan(size_m):
+                worst[b] = m
+                break
+            if size_m > largest:
+                largest, worst[b] = size_m, m
+        worst_value[b] = studentized[b, worst[b]] if width else 0.0
+        bits = ILL if smallest[b] < ILL_CONDITIONED_EIGENVALUE else 0
+        if dof[b] > 0 and abs(worst_value[b]) > OUTLIER_SIGMAS:
+            bits |= OUTLIER
+        lines = 0
+        for m in range(width):
+            present = m < n_measurements[b]
+            lines += 1 if is_line[b, m] else 0
+            bits |= BEHIND if behind[b, m] else 0
+            bits |= ZENITH if zenith[b, m] else 0
+            bits |= EXCLUDED if excluded[b, m] and present else 0
+            bits |= UNUSED if present and not valid[b, m] and not excluded[b, m] else 0
+            if robust and valid[b, m] and present and math.isfinite(sigmas[b, m]) \
+                    and robust_factor[b, m] < DOWNWEIGHTED_FACTOR:
+                bits |= DOWNWEIGHTED
+        if lines >= 2 and spread[b] < COLLINEAR_SPREAD_RAD:
+            bits |= COLLINEAR
+        flags[b] = bits
+    return dof, plain_scale, sigma_scale, worst, worst_value, flags
