@@ -32,6 +32,12 @@ PAD_KIND = Kind.RANGE
 _PAD_KIND_CODE = int(PAD_KIND)
 
 
+def _frozen(array: np.ndarray) -> np.ndarray:
+    """``array``, read-only: a batch computes its masks once and hands the same array to every caller."""
+    array.flags.writeable = False
+    return array
+
+
 @dataclass(frozen=True)
 class ProblemBatch:
     """B problems padded to N stations and M measurements.
@@ -89,29 +95,29 @@ class ProblemBatch:
     def size(self) -> int:
         return int(self.n_measurements.size)
 
-    @property
+    @cached_property
     def present(self) -> np.ndarray:
         """``(B, M)``: True on real measurements, False on padding."""
-        return np.arange(self.kinds.shape[1]) < self.n_measurements[:, None]
+        return _frozen(np.arange(self.kinds.shape[1]) < self.n_measurements[:, None])
 
-    @property
+    @cached_property
     def valid(self) -> np.ndarray:
         """``(B, M)``: True on the measurements an estimator uses (real and not set aside by :meth:`with_used`)."""
-        return self.present if self.used is None else self.used
+        return self.present if self.used is None else _frozen(self.used.copy())
 
     def with_used(self, used) -> "ProblemBatch":
         """The same problems with only ``used`` ``(B, M)`` (and present) measurements in the fit."""
         return replace(self, used=self.present & np.asarray(used, dtype=bool))
 
-    @property
+    @cached_property
     def constrained(self) -> np.ndarray:
         """``(B,)``: a known altitude is given."""
-        return ~np.isnan(self.altitude_m)
+        return _frozen(~np.isnan(self.altitude_m))
 
-    @property
+    @cached_property
     def has_toa(self) -> np.ndarray:
         """``(B,)``: some measurement is a TOA (so the emission offset is a free parameter)."""
-        return np.any(self.kinds == TOA, axis=-1)
+        return _frozen((self.kinds == TOA).any(axis=-1))
 
     def unit_scale(self) -> np.ndarray:
         """``(B, M)`` factor from problem units to model units (TOA seconds -> metres)."""
