@@ -32,6 +32,29 @@ PAD_KIND = Kind.RANGE
 _PAD_KIND_CODE = int(PAD_KIND)
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas):
+    """:meth:`ProblemBatch.lines_of_sight` of ``(B, M)`` arrays: each used elevation joins the used azimuth row of
+    its bearing (and is left out of the lines where that azimuth is not used)."""
+    size, width = kinds.shape
+    is_line = np.zeros((size, width), dtype=np.bool_)
+    elevation, sigma = np.full((size, width), np.nan), np.full((size, width), np.nan)
+    azimuth_row = np.empty(width, dtype=np.int64)
+    for b in range(size):
+        azimuth_row[:] = -1
+        for m in range(width):
+            if valid[b, m] and kinds[b, m] == AZIMUTH:
+                is_line[b, m] = True
+                if 0 <= bearing_index[b, m] < width:
+                    azimuth_row[bearing_index[b, m]] = m
+        for m in range(width):
+            if valid[b, m] and kinds[b, m] == ELEVATION and 0 <= bearing_index[b, m] < width:
+                row = azimuth_row[bearing_index[b, m]]
+                if row >= 0:
+                    elevation[b, row], sigma[b, row] = values[b, m], sigmas[b, m]
+    return is_line, elevation, sigma
+
+
 def _frozen(array: np.ndarray) -> np.ndarray:
     """``array``, read-only: a batch computes its masks once and hands the same array to every caller."""
     array.flags.writeable = False
@@ -193,20 +216,9 @@ class ProblemBatch:
 
     @cached_property
     def _lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        valid = self.valid
-        is_line = valid & (self.kinds == AZIMUTH)
-        elevation = np.full(self.values.shape, np.nan)
-        sigma = np.full(self.values.shape, np.nan)
-        b, m = np.nonzero(valid & (self.kinds == ELEVATION))
-        if b.size:
-            width = int(self.bearing_index.max()) + 1
-            azimuth_row = np.zeros((self.size, width), dtype=np.intp)
-            ab, am = np.nonzero(is_line)
-            azimuth_row[ab, self.bearing_index[ab, am]] = am
-            target = azimuth_row[b, self.bearing_index[b, m]]
-            elevation[b, target] = self.values[b, m]
-            sigma[b, target] = self.sigmas[b, m]
-        return is_line, elevation, sigma
+        return _lines_of_sight_kernel(np.ascontiguousarray(self.valid), np.ascontiguousarray(self.kinds),
+                                      np.ascontiguousarray(self.bearing_index), np.ascontiguousarray(self.values),
+                                      np.ascontiguousarray(self.sigmas))
 
     def by_bearing(self, values, kind: int, fill=np.nan) -> np.ndarray:
         """Per-measurement values ``(B, M)`` of the ``kind`` rows (azimuth or elevation) laid out per bearing.

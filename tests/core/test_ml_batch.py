@@ -158,3 +158,22 @@ def test_size_groups_bound_padding():
     assert sorted(np.concatenate(groups).tolist()) == list(range(sizes.size))
     for group in groups:
         assert sizes[group].max() <= 2 * max(sizes[group].min(), 1)
+
+
+def test_an_elevation_whose_azimuth_is_set_aside_joins_no_other_line():
+    """Lines of sight pair each used elevation with its own bearing's azimuth: with that azimuth set aside (outlier
+    exclusion), the elevation must not land on another bearing's line (it went to row 0 once)."""
+    problem = _noisy(build_problem(_geodetic("abc"), _bearings("abc")), [20e3, 30e3, 6e3], 3)
+    batch = ProblemBatch.from_problems([problem])
+    kinds, bearing = batch.kinds[0], batch.bearing_index[0]
+    azimuth_rows = {int(bearing[m]): m for m in np.flatnonzero(kinds == Kind.AZIMUTH)}
+    elevation_rows = {int(bearing[m]): m for m in np.flatnonzero(kinds == Kind.ELEVATION)}
+    for dropped in azimuth_rows:
+        used = np.ones(kinds.shape, dtype=bool)
+        used[azimuth_rows[dropped]] = False
+        is_line, elevation, sigma = batch.with_used(used[None]).lines_of_sight()
+        for k, row in azimuth_rows.items():
+            assert is_line[0, row] == (k != dropped)
+            expected = np.nan if k == dropped else batch.values[0, elevation_rows[k]]
+            np.testing.assert_equal(elevation[0, row], expected)
+        assert np.count_nonzero(~np.isnan(elevation)) == len(azimuth_rows) - 1
