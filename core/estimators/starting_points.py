@@ -225,71 +225,89 @@ def initial_positions(batch: ProblemBatch):
         with bearings that no other form starts, Bancroft's or
         trilateration's, else TooFewMeasurements.
     """
-    size = batch.size
-    positions = np.full((size, 3), np.nan)
-    names: list[str | None] = [None] * size
-    failures: dict[int, LocalizationError] = {}
-    eove_failures: dict[int, LocalizationError] = {}
-
-    def settle(k, found, name, start):
-        positions[k[found]] = start[found]
-        for b in k[found].tolist():
-            names[b] = name
-        pending[k[found]] = False
-
-    def sub(k):
-        return batch if k.size == size else batch.take(k)
-
-    guessed = ~np.isnan(batch.initial_guess_enu_m[:, 0])
-    pending = np.ones(size, dtype=bool)
-    settle(np.arange(size), guessed, "initial_guess", batch.initial_guess_enu_m)
-    valid = batch.valid
-    k = np.flatnonzero(pending & np.any(valid & (batch.kinds == AZIMUTH), axis=-1))
-    if k.size:
-        estimates = solve_orthogonal_batch(sub(k), normals=Normals.BOTH, weighting=Weighting.FIRST_ORDER,
-                                           name="weighted_eove", with_covariance=False)
-        solved = np.ones(k.size, dtype=bool)
-        for j, error in estimates.errors.items():
-            solved[j] = False
-            eove_failures[int(k[j])] = error
-        settle(k, solved, "weighted_eove", estimates.position_enu_m)
-    k = np.flatnonzero(pending & np.any(valid & (batch.kinds == RANGE), axis=-1)
-                       & np.any(~np.isnan(batch.lines_of_sight()[1]), axis=-1))
-    if k.size:
-        points, covariances, found = station_polar_points(sub(k))
-        has = np.any(found, axis=-1)
-        if np.any(has):
-            fused = np.full((k.size, 3), np.nan)
-            fused[has] = fuse_points(points[has], covariances[has], found[has])[0]
-            settle(k, has, "polar", fused)
-    is_toa = valid & (batch.kinds == TOA)
-    k = np.flatnonzero(pending & (np.count_nonzero(is_toa, axis=-1) >= 4))
-    if k.size:
-        part = sub(k)
-        stations, _ = part.measurement_stations()
-        toa = part.valid & (part.kinds == TOA)
-        start, _, singular = bancroft(stations, part.model_values(), part.weights(), toa)
-        for b in k[singular].tolist():
-            failures[b] = UnobservableGeometry(
-                "TOA stations are coplanar or too few for an algebraic TDOA solution")
-        pending[k[singular]] = False
-        settle(k, ~singular, "bancroft", start)
-    is_range = valid & (batch.kinds == RANGE)
-    k = np.flatnonzero(pending & (np.count_nonzero(is_range, axis=-1) >= 3))
-    if k.size:
-        part = sub(k)
-        stations, _ = part.measurement_stations()
-        start, collinear = trilaterate(stations, part.values, part.valid & (part.kinds == RANGE))
-        for b in k[collinear].tolist():
-            failures[b] = UnobservableGeometry("range stations are collinear: the target lies on a circle")
-        pending[k[collinear]] = False
-        settle(k, ~collinear, "trilateration", start)
-    for b in np.flatnonzero(pending).tolist():
-        failures[b] = eove_failures.get(b) or TooFewMeasurements(
+    found = _Starts(batch)
+    for stage in (found.weighted_eove, found.polar, found.bancroft, found.trilateration):
+        if not found.pending.any():
+            break
+        stage()
+    for b in np.flatnonzero(found.pending).tolist():
+        found.failures[b] = found.eove_failures.get(b) or TooFewMeasurements(
             "too few measurements for a fix: need bearings from 2 stations, a bearing and a range, "
             "4 TOAs or 3 ranges", ("measurements",))
-    return positions, names, failures
+    return found.positions, found.names, found.failures
 
+
+class _Starts:
+    """The starts of a batch's problems, filled stage by stage; each stage takes the problems still pending."""
+
+    def __init__(self, batch: ProblemBatch):
+        self.batch = batch
+        self.positions = np.full((batch.size, 3), np.nan)
+        self.names: list[str | None] = [None] * batch.size
+        self.failures: dict[int, LocalizationError] = {}
+        self.eove_failures: dict[int, LocalizationError] = {}
+        guessed = ~np.isnan(batch.initial_guess_enu_m[:, 0])
+        self.pending = ~guessed
+        if guessed.any():
+            self.settle(np.arange(batch.size), guessed, "initial_guess", batch.initial_guess_enu_m)
+
+    def settle(self, k, found, name, start):
+        self.positions[k[found]] = start[found]
+        for b in k[found].tolist():
+            self.names[b] = name
+        self.pending[k[found]] = False
+
+    def sub(self, k):
+        return self.batch if k.size == self.batch.size else self.batch.take(k)
+
+    def _pending_with(self, kind, at_least=1):
+        batch = self.batch
+        return self.pending & (np.count_nonzero(batch.valid & (batch.kinds == kind), axis=-1) >= at_least)
+
+    def weighted_eove(self):
+        k = np.flatnonzero(self._pending_with(AZIMUTH))
+        if k.size:
+            estimates = solve_orthogonal_batch(self.sub(k), normals=Normals.BOTH, weighting=Weighting.FIRST_ORDER,
+                                               name="weighted_eove", with_covariance=False)
+            solved = np.ones(k.size, dtype=bool)
+            for j, error in estimates.errors.items():
+                solved[j] = False
+                self.eove_failures[int(k[j])] = error
+            self.settle(k, solved, "weighted_eove", estimates.position_enu_m)
+
+    def polar(self):
+        k = np.flatnonzero(self._pending_with(RANGE) & (~np.isnan(self.batch.lines_of_sight()[1])).any(axis=-1))
+        if k.size:
+            points, covariances, found = station_polar_points(self.sub(k))
+            has = np.any(found, axis=-1)
+            if np.any(has):
+                fused = np.full((k.size, 3), np.nan)
+                fused[has] = fuse_points(points[has], covariances[has], found[has])[0]
+                self.settle(k, has, "polar", fused)
+
+    def bancroft(self):
+        k = np.flatnonzero(self._pending_with(TOA, 4))
+        if k.size:
+            part = self.sub(k)
+            stations, _ = part.measurement_stations()
+            toa = part.valid & (part.kinds == TOA)
+            start, _, singular = bancroft(stations, part.model_values(), part.weights(), toa)
+            for b in k[singular].tolist():
+                self.failures[b] = UnobservableGeometry(
+                    "TOA stations are coplanar or too few for an algebraic TDOA solution")
+            self.pending[k[singular]] = False
+            self.settle(k, ~singular, "bancroft", start)
+
+    def trilateration(self):
+        k = np.flatnonzero(self._pending_with(RANGE, 3))
+        if k.size:
+            part = self.sub(k)
+            stations, _ = part.measurement_stations()
+            start, collinear = trilaterate(stations, part.values, part.valid & (part.kinds == RANGE))
+            for b in k[collinear].tolist():
+                self.failures[b] = UnobservableGeometry("range stations are collinear: the target lies on a circle")
+            self.pending[k[collinear]] = False
+            self.settle(k, ~collinear, "trilateration", start)
 
 def initial_position(problem: Problem):
     """One problem's :func:`initial_positions` (a batch of one).
