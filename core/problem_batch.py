@@ -147,8 +147,12 @@ class ProblemBatch:
         return np.where(self.kinds == TOA, SPEED_OF_LIGHT_MPS, 1.0)
 
     def model_values(self) -> np.ndarray:
-        """Values ``(B, M)`` in model units (TOA as pseudo-range metres)."""
-        return self.values * self.unit_scale()
+        """Values ``(B, M)`` in model units (TOA as pseudo-range metres; computed once, read-only)."""
+        return self._model_values
+
+    @cached_property
+    def _model_values(self) -> np.ndarray:
+        return _frozen(self.values * self.unit_scale())
 
     def weights(self, sigmas=None) -> np.ndarray:
         """``1 / sigma^2`` ``(B, M)`` in model units; 0 on padding and where no sigma is known.
@@ -156,9 +160,16 @@ class ProblemBatch:
         Parameters
         ----------
         sigmas : ndarray, shape (B, M), optional
-            Replacement sigmas in problem units (default ``self.sigmas``).
+            Replacement sigmas in problem units (default ``self.sigmas``: those weights are computed once and
+            read-only).
         """
-        sigmas = self.sigmas if sigmas is None else sigmas
+        return self._weights if sigmas is None else self._weights_of(sigmas)
+
+    @cached_property
+    def _weights(self) -> np.ndarray:
+        return _frozen(self._weights_of(self.sigmas))
+
+    def _weights_of(self, sigmas) -> np.ndarray:
         known = self.valid & np.isfinite(sigmas)
         return np.where(known, 1.0 / (np.where(known, sigmas, 1.0) * self.unit_scale()) ** 2, 0.0)
 
@@ -534,6 +545,8 @@ def size_groups(n_measurements, n_stations=None) -> list[np.ndarray]:
     if n_stations is not None:
         sizes = np.maximum(sizes, np.asarray(n_stations, dtype=np.intp))
     bucket = np.ceil(np.log2(sizes)).astype(np.intp)
+    if bucket.size and bucket.min() == bucket.max():
+        return [np.arange(bucket.size)]
     return [np.flatnonzero(bucket == k) for k in np.unique(bucket)]
 
 
