@@ -303,10 +303,19 @@ _TOLERANCE = _bounds(schemas.Options, "tolerance_m")
 _ITERATIONS = _bounds(schemas.Options, "max_iterations")
 _LOSS_SCALE = _bounds(schemas.Options, "loss_scale")
 _ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
-#: The bounds above as tables for the bulk checks: per frame (local, geodetic) and coordinate, and per kind code.
-_COORDINATE_BOUNDS = np.array([[_EAST, _NORTH, _UP], [_LAT, _LON, _ALT]], dtype=float)
-_VALUE_BOUNDS = np.array([{_AZ: _AZIMUTH, _EL: _ELEVATION, _RG: _RANGE, _TOA: _TOA_S}[k] for k in range(4)])
-_SIGMA_BOUNDS = np.array([{_AZ: _SIGMA_AZIMUTH, _EL: _SIGMA_ELEVATION, _RG: _SIGMA_RANGE, _TOA: _SIGMA_TOA}[k]
+
+
+def _closed(bounds) -> tuple[float, float]:
+    """The same bounds as a closed interval ``[low, high]`` of floats (an open end moves one float inwards)."""
+    low, high, low_in, high_in = bounds
+    return (low if low_in else math.nextafter(low, math.inf)), (high if high_in else math.nextafter(high, -math.inf))
+
+
+#: The bounds above as closed-interval tables for the bulk checks: per frame (local, geodetic) and coordinate, and
+#: per kind code.
+_COORDINATE_BOUNDS = np.array([[_closed(b) for b in (_EAST, _NORTH, _UP)], [_closed(b) for b in (_LAT, _LON, _ALT)]])
+_VALUE_BOUNDS = np.array([_closed({_AZ: _AZIMUTH, _EL: _ELEVATION, _RG: _RANGE, _TOA: _TOA_S}[k]) for k in range(4)])
+_SIGMA_BOUNDS = np.array([_closed({_AZ: _SIGMA_AZIMUTH, _EL: _SIGMA_ELEVATION, _RG: _SIGMA_RANGE, _TOA: _SIGMA_TOA}[k])
                           for k in range(4)])
 _MEASUREMENTS_MAX = schemas.MAX_FIX_MEASUREMENTS
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
@@ -380,6 +389,11 @@ def _problem_settings(body: dict) -> tuple:
     return geodetic, origin, method, solve, guess, guess_geodetic, altitude, formats
 
 
+#: The settings of a body with only frame, method, stations and measurements (see :func:`_problem_settings`).
+_PLAIN_SETTINGS = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, math.nan, ())
+                   for frame in ("wgs84", "local") for method in _METHODS}
+
+
 def _read(bodies: list):
     """Structure checks and raw columns of the problems that look plainly valid (numbers are checked later, in bulk).
 
@@ -402,8 +416,7 @@ def _read(bodies: list):
     geodetic_keys, local_keys, station_keys = _GEODETIC_KEYS, _LOCAL_KEYS, _STATION_KEYS
     bearing_keys, range_keys, toa_keys, id_max = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX
     nan = math.nan
-    plain = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, nan, ())
-             for frame in ("wgs84", "local") for method in _METHODS}
+    plain = _PLAIN_SETTINGS
     for slot, body in enumerate(bodies):
         n_coordinates, n_scalars = len(coordinates), len(scalars)
         try:
@@ -505,9 +518,8 @@ def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _within(values, bounds) -> np.ndarray:
-    """Whether each value is inside its bounds ``(..., 4)`` (rows as :func:`_bounds` gives them)."""
-    low, high, low_in, high_in = np.moveaxis(bounds, -1, 0)
-    return np.where(low_in > 0, values >= low, values > low) & np.where(high_in > 0, values <= high, values < high)
+    """Whether each value is inside its closed bounds ``(..., 2)`` (rows as :func:`_closed` gives them)."""
+    return (values >= bounds[..., 0]) & (values <= bounds[..., 1])
 
 
 @dataclass(frozen=True)
