@@ -143,10 +143,13 @@ def _lagrange_point(ratio, weights):
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _summary_kernel(covariance_enu_m2, circle, sphere, interpolate):
     """Per covariance ``(B, 3, 3)``: the horizontal and 3D eigenvalues (ascending, floored at 0), the major
-    axis's direction clockwise from north, and (``interpolate``) CEP50 and SEP50 from the tables."""
+    axis's direction clockwise from north, (``interpolate``) CEP50 and SEP50 from the tables, the vertical
+    sigma, ``sqrt(trace)``, the 95 % ellipse's semi-axes, and whether every entry is finite."""
     size = covariance_enu_m2.shape[0]
     horizontal, spatial = np.empty((size, 2)), np.empty((size, 3))
     orientation, cep, sep = np.empty(size), np.full(size, np.nan), np.full(size, np.nan)
+    vertical, root_trace, finite = np.empty(size), np.empty(size), np.ones(size, dtype=np.bool_)
+    semi_major, semi_minor = np.empty(size), np.empty(size)
     a, v = np.empty((3, 3)), np.empty((3, 3))
     en, vh = np.empty((2, 2)), np.empty((2, 2))
     w_rows, w_cols = np.empty(4), np.empty(4)
@@ -155,11 +158,17 @@ def _summary_kernel(covariance_enu_m2, circle, sphere, interpolate):
         for i in range(3):
             for j in range(3):
                 a[i, j] = 0.5 * (c[i, j] + c[j, i])
+                if not math.isfinite(c[i, j]):
+                    finite[b] = False
+        vertical[b] = math.sqrt(max(c[2, 2], 0.0))
+        root_trace[b] = math.sqrt(max(c[0, 0] + c[1, 1] + c[2, 2], 0.0))
         en[:, :] = a[:2, :2]
         symmetric_eigen_in_place(en, vh)
         major = 1 if en[1, 1] >= en[0, 0] else 0
         horizontal[b, 1], horizontal[b, 0] = max(en[major, major], 0.0), max(en[1 - major, 1 - major], 0.0)
         orientation[b] = math.atan2(vh[0, major], vh[1, major]) % math.pi
+        semi_major[b] = math.sqrt(CHI2_2DOF_95 * horizontal[b, 1])
+        semi_minor[b] = math.sqrt(CHI2_2DOF_95 * horizontal[b, 0])
         symmetric_eigen_in_place(a, v)
         low, mid, high = a[0, 0], a[1, 1], a[2, 2]
         if low > mid:
@@ -172,8 +181,8 @@ def _summary_kernel(covariance_enu_m2, circle, sphere, interpolate):
         if not interpolate:
             continue
         scale = horizontal[b, 1]
-        if not (math.isfinite(scale) and math.isfinite(spatial[b, 2])):
-            continue  # NaN radii for a covariance that is not finite
+        if not (finite[b] and math.isfinite(scale) and math.isfinite(spatial[b, 2])):
+            continue  # NaN radii for a covariance that is not finite (or whose eigenvalues overflow)
         if scale > 0:
             rows = _lagrange_point(horizontal[b, 0] / scale, w_rows)
             unit = 0.0
@@ -195,7 +204,7 @@ def _summary_kernel(covariance_enu_m2, circle, sphere, interpolate):
             sep[b] = unit * math.sqrt(scale)
         else:
             sep[b] = 0.0
-    return horizontal, spatial, orientation, cep, sep
+    return horizontal, spatial, orientation, cep, sep, vertical, root_trace, semi_major, semi_minor, finite
 
 
 @dataclass(frozen=True)
@@ -245,20 +254,13 @@ def error_summary(covariance_enu_m2, exact: bool = False) -> ErrorSummary:
     """
     cov = np.ascontiguousarray(covariance_enu_m2, dtype=float).reshape(-1, 3, 3)
     circle, sphere = _radius50_tables()
-    lam_h, lam_3, orientation, cep, sep = _summary_kernel(cov, circle, sphere, not exact)
+    lam_h, lam_3, orientation, cep, sep, vertical, root_trace, semi_major, semi_minor, finite = _summary_kernel(
+        cov, circle, sphere, not exact)
     if exact:
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a non-finite one is NaN below
             cep, sep = _radius_containing(lam_h, 0.5), _radius_containing(lam_3, 0.5)
-    finite = np.isfinite(cov).all(axis=(-2, -1))
-    if not finite.all():
-        cep, sep = np.where(finite, cep, np.nan), np.where(finite, sep, np.nan)
-    diagonal = np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0)
-    return ErrorSummary(
-        cep50_m=cep,
-        sep50_m=sep,
-        vertical_sigma_m=np.sqrt(diagonal[:, 2]),
-        gdop_m=np.sqrt(np.maximum(np.trace(cov, axis1=-2, axis2=-1), 0.0)),
-        ellipse_semi_major_m=np.sqrt(CHI2_2DOF_95 * lam_h[:, 1]),
-        ellipse_semi_minor_m=np.sqrt(CHI2_2DOF_95 * lam_h[:, 0]),
-        ellipse_orientation_rad=orientation,
-    )
+        if not finite.all():
+            cep, sep = np.where(finite, cep, np.nan), np.where(finite, sep, np.nan)
+    return ErrorSummary(cep50_m=cep, sep50_m=sep, vertical_sigma_m=vertical, gdop_m=root_trace,
+                        ellipse_semi_major_m=semi_major, ellipse_semi_minor_m=semi_minor,
+                        ellipse_orientation_rad=orientation)
