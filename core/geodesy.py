@@ -220,6 +220,25 @@ def enu_to_ecef(position_enu_m, origin_lat_rad, origin_lon_rad, origin_alt_m):
     return _between_frames(position_enu_m, origin_lat_rad, origin_lon_rad, origin_alt_m, to_ecef=True)
 
 
+def enu_to_ecef_placed(position_enu_m, origin_ecef_m, rotation):
+    """:func:`enu_to_ecef` for frames already placed (as :func:`core.problem.frame_placements` places them).
+
+    Parameters
+    ----------
+    position_enu_m : ndarray, shape (B, 3)
+    origin_ecef_m : ndarray, shape (B, 3)
+    rotation : ndarray, shape (B, 3, 3)
+        ECEF -> ENU at each origin.
+
+    Returns
+    -------
+    ndarray, shape (B, 3)
+    """
+    return _between_frames_many(np.ascontiguousarray(position_enu_m, dtype=float),
+                                np.ascontiguousarray(origin_ecef_m, dtype=float),
+                                np.ascontiguousarray(rotation, dtype=float), True)
+
+
 def geodetic_to_enu(lat_rad, lon_rad, alt_m, origin_lat_rad, origin_lon_rad, origin_alt_m):
     """Geodetic points to ENU at an origin. Returns shape (..., 3)."""
     return ecef_to_enu(geodetic_to_ecef(lat_rad, lon_rad, alt_m), origin_lat_rad, origin_lon_rad, origin_alt_m)

@@ -684,10 +684,9 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     covariance = np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0)
     summary = error_summaries(covariance)
     geodetic = batch.geodetic
-    o = batch.origin
-    ecef = geodesy.enu_to_ecef(position, o[:, 0], o[:, 1], o[:, 2])
+    origin_ecef, rotation = batch.frame_placements()
+    ecef = geodesy.enu_to_ecef_placed(position, origin_ecef, rotation)
     lat, lon, alt = geodesy.ecef_to_geodetic(ecef)
-    rotation = geodesy.ecef_to_enu_rotation(o[:, 0], o[:, 1])
     covariance_ecef = np.swapaxes(rotation, -1, -2) @ covariance @ rotation
 
     position_l = position.tolist()
