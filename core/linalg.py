@@ -69,10 +69,11 @@ def jacobi_svd(a, rhs=None):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _dot(x, y, start, stop):
-    total = x[start] * y[start]
+def _row_dot(x, i, y, j, start, stop):
+    """``sum_r x[i, r] y[j, r]`` over ``start <= r < stop``, added in order."""
+    total = x[i, start] * y[j, start]
     for r in range(start + 1, stop):
-        total += x[r] * y[r]
+        total += x[i, r] * y[j, r]
     return total
 
 
@@ -104,6 +105,19 @@ def _rotate_rows(m, p, q, cos, sin, count):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _reflect_rows(reflector, beta, m, first, stop, start, rows):
+    """Rows ``first <= j < stop`` of ``m`` reflected over entries ``start <= r < rows``:
+    ``m[j] -= beta (reflector . m[j]) reflector``."""
+    for j in range(first, stop):
+        total = reflector[start] * m[j, start]
+        for r in range(start + 1, rows):
+            total += reflector[r] * m[j, r]
+        scale = beta * total
+        for r in range(start, rows):
+            m[j, r] -= scale * reflector[r]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def svd_in_place(x, y, s, v, projected, reflector, norms):
     """:func:`jacobi_svd` of one matrix, given as its columns ``x`` ``(C, R)`` with sides ``y`` ``(K, R)``
     (both overwritten), into ``s`` ``(C,)``, ``v`` ``(C, C)`` and ``projected`` ``(C, K)``; ``reflector``
@@ -113,18 +127,16 @@ def svd_in_place(x, y, s, v, projected, reflector, norms):
     depth = rows
     if rows > width:
         for k in range(width):
-            norm = np.sqrt(_dot(x[k], x[k], k, rows))
+            norm = np.sqrt(_row_dot(x, k, x, k, k, rows))
             alpha = -np.copysign(norm, x[k, k])
-            for r in range(k, rows):
+            reflector[k] = x[k, k] - alpha
+            length2 = reflector[k] * reflector[k]
+            for r in range(k + 1, rows):
                 reflector[r] = x[k, r]
-            reflector[k] -= alpha
-            length2 = _dot(reflector, reflector, k, rows)
+                length2 += reflector[r] * reflector[r]
             beta = 2.0 / length2 if length2 > 0 else 0.0
-            for j in range(k + 1, width + kinds):
-                other = x[j] if j < width else y[j - width]
-                scale = beta * _dot(reflector, other, k, rows)
-                for r in range(k, rows):
-                    other[r] -= scale * reflector[r]
+            _reflect_rows(reflector, beta, x, k + 1, width, k, rows)
+            _reflect_rows(reflector, beta, y, 0, kinds, k, rows)
             x[k, k] = alpha
             for r in range(k + 1, rows):
                 x[k, r] = 0.0
@@ -132,26 +144,26 @@ def svd_in_place(x, y, s, v, projected, reflector, norms):
     for i in range(width):
         for j in range(width):
             v[i, j] = 1.0 if i == j else 0.0
-        norms[i] = _dot(x[i], x[i], 0, depth)
+        norms[i] = _row_dot(x, i, x, i, 0, depth)
     for _ in range(JACOBI_MAX_SWEEPS):
         rotated = False
         for p in range(width - 1):
             for q in range(p + 1, width):
-                gamma = _dot(x[p], x[q], 0, depth)
+                gamma = _row_dot(x, p, x, q, 0, depth)
                 if not abs(gamma) > JACOBI_TOLERANCE * np.sqrt(norms[p] * norms[q]):
                     continue
                 rotated = True
                 cos, sin = _rotation(norms[p], norms[q], gamma)
                 _rotate_rows(x, p, q, cos, sin, depth)
                 _rotate_columns(v, p, q, cos, sin)
-                norms[p] = _dot(x[p], x[p], 0, depth)
-                norms[q] = _dot(x[q], x[q], 0, depth)
+                norms[p] = _row_dot(x, p, x, p, 0, depth)
+                norms[q] = _row_dot(x, q, x, q, 0, depth)
         if not rotated:
             break
     for i in range(width):
         s[i] = np.sqrt(norms[i])
         for k in range(kinds):
-            projected[i, k] = _dot(x[i], y[k], 0, depth)
+            projected[i, k] = _row_dot(x, i, y, k, 0, depth)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
