@@ -102,8 +102,8 @@ def _noise_scale(position_enu_m, stations_enu_m, rotations, out):
     measurement ``m``'s ``c`` row (at ``m``), the horizontal distance for its ``c'`` row (at ``M + m``)."""
     width = stations_enu_m.shape[0]
     for m in range(width):
-        e, n, u = seen_from_station(position_enu_m[0], position_enu_m[1], position_enu_m[2], stations_enu_m[m],
-                                    rotations[m])
+        e, n, u = seen_from_station(position_enu_m[0], position_enu_m[1], position_enu_m[2], stations_enu_m,
+                                    rotations, m)
         horizontal = math.hypot(e, n)
         out[m], out[width + m] = math.hypot(horizontal, u), horizontal
 
@@ -163,15 +163,30 @@ def _where(mask):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _least_squares(rows, rhs, weights, columns, side, s, v, projected, reflector, norms, out):
-    """Weighted least squares of one stacked system (``rows`` ``(R, 3)``) by its SVD into ``out`` ``(3,)``;
-    returns whether the rows are rank-deficient (smallest singular value below ``RANK_TOLERANCE`` of the
-    largest). The other arguments are work space."""
-    for r in range(rows.shape[0]):
-        w = weights[r]
-        for j in range(3):
-            columns[j, r] = rows[r, j] * w
-        side[0, r] = rhs[r] * w
+def _least_squares(rows, rhs, up, up_rhs, weights, kept, count, stacked, side, s, v, projected, reflector, norms,
+                   out):
+    """Weighted least squares by its SVD into ``out`` ``(3,)``; returns whether the rows are rank-deficient
+    (smallest singular value below ``RANK_TOLERANCE`` of the largest).
+
+    The system's rows are ``rows`` ``(R, 3)`` then ``up`` ``(3,)`` (right-hand sides ``rhs`` ``(R,)`` and
+    ``up_rhs``, weights ``weights`` ``(R + 1,)``), of which only rows ``kept[:count]`` are stacked: the others
+    must weigh 0 and come after the first three (the SVD then only adds zeros in their place, and the
+    Householder pivots are the same rows). The other arguments are work space (``stacked`` ``(3, C)`` and
+    ``side`` ``(1, C)`` with ``C >= count``).
+    """
+    columns, side = stacked[:, :count], side[:, :count]
+    last = rows.shape[0]
+    for k in range(count):
+        t = kept[k]
+        w = weights[t]
+        if t < last:
+            for j in range(3):
+                columns[j, k] = rows[t, j] * w
+            side[0, k] = rhs[t] * w
+        else:
+            for j in range(3):
+                columns[j, k] = up[j] * w
+            side[0, k] = up_rhs * w
     svd_in_place(columns, side, s, v, projected, reflector, norms)
     if not min(s[0], s[1], s[2]) > RANK_TOLERANCE * max(s[0], s[1], s[2]):
         return True
@@ -190,13 +205,15 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
     and each row's noise per unit angle at the fix (:func:`_noise_scale`; 1 where no fix).
 
     ``rows`` ``(B, 2M, 3)``: measurement ``m``'s ``c`` row at ``m``, its ``c'`` row at ``M + m``; the known
-    altitude's up row is the last of the stacked system (zero weight without one).
+    altitude's up row is the last of the stacked system (zero weight without one). Rows of zero weight past
+    the first three are left out of the SVD (:func:`_least_squares`).
     """
     size, count, _ = rows.shape
     position = np.full((size, 3), np.nan)
     singular = np.zeros(size, dtype=np.bool_)
     scale = np.ones((size, count))
-    stacked, right, w = np.zeros((count + 1, 3)), np.zeros(count + 1), np.zeros(count + 1)
+    w, kept = np.zeros(count + 1), np.empty(count + 1, dtype=np.int64)
+    up = np.empty(3)
     columns, side = np.empty((3, count + 1)), np.empty((1, count + 1))
     s, v, projected = np.empty(3), np.empty((3, 3)), np.empty((3, 1))
     reflector, norms = np.empty(count + 1), np.empty(3)
@@ -205,12 +222,16 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
         if skip[b]:
             continue
         constrained = not math.isnan(altitude_m[b])
-        stacked[:count] = rows[b]
-        right[:count] = rhs[b]
-        stacked[count, 0], stacked[count, 1], stacked[count, 2] = 0.0, 0.0, 1.0
-        right[count] = altitude_m[b] if constrained else 0.0
-        for r in range(count):
-            w[r] = 1.0 if used[b, r] else 0.0
+        rows_b, rhs_b, used_b, sigma_b, scale_b = rows[b], rhs[b], used[b], sigma[b], scale[b]
+        up[0], up[1], up[2] = 0.0, 0.0, 1.0
+        up_rhs = altitude_m[b] if constrained else 0.0
+        stacked = 0
+        for t in range(count + 1):
+            if t < count:
+                w[t] = 1.0 if used_b[t] else 0.0
+            if t < 3 or (used_b[t] if t < count else constrained):
+                kept[stacked] = t
+                stacked += 1
         failed = False
         for sweep in range(3):
             if sweep > 0:
@@ -220,17 +241,18 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
                     point[:] = x
                     onto_altitude_point(point, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
                     local_axes_point(point, geodetic[b], origin_ecef_m[b], origin_rotation[b], axes)
-                    stacked[count] = axes[2]
-                    right[count] = axes[2, 0] * point[0] + axes[2, 1] * point[1] + axes[2, 2] * point[2]
+                    up[0], up[1], up[2] = axes[2, 0], axes[2, 1], axes[2, 2]
+                    up_rhs = axes[2, 0] * point[0] + axes[2, 1] * point[1] + axes[2, 2] * point[2]
                 if weighted:
-                    _noise_scale(x, stations[b], rotations[b], scale[b])
+                    _noise_scale(x, stations[b], rotations[b], scale_b)
                     for r in range(count):
-                        w[r] = 1.0 / (sigma[b, r] * max(scale[b, r], MIN_DISTANCE_M)) if used[b, r] else 0.0
+                        w[r] = 1.0 / (sigma_b[r] * max(scale_b[r], MIN_DISTANCE_M)) if used_b[r] else 0.0
             strongest = 0.0
             for r in range(count):
                 strongest = max(strongest, w[r])
             w[count] = ALTITUDE_ROW_WEIGHT * strongest if constrained else 0.0
-            if _least_squares(stacked, right, w, columns, side, s, v, projected, reflector, norms, x):
+            if _least_squares(rows_b, rhs_b, up, up_rhs, w, kept, stacked, columns, side, s, v, projected, reflector,
+                              norms, x):
                 failed = True
                 break
         if failed:
@@ -239,7 +261,7 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
         if constrained:
             onto_altitude_point(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
         position[b] = x
-        _noise_scale(x, stations[b], rotations[b], scale[b])
+        _noise_scale(x, stations[b], rotations[b], scale_b)
     return position, singular, scale
 
 
