@@ -10,8 +10,11 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def wrap_point(angle_rad):
-    """One angle wrapped to (-pi, pi] (compiled; the one coding that :func:`wrap_to_pi` and the kernels use)."""
-    wrapped = (angle_rad + math.pi) % (2.0 * math.pi) - math.pi
+    """One angle wrapped to (-pi, pi] (compiled; the one coding that :func:`wrap_to_pi` and the kernels use).
+
+    Inside ``[0, 2 pi)`` the remainder ``%`` would return its operand exactly, so it is only taken outside."""
+    shifted = angle_rad + math.pi
+    wrapped = (shifted if 0.0 <= shifted < 2.0 * math.pi else shifted % (2.0 * math.pi)) - math.pi
     return math.pi if wrapped == -math.pi else wrapped
 
 

@@ -45,16 +45,17 @@ KIND_NAMES = tuple(k.name.lower() for k in Kind)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def seen_from_station(east_m, north_m, up_m, station_enu_m, rotation):
-    """A common-frame point in a station's own ENU: ``R (p - s)`` (compiled)."""
-    dx, dy, dz = east_m - station_enu_m[0], north_m - station_enu_m[1], up_m - station_enu_m[2]
-    return (rotation[0, 0] * dx + rotation[0, 1] * dy + rotation[0, 2] * dz,
-            rotation[1, 0] * dx + rotation[1, 1] * dy + rotation[1, 2] * dz,
-            rotation[2, 0] * dx + rotation[2, 1] * dy + rotation[2, 2] * dz)
+def seen_from_station(east_m, north_m, up_m, stations_enu_m, rotations, m):
+    """A common-frame point in station ``m``'s own ENU: ``R_m (p - s_m)`` of stations ``(M, 3)`` and their
+    rotations ``(M, 3, 3)`` (compiled; indexed in place, no per-station views)."""
+    dx, dy, dz = east_m - stations_enu_m[m, 0], north_m - stations_enu_m[m, 1], up_m - stations_enu_m[m, 2]
+    return (rotations[m, 0, 0] * dx + rotations[m, 0, 1] * dy + rotations[m, 0, 2] * dz,
+            rotations[m, 1, 0] * dx + rotations[m, 1, 1] * dy + rotations[m, 1, 2] * dz,
+            rotations[m, 2, 0] * dx + rotations[m, 2, 1] * dy + rotations[m, 2, 2] * dz)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def measure_point(east_m, north_m, up_m, bias_m, station_enu_m, rotation, kind):
+def measure_point(east_m, north_m, up_m, bias_m, stations_enu_m, rotations, m, kind):
     """One measurement's prediction and its Jacobian w.r.t. ``(east, north, up, bias)`` of the common frame.
 
     Compiled; the one coding of ``h(p)`` that :class:`MeasurementModel` and the ML iteration's kernel
@@ -66,9 +67,11 @@ def measure_point(east_m, north_m, up_m, bias_m, station_enu_m, rotation, kind):
         Target in the common frame.
     bias_m : float
         TOA emission-time offset times c (used by TOA only).
-    station_enu_m : ndarray, shape (3,)
-    rotation : ndarray, shape (3, 3)
+    stations_enu_m : ndarray, shape (M, 3)
+    rotations : ndarray, shape (M, 3, 3)
         Station ENU <- common ENU.
+    m : int
+        Which station (row of ``stations_enu_m`` and ``rotations``) takes the measurement.
     kind : int
         :class:`Kind` code.
 
@@ -76,7 +79,7 @@ def measure_point(east_m, north_m, up_m, bias_m, station_enu_m, rotation, kind):
     -------
     predicted, d_east, d_north, d_up, d_bias : float
     """
-    e, n, u = seen_from_station(east_m, north_m, up_m, station_enu_m, rotation)
+    e, n, u = seen_from_station(east_m, north_m, up_m, stations_enu_m, rotations, m)
     rho2 = max(e * e + n * n, MIN_HORIZONTAL_DISTANCE_M ** 2)
     rho = math.sqrt(rho2)
     r2 = rho2 + u * u
@@ -93,9 +96,9 @@ def measure_point(east_m, north_m, up_m, bias_m, station_enu_m, rotation, kind):
             predicted += bias_m
             d_bias = 1.0
     return (predicted,
-            ge * rotation[0, 0] + gn * rotation[1, 0] + gu * rotation[2, 0],
-            ge * rotation[0, 1] + gn * rotation[1, 1] + gu * rotation[2, 1],
-            ge * rotation[0, 2] + gn * rotation[1, 2] + gu * rotation[2, 2],
+            ge * rotations[m, 0, 0] + gn * rotations[m, 1, 0] + gu * rotations[m, 2, 0],
+            ge * rotations[m, 0, 1] + gn * rotations[m, 1, 1] + gu * rotations[m, 2, 1],
+            ge * rotations[m, 0, 2] + gn * rotations[m, 1, 2] + gu * rotations[m, 2, 2],
             d_bias)
 
 
@@ -106,9 +109,10 @@ def _predict_kernel(positions_enu_m, bias_m, stations_enu_m, rotations, kinds):
     jacobian = np.empty((size, 4, width))
     for b in range(size):
         east, north, up = positions_enu_m[b, 0], positions_enu_m[b, 1], positions_enu_m[b, 2]
+        stations, turns = stations_enu_m[b], rotations[b]
         for m in range(width):
             predicted[b, m], jacobian[b, 0, m], jacobian[b, 1, m], jacobian[b, 2, m], jacobian[b, 3, m] = \
-                measure_point(east, north, up, bias_m[b], stations_enu_m[b, m], rotations[b, m], kinds[b, m])
+                measure_point(east, north, up, bias_m[b], stations, turns, m, kinds[b, m])
     return predicted, jacobian
 
 
@@ -128,8 +132,8 @@ def toa_offset_point(east_m, north_m, up_m, stations_enu_m, kinds, values, weigh
     total = offset = 0.0
     for m in range(kinds.size):
         if kinds[m] == TOA and weights[m] > 0.0:
-            s = stations_enu_m[m]
-            distance = math.sqrt((east_m - s[0]) ** 2 + (north_m - s[1]) ** 2 + (up_m - s[2]) ** 2)
+            distance = math.sqrt((east_m - stations_enu_m[m, 0]) ** 2 + (north_m - stations_enu_m[m, 1]) ** 2
+                                 + (up_m - stations_enu_m[m, 2]) ** 2)
             total += weights[m]
             offset += weights[m] * (values[m] - distance)
     return offset / total if total > 0.0 else 0.0

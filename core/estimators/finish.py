@@ -271,6 +271,7 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
     for b in range(size):
         p = positions_enu_m[b]
         east, north, up = p[0], p[1], p[2]
+        stations_b, rotations_b = stations_enu_m[b], rotations[b]
         for m in range(width):
             unit = SPEED_OF_LIGHT_MPS if kinds[b, m] == TOA else 1.0
             sigma = sigmas[b, m]
@@ -281,7 +282,7 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
         for m in range(width):
             kind = kinds[b, m]
             predicted, jacobian[0, m], jacobian[1, m], jacobian[2, m], jacobian[3, m] = measure_point(
-                east, north, up, bias, stations_enu_m[b, m], rotations[b, m], kind)
+                east, north, up, bias, stations_b, rotations_b, m, kind)
             if m >= n_measurements[b]:
                 continue
             unit = SPEED_OF_LIGHT_MPS if kind == TOA else 1.0
@@ -327,10 +328,9 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
             if not is_line[b, m]:
                 continue
             lines += 1
-            s = stations_enu_m[b, m]
-            dx, dy, dz = east - s[0], north - s[1], up - s[2]
+            dx, dy, dz = east - stations_b[m, 0], north - stations_b[m, 1], up - stations_b[m, 2]
             distance = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
-            e, n, u = seen_from_station(east, north, up, s, rotations[b, m])
+            e, n, u = seen_from_station(east, north, up, stations_b, rotations_b, m)
             azimuth, el = values[b, m], elevation_rad[b, m]
             has_el = not math.isnan(el)
             cos_el = math.cos(el) if has_el else 1.0

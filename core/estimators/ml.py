@@ -96,16 +96,18 @@ def _evaluate(position_enu_m, bias_m, stations, rotations, kinds, values, weight
     in place; zero where the weight is); returns the cost ``sum C^2 rho(z / C^2)`` of the squared whitened
     residuals ``z``."""
     cost = 0.0
+    east, north, up = position_enu_m[0], position_enu_m[1], position_enu_m[2]
     for m in range(kinds.size):
         w = weights[m]
         if not w > 0.0:
             residual[m] = 0.0
             gradient_w[m] = curvature_w[m] = 0.0
-            jacobian[:, m] = 0.0
+            for i in range(4):
+                jacobian[i, m] = 0.0
             continue
         kind = kinds[m]
         predicted, jacobian[0, m], jacobian[1, m], jacobian[2, m], jacobian[3, m] = measure_point(
-            position_enu_m[0], position_enu_m[1], position_enu_m[2], bias_m, stations[m], rotations[m], kind)
+            east, north, up, bias_m, stations, rotations, m, kind)
         r = values[m] - predicted
         if kind == AZIMUTH or kind == ELEVATION:
             r = wrap_point(r)

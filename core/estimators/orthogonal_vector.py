@@ -41,7 +41,7 @@ import numpy as np
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
-from core.linalg import jacobi_svd, matvec, svd_in_place, weighted_gram
+from core.linalg import SVD_LANES, jacobi_svd, matvec, svd_in_place, weighted_gram
 from core.measurements import seen_from_station
 from core.problem import Problem, local_axes, local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
@@ -102,8 +102,8 @@ def _noise_scale(position_enu_m, stations_enu_m, rotations, out):
     measurement ``m``'s ``c`` row (at ``m``), the horizontal distance for its ``c'`` row (at ``M + m``)."""
     width = stations_enu_m.shape[0]
     for m in range(width):
-        e, n, u = seen_from_station(position_enu_m[0], position_enu_m[1], position_enu_m[2], stations_enu_m[m],
-                                    rotations[m])
+        e, n, u = seen_from_station(position_enu_m[0], position_enu_m[1], position_enu_m[2], stations_enu_m,
+                                    rotations, m)
         horizontal = math.hypot(e, n)
         out[m], out[width + m] = math.hypot(horizontal, u), horizontal
 
@@ -163,22 +163,46 @@ def _where(mask):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _least_squares(rows, rhs, weights, columns, side, s, v, projected, reflector, norms, out):
-    """Weighted least squares of one stacked system (``rows`` ``(R, 3)``) by its SVD into ``out`` ``(3,)``;
-    returns whether the rows are rank-deficient (smallest singular value below ``RANK_TOLERANCE`` of the
-    largest). The other arguments are work space."""
-    for r in range(rows.shape[0]):
-        w = weights[r]
+def _stack_lane(rows, rhs, up, up_rhs, weights, kept, count, depth, columns, side, lane):
+    """One weighted system into lane ``lane`` of ``columns`` ``(L, 3, R)`` and ``side`` ``(L, 1, R)``, zero
+    from ``count`` to ``depth``.
+
+    The system's rows are ``rows`` ``(N, 3)`` then ``up`` ``(3,)`` (right-hand sides ``rhs`` ``(N,)`` and
+    ``up_rhs``, weights ``weights`` ``(N + 1,)``), of which only rows ``kept[:count]`` are stacked: the others
+    must weigh 0 and come after the first three (the SVD then only adds zeros in their place, as it does
+    for the zero rows at the end, and the Householder pivots are the same rows).
+    """
+    last = rows.shape[0]
+    for k in range(count):
+        t = kept[k]
+        w = weights[t]
+        if t < last:
+            for j in range(3):
+                columns[lane, j, k] = rows[t, j] * w
+            side[lane, 0, k] = rhs[t] * w
+        else:
+            for j in range(3):
+                columns[lane, j, k] = up[j] * w
+            side[lane, 0, k] = up_rhs * w
+    for k in range(count, depth):
         for j in range(3):
-            columns[j, r] = rows[r, j] * w
-        side[0, r] = rhs[r] * w
-    svd_in_place(columns, side, s, v, projected, reflector, norms)
-    if not min(s[0], s[1], s[2]) > RANK_TOLERANCE * max(s[0], s[1], s[2]):
+            columns[lane, j, k] = 0.0
+        side[lane, 0, k] = 0.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _least_squares(s, v, projected, lane, out):
+    """The least-squares solution ``(3,)`` into ``out`` from lane ``lane`` of a stacked system's SVD
+    (:func:`core.linalg.svd_in_place`); returns whether the rows are rank-deficient (smallest singular
+    value below ``RANK_TOLERANCE`` of the largest; ``out`` then untouched)."""
+    a, b, c = s[lane, 0], s[lane, 1], s[lane, 2]
+    if not min(a, b, c) > RANK_TOLERANCE * max(a, b, c):
         return True
     for i in range(3):
         total = 0.0
         for j in range(3):
-            total += v[i, j] * (projected[j, 0] / (s[j] * s[j] if s[j] > 0 else np.inf))
+            sj = s[lane, j]
+            total += v[lane, i, j] * (projected[lane, j, 0] / (sj * sj if sj > 0 else np.inf))
         out[i] = total
     return False
 
@@ -190,56 +214,109 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
     and each row's noise per unit angle at the fix (:func:`_noise_scale`; 1 where no fix).
 
     ``rows`` ``(B, 2M, 3)``: measurement ``m``'s ``c`` row at ``m``, its ``c'`` row at ``M + m``; the known
-    altitude's up row is the last of the stacked system (zero weight without one).
+    altitude's up row is the last of the stacked system (zero weight without one). Rows of zero weight past
+    the first three are left out of the SVD (:func:`_stack_lane`). ``SVD_LANES`` problems are solved side
+    by side, each pass's systems in one :func:`core.linalg.svd_in_place` (each problem gets its own bits),
+    except a system of three rows or fewer, which is not reduced first and goes alone.
     """
     size, count, _ = rows.shape
     position = np.full((size, 3), np.nan)
     singular = np.zeros(size, dtype=np.bool_)
     scale = np.ones((size, count))
-    stacked, right, w = np.zeros((count + 1, 3)), np.zeros(count + 1), np.zeros(count + 1)
-    columns, side = np.empty((3, count + 1)), np.empty((1, count + 1))
-    s, v, projected = np.empty(3), np.empty((3, 3)), np.empty((3, 1))
-    reflector, norms = np.empty(count + 1), np.empty(3)
-    x, point, axes = np.empty(3), np.empty(3), np.empty((3, 3))
-    for b in range(size):
-        if skip[b]:
-            continue
-        constrained = not math.isnan(altitude_m[b])
-        stacked[:count] = rows[b]
-        right[:count] = rhs[b]
-        stacked[count, 0], stacked[count, 1], stacked[count, 2] = 0.0, 0.0, 1.0
-        right[count] = altitude_m[b] if constrained else 0.0
-        for r in range(count):
-            w[r] = 1.0 if used[b, r] else 0.0
-        failed = False
+    w, kept = np.zeros((SVD_LANES, count + 1)), np.empty((SVD_LANES, count + 1), dtype=np.int64)
+    stacked, members, order = (np.empty(SVD_LANES, dtype=np.int64), np.empty(SVD_LANES, dtype=np.int64),
+                               np.empty(SVD_LANES, dtype=np.int64))
+    active = np.zeros(SVD_LANES, dtype=np.bool_)
+    up, up_rhs = np.empty((SVD_LANES, 3)), np.empty(SVD_LANES)
+    columns, side = np.empty((SVD_LANES, 3, count + 1)), np.empty((SVD_LANES, 1, count + 1))
+    s, v, projected = np.empty((SVD_LANES, 3)), np.empty((SVD_LANES, 3, 3)), np.empty((SVD_LANES, 3, 1))
+    reflector, norms = np.empty((SVD_LANES, count + 1)), np.empty((SVD_LANES, 3))
+    x, point, axes = np.empty((SVD_LANES, 3)), np.empty(3), np.empty((3, 3))
+    b = 0
+    while b < size:
+        members_count = 0
+        while members_count < SVD_LANES and b < size:
+            if not skip[b]:
+                members[members_count] = b
+                members_count += 1
+            b += 1
+        for i in range(members_count):
+            p = members[i]
+            constrained = not math.isnan(altitude_m[p])
+            up[i, 0], up[i, 1], up[i, 2] = 0.0, 0.0, 1.0
+            up_rhs[i] = altitude_m[p] if constrained else 0.0
+            n = 0
+            for t in range(count + 1):
+                if t < count:
+                    w[i, t] = 1.0 if used[p, t] else 0.0
+                if t < 3 or (used[p, t] if t < count else constrained):
+                    kept[i, n] = t
+                    n += 1
+            stacked[i] = n
+            active[i] = True
         for sweep in range(3):
-            if sweep > 0:
-                if not (weighted or constrained):
-                    break
-                if constrained:
-                    point[:] = x
-                    onto_altitude_point(point, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
-                    local_axes_point(point, geodetic[b], origin_ecef_m[b], origin_rotation[b], axes)
-                    stacked[count] = axes[2]
-                    right[count] = axes[2, 0] * point[0] + axes[2, 1] * point[1] + axes[2, 2] * point[2]
-                if weighted:
-                    _noise_scale(x, stations[b], rotations[b], scale[b])
-                    for r in range(count):
-                        w[r] = 1.0 / (sigma[b, r] * max(scale[b, r], MIN_DISTANCE_M)) if used[b, r] else 0.0
-            strongest = 0.0
-            for r in range(count):
-                strongest = max(strongest, w[r])
-            w[count] = ALTITUDE_ROW_WEIGHT * strongest if constrained else 0.0
-            if _least_squares(stacked, right, w, columns, side, s, v, projected, reflector, norms, x):
-                failed = True
+            tall, short = 0, 0
+            for i in range(members_count):
+                if not active[i]:
+                    continue
+                p = members[i]
+                constrained = not math.isnan(altitude_m[p])
+                if sweep > 0:
+                    if not (weighted or constrained):
+                        continue
+                    if constrained:
+                        point[:] = x[i]
+                        onto_altitude_point(point, altitude_m[p], geodetic[p], origin_ecef_m[p], origin_rotation[p])
+                        local_axes_point(point, geodetic[p], origin_ecef_m[p], origin_rotation[p], axes)
+                        up[i, 0], up[i, 1], up[i, 2] = axes[2, 0], axes[2, 1], axes[2, 2]
+                        up_rhs[i] = axes[2, 0] * point[0] + axes[2, 1] * point[1] + axes[2, 2] * point[2]
+                    if weighted:
+                        _noise_scale(x[i], stations[p], rotations[p], scale[p])
+                        for r in range(count):
+                            w[i, r] = 1.0 / (sigma[p, r] * max(scale[p, r], MIN_DISTANCE_M)) if used[p, r] else 0.0
+                strongest = 0.0
+                for r in range(count):
+                    strongest = max(strongest, w[i, r])
+                w[i, count] = ALTITUDE_ROW_WEIGHT * strongest if constrained else 0.0
+                if stacked[i] > 3:
+                    order[tall] = i
+                    tall += 1
+                else:
+                    short += 1
+                    order[SVD_LANES - short] = i
+            if tall + short == 0:
                 break
-        if failed:
-            singular[b] = True
-            continue
-        if constrained:
-            onto_altitude_point(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
-        position[b] = x
-        _noise_scale(x, stations[b], rotations[b], scale[b])
+            depth = 0
+            for lane in range(tall):
+                depth = max(depth, stacked[order[lane]])
+            for lane in range(tall):
+                i = order[lane]
+                p = members[i]
+                _stack_lane(rows[p], rhs[p], up[i], up_rhs[i], w[i], kept[i], stacked[i], depth, columns, side, lane)
+            if tall:
+                svd_in_place(columns[:tall, :, :depth], side[:tall, :, :depth], s, v, projected, reflector, norms)
+            for lane in range(SVD_LANES - short, SVD_LANES):
+                i = order[lane]
+                p = members[i]
+                n = stacked[i]
+                _stack_lane(rows[p], rhs[p], up[i], up_rhs[i], w[i], kept[i], n, n, columns, side, lane)
+                svd_in_place(columns[lane:lane + 1, :, :n], side[lane:lane + 1, :, :n], s[lane:lane + 1],
+                             v[lane:lane + 1], projected[lane:lane + 1], reflector, norms)
+            for lane in range(SVD_LANES):
+                if tall <= lane < SVD_LANES - short:
+                    continue
+                i = order[lane]
+                if _least_squares(s, v, projected, lane, x[i]):
+                    singular[members[i]] = True
+                    active[i] = False
+        for i in range(members_count):
+            if not active[i]:
+                continue
+            p = members[i]
+            if not math.isnan(altitude_m[p]):
+                onto_altitude_point(x[i], altitude_m[p], geodetic[p], origin_ecef_m[p], origin_rotation[p])
+            position[p] = x[i]
+            _noise_scale(x[i], stations[p], rotations[p], scale[p])
     return position, singular, scale
 
 

@@ -32,17 +32,17 @@ TWO_PI = 2.0 * math.pi
 NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
 
 
-#: The session's observer: the origin of its own ENU frame (the measurement model's station and rotation).
-_OBSERVER = np.zeros(3)
-_OBSERVER_AXES = np.eye(3)
+#: The session's observer: the origin of its own ENU frame (the measurement model's one station, 0, and rotation).
+_OBSERVER = np.zeros((1, 3))
+_OBSERVER_AXES = np.eye(3)[None]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _polar(east_m, north_m, up_m):
     """Range, azimuth and elevation of a point seen from the observer (:func:`core.measurements.measure_point`)."""
-    return (measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, RANGE)[0],
-            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, AZIMUTH)[0],
-            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, ELEVATION)[0])
+    return (measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, RANGE)[0],
+            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, AZIMUTH)[0],
+            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, ELEVATION)[0])
 
 
 def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elevation_rad: float,
@@ -316,12 +316,12 @@ def _joint_measurement(state, n_pulses, interval_s, use_toa, out):
     from the current state; ``period_error_m`` only in an 8-component state).
     """
     x, y, z, vx, vy, vz = state[0], state[1], state[2], state[3], state[4], state[5]
-    out[0] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, AZIMUTH)[0]
-    out[1] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, ELEVATION)[0]
+    out[0] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, AZIMUTH)[0]
+    out[1] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, ELEVATION)[0]
     rate = azimuth_rate_point(x, y, vx, vy)[0]
     if use_toa:
         qx, qy, qz = x - interval_s * vx, y - interval_s * vy, z - interval_s * vz
-        change = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, RANGE)[0] \
+        change = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, RANGE)[0] \
             - math.sqrt(qx * qx + qy * qy + qz * qz) - state[state.shape[0] - 1]
         if state.shape[0] == 8:
             change += n_pulses * state[6]
