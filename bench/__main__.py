@@ -167,32 +167,32 @@ def main(argv=None) -> int:
 EXTRA_NOTES = """
 ## Where the time goes, and what would close the misses
 
-The machine is shared and its speed moves between sessions (and within one:
-orjson's parse of the same 11 MB batch took 0.049 s on 2026-11-23, 0.134 s on
-2026-12-01 and 0.059 s on 2026-12-02): compare ratios within one run only.
+The machine is shared and its speed moves between sessions and within one
+(the same commit's one-fix time was 376-409 us on 2026-12-02 at 08:00 and
+700-836 us at 15:00 on the same machine, quiet): compare ratios within one
+run only.
 
-**Rows 1 and 7, one fix.** The per-problem inner loops are compiled now (the
-ML iteration, the orthogonal-vector passes of the start, the measurement
-model, geodesy, the altitude surface): one fix in core went from 2,445 us to
-about 1,400 us on 2026-12-02 (1,397 us at 04:16, same machine, quiet). What is left is numpy call
-overhead on arrays of four rows: the reader and the batch builder (~300 us),
-the start's row building (~200 us), the finisher (~400 us: residuals, CRLB,
-leverage, warnings) and the bodies (~200-350 us). The 50 us target needs those
-compiled too (the finisher's CRLB and residuals as one per-problem kernel, the
-reader filling the batch arrays directly): not done.
+**Rows 1 and 7, one fix.** Every per-problem loop is compiled (start, LM,
+finisher, verdicts, lines of sight, error summary, batch building); what is
+left is Python and numpy call overhead around them, about 150-200 calls of
+1-2 us each for a batch of one: the reader (~70 us), the start's and the
+LM's glue (~80 us), the finisher's glue (~50 us), the iteration over method
+groups (~40 us) and the bodies (~40 us). The 50 us target needs the whole
+pipeline of a batch of one as a few kernel calls with nothing between them
+(one compiled pass from the read arrays to the verdict bits): not done.
+Over HTTP the fix route also pays the framework and a thread hop: the echo
+route alone (parse and return the same body) runs at about 0.35-0.4x healthz.
 
-**Row 2, batches over HTTP.** Core (estimate + finish) runs at 19,000-80,000
-fixes/s for every method; end to end the POST is 2-4x slower. In one thread
-the server's phases for 10,000 ml fixes are: parse 0.06 s, read 0.14 s, core
-0.18 s, bodies 0.13 s, serialise 0.07 s (notes above); the parse, read, bodies
-and serialise are Python object work under the GIL (about 100 objects per
-fix), so they do not overlap across the two cores, and they alone take about
-0.4 s, the 25,000 fixes/s budget. Closing it needs bodies written from the
-arrays without Python objects per field.
+**Row 2, batches over HTTP.** The core is 9-35 % of the POST. The rest is
+Python object work under the GIL: parse, read, response dicts and serialise
+(notes above, one thread), which does not overlap across the two cores.
+Closing it needs either bodies and reads without Python objects per field, or
+the batch split across processes (each parsing, solving and writing its half
+to bytes): not done.
 
-**Row 3, the scipy ratio.** The batched core per fix against scipy's
-``least_squares`` per fix: 42x in this run (36x on 2026-12-02 under load, 33x
-on 2026-11-23).
+**Row 3, the scipy ratio.** Core kernels per four-station problem on one
+thread: weighted-EOVE start ~2.5 us, LM ~2.7 us, finisher ~1.5 us; about
+80 % of the LM is the measurement model (atan2, divisions).
 """
 
 if __name__ == "__main__":
