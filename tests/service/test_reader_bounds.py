@@ -11,6 +11,7 @@ import pytest
 
 from service import schemas
 from service.translate import read_fix_requests
+from tests.service.test_extreme_values import _with
 
 BASE = {
     "frame": "wgs84",
@@ -55,15 +56,6 @@ def _limits(model, field):
             if value is not None and math.isfinite(value):
                 out.append((float(value), inclusive, side))
     return out
-
-
-def _with(request, path, value):
-    body = copy.deepcopy(request)
-    node = body
-    for key in path[:-1]:
-        node = node[key]
-    node[path[-1]] = value
-    return body
 
 
 @pytest.mark.parametrize("request_body, path, model, field", FIELDS, ids=[f[3] for f in FIELDS])
