@@ -21,10 +21,13 @@ RUN EXTRAS="$EXTRAS" /opt/venv/bin/python -c "import os, tomllib; p = tomllib.lo
 COPY README.md ./
 COPY core ./core
 COPY service ./service
+# The kernels are compiled from the installed package, not from /src: numba keys its cache by the source
+# file's path, so a cache filled from /src/core is never read by the runtime (which imports site-packages)
+# and every container start compiled them all again (~45 s).
 # The runtime needs no installer: pip and setuptools leave the venv once it is complete and checked; nor
 # numpy's and scipy's own test suites (about 50 MB).
 RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check \
-    && /opt/venv/bin/python -c "import core.kernels; core.kernels.compile_kernels()" \
+    && (cd / && /opt/venv/bin/python -c "import core.kernels; core.kernels.compile_kernels()") \
     && find /opt/venv/lib/python3*/site-packages/numpy /opt/venv/lib/python3*/site-packages/scipy \
         -type d -name tests -prune -exec rm -rf {} + \
     && (/opt/venv/bin/pip uninstall --yes --quiet setuptools wheel || true) \

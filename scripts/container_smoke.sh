@@ -23,6 +23,8 @@
 #                    its own certifi bundle instead, so there this only helps with a pip that uses the
 #                    system store.
 #   SMOKE_PORT       loopback port for the server (default: a free one)
+#   SMOKE_MAX_STARTUP_S  seconds the server may take to answer /healthz (default 20; a start that compiles
+#                    the kernels instead of loading the image's cache takes ~45 s)
 #
 # The base image: FROM python:3.11-slim must already be in podman's local storage; the build never
 # pulls (--pull=never). On a machine without registry access, make a stand-in from Debian's packages
@@ -147,11 +149,17 @@ env -i "${image_env[@]}" HOME="$workdir" \
   chroot --userspec="$uid:$gid" "$mnt" /bin/sh -c 'cd "$1" && shift && exec "$@"' sh "$workdir" \
   passive-locator serve --host 127.0.0.1 --port "$port" >"$log" 2>&1 &
 server_pid=$!
+started=$SECONDS
 for _ in $(seq 120); do
   kill -0 "$server_pid" 2>/dev/null || { cat "$log" >&2; fail "server exited"; }
   curl -fsS -o /dev/null "$base/healthz" 2>/dev/null && break
   sleep 0.5
 done
+# Loading the kernels from the image's numba cache takes a second or two; compiling them all takes ~45 s.
+startup_s=$((SECONDS - started))
+[ "$startup_s" -le "${SMOKE_MAX_STARTUP_S:-20}" ] \
+  || fail "the server took ${startup_s} s to answer: it compiled its kernels (the image's numba cache was not used)"
+say "answered after ${startup_s} s"
 
 check() {  # check NAME EXPECTED-SUBSTRING curl-args...
   local name=$1 expect=$2 body
