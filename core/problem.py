@@ -378,6 +378,8 @@ class LinesOfSight:
                 az_row[los] = row
             elif kind == Kind.ELEVATION:
                 el_row[los] = row
+        lines = az_row >= 0  # an elevation without its azimuth (set aside) is no line of sight
+        az_row, el_row = az_row[lines], el_row[lines]
         station = problem.station_index[az_row]
         has_el = el_row >= 0
         el_values = np.where(has_el, problem.values[el_row], np.nan)

@@ -177,3 +177,17 @@ def test_an_elevation_whose_azimuth_is_set_aside_joins_no_other_line():
             expected = np.nan if k == dropped else batch.values[0, elevation_rows[k]]
             np.testing.assert_equal(elevation[0, row], expected)
         assert np.count_nonzero(~np.isnan(elevation)) == len(azimuth_rows) - 1
+
+
+def test_a_problem_whose_bearing_lost_its_azimuth_has_one_line_fewer():
+    """The single-problem lines of sight agree with the batch's: a bearing left with only its elevation (its
+    azimuth set aside) is no line (row -1 stood in for its azimuth once)."""
+    problem = _noisy(build_problem(_geodetic("abc"), _bearings("abc")), [20e3, 30e3, 6e3], 3)
+    batch = ProblemBatch.from_problems([problem])
+    used = np.ones(batch.kinds.shape, dtype=bool)
+    used[0, np.flatnonzero((batch.kinds[0] == Kind.AZIMUTH) & (batch.bearing_index[0] == 1))] = False
+    alone = batch.with_used(used).problem(0).lines_of_sight()
+    is_line, elevation, _ = batch.with_used(used).lines_of_sight()
+    assert alone.count == np.count_nonzero(is_line) == 2
+    np.testing.assert_array_equal(alone.azimuth_rad, batch.values[0, is_line[0]])
+    np.testing.assert_array_equal(alone.elevation_rad, elevation[0, is_line[0]])
