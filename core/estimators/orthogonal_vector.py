@@ -71,10 +71,15 @@ class Normals(Enum):
 class Weighting(Enum):
     """How the rows are weighted."""
 
-    #: Every row weighs 1 (one pass, three with a known altitude to re-take the up row).
+    #: Every row weighs 1 (one pass; with a known altitude, more passes re-take the up row).
     UNIT = "unit"
-    #: Inverse first-order noise ``1 / (sigma r)`` from the previous pass (three passes).
+    #: Inverse first-order noise ``1 / (sigma r)`` from the previous pass (from the second pass on).
     FIRST_ORDER = "first_order"
+
+
+#: Passes of an orthogonal-vector estimator: the unit-weight one, then two that re-weigh the rows (and re-take
+#: a known altitude's up row) at the previous fix.
+PASSES = 3
 
 
 def normal_vectors(azimuth_rad, elevation_rad):
@@ -209,7 +214,7 @@ def _least_squares(s, v, projected, lane, out):
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitude_m, geodetic, origin_ecef_m,
-                      origin_rotation, weighted):
+                      origin_rotation, weighted, passes):
     """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), which are rank-deficient,
     and each row's noise per unit angle at the fix (:func:`_noise_scale`; 1 where no fix).
 
@@ -254,7 +259,7 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
                     n += 1
             stacked[i] = n
             active[i] = True
-        for sweep in range(3):
+        for sweep in range(passes):
             tall, short = 0, 0
             for i in range(members_count):
                 if not active[i]:
@@ -321,7 +326,7 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
 
 
 def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str,
-                           with_covariance: bool = True) -> Estimates:
+                           with_covariance: bool = True, passes: int = PASSES) -> Estimates:
     """Positions and propagated covariances of an orthogonal-vector estimator for every problem of a batch.
 
     Parameters
@@ -334,6 +339,8 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
         The method, for messages.
     with_covariance : bool
         False skips the propagated covariance (NaN), for a start.
+    passes : int
+        How many times the rows are solved (:data:`PASSES`); a start for ML takes fewer.
 
     Returns
     -------
@@ -356,7 +363,7 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
         np.ascontiguousarray(eq.rows), np.ascontiguousarray(eq.rhs), np.ascontiguousarray(eq.used),
         np.ascontiguousarray(eq.sigma), np.ascontiguousarray(eq.stations), np.ascontiguousarray(eq.rotations), failed,
         np.asarray(batch.altitude_m, dtype=float), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
-        origin_rotation, weighted)
+        origin_rotation, weighted, int(passes))
     failed |= singular
     why = f"{name}: the lines of sight do not determine a point (parallel or too few independent lines)"
     for b in np.flatnonzero(failed):
