@@ -253,19 +253,20 @@ _PLAIN_KEYS = frozenset(("frame", "method", "stations", "measurements"))
 _NAN3 = (math.nan, math.nan, math.nan)
 
 
-def _bounds(model, name: str) -> tuple[float, float, bool, bool]:
-    """``(low, high, low_inclusive, high_inclusive)`` of a float field, read from its schema."""
-    low, high, low_in, high_in = -math.inf, math.inf, True, True
+def _bounds(model, name: str) -> tuple[float, float]:
+    """A float field's bounds as the closed interval ``[low, high]`` of the floats its schema accepts (an open
+    end, ``gt`` or ``lt``, moves one float inwards)."""
+    low, high = -math.inf, math.inf
     for rule in model.model_fields[name].metadata:
         if getattr(rule, "ge", None) is not None:
-            low, low_in = float(rule.ge), True
+            low = float(rule.ge)
         if getattr(rule, "gt", None) is not None:
-            low, low_in = float(rule.gt), False
+            low = math.nextafter(float(rule.gt), math.inf)
         if getattr(rule, "le", None) is not None:
-            high, high_in = float(rule.le), True
+            high = float(rule.le)
         if getattr(rule, "lt", None) is not None:
-            high, high_in = float(rule.lt), False
-    return low, high, low_in, high_in
+            high = math.nextafter(float(rule.lt), -math.inf)
+    return low, high
 
 
 class _Reject(Exception):
@@ -278,10 +279,8 @@ def _number(value, bounds=None) -> float:
     value = float(value)
     if not math.isfinite(value):
         raise _Reject
-    if bounds is not None:
-        low, high, low_in, high_in = bounds
-        if not ((low <= value if low_in else low < value) and (value <= high if high_in else value < high)):
-            raise _Reject
+    if bounds is not None and not bounds[0] <= value <= bounds[1]:
+        raise _Reject
     return value
 
 
@@ -303,19 +302,10 @@ _TOLERANCE = _bounds(schemas.Options, "tolerance_m")
 _ITERATIONS = _bounds(schemas.Options, "max_iterations")
 _LOSS_SCALE = _bounds(schemas.Options, "loss_scale")
 _ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
-
-
-def _closed(bounds) -> tuple[float, float]:
-    """The same bounds as a closed interval ``[low, high]`` of floats (an open end moves one float inwards)."""
-    low, high, low_in, high_in = bounds
-    return (low if low_in else math.nextafter(low, math.inf)), (high if high_in else math.nextafter(high, -math.inf))
-
-
-#: The bounds above as closed-interval tables for the bulk checks: per frame (local, geodetic) and coordinate, and
-#: per kind code.
-_COORDINATE_BOUNDS = np.array([[_closed(b) for b in (_EAST, _NORTH, _UP)], [_closed(b) for b in (_LAT, _LON, _ALT)]])
-_VALUE_BOUNDS = np.array([_closed({_AZ: _AZIMUTH, _EL: _ELEVATION, _RG: _RANGE, _TOA: _TOA_S}[k]) for k in range(4)])
-_SIGMA_BOUNDS = np.array([_closed({_AZ: _SIGMA_AZIMUTH, _EL: _SIGMA_ELEVATION, _RG: _SIGMA_RANGE, _TOA: _SIGMA_TOA}[k])
+#: The bounds above as tables for the bulk checks: per frame (local, geodetic) and coordinate, and per kind code.
+_COORDINATE_BOUNDS = np.array([[_EAST, _NORTH, _UP], [_LAT, _LON, _ALT]], dtype=float)
+_VALUE_BOUNDS = np.array([{_AZ: _AZIMUTH, _EL: _ELEVATION, _RG: _RANGE, _TOA: _TOA_S}[k] for k in range(4)])
+_SIGMA_BOUNDS = np.array([{_AZ: _SIGMA_AZIMUTH, _EL: _SIGMA_ELEVATION, _RG: _SIGMA_RANGE, _TOA: _SIGMA_TOA}[k]
                           for k in range(4)])
 _MEASUREMENTS_MAX = schemas.MAX_FIX_MEASUREMENTS
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
@@ -518,7 +508,7 @@ def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _within(values, bounds) -> np.ndarray:
-    """Whether each value is inside its closed bounds ``(..., 2)`` (rows as :func:`_closed` gives them)."""
+    """Whether each value is inside its closed bounds ``(..., 2)`` (rows as :func:`_bounds` gives them)."""
     return (values >= bounds[..., 0]) & (values <= bounds[..., 1])
 
 
