@@ -371,26 +371,24 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
             sigma_scale[b] = math.sqrt(robust_cost[b] / dof[b]) if robust else plain_scale[b]
         largest = -1.0
         for m in range(width):
-            size_m = abs(studentized[b, m])
-            if math.isnan(size_m):
+            magnitude = abs(studentized[b, m])
+            if math.isnan(magnitude):
                 worst[b] = m
                 break
-            if size_m > largest:
-                largest, worst[b] = size_m, m
+            if magnitude > largest:
+                largest, worst[b] = magnitude, m
         worst_value[b] = studentized[b, worst[b]] if width else 0.0
         bits = ILL if smallest[b] < ILL_CONDITIONED_EIGENVALUE else 0
         if dof[b] > 0 and abs(worst_value[b]) > OUTLIER_SIGMAS:
             bits |= OUTLIER
         lines = 0
-        for m in range(width):
-            present = m < n_measurements[b]
+        for m in range(width):  # valid and excluded measurements are present ones
             lines += 1 if is_line[b, m] else 0
             bits |= BEHIND if behind[b, m] else 0
             bits |= ZENITH if zenith[b, m] else 0
-            bits |= EXCLUDED if excluded[b, m] and present else 0
-            bits |= UNUSED if present and not valid[b, m] and not excluded[b, m] else 0
-            if robust and valid[b, m] and present and math.isfinite(sigmas[b, m]) \
-                    and robust_factor[b, m] < DOWNWEIGHTED_FACTOR:
+            bits |= EXCLUDED if excluded[b, m] else 0
+            bits |= UNUSED if m < n_measurements[b] and not valid[b, m] and not excluded[b, m] else 0
+            if robust and valid[b, m] and math.isfinite(sigmas[b, m]) and robust_factor[b, m] < DOWNWEIGHTED_FACTOR:
                 bits |= DOWNWEIGHTED
         if lines >= 2 and spread[b] < COLLINEAR_SPREAD_RAD:
             bits |= COLLINEAR
