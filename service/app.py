@@ -78,6 +78,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         finally:
             app.state.stopping.set()  # long computations stop at their next chunk
             app.state.cpu_pool.shutdown(wait=False, cancel_futures=True)
+            app.state.fix_coalescer.close()
             tak.close(app)
             store.close()
 

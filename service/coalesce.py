@@ -3,7 +3,7 @@
 ``POST /v1/fixes`` hands its parsed body to the app's :class:`Coalescer`.
 One drain at a time takes *everything queued at that moment* (there is no
 waiting window: a lone request on an idle service is solved at once, alone)
-and runs :func:`service.translate.fix_results` on the drained bodies on a
+and runs :func:`service.translate.fix_results` on the drained bodies on its own
 worker thread: exactly what ``POST /v1/fixes/batch`` does with its problems,
 so a single fix is slot 0 of a batch of one, and fixes that arrived together
 share one batched read, solve and write. Requests that arrive while a drain
@@ -22,11 +22,11 @@ resolves its last futures, so nothing is left running when the loop goes idle.
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import logging
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
-
-from starlette.concurrency import run_in_threadpool
 
 from core.parallel import Stopped
 from service.translate import fix_results
@@ -64,6 +64,12 @@ def _never() -> bool:
 class Coalescer:
     """Queues single fix bodies and solves whatever is queued together, one drain at a time.
 
+    A drain is a call on the coalescer's own worker thread; it starts one loop
+    step after the first body that finds the coalescer idle (so every body
+    queued in that step joins it), and when it ends the next one starts with
+    whatever queued meanwhile. No task waits on the loop for it: the
+    callbacks of its executor future resolve each request's future.
+
     Attributes
     ----------
     drains, solved : int
@@ -74,65 +80,76 @@ class Coalescer:
         self._pending: list[tuple[object, str | None, Callable[[], bool], asyncio.Future]] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopping = stopping or threading.Event()
+        self._worker = ThreadPoolExecutor(1, thread_name_prefix="fixes")
         self.drains = 0
         self.solved = 0
 
-    async def solve(self, body, request_id: str | None = None, should_stop: Callable[[], bool] | None = None) -> dict:
-        """The result of one parsed FixRequest body (``{"index": 0, "ok", "fix" | "error"}``), solved
+    def submit(self, body, request_id: str | None = None,
+               should_stop: Callable[[], bool] | None = None) -> asyncio.Future:
+        """A future of one parsed FixRequest body's result (``{"index": 0, "ok", "fix" | "error"}``), solved
         together with whatever else is queued.
 
-        A drain stops between parts (:class:`core.parallel.Stopped` for each of its requests) when the
-        server stops or when every request of the drain says stop (``should_stop``: its deadline, its
-        client gone).
+        A drain stops between parts (the future raises :class:`core.parallel.Stopped`) when the server stops
+        or when every request of the drain says stop (``should_stop``: its deadline, its client gone).
         """
         loop = asyncio.get_running_loop()
-        should_stop = should_stop or _never
-        if self._loop is not None and self._loop is not loop:
-            # A drain runs on another event loop (an odd test setup): solve this one alone, off the loop.
-            (result,) = await run_in_threadpool(solve_together, [(body, request_id)], should_stop)
-            return _unwrap(result)
         future = loop.create_future()
-        self._pending.append((body, request_id, should_stop, future))
+        if self._loop is not None and self._loop is not loop:
+            # A drain runs on another event loop (an odd test setup): this one is solved alone.
+            self._run(loop, [(body, request_id, should_stop or _never, future)])
+            return future
+        self._pending.append((body, request_id, should_stop or _never, future))
         if self._loop is None:
             self._loop = loop
-            loop.create_task(self._drain())
-        return _unwrap(await future)
+            loop.call_soon(self._drain)
+        return future
 
-    async def _drain(self) -> None:
-        try:
-            while self._pending:
-                taken, self._pending = self._pending, []
-                self.drains += 1
-                self.solved += len(taken)
-                stops = [item[2] for item in taken]
+    async def solve(self, body, request_id: str | None = None, should_stop: Callable[[], bool] | None = None) -> dict:
+        """:meth:`submit`, awaited."""
+        return await self.submit(body, request_id, should_stop)
 
-                def should_stop() -> bool:
-                    return self._stopping.is_set() or all(stop() for stop in stops)
+    def close(self) -> None:
+        """Stop the worker thread once its drain (if any) ends."""
+        self._worker.shutdown(wait=False)
 
-                try:
-                    results = await run_in_threadpool(solve_together, [item[:2] for item in taken], should_stop)
-                except Stopped as error:
-                    results = [error] * len(taken)
-                except BaseException:  # cancelled with the loop: nobody may wait forever
-                    self._fail(taken)
-                    raise
-                for (*_, future), result in zip(taken, results):
-                    if not future.done():  # a request whose client went away was cancelled
-                        future.set_result(result)
-        finally:
-            # No await between resolving the last futures and this: the drain ends in the same step.
+    def _drain(self) -> None:
+        taken, self._pending = self._pending, []
+        if not taken:
             self._loop = None
-            self._fail(self._pending)
-            self._pending = []
+            return
+        self._run(self._loop, taken, then=self._drain)
 
-    @staticmethod
-    def _fail(taken) -> None:
-        for *_, future in taken:
-            if not future.done():
-                future.set_exception(RuntimeError("the shared solve was cancelled"))
+    def _run(self, loop, taken, then=None) -> None:
+        self.drains += 1
+        self.solved += len(taken)
+        stops = [item[2] for item in taken]
 
+        def should_stop() -> bool:
+            return self._stopping.is_set() or all(stop() for stop in stops)
 
-def _unwrap(result: dict | BaseException) -> dict:
-    if isinstance(result, BaseException):
-        raise result
-    return result
+        try:
+            work = loop.run_in_executor(self._worker, contextvars.copy_context().run, solve_together,
+                                        [item[:2] for item in taken], should_stop)
+        except RuntimeError:  # the worker is shut down: the app is stopping
+            work = loop.create_future()
+            work.set_exception(Stopped())
+
+        def finished(work: asyncio.Future) -> None:
+            try:
+                results = work.result()
+            except Stopped as error:
+                results = [error] * len(taken)
+            except BaseException as error:  # cancelled with the loop or the worker: nobody may wait forever
+                results = [RuntimeError(f"the shared solve was cancelled ({error!r})")] * len(taken)
+            for (*_, future), result in zip(taken, results):
+                if future.done():  # a request whose client went away was cancelled
+                    continue
+                if isinstance(result, BaseException):
+                    future.set_exception(result)
+                else:
+                    future.set_result(result)
+            if then is not None:
+                then()
+
+        work.add_done_callback(finished)
+

@@ -59,11 +59,6 @@ def parse_json(raw: bytes) -> Any:
                                        "input": {}, "ctx": {"error": error.msg}}]) from None
 
 
-async def json_body(request: Request) -> Any:
-    """The parsed JSON body (on the event loop: a dependency in a thread would cost a hop)."""
-    return parse_json(await request.body())
-
-
 def request_id(request: Request) -> str | None:
     return request.scope.get("state", {}).get("request_id")
 
@@ -74,5 +69,4 @@ def json_request_body(model) -> dict:
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-JsonBody = Annotated[Any, Depends(json_body)]
 OwnerDep = Annotated[str, Depends(_owner)]
