@@ -81,6 +81,13 @@ def test_a_stopping_server_stops_the_coalesced_solve():
         asyncio.run(Coalescer(stopping).solve(bearing_request(STATIONS_300KM, TARGET)))
 
 
+def test_a_closed_coalescer_answers_stopped_rather_than_hang():
+    coalescer = Coalescer()
+    coalescer.close()
+    with pytest.raises(Stopped):
+        asyncio.run(asyncio.wait_for(coalescer.solve(bearing_request(STATIONS_300KM, TARGET)), 10))
+
+
 def test_a_drain_stops_only_when_every_request_of_it_says_stop():
     body = bearing_request(STATIONS_300KM, TARGET)
 
