@@ -255,10 +255,11 @@ class _Starts:
             self.settle(np.arange(batch.size), guessed, "initial_guess", batch.initial_guess_enu_m)
 
     def settle(self, k, found, name, start):
-        self.positions[k[found]] = start[found]
-        for b in k[found].tolist():
+        chosen = k[found]
+        self.positions[chosen] = start[found]
+        for b in chosen.tolist():
             self.names[b] = name
-        self.pending[k[found]] = False
+        self.pending[chosen] = False
 
     def sub(self, k):
         return self.batch if k.size == self.batch.size else self.batch.take(k)
