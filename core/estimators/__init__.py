@@ -100,7 +100,7 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
     methods = [methods] * size if isinstance(methods, str) else list(methods)
     if options is None or isinstance(options, SolveOptions):
         options = [options or SolveOptions()] * size
-    missing = np.any(batch.valid & np.isnan(batch.sigmas), axis=-1)
+    missing = (batch.valid & np.isnan(batch.sigmas)).any(axis=-1)
     groups: dict[tuple, list[int]] = {}
     for b, (name, opts) in enumerate(zip(resolve_methods(batch, methods), options)):
         groups.setdefault((name, opts), []).append(b)

@@ -65,12 +65,12 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     position = np.array(estimates.position_enu_m, dtype=float).reshape(size, 3)
     failed = np.zeros(size, dtype=bool)
     failed[list(errors)] = True
-    unfinished = ~failed & ~np.all(np.isfinite(position), axis=-1)
-    if np.any(unfinished):
+    unfinished = ~failed & ~np.isfinite(position).all(axis=-1)
+    if unfinished.any():
         for b in np.flatnonzero(unfinished).tolist():
             errors[b] = LocalizationError(f"{method} produced no finite position for this geometry")
         failed |= unfinished
-    if np.any(failed):
+    if failed.any():
         position[failed] = batch.stations_enu_m[failed, 0] + [0.0, 0.0, 1.0]
 
     stations, rotations = batch.measurement_stations()

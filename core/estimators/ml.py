@@ -317,7 +317,7 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
         The estimator's own warnings.
     """
     starts = np.array(starts_enu_m, dtype=float)
-    missing = ~np.all(np.isfinite(starts), axis=-1)
+    missing = ~np.isfinite(starts).all(axis=-1)
     errors = dict(failures)
     for b in np.flatnonzero(missing).tolist():
         errors.setdefault(b, LocalizationError("no starting point for this geometry"))
@@ -381,7 +381,7 @@ def mirror_applies(batch: ProblemBatch) -> np.ndarray:
     """``(B,)``: where a fix's mirror image through its stations' plane may fit as well (:func:`mirror_points`):
     unconstrained problems without an elevation (ranges, TOAs and azimuths cannot tell a point from its mirror
     through the plane of nearly coplanar stations)."""
-    return ~batch.constrained & ~np.any(batch.valid & (batch.kinds == ELEVATION), axis=-1)
+    return ~batch.constrained & ~(batch.valid & (batch.kinds == ELEVATION)).any(axis=-1)
 
 
 def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
@@ -515,7 +515,7 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     or is implausible (chi-square p below ``IMPLAUSIBLE_P``: the start sat in another basin), ML from the
     geometry's candidates too, keeping the lower cost when that fit is plausible itself."""
     starts, names, failures = initial_positions(batch)
-    missing = ~np.all(np.isfinite(starts), axis=-1)
+    missing = ~np.isfinite(starts).all(axis=-1)
     solution = iterate(batch, np.where(missing[:, None], batch.stations_enu_m[:, 0] + [0.0, 0.0, 1.0], starts),
                        options)
     dof = np.count_nonzero(batch.valid & np.isfinite(batch.sigmas), axis=-1) - (
@@ -523,7 +523,7 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     p_value = chdtrc(np.maximum(dof, 1), solution.cost)
     retry = missing | ~solution.converged | (p_value < IMPLAUSIBLE_P)
     warnings: list[tuple] = [()] * batch.size
-    if np.any(retry):
+    if retry.any():
         rows = np.flatnonzero(retry)
         earlier = np.where(missing[rows, None], np.nan, solution.position_enu_m[rows])
         found, rival = searched_starts(batch.take(rows), options, earlier)
