@@ -98,7 +98,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
 
     source = estimates.covariance_source
     if source == "information":
-        for b in np.flatnonzero(~failed & ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)).tolist():
+        for b in (~failed & ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)).nonzero()[0].tolist():
             errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b]))
     if robust_factor is not None:
         source = "robust"
@@ -122,7 +122,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         inefficient = np.zeros(size, dtype=bool)
     own = estimates.warnings or [()] * size
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
-    for b in np.flatnonzero(flagged & ~failed):
+    for b in (flagged & ~failed).nonzero()[0]:
         found = list(own[b])
         if not converged[b] and not any(w.code == "not_converged" for w in found):
             found.append(FixWarning("not_converged", f"{method} did not converge in {int(iterations[b])} iterations; "

@@ -319,7 +319,7 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
     starts = np.array(starts_enu_m, dtype=float)
     missing = ~np.isfinite(starts).all(axis=-1)
     errors = dict(failures)
-    for b in np.flatnonzero(missing).tolist():
+    for b in missing.nonzero()[0].tolist():
         errors.setdefault(b, LocalizationError("no starting point for this geometry"))
     if solution is None:
         starts[missing] = batch.stations_enu_m[missing, 0] + [0.0, 0.0, 1.0]
@@ -518,7 +518,7 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     missing = ~np.isfinite(starts).all(axis=-1)
     solution = iterate(batch, np.where(missing[:, None], batch.stations_enu_m[:, 0] + [0.0, 0.0, 1.0], starts),
                        options)
-    dof = np.count_nonzero(batch.valid & np.isfinite(batch.sigmas), axis=-1) - (
+    dof = (batch.valid & np.isfinite(batch.sigmas)).sum(axis=-1) - (
         np.where(batch.constrained, 2, 3) + batch.has_toa)
     p_value = chdtrc(np.maximum(dof, 1), solution.cost)
     retry = missing | ~solution.converged | (p_value < IMPLAUSIBLE_P)
@@ -542,7 +542,7 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
                 warnings[b] = _ambiguous(batch, b, rival[ok][j], starts, names, failures, solution, options)
         p_value[rows] = chdtrc(np.maximum(dof[rows], 1), solution.cost[rows])
     # A closed form's (or the search's) fix may have a mirror image that fits as well: try it.
-    check = np.flatnonzero(mirror_applies(batch) & ~missing & (p_value >= IMPLAUSIBLE_P))
+    check = (mirror_applies(batch) & ~missing & (p_value >= IMPLAUSIBLE_P)).nonzero()[0]
     check = np.array([b for b in check.tolist() if not warnings[b] and b not in failures], dtype=np.intp)
     if check.size:
         mirrored = mirror_points(batch, solution.position_enu_m)[check]

@@ -233,7 +233,7 @@ def initial_positions(batch: ProblemBatch):
         if not found.pending.any():
             break
         stage()
-    for b in np.flatnonzero(found.pending).tolist():
+    for b in found.pending.nonzero()[0].tolist():
         found.failures[b] = found.eove_failures.get(b) or TooFewMeasurements(
             "too few measurements for a fix: need bearings from 2 stations, a bearing and a range, "
             "4 TOAs or 3 ranges", ("measurements",))
@@ -266,10 +266,10 @@ class _Starts:
 
     def _pending_with(self, kind, at_least=1):
         batch = self.batch
-        return self.pending & (np.count_nonzero(batch.valid & (batch.kinds == kind), axis=-1) >= at_least)
+        return self.pending & ((batch.valid & (batch.kinds == kind)).sum(axis=-1) >= at_least)
 
     def weighted_eove(self):
-        k = np.flatnonzero(self._pending_with(AZIMUTH))
+        k = self._pending_with(AZIMUTH).nonzero()[0]
         if k.size:
             estimates = solve_orthogonal_batch(self.sub(k), normals=Normals.BOTH, weighting=Weighting.FIRST_ORDER,
                                                name="weighted_eove", with_covariance=False, passes=START_PASSES)
@@ -280,7 +280,7 @@ class _Starts:
             self.settle(k, solved, "weighted_eove", estimates.position_enu_m)
 
     def polar(self):
-        k = np.flatnonzero(self._pending_with(RANGE) & (~np.isnan(self.batch.lines_of_sight()[1])).any(axis=-1))
+        k = (self._pending_with(RANGE) & (~np.isnan(self.batch.lines_of_sight()[1])).any(axis=-1)).nonzero()[0]
         if k.size:
             points, covariances, found = station_polar_points(self.sub(k))
             has = np.any(found, axis=-1)
@@ -290,7 +290,7 @@ class _Starts:
                 self.settle(k, has, "polar", fused)
 
     def bancroft(self):
-        k = np.flatnonzero(self._pending_with(TOA, 4))
+        k = self._pending_with(TOA, 4).nonzero()[0]
         if k.size:
             part = self.sub(k)
             stations, _ = part.measurement_stations()
@@ -303,7 +303,7 @@ class _Starts:
             self.settle(k, ~singular, "bancroft", start)
 
     def trilateration(self):
-        k = np.flatnonzero(self._pending_with(RANGE, 3))
+        k = self._pending_with(RANGE, 3).nonzero()[0]
         if k.size:
             part = self.sub(k)
             stations, _ = part.measurement_stations()
