@@ -28,6 +28,9 @@ from core.problem_batch import ProblemBatch
 
 #: Smallest standard deviation (m) of a polar point along any axis.
 MIN_POLAR_SD_M = 1e-9
+#: ... and across its line of sight, at least this share of the range's along it: a range of (nearly) 0 m would
+#: leave a covariance that float64 cannot invert (condition number 1e20 with 10 m along and 1e-9 m across).
+MIN_POLAR_SD_RATIO = 1e-6
 #: Relative singular value below which the trilateration rows are rank-deficient.
 TRILATERATION_RANK_TOLERANCE = 1e-9
 #: Relative singular value below which Bancroft's pseudo-inverse drops a direction (``np.linalg.pinv``'s).
@@ -70,9 +73,11 @@ def station_polar_points(batch: ProblemBatch):
     along = line_of_sight_enu(az, el)
     across_el, across_az = normal_vectors(az, el)
     basis = np.stack([along, across_az, across_el], axis=-1)
-    sd = np.stack([np.sqrt(1.0 / safe_total), range_m * np.cos(el) * batch.sigmas,
+    along_sd = np.sqrt(1.0 / safe_total)
+    sd = np.stack([along_sd, range_m * np.cos(el) * batch.sigmas,
                    range_m * np.where(has_el, sigma_elevation, 1.0)], axis=-1)
-    cov_local = (basis * np.square(np.maximum(sd, MIN_POLAR_SD_M))[..., None, :]) @ np.swapaxes(basis, -1, -2)
+    floor = np.maximum(MIN_POLAR_SD_M, MIN_POLAR_SD_RATIO * along_sd)
+    cov_local = (basis * np.square(np.maximum(sd, floor[..., None]))[..., None, :]) @ np.swapaxes(basis, -1, -2)
     stations, rotations = batch.measurement_stations()
     to_common = np.swapaxes(rotations, -1, -2)
     points = stations + matvec(to_common, range_m[..., None] * along)
