@@ -55,6 +55,22 @@ def _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas):
     return is_line, elevation, sigma
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _model_kernel(kinds, values, sigmas, valid):
+    """Values ``(B, M)`` in model units (TOA seconds as metres) and the weights ``1 / sigma^2`` ``(B, M)`` in
+    model units of the ``valid`` measurements with a finite sigma (0 elsewhere)."""
+    size, width = kinds.shape
+    model_values, weights = np.empty((size, width)), np.zeros((size, width))
+    for b in range(size):
+        for m in range(width):
+            unit = SPEED_OF_LIGHT_MPS if kinds[b, m] == TOA else 1.0
+            model_values[b, m] = values[b, m] * unit
+            sigma = sigmas[b, m]
+            if valid[b, m] and math.isfinite(sigma):
+                weights[b, m] = 1.0 / (sigma * unit) ** 2
+    return model_values, weights
+
+
 def _frozen(array: np.ndarray) -> np.ndarray:
     """``array``, read-only: a batch computes its masks once and hands the same array to every caller."""
     array.flags.writeable = False
@@ -142,17 +158,9 @@ class ProblemBatch:
         """``(B,)``: some measurement is a TOA (so the emission offset is a free parameter)."""
         return _frozen((self.kinds == TOA).any(axis=-1))
 
-    def unit_scale(self) -> np.ndarray:
-        """``(B, M)`` factor from problem units to model units (TOA seconds -> metres)."""
-        return np.where(self.kinds == TOA, SPEED_OF_LIGHT_MPS, 1.0)
-
     def model_values(self) -> np.ndarray:
         """Values ``(B, M)`` in model units (TOA as pseudo-range metres; computed once, read-only)."""
-        return self._model_values
-
-    @cached_property
-    def _model_values(self) -> np.ndarray:
-        return _frozen(self.values * self.unit_scale())
+        return self._model_values_and_weights[0]
 
     def weights(self, sigmas=None) -> np.ndarray:
         """``1 / sigma^2`` ``(B, M)`` in model units; 0 on padding and where no sigma is known.
@@ -163,15 +171,18 @@ class ProblemBatch:
             Replacement sigmas in problem units (default ``self.sigmas``: those weights are computed once and
             read-only).
         """
-        return self._weights if sigmas is None else self._weights_of(sigmas)
+        if sigmas is None:
+            return self._model_values_and_weights[1]
+        return self._model_kernel(sigmas)[1]
 
     @cached_property
-    def _weights(self) -> np.ndarray:
-        return _frozen(self._weights_of(self.sigmas))
+    def _model_values_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
+        model_values, weights = self._model_kernel(self.sigmas)
+        return _frozen(model_values), _frozen(weights)
 
-    def _weights_of(self, sigmas) -> np.ndarray:
-        known = self.valid & np.isfinite(sigmas)
-        return np.where(known, 1.0 / (np.where(known, sigmas, 1.0) * self.unit_scale()) ** 2, 0.0)
+    def _model_kernel(self, sigmas) -> tuple[np.ndarray, np.ndarray]:
+        return _model_kernel(np.ascontiguousarray(self.kinds, dtype=np.int8), np.ascontiguousarray(self.values),
+                             np.ascontiguousarray(sigmas, dtype=float), np.ascontiguousarray(self.valid))
 
     def onto_altitude(self, positions_enu_m, rows=None) -> np.ndarray:
         """Positions moved onto their problem's known altitude (unconstrained problems' unchanged).

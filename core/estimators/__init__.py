@@ -100,7 +100,7 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
     methods = [methods] * size if isinstance(methods, str) else list(methods)
     if options is None or isinstance(options, SolveOptions):
         options = [options or SolveOptions()] * size
-    missing = batch.valid & np.isnan(batch.sigmas)
+    missing = (batch.valid & np.isnan(batch.sigmas)).any(axis=-1)
     groups: dict[tuple, list[int]] = {}
     for b, (name, opts) in enumerate(zip(resolve_methods(batch, methods), options)):
         groups.setdefault((name, opts), []).append(b)
@@ -115,9 +115,9 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
             work.append((rows, error))
             continue
         if spec.needs_sigmas:
-            lacking = np.any(missing[rows], axis=-1)
+            lacking = missing[rows]
             for b in rows[lacking].tolist():
-                m = int(np.flatnonzero(missing[b])[0])
+                m = int(np.flatnonzero(batch.valid[b] & np.isnan(batch.sigmas[b]))[0])
                 work.append((np.array([b]), InvalidInput(
                     f"method {name} needs the azimuth sigma of every bearing",
                     ("measurements", int(batch.source_index[b, m]), "sigma_azimuth_rad"))))

@@ -65,10 +65,13 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     position = np.array(estimates.position_enu_m, dtype=float).reshape(size, 3)
     failed = np.zeros(size, dtype=bool)
     failed[list(errors)] = True
-    for b in np.flatnonzero(~failed & ~np.all(np.isfinite(position), axis=-1)):
-        errors[int(b)] = LocalizationError(f"{method} produced no finite position for this geometry")
-        failed[b] = True
-    position[failed] = batch.stations_enu_m[failed, 0] + [0.0, 0.0, 1.0]
+    unfinished = ~failed & ~np.isfinite(position).all(axis=-1)
+    if unfinished.any():
+        for b in np.flatnonzero(unfinished).tolist():
+            errors[b] = LocalizationError(f"{method} produced no finite position for this geometry")
+        failed |= unfinished
+    if failed.any():
+        position[failed] = batch.stations_enu_m[failed, 0] + [0.0, 0.0, 1.0]
 
     stations, rotations = batch.measurement_stations()
     sigmas = batch.sigmas if estimates.sigmas is None else np.where(batch.present, estimates.sigmas, np.nan)
@@ -76,23 +79,18 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     is_line, elevation, _ = batch.lines_of_sight()
     origin_ecef, origin_rotation = batch.frame_placements()
     loss = estimates.loss
-    (raw, normalized, studentized, chi2, known_count, crlb, covariance, min_eigenvalue, robust_factor,
-     robust_cost, sigma_ref, behind, zenith, spread) = _finish_kernel(
-        np.ascontiguousarray(position), np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
+    present, valid = batch.present, batch.valid
+    excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
+    (raw, normalized, studentized, chi2, crlb, covariance, min_eigenvalue, robust_factor, sigma_ref, behind, zenith,
+     spread, dof, plain_scale, sigma_scale, worst, worst_value, flags) = _fix_kernel(
+        position, np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
         bias is not None, np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
         np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.values, dtype=float),
         np.ascontiguousarray(sigmas, dtype=float), np.asarray(batch.n_measurements, dtype=np.int64),
-        np.ascontiguousarray(batch.valid), np.asarray(batch.altitude_m, dtype=float),
+        np.ascontiguousarray(valid), np.ascontiguousarray(excluded), np.asarray(batch.altitude_m, dtype=float),
         np.asarray(batch.has_toa, dtype=np.bool_), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
         origin_rotation, -1 if loss is None else loss_code(loss[0]), 1.0 if loss is None else float(loss[1]) ** 2,
-        np.ascontiguousarray(is_line), np.ascontiguousarray(elevation))
-    present, valid = batch.present, batch.valid
-    excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
-    dof, plain_scale, sigma_scale, worst, worst_value, flags = _verdicts_kernel(
-        studentized, chi2, known_count, robust_cost, robust_factor, min_eigenvalue, spread, behind, zenith,
-        np.ascontiguousarray(is_line), np.asarray(batch.n_measurements, dtype=np.int64),
-        np.ascontiguousarray(valid), np.ascontiguousarray(excluded), np.ascontiguousarray(sigmas, dtype=float),
-        np.asarray(batch.altitude_m, dtype=float), np.asarray(batch.has_toa, dtype=np.bool_), loss is not None)
+        is_line, elevation)
     positive = dof > 0
     p_value = np.where(positive, chdtrc(np.maximum(dof, 1), chi2), np.nan)
     if loss is None:
@@ -100,7 +98,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
 
     source = estimates.covariance_source
     if source == "information":
-        for b in np.flatnonzero(~failed & ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)).tolist():
+        for b in (~failed & ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)).nonzero()[0].tolist():
             errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b]))
     if robust_factor is not None:
         source = "robust"
@@ -124,7 +122,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         inefficient = np.zeros(size, dtype=bool)
     own = estimates.warnings or [()] * size
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
-    for b in np.flatnonzero(flagged & ~failed):
+    for b in (flagged & ~failed).nonzero()[0]:
         found = list(own[b])
         if not converged[b] and not any(w.code == "not_converged" for w in found):
             found.append(FixWarning("not_converged", f"{method} did not converge in {int(iterations[b])} iterations; "
@@ -394,3 +392,22 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
             bits |= COLLINEAR
         flags[b] = bits
     return dof, plain_scale, sigma_scale, worst, worst_value, flags
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
+                n_measurements, valid, excluded, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss,
+                c2, is_line, elevation_rad):
+    """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call: the residuals, chi-square, CRLB,
+    covariance, smallest eigenvalue, loss factors, reference sigma and line-of-sight facts, then the degrees
+    of freedom, sigma scales, worst measurement and verdict bits (``excluded`` ``(B, M)``: measurements
+    outlier exclusion set aside)."""
+    (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
+     sigma_ref, behind, zenith, spread) = _finish_kernel(
+        positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas, n_measurements, valid,
+        altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2, is_line, elevation_rad)
+    dof, plain_scale, sigma_scale, worst, worst_value, flags = _verdicts_kernel(
+        studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith, is_line,
+        n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0)
+    return (raw, normalized, studentized, chi2, crlb, covariance, smallest, robust_factor, sigma_ref, behind, zenith,
+            spread, dof, plain_scale, sigma_scale, worst, worst_value, flags)

@@ -37,7 +37,7 @@ both points, unless the client's ``initial_guess`` picks the nearer one.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -298,7 +298,7 @@ def iterate(batch: ProblemBatch, starts_enu_m, options: SolveOptions) -> Solutio
 
 
 def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, start_names, failures,
-                  solution: Solution | None = None) -> Estimates:
+                  solution: Solution | None = None, warnings: list | None = None) -> Estimates:
     """ML estimates of a batch from given starts.
 
     Parameters
@@ -313,14 +313,17 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
         Problems with no start.
     solution : Solution, optional
         The iteration from these starts, when already run.
+    warnings : list of tuple of FixWarning, length B, optional
+        The estimator's own warnings.
     """
     starts = np.array(starts_enu_m, dtype=float)
-    missing = ~np.all(np.isfinite(starts), axis=-1)
+    missing = ~np.isfinite(starts).all(axis=-1)
     errors = dict(failures)
-    for b in np.flatnonzero(missing):
-        errors.setdefault(int(b), LocalizationError("no starting point for this geometry"))
-    starts[missing] = batch.stations_enu_m[missing, 0] + [0.0, 0.0, 1.0]
-    solution = solution or iterate(batch, starts, options)
+    for b in missing.nonzero()[0].tolist():
+        errors.setdefault(b, LocalizationError("no starting point for this geometry"))
+    if solution is None:
+        starts[missing] = batch.stations_enu_m[missing, 0] + [0.0, 0.0, 1.0]
+        solution = iterate(batch, starts, options)
     return Estimates(
         position_enu_m=solution.position_enu_m,
         covariance_source="information",
@@ -328,6 +331,7 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
         errors=errors,
         converged=solution.converged,
         iterations=solution.iterations,
+        warnings=warnings,
         bias_m=solution.bias_m,
         details=[{"start": name} if name is not None else {} for name in start_names],
     )
@@ -373,18 +377,20 @@ def _rivals(best_covariance_enu_m2, best_enu_m, best_cost, position_enu_m, cost,
     return eligible & distinct & (cost <= best_cost + AMBIGUITY_COST)
 
 
+def mirror_applies(batch: ProblemBatch) -> np.ndarray:
+    """``(B,)``: where a fix's mirror image through its stations' plane may fit as well (:func:`mirror_points`):
+    unconstrained problems without an elevation (ranges, TOAs and azimuths cannot tell a point from its mirror
+    through the plane of nearly coplanar stations)."""
+    return ~batch.constrained & ~(batch.valid & (batch.kinds == ELEVATION)).any(axis=-1)
+
+
 def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
-    """Each position reflected through its stations' plane ``(B, 3)``, where that mirror image may fit as
-    well: unconstrained problems without an elevation (ranges, TOAs and azimuths cannot tell a point from its
-    mirror through the plane of nearly coplanar stations); NaN rows elsewhere.
+    """Each position reflected through its stations' plane ``(B, 3)`` (where that may fit as well:
+    :func:`mirror_applies`).
 
     The plane is the stations' least-squares plane; with fewer than three stations, or collinear ones, the
     most horizontal plane through them.
     """
-    elevation = np.any(batch.valid & (batch.kinds == ELEVATION), axis=-1)
-    applies = ~batch.constrained & ~elevation
-    if not np.any(applies):
-        return np.full((batch.size, 3), np.nan)
     present = np.arange(batch.stations_enu_m.shape[1])[None, :] < batch.n_stations[:, None]
     centroid = np.sum(np.where(present[..., None], batch.stations_enu_m, 0.0), axis=1) / batch.n_stations[:, None]
     spread, axes, _ = jacobi_svd(np.where(present[..., None], batch.stations_enu_m - centroid[:, None, :], 0.0))
@@ -396,8 +402,7 @@ def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     horizontal = up - np.sum(line * up, axis=-1)[:, None] * line
     normal = np.where(flat[:, None], horizontal / np.linalg.norm(horizontal, axis=-1, keepdims=True), normal)
     height = np.einsum("bi,bi->b", positions_enu_m - centroid, normal)
-    mirrored = positions_enu_m - 2.0 * height[:, None] * normal
-    return np.where(applies[:, None], mirrored, np.nan)
+    return positions_enu_m - 2.0 * height[:, None] * normal
 
 
 def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None) -> tuple[np.ndarray, np.ndarray]:
@@ -510,15 +515,15 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     or is implausible (chi-square p below ``IMPLAUSIBLE_P``: the start sat in another basin), ML from the
     geometry's candidates too, keeping the lower cost when that fit is plausible itself."""
     starts, names, failures = initial_positions(batch)
-    missing = ~np.all(np.isfinite(starts), axis=-1)
+    missing = ~np.isfinite(starts).all(axis=-1)
     solution = iterate(batch, np.where(missing[:, None], batch.stations_enu_m[:, 0] + [0.0, 0.0, 1.0], starts),
                        options)
-    dof = np.count_nonzero(batch.valid & np.isfinite(batch.sigmas), axis=-1) - (
+    dof = (batch.valid & np.isfinite(batch.sigmas)).sum(axis=-1) - (
         np.where(batch.constrained, 2, 3) + batch.has_toa)
-    implausible = chdtrc(np.maximum(dof, 1), solution.cost) < IMPLAUSIBLE_P
-    retry = missing | ~solution.converged | implausible
+    p_value = chdtrc(np.maximum(dof, 1), solution.cost)
+    retry = missing | ~solution.converged | (p_value < IMPLAUSIBLE_P)
     warnings: list[tuple] = [()] * batch.size
-    if np.any(retry):
+    if retry.any():
         rows = np.flatnonzero(retry)
         earlier = np.where(missing[rows, None], np.nan, solution.position_enu_m[rows])
         found, rival = searched_starts(batch.take(rows), options, earlier)
@@ -535,15 +540,17 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
                     getattr(solution, name)[b] = getattr(again, name)[j]
             if np.all(np.isfinite(rival[ok][j])):
                 warnings[b] = _ambiguous(batch, b, rival[ok][j], starts, names, failures, solution, options)
+        p_value[rows] = chdtrc(np.maximum(dof[rows], 1), solution.cost[rows])
     # A closed form's (or the search's) fix may have a mirror image that fits as well: try it.
-    plausible = chdtrc(np.maximum(dof, 1), solution.cost) >= IMPLAUSIBLE_P
-    mirrored = mirror_points(batch, solution.position_enu_m)
-    check = np.flatnonzero(~missing & plausible & np.all(np.isfinite(mirrored), axis=-1)
-                           & np.array([not w for w in warnings]))
-    check = np.array([b for b in check.tolist() if b not in failures], dtype=np.intp)
+    check = (mirror_applies(batch) & ~missing & (p_value >= IMPLAUSIBLE_P)).nonzero()[0]
+    check = np.array([b for b in check.tolist() if not warnings[b] and b not in failures], dtype=np.intp)
+    if check.size:
+        mirrored = mirror_points(batch, solution.position_enu_m)[check]
+        finite = np.all(np.isfinite(mirrored), axis=-1)
+        check, mirrored = check[finite], mirrored[finite]
     if check.size:
         part = batch.take(check)
-        image = iterate(part, mirrored[check], options)
+        image = iterate(part, mirrored, options)
         position = image.position_enu_m
         finite = np.all(np.isfinite(position), axis=-1)
         information = batch_information(part, np.where(finite[:, None], position, 0.0))
@@ -557,8 +564,7 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
             if possible[j]:
                 warnings[b] = _ambiguous(batch, b, position[j], starts, names, failures, solution, options)
                 continue
-            starts[b], names[b] = mirrored[b], "mirror"
+            starts[b], names[b] = mirrored[j], "mirror"
             for name in Solution.__dataclass_fields__:
                 getattr(solution, name)[b] = getattr(image, name)[j]
-    estimates = estimate_from(batch, starts, options, names, failures, solution)
-    return replace(estimates, warnings=warnings)
+    return estimate_from(batch, starts, options, names, failures, solution, warnings)

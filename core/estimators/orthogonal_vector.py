@@ -55,6 +55,8 @@ ALTITUDE_ROW_WEIGHT = 1e3
 PINV_CUTOFF = 1e-15
 #: Distances (m) are clamped to at least this in the row weights.
 MIN_DISTANCE_M = 1e-9
+#: A problem's status after :func:`_positions_kernel`: solved, without a used row, or with rank-deficient rows.
+SOLVED, NO_ROWS, RANK_DEFICIENT = 0, 1, 2
 
 
 class Normals(Enum):
@@ -111,21 +113,6 @@ def _noise_scale(position_enu_m, stations_enu_m, rotations, out):
                                     rotations, m)
         horizontal = math.hypot(e, n)
         out[m], out[width + m] = math.hypot(horizontal, u), horizontal
-
-
-class _Rows:
-    """The stacked equations of a batch: measurement ``m``'s ``c`` row at ``m``, its ``c'`` row at ``M + m``."""
-
-    def __init__(self, batch: ProblemBatch, normals: Normals):
-        is_line, elevation, sigma_elevation = batch.lines_of_sight()
-        stations, rotations = batch.measurement_stations()
-        self.rotations = np.ascontiguousarray(rotations, dtype=float)
-        self.stations = np.ascontiguousarray(stations, dtype=float)
-        self.rows, self.rhs, self.used, self.sigma = _rows_kernel(
-            np.ascontiguousarray(is_line), np.ascontiguousarray(batch.values, dtype=float),
-            np.ascontiguousarray(elevation), np.ascontiguousarray(sigma_elevation),
-            np.ascontiguousarray(batch.sigmas, dtype=float), self.stations, self.rotations,
-            normals is not Normals.AZIMUTH_PLANE, normals is not Normals.ELEVATION_PLANE)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -213,10 +200,11 @@ def _least_squares(s, v, projected, lane, out):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitude_m, geodetic, origin_ecef_m,
+def _positions_kernel(rows, rhs, used, sigma, stations, rotations, altitude_m, geodetic, origin_ecef_m,
                       origin_rotation, weighted, passes):
-    """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), which are rank-deficient,
-    and each row's noise per unit angle at the fix (:func:`_noise_scale`; 1 where no fix).
+    """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), its status (``SOLVED``,
+    ``NO_ROWS`` or ``RANK_DEFICIENT``) and each row's noise per unit angle at the fix (:func:`_noise_scale`;
+    1 where no fix).
 
     ``rows`` ``(B, 2M, 3)``: measurement ``m``'s ``c`` row at ``m``, its ``c'`` row at ``M + m``; the known
     altitude's up row is the last of the stacked system (zero weight without one). Rows of zero weight past
@@ -226,7 +214,7 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
     """
     size, count, _ = rows.shape
     position = np.full((size, 3), np.nan)
-    singular = np.zeros(size, dtype=np.bool_)
+    status = np.full(size, NO_ROWS, dtype=np.int8)
     scale = np.ones((size, count))
     w, kept = np.zeros((SVD_LANES, count + 1)), np.empty((SVD_LANES, count + 1), dtype=np.int64)
     stacked, members, order = (np.empty(SVD_LANES, dtype=np.int64), np.empty(SVD_LANES, dtype=np.int64),
@@ -241,9 +229,12 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
     while b < size:
         members_count = 0
         while members_count < SVD_LANES and b < size:
-            if not skip[b]:
-                members[members_count] = b
-                members_count += 1
+            for r in range(count):
+                if used[b, r]:
+                    status[b] = SOLVED
+                    members[members_count] = b
+                    members_count += 1
+                    break
             b += 1
         for i in range(members_count):
             p = members[i]
@@ -312,7 +303,7 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
                     continue
                 i = order[lane]
                 if _least_squares(s, v, projected, lane, x[i]):
-                    singular[members[i]] = True
+                    status[members[i]] = RANK_DEFICIENT
                     active[i] = False
         for i in range(members_count):
             if not active[i]:
@@ -322,7 +313,20 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, skip, altitud
                 onto_altitude_point(x[i], altitude_m[p], geodetic[p], origin_ecef_m[p], origin_rotation[p])
             position[p] = x[i]
             _noise_scale(x[i], stations[p], rotations[p], scale[p])
-    return position, singular, scale
+    return position, status, scale
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _orthogonal_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad, stations_enu_m,
+                       rotations, use_vertical, use_horizontal, altitude_m, geodetic, origin_ecef_m, origin_rotation,
+                       weighted, passes):
+    """:func:`_rows_kernel` then :func:`_positions_kernel`, in one call: the stacked rows, their right-hand
+    sides, which are used and their sigmas, then each problem's fix, its status and each row's noise scale."""
+    rows, rhs, used, sigma = _rows_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad,
+                                          stations_enu_m, rotations, use_vertical, use_horizontal)
+    position, status, scale = _positions_kernel(rows, rhs, used, sigma, stations_enu_m, rotations, altitude_m,
+                                                geodetic, origin_ecef_m, origin_rotation, weighted, passes)
+    return rows, rhs, used, sigma, position, status, scale
 
 
 def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str,
@@ -338,7 +342,7 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     name : str
         The method, for messages.
     with_covariance : bool
-        False skips the propagated covariance (NaN), for a start.
+        False skips the propagated covariance (None), for a start.
     passes : int
         How many times the rows are solved (:data:`PASSES`); a start for ML takes fewer.
 
@@ -350,48 +354,49 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
         UnobservableGeometry.
     """
     size = batch.size
-    eq = _Rows(batch, normals)
-    weighted = weighting is Weighting.FIRST_ORDER
-    errors: dict[int, LocalizationError] = {}
-    for b in np.flatnonzero(~np.any(eq.used, axis=-1)):
-        errors[int(b)] = TooFewMeasurements(f"{name} needs bearings")
-    failed = np.zeros(size, dtype=bool)
-    failed[list(errors)] = True
-
+    is_line, elevation, sigma_elevation = batch.lines_of_sight()
+    stations, rotations = batch.measurement_stations()
     origin_ecef, origin_rotation = batch.frame_placements()
-    position, singular, scale = _positions_kernel(
-        np.ascontiguousarray(eq.rows), np.ascontiguousarray(eq.rhs), np.ascontiguousarray(eq.used),
-        np.ascontiguousarray(eq.sigma), np.ascontiguousarray(eq.stations), np.ascontiguousarray(eq.rotations), failed,
-        np.asarray(batch.altitude_m, dtype=float), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
-        origin_rotation, weighted, int(passes))
-    failed |= singular
-    why = f"{name}: the lines of sight do not determine a point (parallel or too few independent lines)"
-    for b in np.flatnonzero(failed):
-        errors.setdefault(int(b), UnobservableGeometry(why))
-
+    weighted = weighting is Weighting.FIRST_ORDER
+    rows, rhs, used, sigma, position, status, scale = _orthogonal_kernel(
+        is_line, np.ascontiguousarray(batch.values, dtype=float), elevation, sigma_elevation,
+        np.ascontiguousarray(batch.sigmas, dtype=float), np.ascontiguousarray(stations, dtype=float),
+        np.ascontiguousarray(rotations, dtype=float), normals is not Normals.AZIMUTH_PLANE,
+        normals is not Normals.ELEVATION_PLANE, np.asarray(batch.altitude_m, dtype=float),
+        np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef, origin_rotation, weighted, int(passes))
+    errors: dict[int, LocalizationError] = {}
+    failed = status != SOLVED
+    if failed.any():
+        for b in np.flatnonzero(status == NO_ROWS).tolist():
+            errors[b] = TooFewMeasurements(f"{name} needs bearings")
+        why = f"{name}: the lines of sight do not determine a point (parallel or too few independent lines)"
+        for b in np.flatnonzero(status == RANK_DEFICIENT).tolist():
+            errors[b] = UnobservableGeometry(why)
+    if not with_covariance:
+        return Estimates(position_enu_m=position, covariance_source="propagated", errors=errors)
     covariance = np.full((size, 3, 3), np.nan)
-    if with_covariance and not np.all(failed):
+    if not np.all(failed):
         k = _where(~failed)
-        covariance[k] = _propagated_covariance(eq, k, position[k], scale[k], batch.constrained[k], batch, weighted)
+        covariance[k] = _propagated_covariance(rows[k], used[k], sigma[k], position[k], scale[k],
+                                               batch.constrained[k], batch, k, weighted)
     return Estimates(position_enu_m=position, covariance_source="propagated", covariance_enu_m2=covariance,
                      errors=errors)
 
 
-def _propagated_covariance(eq: _Rows, k, position_enu_m, scale, bound, batch: ProblemBatch, weighted: bool):
-    """First-order covariance ``(K, 3, 3)`` of problems ``k`` at their fixes (see the module docstring), given
-    each row's noise per unit angle there ``scale`` ``(K, 2M)``.
+def _propagated_covariance(rows, used, sigma, position_enu_m, scale, bound, batch: ProblemBatch, k, weighted: bool):
+    """First-order covariance ``(K, 3, 3)`` of K problems at their fixes (see the module docstring), from
+    their stacked ``rows`` ``(K, 2M, 3)``, which are ``used`` and their angle ``sigma`` ``(K, 2M)``, given each
+    row's noise per unit angle there ``scale`` ``(K, 2M)``; ``k`` picks the problems out of ``batch``.
 
     A problem with a known altitude is solved over its local east/north
     axes: its rows are expressed in the local axes and the up column is
     zeroed (a zero singular value, dropped like ``np.linalg.pinv`` drops it).
     """
-    used = eq.used[k]
-    noise_sd = eq.sigma[k] * scale
+    noise_sd = sigma * scale
     if weighted:
-        weights = np.where(used, 1.0 / (eq.sigma[k] * np.maximum(scale, MIN_DISTANCE_M)), 0.0)
+        weights = np.where(used, 1.0 / (sigma * np.maximum(scale, MIN_DISTANCE_M)), 0.0)
     else:
         weights = used.astype(float)
-    rows = eq.rows[k]
     axes = np.broadcast_to(np.eye(3), (position_enu_m.shape[0], 3, 3)).copy()
     if np.any(bound):
         c = np.flatnonzero(bound)

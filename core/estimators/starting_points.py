@@ -28,6 +28,9 @@ from core.problem_batch import ProblemBatch
 
 #: Smallest standard deviation (m) of a polar point along any axis.
 MIN_POLAR_SD_M = 1e-9
+#: ... and across its line of sight, at least this share of the range's along it: a range of (nearly) 0 m would
+#: leave a covariance that float64 cannot invert (condition number 1e20 with 10 m along and 1e-9 m across).
+MIN_POLAR_SD_RATIO = 1e-6
 #: Relative singular value below which the trilateration rows are rank-deficient.
 TRILATERATION_RANK_TOLERANCE = 1e-9
 #: Relative singular value below which Bancroft's pseudo-inverse drops a direction (``np.linalg.pinv``'s).
@@ -70,9 +73,11 @@ def station_polar_points(batch: ProblemBatch):
     along = line_of_sight_enu(az, el)
     across_el, across_az = normal_vectors(az, el)
     basis = np.stack([along, across_az, across_el], axis=-1)
-    sd = np.stack([np.sqrt(1.0 / safe_total), range_m * np.cos(el) * batch.sigmas,
+    along_sd = np.sqrt(1.0 / safe_total)
+    sd = np.stack([along_sd, range_m * np.cos(el) * batch.sigmas,
                    range_m * np.where(has_el, sigma_elevation, 1.0)], axis=-1)
-    cov_local = (basis * np.square(np.maximum(sd, MIN_POLAR_SD_M))[..., None, :]) @ np.swapaxes(basis, -1, -2)
+    floor = np.maximum(MIN_POLAR_SD_M, MIN_POLAR_SD_RATIO * along_sd)
+    cov_local = (basis * np.square(np.maximum(sd, floor[..., None]))[..., None, :]) @ np.swapaxes(basis, -1, -2)
     stations, rotations = batch.measurement_stations()
     to_common = np.swapaxes(rotations, -1, -2)
     points = stations + matvec(to_common, range_m[..., None] * along)
@@ -233,7 +238,7 @@ def initial_positions(batch: ProblemBatch):
         if not found.pending.any():
             break
         stage()
-    for b in np.flatnonzero(found.pending).tolist():
+    for b in found.pending.nonzero()[0].tolist():
         found.failures[b] = found.eove_failures.get(b) or TooFewMeasurements(
             "too few measurements for a fix: need bearings from 2 stations, a bearing and a range, "
             "4 TOAs or 3 ranges", ("measurements",))
@@ -255,20 +260,21 @@ class _Starts:
             self.settle(np.arange(batch.size), guessed, "initial_guess", batch.initial_guess_enu_m)
 
     def settle(self, k, found, name, start):
-        self.positions[k[found]] = start[found]
-        for b in k[found].tolist():
+        chosen = k[found]
+        self.positions[chosen] = start[found]
+        for b in chosen.tolist():
             self.names[b] = name
-        self.pending[k[found]] = False
+        self.pending[chosen] = False
 
     def sub(self, k):
         return self.batch if k.size == self.batch.size else self.batch.take(k)
 
     def _pending_with(self, kind, at_least=1):
         batch = self.batch
-        return self.pending & (np.count_nonzero(batch.valid & (batch.kinds == kind), axis=-1) >= at_least)
+        return self.pending & ((batch.valid & (batch.kinds == kind)).sum(axis=-1) >= at_least)
 
     def weighted_eove(self):
-        k = np.flatnonzero(self._pending_with(AZIMUTH))
+        k = self._pending_with(AZIMUTH).nonzero()[0]
         if k.size:
             estimates = solve_orthogonal_batch(self.sub(k), normals=Normals.BOTH, weighting=Weighting.FIRST_ORDER,
                                                name="weighted_eove", with_covariance=False, passes=START_PASSES)
@@ -279,7 +285,7 @@ class _Starts:
             self.settle(k, solved, "weighted_eove", estimates.position_enu_m)
 
     def polar(self):
-        k = np.flatnonzero(self._pending_with(RANGE) & (~np.isnan(self.batch.lines_of_sight()[1])).any(axis=-1))
+        k = (self._pending_with(RANGE) & (~np.isnan(self.batch.lines_of_sight()[1])).any(axis=-1)).nonzero()[0]
         if k.size:
             points, covariances, found = station_polar_points(self.sub(k))
             has = np.any(found, axis=-1)
@@ -289,7 +295,7 @@ class _Starts:
                 self.settle(k, has, "polar", fused)
 
     def bancroft(self):
-        k = np.flatnonzero(self._pending_with(TOA, 4))
+        k = self._pending_with(TOA, 4).nonzero()[0]
         if k.size:
             part = self.sub(k)
             stations, _ = part.measurement_stations()
@@ -302,7 +308,7 @@ class _Starts:
             self.settle(k, ~singular, "bancroft", start)
 
     def trilateration(self):
-        k = np.flatnonzero(self._pending_with(RANGE, 3))
+        k = self._pending_with(RANGE, 3).nonzero()[0]
         if k.size:
             part = self.sub(k)
             stations, _ = part.measurement_stations()

@@ -217,6 +217,19 @@ def test_starts_are_exact_without_noise_and_each_as_alone():
             np.testing.assert_array_equal(alone[0], positions[b])  # the same bits, as responses must be
 
 
+def test_a_zero_range_polar_start_does_not_sink_its_batch():
+    """A bearing and a range of 0 m from one station: its polar covariance (10 m along, 1e-9 m across before
+    MIN_POLAR_SD_RATIO) was singular, and np.linalg.inv raised for the whole batch (a 500 for every request)."""
+    at_station = build_problem(_local([(-1466.9, -1225.0, 0.0)]),
+                               [Bearing("s0", np.deg2rad(358.66), np.deg2rad(-3.23), np.deg2rad(3.0), np.deg2rad(3.0)),
+                                Range("s0", 0.0, 10.0)])
+    far = build_problem(_local([(0.0, 0.0, 0.0)]), [Bearing("s0", 0.5, 0.1, 0.01, 0.01), Range("s0", 20e3, 10.0)])
+    positions, names, failures = initial_positions(ProblemBatch.from_problems([at_station, far]))
+    assert names == ["polar", "polar"] and not failures
+    np.testing.assert_allclose(positions[0], at_station.stations_enu_m[0], atol=0.1)  # range sigma 10 m
+    np.testing.assert_array_equal(positions[1], initial_positions(ProblemBatch.from_problems([far]))[0][0])
+
+
 @pytest.mark.parametrize("method", ["ove", "eove", "weighted_eove"])
 def test_a_problem_gets_the_same_bits_alone_and_padded_in_a_batch(method):
     """Byte-equal responses need bit-equal fixes: neither the batch size nor zero padding may change rounding."""
