@@ -327,8 +327,13 @@ def _position(body, geodetic: bool) -> tuple[float, float, float]:
     return (_number(body["east_m"], _EAST), _number(body["north_m"], _NORTH), _number(body.get("up_m", 0.0), _UP))
 
 
+#: The renderings of a request that asks for none (one object shared by all such requests).
+_PLAIN = Renderings()
+
+
 def _problem_settings(body: dict) -> tuple:
-    """Frame, origin, method, options, guess, altitude and formats of one FixRequest dict (``_Reject`` if unusual)."""
+    """Frame, origin, method, options, guess, altitude and renderings of one FixRequest dict (``_Reject`` if
+    unusual)."""
     frame = body.get("frame", "wgs84")
     if frame != "wgs84" and frame != "local" or "cot" in body or "observed_at" in body:
         raise _Reject
@@ -375,12 +380,11 @@ def _problem_settings(body: dict) -> tuple:
         if type(formats) is not list or len(formats) > 2 or any(type(f) is not str or f not in _FORMATS
                                                                  for f in formats):
             raise _Reject
-        formats = tuple(formats)
-    return geodetic, origin, method, solve, guess, guess_geodetic, altitude, formats
+    return geodetic, origin, method, solve, guess, guess_geodetic, altitude, Renderings(formats) if formats else _PLAIN
 
 
 #: The settings of a body with only frame, method, stations and measurements (see :func:`_problem_settings`).
-_PLAIN_SETTINGS = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, math.nan, ())
+_PLAIN_SETTINGS = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, math.nan, _PLAIN)
                    for frame in ("wgs84", "local") for method in _METHODS}
 
 
@@ -395,20 +399,23 @@ def _read(bodies: list):
     station_ids : list of tuple of str
     coordinates : list
         Raw station position values, API units, three per station, flattened.
-    scalars : list
-        Raw scalar measurements, API units, six per measurement (kind, station, value, sigma,
-        bearing, source), flattened; a missing azimuth sigma is NaN.
+    scalars : list of int
+        The scalar measurements' structure, four per measurement (kind, station, bearing, source),
+        flattened.
+    readings : list
+        Their raw values, API units, two per measurement (value, sigma), flattened; a missing azimuth
+        sigma is NaN.
     rest : list of int
     """
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
-    coordinates, scalars, rest = [], [], []
-    add_coordinates, add_scalar = coordinates.extend, scalars.extend
+    coordinates, scalars, readings, rest = [], [], [], []
+    add_coordinates, add_scalar, add_reading = coordinates.extend, scalars.extend, readings.extend
     geodetic_keys, local_keys, station_keys = _GEODETIC_KEYS, _LOCAL_KEYS, _STATION_KEYS
     bearing_keys, range_keys, toa_keys, id_max = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX
     nan = math.nan
     plain = _PLAIN_SETTINGS
     for slot, body in enumerate(bodies):
-        n_coordinates, n_scalars = len(coordinates), len(scalars)
+        n_coordinates, n_scalars, n_readings = len(coordinates), len(scalars), len(readings)
         try:
             if type(body) is not dict:
                 raise _Reject
@@ -457,36 +464,39 @@ def _read(bodies: list):
                     if not m.keys() <= bearing_keys:
                         raise _Reject
                     sigma_azimuth = m.get("sigma_azimuth_deg")
-                    add_scalar((_AZ, station, m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth,
-                                n_bearings, i))
+                    add_scalar((_AZ, station, n_bearings, i))
+                    add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth))
                     elevation, sigma_elevation = m.get("elevation_deg"), m.get("sigma_elevation_deg")
                     if elevation is not None:
                         if sigma_elevation is None:
                             raise _Reject
-                        add_scalar((_EL, station, elevation, sigma_elevation, n_bearings, i))
+                        add_scalar((_EL, station, n_bearings, i))
+                        add_reading((elevation, sigma_elevation))
                     elif sigma_elevation is not None:
                         raise _Reject
                     n_bearings += 1
                 elif kind == "range":
                     if m.keys() != range_keys:
                         raise _Reject
-                    add_scalar((_RG, station, m["range_m"], m["sigma_m"], -1, i))
+                    add_scalar((_RG, station, -1, i))
+                    add_reading((m["range_m"], m["sigma_m"]))
                 elif kind == "toa":
                     if m.keys() != toa_keys:
                         raise _Reject
-                    add_scalar((_TOA, station, m["toa_s"], m["sigma_s"], -1, i))
+                    add_scalar((_TOA, station, -1, i))
+                    add_reading((m["toa_s"], m["sigma_s"]))
                 else:
                     raise _Reject
         except (_Reject, KeyError, TypeError):
-            del coordinates[n_coordinates:], scalars[n_scalars:]
+            del coordinates[n_coordinates:], scalars[n_scalars:], readings[n_readings:]
             rest.append(slot)
             continue
         accepted.append(slot)
         settings.append(setting)
         station_counts.append(len(ids))
         station_ids.append(tuple(ids))
-        measurement_counts.append((len(scalars) - n_scalars) // 6)
-    return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, rest
+        measurement_counts.append((len(scalars) - n_scalars) // 4)
+    return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest
 
 
 def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -495,8 +505,12 @@ def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
     JSON numbers convert as pydantic converts them; a row with anything else (a boolean, which the strict
     schema refuses, a string, null, a list, a huge integer) is marked for the full path.
     """
+    types = set(map(type, flat))
     try:
-        table = np.array(flat) if flat and bool not in set(map(type, flat)) else None
+        if types == {float}:
+            table = np.array(flat, dtype=float)
+        else:
+            table = np.array(flat) if flat and bool not in types else None
     except ValueError:  # a list where a number belongs: ragged
         table = None
     if table is not None and table.dtype.kind in "fiu":
@@ -548,7 +562,8 @@ def read_fix_requests(bodies: list) -> FixRequests:
     Any other body is validated by the schema and built by :func:`to_problem`,
     which decide and word its error, and joins the same batch.
     """
-    accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, rest = _read(bodies)
+    accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest = \
+        _read(bodies)
     errors: dict[int, dict] = {}
     lean = None
     if accepted:
@@ -558,9 +573,10 @@ def read_fix_requests(bodies: list) -> FixRequests:
         scalar_owner = np.repeat(np.arange(len(accepted)), measurement_counts)
         geodetic = np.array([s[0] for s in settings], dtype=bool)
         coords, coords_ok = _numeric(coordinates, 3)
-        table, scalars_ok = _numeric(scalars, 6)
+        table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
+        reading, scalars_ok = _numeric(readings, 2)
         kinds = table[:, 0].astype(np.int8)
-        values, sigmas = table[:, 2], table[:, 3]
+        values, sigmas = reading[:, 0], reading[:, 1]
         on_earth = geodetic[station_owner]
         coords_ok &= _within(coords, _COORDINATE_BOUNDS[on_earth.astype(np.intp)]).all(axis=-1)
         is_az, is_el = kinds == _AZ, kinds == _EL
@@ -579,7 +595,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
             station_counts, measurement_counts, geodetic = station_counts[keep], measurement_counts[keep], geodetic[keep]
             coords, on_earth = coords[station_keep], on_earth[station_keep]
             table, kinds, is_az, is_el = table[scalar_keep], kinds[scalar_keep], is_az[scalar_keep], is_el[scalar_keep]
-            values, sigmas = table[:, 2], table[:, 3]
+            values, sigmas = values[scalar_keep], sigmas[scalar_keep]
         if accepted:
             coords = np.where(on_earth[:, None], np.concatenate([np.radians(coords[:, :2]), coords[:, 2:]], axis=-1),
                               coords)
@@ -592,11 +608,11 @@ def read_fix_requests(bodies: list) -> FixRequests:
                 origin=np.array([s[1] for s in settings], dtype=float),
                 measurement_counts=measurement_counts,
                 kinds=kinds,
-                station_index=table[:, 1].astype(np.intp),
+                station_index=table[:, 1],
                 values=np.where(angle, np.radians(values), values),
                 sigmas=np.where(angle, np.radians(sigmas), sigmas),
-                bearing_index=table[:, 4].astype(np.intp),
-                source_index=table[:, 5].astype(np.intp),
+                bearing_index=table[:, 2],
+                source_index=table[:, 3],
                 altitude_m=np.array([s[6] for s in settings], dtype=float),
                 initial_guess=np.array([s[4] for s in settings], dtype=float),
                 geodetic_guess=np.array([s[5] for s in settings], dtype=bool),
@@ -604,7 +620,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
     slots = list(accepted)
     methods = [s[2] for s in settings]
     options = [s[3] for s in settings]
-    formats = [Renderings(s[7]) for s in settings]
+    formats = [s[7] for s in settings]
     built: list[Problem] = []
     for slot in rest:
         try:
