@@ -10,11 +10,15 @@ tests check that every response validates against it.
 
 from __future__ import annotations
 
+import functools
 import math
+import re
 import typing
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+import orjson
 from pydantic import ValidationError
 
 from core import geodesy
@@ -32,6 +36,7 @@ from service.limits import check_grid, fix_within_limit
 from service.maps import coverage_geojson, coverage_png
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
+from service.responses import JsonObject
 
 _AZ, _EL, _RG, _TOA = int(Kind.AZIMUTH), int(Kind.ELEVATION), int(Kind.RANGE), int(Kind.TOA)
 
@@ -664,14 +669,162 @@ def error_summaries(covariance_enu_m2):
                             for f in parts[0].__dataclass_fields__))
 
 
+#: A template's slot marker, written raw: the slot's number between NUL bytes, which orjson never writes
+#: (it escapes control characters in strings, station ids included).
+_SLOT = re.compile(rb"\x00(\d+)\x00")
+_NUMPY = orjson.OPT_SERIALIZE_NUMPY
+_MAX = np.finfo(np.float64).max
+#: The value blocks of a fix body, in their order in :func:`fix_bodies`' spans; the first eleven are floats.
+_BLOCKS = ("position", "covariance", "crlb", "error", "residual", "normalized", "fit", "geodetic", "ecef",
+           "covariance_ecef", "coarse", "warnings", "bearing_errors")
+
+
+@dataclass(frozen=True)
+class _Template:
+    """The JSON text of the fix bodies of one structure: constant pieces around value slots.
+
+    Attributes
+    ----------
+    pieces : bytes
+        The ``S + 1`` constant pieces (before, between and after the slots), joined.
+    piece_starts, piece_lengths : ndarray of int, shape ``(S + 1,)``
+        Where each piece is in ``pieces``.
+    blocks, columns : ndarray of int, shape ``(S,)``
+        What fills each slot: a block (index into ``_BLOCKS``) and its column.
+    """
+
+    pieces: bytes
+    piece_starts: np.ndarray
+    piece_lengths: np.ndarray
+    blocks: np.ndarray
+    columns: np.ndarray
+
+
+@functools.lru_cache(maxsize=1024)
+def _fix_template(method: str, source: str, residuals: tuple, dof: int, converged: bool, iterations: int,
+                  geodetic: bool, coarse: bool, bearing_errors: bool) -> _Template:
+    """The template of the fix bodies of one structure.
+
+    The body is the FixResponse dict with the structure's own values in place and a marker for each
+    value of the fix (positions, covariances, error figures, residual values, warnings...);
+    orjson writes it and the text is cut at the markers.
+
+    Parameters
+    ----------
+    method, source : str
+        The ``method`` and ``covariance_source`` of the fixes.
+    residuals : tuple of (str, int, str, bool, bool)
+        Per residual: station id, measurement index, component, used, excluded.
+    dof, iterations : int
+    converged, geodetic, coarse, bearing_errors : bool
+        The fix converged; it has a geodetic position, a coarse stage, estimated bearing errors.
+    """
+    names: list[tuple[str, int]] = []
+
+    def slot(block: str, column: int = 0) -> orjson.Fragment:
+        names.append((block, column))
+        return orjson.Fragment(b"\x00%d\x00" % (len(names) - 1))
+
+    def matrix(block: str) -> list:
+        return [[slot(block, 3 * i + j) for j in range(3)] for i in range(3)]
+
+    def enu(block: str) -> dict:
+        return {"east_m": slot(block, 0), "north_m": slot(block, 1), "up_m": slot(block, 2)}
+
+    body = {
+        "method": method,
+        "position_local": enu("position"),
+        "covariance_enu_m2": matrix("covariance"),
+        "covariance_source": source,
+        "crlb_enu_m2": matrix("crlb"),
+        "error": {
+            "cep50_m": slot("error", 0), "sep50_m": slot("error", 1), "vertical_sigma_m": slot("error", 2),
+            "gdop": slot("error", 3), "sqrt_trace_m": slot("error", 4),
+            "ellipse95": {"semi_major_m": slot("error", 5), "semi_minor_m": slot("error", 6),
+                          "orientation_deg": slot("error", 7)},
+        },
+        "residuals": [
+            {"station_id": station, "measurement_index": index, "component": component,
+             "residual": slot("residual", m), "normalized": slot("normalized", m), "used": used,
+             "excluded": excluded}
+            for m, (station, index, component, used, excluded) in enumerate(residuals)
+        ],
+        "fit": {"chi2": slot("fit", 0), "dof": dof, "p_value": slot("fit", 1), "sigma_scale": slot("fit", 2)},
+        "converged": converged,
+        "iterations": iterations,
+        "warnings": slot("warnings"),
+    }
+    if geodetic:
+        body["position"] = {"lat_deg": slot("geodetic", 0), "lon_deg": slot("geodetic", 1),
+                            "alt_m": slot("geodetic", 2)}
+        body["position_ecef_m"] = [slot("ecef", i) for i in range(3)]
+        body["covariance_ecef_m2"] = matrix("covariance_ecef")
+    if coarse:
+        body["stages"] = {"coarse": enu("coarse")}
+    if bearing_errors:
+        body["estimated_bearing_errors_deg"] = slot("bearing_errors")
+    parts = _SLOT.split(orjson.dumps(body))
+    slots = [names[int(i)] for i in parts[1::2]]
+    pieces, piece_starts, piece_lengths = _text_spans(parts[0::2])
+    return _Template(pieces, piece_starts, piece_lengths,
+                     np.array([_BLOCKS.index(block) for block, _ in slots], dtype=np.intp),
+                     np.array([column for _, column in slots], dtype=np.intp))
+
+
+@functools.lru_cache(maxsize=64)
+def _first_columns(width: int) -> np.ndarray:
+    """The first column of each of ``_BLOCKS`` among a fix's values, with ``width`` residual columns."""
+    return np.cumsum([0, 3, 9, 9, 8, width, width, 3, 3, 3, 9, 3, 1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _number_spans(text, starts, lengths):
+    """Where each number of orjson's text of a flat array of ``N > 0`` numbers (``[a,b,...]``) is.
+
+    Parameters
+    ----------
+    text : ndarray of uint8
+    starts, lengths : ndarray of int, shape ``(N,)``
+        Filled with each number's first byte in ``text`` and its length.
+    """
+    k = 0
+    start = 1
+    for i in range(1, text.size):
+        if text[i] == 44 or text[i] == 93:  # the comma after a number, or the closing bracket
+            starts[k] = start
+            lengths[k] = i - start
+            k += 1
+            start = i + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _copy_spans(source, starts, lengths, out):
+    """Copy the spans ``source[starts[i]:starts[i] + lengths[i]]`` ``(N,)`` one after another into ``out``."""
+    k = 0
+    for i in range(starts.size):
+        start = starts[i]
+        for j in range(lengths[i]):
+            out[k + j] = source[start + j]
+        k += lengths[i]
+
+
+def _text_spans(texts: list) -> tuple[bytes, np.ndarray, np.ndarray]:
+    """``texts`` joined, and where each one is in the join: ``(joined, starts (N,), lengths (N,))``."""
+    lengths = np.fromiter(map(len, texts), dtype=np.int64, count=len(texts))
+    return b"".join(texts), np.cumsum(lengths) - lengths, lengths
+
+
 def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     """Response bodies of a :class:`core.estimators.FixBatch`: a fix body, or the problem body of its error.
 
     Conversions (error summaries, geodetic positions, ECEF covariances,
-    degrees) run once over the batch; only the dicts are built per fix. The
-    matrices and the ECEF position are numpy views (orjson's
-    ``OPT_SERIALIZE_NUMPY`` writes them byte for byte as it writes lists), which
-    spares some fifty Python objects per fix.
+    degrees) run once over the batch, and so does writing their numbers as
+    JSON text (one orjson call). Fixes of one structure (the residuals'
+    stations, components and flags, the frame, stages...) share a template
+    (:func:`_fix_template`); every body is then one run of spans of the
+    templates' constant text and the numbers' text, all copied at once
+    (numpy): no Python object per value. A fix asking for renderings is
+    read back from its text to make them.
 
     Parameters
     ----------
@@ -681,7 +834,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     Returns
     -------
     list of dict
-        ``{"ok": True, "fix": body}`` or ``{"ok": False, "error": problem body}`` per problem.
+        ``{"ok": True, "fix": JsonObject}`` or ``{"ok": False, "error": problem body}`` per problem.
     """
     batch = fixes.problems
     size = batch.size
@@ -689,88 +842,104 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     position = np.where(ok[:, None], fixes.position_enu_m, 0.0)
     covariance = np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0)
     summary = error_summaries(covariance)
-    geodetic = batch.geodetic
     origin_ecef, rotation = batch.frame_placements()
     ecef = geodesy.enu_to_ecef_placed(position, origin_ecef, rotation)
     lat, lon, alt = geodesy.ecef_to_geodetic(ecef)
     covariance_ecef = np.swapaxes(rotation, -1, -2) @ covariance @ rotation
-
-    position_l = position.tolist()
-    covariance_l = list(np.ascontiguousarray(covariance))
-    crlb_l = list(np.ascontiguousarray(fixes.crlb_enu_m2))
-    ecef_l = list(np.ascontiguousarray(ecef))
-    covariance_ecef_l = list(np.ascontiguousarray(covariance_ecef))
-    lat_l, lon_l, alt_l = np.degrees(lat).tolist(), np.degrees(lon).tolist(), alt.tolist()
-    cep, sep = summary.cep50_m.tolist(), summary.sep50_m.tolist()
-    vertical, sqrt_trace = summary.vertical_sigma_m.tolist(), summary.gdop_m.tolist()
-    gdops = [v if math.isfinite(v) else None for v in fixes.gdop.tolist()]
-    major, minor = summary.ellipse_semi_major_m.tolist(), summary.ellipse_semi_minor_m.tolist()
-    orientation = np.degrees(summary.ellipse_orientation_rad).tolist()
     is_angle = (batch.kinds == _AZ) | (batch.kinds == _EL)
-    residual_l = np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals).tolist()
-    normalized_l = fixes.normalized_residuals.tolist()
-    used_l, excluded_l = fixes.used.tolist(), fixes.excluded.tolist()
-    component_l = [[KIND_NAMES[k] for k in row] for row in batch.kinds.tolist()]
-    station_l = batch.station_index.tolist()
-    source_l = batch.source_index.tolist()
-    counts = batch.n_measurements.tolist()
-    chi2, dof = fixes.chi2.tolist(), fixes.dof.tolist()
-    p_value = [None if math.isnan(v) else v for v in fixes.p_value.tolist()]
-    sigma_scale = [None if math.isnan(v) else v for v in fixes.sigma_scale.tolist()]
-    converged, iterations = fixes.converged.tolist(), fixes.iterations.tolist()
     coarse = fixes.coarse_position_enu_m
-    has_coarse = (~np.isnan(coarse[:, 0])).tolist()
-    coarse_l = np.nan_to_num(coarse).tolist()
-    geodetic_l = geodetic.tolist()
-    method, source = fixes.method, fixes.covariance_source
+    bearing_errors = [None if e is None else orjson.dumps(np.degrees(e).tolist())
+                      for e in fixes.estimated_bearing_errors_rad]
 
+    # The text of every value and where it is, columns by block in _BLOCKS' order: the numbers, then the
+    # warnings and the bearing errors (one text each per fix).
+    numbers = np.concatenate([
+        position, covariance.reshape(size, 9), fixes.crlb_enu_m2.reshape(size, 9), summary.cep50_m[:, None],
+        summary.sep50_m[:, None], summary.vertical_sigma_m[:, None], fixes.gdop[:, None], summary.gdop_m[:, None],
+        summary.ellipse_semi_major_m[:, None], summary.ellipse_semi_minor_m[:, None],
+        np.degrees(summary.ellipse_orientation_rad)[:, None],
+        np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals), fixes.normalized_residuals,
+        fixes.chi2[:, None], fixes.p_value[:, None], fixes.sigma_scale[:, None], np.degrees(lat)[:, None],
+        np.degrees(lon)[:, None], alt[:, None], ecef, covariance_ecef.reshape(size, 9), np.where(np.isnan(coarse), 0.0, np.minimum(np.maximum(coarse, -_MAX), _MAX)),
+    ], axis=-1, dtype=np.float64)
+    width = batch.kinds.shape[1]
+    first_column = _first_columns(width)
+    number_text = orjson.dumps(numbers.ravel(), option=_NUMPY)
+    text, text_starts, text_lengths = _text_spans(
+        [orjson.dumps([{"code": w.code, "message": w.message} for w in warnings]) if warnings else b"[]"
+         for warnings in fixes.warnings] + [e or b"" for e in bearing_errors])
+    number_starts, number_lengths = np.empty(numbers.size, dtype=np.int64), np.empty(numbers.size, dtype=np.int64)
+    if numbers.size:
+        _number_spans(np.frombuffer(number_text, dtype=np.uint8), number_starts, number_lengths)
+    value_starts = np.concatenate([number_starts.reshape(size, -1),
+                                   (text_starts + len(number_text)).reshape(2, size).T], axis=-1)
+    value_lengths = np.concatenate([number_lengths.reshape(size, -1), text_lengths.reshape(2, size).T], axis=-1)
+    sources = [number_text, text]
+
+    # Fixes of one structure share a template. The structure as a row of integers groups them (padding
+    # columns included: rows that differ only there make two groups of one template).
+    staged = ~np.isnan(coarse[:, 0])
+    has_bearing_errors = np.array([e is not None for e in bearing_errors], dtype=bool)
+    structure = np.concatenate([
+        batch.n_measurements[:, None], fixes.dof[:, None], fixes.converged[:, None], fixes.iterations[:, None],
+        batch.geodetic[:, None], staged[:, None], has_bearing_errors[:, None], batch.station_index,
+        batch.source_index, batch.kinds, fixes.used, fixes.excluded], axis=-1, dtype=np.int64)
+    rows = np.flatnonzero(ok)
+    keys = structure[rows].view(f"V{structure.shape[1] * 8}").ravel()
+    groups: dict[tuple, list[int]] = {}
+    for b, key in zip(rows.tolist(), keys.tolist()):
+        groups.setdefault((key, batch.station_ids[b]), []).append(b)
+
+    # Each body as spans (start in the joined sources, length): template pieces and values in turn.
+    order, span_starts, span_lengths = [], [], []
+    offset = len(number_text) + len(text)
+    for members in groups.values():
+        r = members[0]
+        n, ids = int(batch.n_measurements[r]), batch.station_ids[r]
+        residuals = tuple(zip([ids[s] for s in batch.station_index[r, :n].tolist()], batch.source_index[r, :n].tolist(),
+                              [KIND_NAMES[k] for k in batch.kinds[r, :n].tolist()], fixes.used[r, :n].tolist(),
+                              fixes.excluded[r, :n].tolist()))
+        template = _fix_template(fixes.method, fixes.covariance_source, residuals, int(fixes.dof[r]),
+                                 bool(fixes.converged[r]), int(fixes.iterations[r]), bool(batch.geodetic[r]),
+                                 bool(staged[r]), bool(has_bearing_errors[r]))
+        sources.append(template.pieces)
+        at = np.array(members)[:, None]
+        columns = first_column[template.blocks] + template.columns
+        starts = np.empty((len(members), 2 * len(columns) + 1), dtype=np.int64)
+        lengths = np.empty_like(starts)
+        starts[:, 0::2] = template.piece_starts + offset
+        lengths[:, 0::2] = template.piece_lengths
+        starts[:, 1::2] = value_starts[at, columns]
+        lengths[:, 1::2] = value_lengths[at, columns]
+        offset += len(template.pieces)
+        order += members
+        span_starts.append(starts.ravel())
+        span_lengths.append(lengths)
+    texts: list[bytes | None] = [None] * size
+    if order:
+        lengths = np.concatenate([x.ravel() for x in span_lengths])
+        written = np.empty(int(lengths.sum()), dtype=np.uint8)
+        _copy_spans(np.frombuffer(b"".join(sources), dtype=np.uint8), np.concatenate(span_starts), lengths, written)
+        written = written.tobytes()
+        body_ends = np.cumsum(np.concatenate([x.sum(axis=1) for x in span_lengths])).tolist()
+        for b, start, end in zip(order, [0] + body_ends[:-1], body_ends):
+            texts[b] = written[start:end]
+
+    known = {"method": fixes.method}
     out: list[dict] = []
-    for b in range(size):
-        if not ok[b]:
+    for b, text in enumerate(texts):
+        if text is None:
             out.append({"ok": False, "error": localization_problem(fixes.errors[b])})
             continue
-        p = position_l[b]
-        ids = batch.station_ids[b]
-        stations, components, sources = station_l[b], component_l[b], source_l[b]
-        res, nres, used, excluded = residual_l[b], normalized_l[b], used_l[b], excluded_l[b]
-        body = {
-            "method": method,
-            "position_local": {"east_m": p[0], "north_m": p[1], "up_m": p[2]},
-            "covariance_enu_m2": covariance_l[b],
-            "covariance_source": source,
-            "crlb_enu_m2": crlb_l[b],
-            "error": {
-                "cep50_m": cep[b], "sep50_m": sep[b], "vertical_sigma_m": vertical[b], "gdop": gdops[b],
-                "sqrt_trace_m": sqrt_trace[b],
-                "ellipse95": {"semi_major_m": major[b], "semi_minor_m": minor[b], "orientation_deg": orientation[b]},
-            },
-            "residuals": [
-                {"station_id": ids[stations[m]], "measurement_index": sources[m], "component": components[m],
-                 "residual": res[m], "normalized": nres[m], "used": used[m], "excluded": excluded[m]}
-                for m in range(counts[b])
-            ],
-            "fit": {"chi2": chi2[b], "dof": dof[b], "p_value": p_value[b], "sigma_scale": sigma_scale[b]},
-            "converged": converged[b],
-            "iterations": iterations[b],
-            "warnings": [{"code": w.code, "message": w.message} for w in fixes.warnings[b]],
-        }
-        if geodetic_l[b]:
-            body["position"] = {"lat_deg": lat_l[b], "lon_deg": lon_l[b], "alt_m": alt_l[b]}
-            body["position_ecef_m"] = ecef_l[b]
-            body["covariance_ecef_m2"] = covariance_ecef_l[b]
-        if has_coarse[b]:
-            c = coarse_l[b]
-            body["stages"] = {"coarse": {"east_m": c[0], "north_m": c[1], "up_m": c[2]}}
-        bearing_errors = fixes.estimated_bearing_errors_rad[b]
-        if bearing_errors is not None:
-            body["estimated_bearing_errors_deg"] = np.degrees(bearing_errors).tolist()
         wanted = formats[b]
         if wanted:
+            body = orjson.loads(text)
             if "geojson" in wanted:
                 body["geojson"] = fix_geojson(body, wanted)
             if "cot" in wanted:
                 body["cot"] = fix_cot(body, wanted)
-        out.append({"ok": True, "fix": body})
+            text = orjson.dumps(body)
+        out.append({"ok": True, "fix": JsonObject(text, known)})
     return out
 
 
