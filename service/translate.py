@@ -469,16 +469,18 @@ def _read(bodies: list):
                     if not m.keys() <= bearing_keys:
                         raise _Reject
                     sigma_azimuth = m.get("sigma_azimuth_deg")
-                    add_scalar((_AZ, station, n_bearings, i))
-                    add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth))
                     elevation, sigma_elevation = m.get("elevation_deg"), m.get("sigma_elevation_deg")
                     if elevation is not None:
                         if sigma_elevation is None:
                             raise _Reject
-                        add_scalar((_EL, station, n_bearings, i))
-                        add_reading((elevation, sigma_elevation))
+                        add_scalar((_AZ, station, n_bearings, i, _EL, station, n_bearings, i))
+                        add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth, elevation,
+                                     sigma_elevation))
                     elif sigma_elevation is not None:
                         raise _Reject
+                    else:
+                        add_scalar((_AZ, station, n_bearings, i))
+                        add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth))
                     n_bearings += 1
                 elif kind == "range":
                     if m.keys() != range_keys:
@@ -674,9 +676,10 @@ def error_summaries(covariance_enu_m2):
 _SLOT = re.compile(rb"\x00(\d+)\x00")
 _NUMPY = orjson.OPT_SERIALIZE_NUMPY
 _MAX = np.finfo(np.float64).max
-#: The value blocks of a fix body, in their order in :func:`fix_bodies`' spans; the first eleven are floats.
-_BLOCKS = ("position", "covariance", "crlb", "error", "residual", "normalized", "fit", "geodetic", "ecef",
-           "covariance_ecef", "coarse", "warnings", "bearing_errors")
+#: The value blocks of a fix body, in their order among its values in :func:`fix_bodies` (the first eleven are
+#: numbers), and their widths (``None``: one per residual).
+_BLOCKS = {"position": 3, "covariance": 9, "crlb": 9, "error": 8, "residual": None, "normalized": None, "fit": 3,
+           "geodetic": 3, "ecef": 3, "covariance_ecef": 9, "coarse": 3, "warnings": 1, "bearing_errors": 1}
 
 
 @dataclass(frozen=True)
@@ -689,20 +692,19 @@ class _Template:
         The ``S + 1`` constant pieces (before, between and after the slots), joined.
     piece_starts, piece_lengths : ndarray of int, shape ``(S + 1,)``
         Where each piece is in ``pieces``.
-    blocks, columns : ndarray of int, shape ``(S,)``
-        What fills each slot: a block (index into ``_BLOCKS``) and its column.
+    columns : ndarray of int, shape ``(S,)``
+        The value that fills each slot: its column among a fix's values.
     """
 
     pieces: np.ndarray
     piece_starts: np.ndarray
     piece_lengths: np.ndarray
-    blocks: np.ndarray
     columns: np.ndarray
 
 
 @functools.lru_cache(maxsize=1024)
-def _fix_template(method: str, source: str, residuals: tuple, dof: int, converged: bool, iterations: int,
-                  geodetic: bool, coarse: bool, bearing_errors: bool) -> _Template:
+def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: int, converged: bool,
+                  iterations: int, geodetic: bool, coarse: bool, bearing_errors: bool) -> _Template:
     """The template of the fix bodies of one structure.
 
     The body is the FixResponse dict with the structure's own values in place and a marker for each
@@ -711,6 +713,8 @@ def _fix_template(method: str, source: str, residuals: tuple, dof: int, converge
 
     Parameters
     ----------
+    width : int
+        Residual columns among a fix's values (the batch's widest problem).
     method, source : str
         The ``method`` and ``covariance_source`` of the fixes.
     residuals : tuple of (str, int, str, bool, bool)
@@ -765,16 +769,11 @@ def _fix_template(method: str, source: str, residuals: tuple, dof: int, converge
         body["estimated_bearing_errors_deg"] = slot("bearing_errors")
     parts = _SLOT.split(orjson.dumps(body))
     slots = [names[int(i)] for i in parts[1::2]]
+    widths = [width if w is None else w for w in _BLOCKS.values()]
+    first = dict(zip(_BLOCKS, np.cumsum([0, *widths[:-1]]).tolist()))
     pieces, piece_starts, piece_lengths = _text_spans(parts[0::2])
     return _Template(np.frombuffer(pieces, dtype=np.uint8), piece_starts, piece_lengths,
-                     np.array([_BLOCKS.index(block) for block, _ in slots], dtype=np.intp),
-                     np.array([column for _, column in slots], dtype=np.intp))
-
-
-@functools.lru_cache(maxsize=64)
-def _first_columns(width: int) -> np.ndarray:
-    """The first column of each of ``_BLOCKS`` among a fix's values, with ``width`` residual columns."""
-    return np.cumsum([0, 3, 9, 9, 8, width, width, 3, 3, 3, 9, 3, 1])
+                     np.array([first[block] + column for block, column in slots], dtype=np.intp))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -885,10 +884,10 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         np.degrees(summary.ellipse_orientation_rad)[:, None],
         np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals), fixes.normalized_residuals,
         fixes.chi2[:, None], fixes.p_value[:, None], fixes.sigma_scale[:, None], np.degrees(lat)[:, None],
-        np.degrees(lon)[:, None], alt[:, None], ecef, covariance_ecef.reshape(size, 9), np.where(np.isnan(coarse), 0.0, np.minimum(np.maximum(coarse, -_MAX), _MAX)),
+        np.degrees(lon)[:, None], alt[:, None], ecef, covariance_ecef.reshape(size, 9),
+        np.where(np.isnan(coarse), 0.0, np.minimum(np.maximum(coarse, -_MAX), _MAX)),
     ], axis=-1, dtype=np.float64)
     width = batch.kinds.shape[1]
-    first_column = _first_columns(width)
     number_text = orjson.dumps(numbers.ravel(), option=_NUMPY)
     text, text_starts, text_lengths = _text_spans(
         [orjson.dumps([{"code": w.code, "message": w.message} for w in warnings]) if warnings else b"[]"
@@ -922,22 +921,22 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         residuals = tuple(zip([ids[s] for s in batch.station_index[r, :n].tolist()], batch.source_index[r, :n].tolist(),
                               [KIND_NAMES[k] for k in batch.kinds[r, :n].tolist()], fixes.used[r, :n].tolist(),
                               fixes.excluded[r, :n].tolist()))
-        template = _fix_template(fixes.method, fixes.covariance_source, residuals, int(fixes.dof[r]),
+        template = _fix_template(width, fixes.method, fixes.covariance_source, residuals, int(fixes.dof[r]),
                                  bool(fixes.converged[r]), int(fixes.iterations[r]), bool(batch.geodetic[r]),
                                  bool(staged[r]), bool(has_bearing_errors[r]))
-        work.append((template, np.array(members), first_column[template.blocks] + template.columns))
+        work.append((template, np.array(members)))
     texts: list[bytes | None] = [None] * size
     if work:
         values = np.frombuffer(number_text + text, dtype=np.uint8)
-        written = np.empty(sum(len(members) * template.pieces.size for template, members, _ in work)
-                           + int(value_lengths[ok].sum()), dtype=np.uint8)
+        written = np.empty(sum(len(members) * template.pieces.size for template, members in work)
+                           + int(value_lengths.sum()), dtype=np.uint8)
         ends = np.empty(size, dtype=np.int64)
         end = 0
-        for template, members, columns in work:
-            end = _write_bodies(template.pieces, template.piece_starts, template.piece_lengths, columns, members,
-                                values, value_starts, value_lengths, written, end, ends)
+        for template, members in work:
+            end = _write_bodies(template.pieces, template.piece_starts, template.piece_lengths, template.columns,
+                                members, values, value_starts, value_lengths, written, end, ends)
         written = written[:end].tobytes()
-        order = np.concatenate([members for _, members, _ in work]).tolist()
+        order = np.concatenate([members for _, members in work]).tolist()
         body_ends = ends[order].tolist()
         for b, start, stop in zip(order, [0] + body_ends[:-1], body_ends):
             texts[b] = written[start:stop]
