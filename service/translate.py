@@ -3,9 +3,11 @@
 Fix requests, single or batched, take one road: :func:`fix_results` reads
 parsed bodies into one core batch (:func:`read_fix_requests`), solves it with
 :func:`core.estimators.iter_solutions` and writes every fix from the batch's
-arrays (:func:`fix_bodies`). Responses are plain dicts (serialised by
-orjson) rather than re-validated models: the schema documents them and the
-tests check that every response validates against it.
+arrays (:func:`fix_bodies`, which writes each fix body as JSON text, read
+as a mapping on demand: :class:`service.responses.JsonObject`). Responses
+are plain dicts and such texts (serialised by orjson) rather than
+re-validated models: the schema documents them and the tests check that
+every response validates against it.
 """
 
 from __future__ import annotations
@@ -381,10 +383,9 @@ def _problem_settings(body: dict) -> tuple:
         value = constraints.get("altitude_m")
         altitude = math.nan if value is None else _number(value, _ALTITUDE)
     formats = body.get("formats", ())
-    if formats != ():
-        if type(formats) is not list or len(formats) > 2 or any(type(f) is not str or f not in _FORMATS
-                                                                 for f in formats):
-            raise _Reject
+    if formats != () and (type(formats) is not list or len(formats) > 2
+                          or any(type(f) is not str or f not in _FORMATS for f in formats)):
+        raise _Reject
     return geodetic, origin, method, solve, guess, guess_geodetic, altitude, Renderings(formats) if formats else _PLAIN
 
 
