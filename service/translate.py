@@ -406,8 +406,8 @@ def _read(bodies: list):
     coordinates : list
         Raw station position values, API units, three per station, flattened.
     scalars : list of int
-        The scalar measurements' kinds and stations, two per scalar (a bearing with elevation has two
-        scalars), flattened.
+        The scalar measurements' structure, four per measurement (kind, station, bearing, source),
+        flattened.
     readings : list
         Their raw values, API units, two per measurement (value, sigma), flattened; a missing azimuth
         sigma is NaN.
@@ -458,7 +458,8 @@ def _read(bodies: list):
             if type(measurements) is not list or not 0 < len(measurements) <= _MEASUREMENTS_MAX \
                     or not fix_within_limit(len(ids), len(measurements)):
                 raise _Reject
-            for m in measurements:
+            n_bearings = 0
+            for i, m in enumerate(measurements):
                 if type(m) is not dict:
                     raise _Reject
                 kind = m.get("type")
@@ -473,23 +474,24 @@ def _read(bodies: list):
                     if elevation is not None:
                         if sigma_elevation is None:
                             raise _Reject
-                        add_scalar((_AZ, station, _EL, station))
+                        add_scalar((_AZ, station, n_bearings, i, _EL, station, n_bearings, i))
                         add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth, elevation,
                                      sigma_elevation))
                     elif sigma_elevation is not None:
                         raise _Reject
                     else:
-                        add_scalar((_AZ, station))
+                        add_scalar((_AZ, station, n_bearings, i))
                         add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth))
+                    n_bearings += 1
                 elif kind == "range":
                     if m.keys() != range_keys:
                         raise _Reject
-                    add_scalar((_RG, station))
+                    add_scalar((_RG, station, -1, i))
                     add_reading((m["range_m"], m["sigma_m"]))
                 elif kind == "toa":
                     if m.keys() != toa_keys:
                         raise _Reject
-                    add_scalar((_TOA, station))
+                    add_scalar((_TOA, station, -1, i))
                     add_reading((m["toa_s"], m["sigma_s"]))
                 else:
                     raise _Reject
@@ -501,7 +503,7 @@ def _read(bodies: list):
         settings.append(setting)
         station_counts.append(len(ids))
         station_ids.append(tuple(ids))
-        measurement_counts.append((len(scalars) - n_scalars) // 2)
+        measurement_counts.append((len(scalars) - n_scalars) // 4)
     return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest
 
 
@@ -525,27 +527,6 @@ def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
     good = np.array([all(type(v) in (float, int) and abs(v) < 1e300 for v in row) for row in rows], dtype=bool)
     table = np.array([row if ok else [0.0] * width for row, ok in zip(rows, good)], dtype=float).reshape(-1, width)
     return table, good
-
-
-def _scalar_table(kind_station: np.ndarray, counts: np.ndarray, owner: np.ndarray) -> np.ndarray:
-    """Each scalar's kind, station, bearing and source measurement, ``(S, 4)``.
-
-    Parameters
-    ----------
-    kind_station : ndarray of int, shape ``(S, 2)``
-        Problem by problem, in measurement order; a bearing's elevation follows its azimuth.
-    counts : ndarray of int, shape ``(B,)``
-        Scalars per problem (each at least one).
-    owner : ndarray of int, shape ``(S,)``
-        Each scalar's problem.
-    """
-    kinds = kind_station[:, 0]
-    first = (np.cumsum(counts) - counts)[owner]
-    measurement = np.cumsum(kinds != _EL)
-    azimuths = np.cumsum(kinds == _AZ)
-    before = azimuths[first] - (kinds[first] == _AZ)
-    bearing = np.where((kinds == _AZ) | (kinds == _EL), azimuths - 1 - before, -1)
-    return np.stack([kinds, kind_station[:, 1], bearing, measurement - measurement[first]], axis=-1)
 
 
 def _within(values, bounds) -> np.ndarray:
@@ -600,7 +581,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
         scalar_owner = np.repeat(np.arange(len(accepted)), measurement_counts)
         geodetic = np.array([s[0] for s in settings], dtype=bool)
         coords, coords_ok = _numeric(coordinates, 3)
-        table = _scalar_table(np.array(scalars, dtype=np.intp).reshape(-1, 2), measurement_counts, scalar_owner)
+        table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
         reading, scalars_ok = _numeric(readings, 2)
         kinds = table[:, 0].astype(np.int8)
         values, sigmas = reading[:, 0], reading[:, 1]
