@@ -3,18 +3,24 @@
 Fix requests, single or batched, take one road: :func:`fix_results` reads
 parsed bodies into one core batch (:func:`read_fix_requests`), solves it with
 :func:`core.estimators.iter_solutions` and writes every fix from the batch's
-arrays (:func:`fix_bodies`). Responses are plain dicts (serialised by
-orjson) rather than re-validated models: the schema documents them and the
-tests check that every response validates against it.
+arrays (:func:`fix_bodies`, which writes each fix body as JSON text, read
+as a mapping on demand: :class:`service.responses.JsonObject`). Responses
+are plain dicts and such texts (serialised by orjson) rather than
+re-validated models: the schema documents them and the tests check that
+every response validates against it.
 """
 
 from __future__ import annotations
 
+import functools
 import math
+import re
 import typing
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+import orjson
 from pydantic import ValidationError
 
 from core import geodesy
@@ -32,6 +38,7 @@ from service.limits import check_grid, fix_within_limit
 from service.maps import coverage_geojson, coverage_png
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
+from service.responses import JsonObject
 
 _AZ, _EL, _RG, _TOA = int(Kind.AZIMUTH), int(Kind.ELEVATION), int(Kind.RANGE), int(Kind.TOA)
 
@@ -327,8 +334,13 @@ def _position(body, geodetic: bool) -> tuple[float, float, float]:
     return (_number(body["east_m"], _EAST), _number(body["north_m"], _NORTH), _number(body.get("up_m", 0.0), _UP))
 
 
+#: The renderings of a request that asks for none (one object shared by all such requests).
+_PLAIN = Renderings()
+
+
 def _problem_settings(body: dict) -> tuple:
-    """Frame, origin, method, options, guess, altitude and formats of one FixRequest dict (``_Reject`` if unusual)."""
+    """Frame, origin, method, options, guess, altitude and renderings of one FixRequest dict (``_Reject`` if
+    unusual)."""
     frame = body.get("frame", "wgs84")
     if frame != "wgs84" and frame != "local" or "cot" in body or "observed_at" in body:
         raise _Reject
@@ -371,16 +383,14 @@ def _problem_settings(body: dict) -> tuple:
         value = constraints.get("altitude_m")
         altitude = math.nan if value is None else _number(value, _ALTITUDE)
     formats = body.get("formats", ())
-    if formats != ():
-        if type(formats) is not list or len(formats) > 2 or any(type(f) is not str or f not in _FORMATS
-                                                                 for f in formats):
-            raise _Reject
-        formats = tuple(formats)
-    return geodetic, origin, method, solve, guess, guess_geodetic, altitude, formats
+    if formats != () and (type(formats) is not list or len(formats) > 2
+                          or any(type(f) is not str or f not in _FORMATS for f in formats)):
+        raise _Reject
+    return geodetic, origin, method, solve, guess, guess_geodetic, altitude, Renderings(formats) if formats else _PLAIN
 
 
 #: The settings of a body with only frame, method, stations and measurements (see :func:`_problem_settings`).
-_PLAIN_SETTINGS = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, math.nan, ())
+_PLAIN_SETTINGS = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, math.nan, _PLAIN)
                    for frame in ("wgs84", "local") for method in _METHODS}
 
 
@@ -395,20 +405,23 @@ def _read(bodies: list):
     station_ids : list of tuple of str
     coordinates : list
         Raw station position values, API units, three per station, flattened.
-    scalars : list
-        Raw scalar measurements, API units, six per measurement (kind, station, value, sigma,
-        bearing, source), flattened; a missing azimuth sigma is NaN.
+    scalars : list of int
+        The scalar measurements' structure, four per measurement (kind, station, bearing, source),
+        flattened.
+    readings : list
+        Their raw values, API units, two per measurement (value, sigma), flattened; a missing azimuth
+        sigma is NaN.
     rest : list of int
     """
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
-    coordinates, scalars, rest = [], [], []
-    add_coordinates, add_scalar = coordinates.extend, scalars.extend
+    coordinates, scalars, readings, rest = [], [], [], []
+    add_coordinates, add_scalar, add_reading = coordinates.extend, scalars.extend, readings.extend
     geodetic_keys, local_keys, station_keys = _GEODETIC_KEYS, _LOCAL_KEYS, _STATION_KEYS
     bearing_keys, range_keys, toa_keys, id_max = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX
     nan = math.nan
     plain = _PLAIN_SETTINGS
     for slot, body in enumerate(bodies):
-        n_coordinates, n_scalars = len(coordinates), len(scalars)
+        n_coordinates, n_scalars, n_readings = len(coordinates), len(scalars), len(readings)
         try:
             if type(body) is not dict:
                 raise _Reject
@@ -457,36 +470,41 @@ def _read(bodies: list):
                     if not m.keys() <= bearing_keys:
                         raise _Reject
                     sigma_azimuth = m.get("sigma_azimuth_deg")
-                    add_scalar((_AZ, station, m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth,
-                                n_bearings, i))
                     elevation, sigma_elevation = m.get("elevation_deg"), m.get("sigma_elevation_deg")
                     if elevation is not None:
                         if sigma_elevation is None:
                             raise _Reject
-                        add_scalar((_EL, station, elevation, sigma_elevation, n_bearings, i))
+                        add_scalar((_AZ, station, n_bearings, i, _EL, station, n_bearings, i))
+                        add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth, elevation,
+                                     sigma_elevation))
                     elif sigma_elevation is not None:
                         raise _Reject
+                    else:
+                        add_scalar((_AZ, station, n_bearings, i))
+                        add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth))
                     n_bearings += 1
                 elif kind == "range":
                     if m.keys() != range_keys:
                         raise _Reject
-                    add_scalar((_RG, station, m["range_m"], m["sigma_m"], -1, i))
+                    add_scalar((_RG, station, -1, i))
+                    add_reading((m["range_m"], m["sigma_m"]))
                 elif kind == "toa":
                     if m.keys() != toa_keys:
                         raise _Reject
-                    add_scalar((_TOA, station, m["toa_s"], m["sigma_s"], -1, i))
+                    add_scalar((_TOA, station, -1, i))
+                    add_reading((m["toa_s"], m["sigma_s"]))
                 else:
                     raise _Reject
         except (_Reject, KeyError, TypeError):
-            del coordinates[n_coordinates:], scalars[n_scalars:]
+            del coordinates[n_coordinates:], scalars[n_scalars:], readings[n_readings:]
             rest.append(slot)
             continue
         accepted.append(slot)
         settings.append(setting)
         station_counts.append(len(ids))
         station_ids.append(tuple(ids))
-        measurement_counts.append((len(scalars) - n_scalars) // 6)
-    return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, rest
+        measurement_counts.append((len(scalars) - n_scalars) // 4)
+    return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest
 
 
 def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -495,8 +513,12 @@ def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
     JSON numbers convert as pydantic converts them; a row with anything else (a boolean, which the strict
     schema refuses, a string, null, a list, a huge integer) is marked for the full path.
     """
+    types = set(map(type, flat))
     try:
-        table = np.array(flat) if flat and bool not in set(map(type, flat)) else None
+        if types == {float}:
+            table = np.array(flat, dtype=float)
+        else:
+            table = np.array(flat) if flat and bool not in types else None
     except ValueError:  # a list where a number belongs: ragged
         table = None
     if table is not None and table.dtype.kind in "fiu":
@@ -548,7 +570,8 @@ def read_fix_requests(bodies: list) -> FixRequests:
     Any other body is validated by the schema and built by :func:`to_problem`,
     which decide and word its error, and joins the same batch.
     """
-    accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, rest = _read(bodies)
+    accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest = \
+        _read(bodies)
     errors: dict[int, dict] = {}
     lean = None
     if accepted:
@@ -558,9 +581,10 @@ def read_fix_requests(bodies: list) -> FixRequests:
         scalar_owner = np.repeat(np.arange(len(accepted)), measurement_counts)
         geodetic = np.array([s[0] for s in settings], dtype=bool)
         coords, coords_ok = _numeric(coordinates, 3)
-        table, scalars_ok = _numeric(scalars, 6)
+        table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
+        reading, scalars_ok = _numeric(readings, 2)
         kinds = table[:, 0].astype(np.int8)
-        values, sigmas = table[:, 2], table[:, 3]
+        values, sigmas = reading[:, 0], reading[:, 1]
         on_earth = geodetic[station_owner]
         coords_ok &= _within(coords, _COORDINATE_BOUNDS[on_earth.astype(np.intp)]).all(axis=-1)
         is_az, is_el = kinds == _AZ, kinds == _EL
@@ -579,7 +603,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
             station_counts, measurement_counts, geodetic = station_counts[keep], measurement_counts[keep], geodetic[keep]
             coords, on_earth = coords[station_keep], on_earth[station_keep]
             table, kinds, is_az, is_el = table[scalar_keep], kinds[scalar_keep], is_az[scalar_keep], is_el[scalar_keep]
-            values, sigmas = table[:, 2], table[:, 3]
+            values, sigmas = values[scalar_keep], sigmas[scalar_keep]
         if accepted:
             coords = np.where(on_earth[:, None], np.concatenate([np.radians(coords[:, :2]), coords[:, 2:]], axis=-1),
                               coords)
@@ -592,11 +616,11 @@ def read_fix_requests(bodies: list) -> FixRequests:
                 origin=np.array([s[1] for s in settings], dtype=float),
                 measurement_counts=measurement_counts,
                 kinds=kinds,
-                station_index=table[:, 1].astype(np.intp),
+                station_index=table[:, 1],
                 values=np.where(angle, np.radians(values), values),
                 sigmas=np.where(angle, np.radians(sigmas), sigmas),
-                bearing_index=table[:, 4].astype(np.intp),
-                source_index=table[:, 5].astype(np.intp),
+                bearing_index=table[:, 2],
+                source_index=table[:, 3],
                 altitude_m=np.array([s[6] for s in settings], dtype=float),
                 initial_guess=np.array([s[4] for s in settings], dtype=float),
                 geodetic_guess=np.array([s[5] for s in settings], dtype=bool),
@@ -604,7 +628,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
     slots = list(accepted)
     methods = [s[2] for s in settings]
     options = [s[3] for s in settings]
-    formats = [Renderings(s[7]) for s in settings]
+    formats = [s[7] for s in settings]
     built: list[Problem] = []
     for slot in rest:
         try:
@@ -648,14 +672,184 @@ def error_summaries(covariance_enu_m2):
                             for f in parts[0].__dataclass_fields__))
 
 
+#: A template's slot marker, written raw: the slot's number between NUL bytes, which orjson never writes
+#: (it escapes control characters in strings, station ids included).
+_SLOT = re.compile(rb"\x00(\d+)\x00")
+_NUMPY = orjson.OPT_SERIALIZE_NUMPY
+_MAX = np.finfo(np.float64).max
+#: The value blocks of a fix body, in their order among its values in :func:`fix_bodies` (the first eleven are
+#: numbers), and their widths (``None``: one per residual).
+_BLOCKS = {"position": 3, "covariance": 9, "crlb": 9, "error": 8, "residual": None, "normalized": None, "fit": 3,
+           "geodetic": 3, "ecef": 3, "covariance_ecef": 9, "coarse": 3, "warnings": 1, "bearing_errors": 1}
+
+
+@dataclass(frozen=True)
+class _Template:
+    """The JSON text of the fix bodies of one structure: constant pieces around value slots.
+
+    Attributes
+    ----------
+    pieces : ndarray of uint8
+        The ``S + 1`` constant pieces (before, between and after the slots), joined.
+    piece_starts, piece_lengths : ndarray of int, shape ``(S + 1,)``
+        Where each piece is in ``pieces``.
+    columns : ndarray of int, shape ``(S,)``
+        The value that fills each slot: its column among a fix's values.
+    """
+
+    pieces: np.ndarray
+    piece_starts: np.ndarray
+    piece_lengths: np.ndarray
+    columns: np.ndarray
+
+
+@functools.lru_cache(maxsize=1024)
+def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: int, converged: bool,
+                  iterations: int, geodetic: bool, coarse: bool, bearing_errors: bool) -> _Template:
+    """The template of the fix bodies of one structure.
+
+    The body is the FixResponse dict with the structure's own values in place and a marker for each
+    value of the fix (positions, covariances, error figures, residual values, warnings...);
+    orjson writes it and the text is cut at the markers.
+
+    Parameters
+    ----------
+    width : int
+        Residual columns among a fix's values (the batch's widest problem).
+    method, source : str
+        The ``method`` and ``covariance_source`` of the fixes.
+    residuals : tuple of (str, int, str, bool, bool)
+        Per residual: station id, measurement index, component, used, excluded.
+    dof, iterations : int
+    converged, geodetic, coarse, bearing_errors : bool
+        The fix converged; it has a geodetic position, a coarse stage, estimated bearing errors.
+    """
+    names: list[tuple[str, int]] = []
+
+    def slot(block: str, column: int = 0) -> orjson.Fragment:
+        names.append((block, column))
+        return orjson.Fragment(b"\x00%d\x00" % (len(names) - 1))
+
+    def matrix(block: str) -> list:
+        return [[slot(block, 3 * i + j) for j in range(3)] for i in range(3)]
+
+    def enu(block: str) -> dict:
+        return {"east_m": slot(block, 0), "north_m": slot(block, 1), "up_m": slot(block, 2)}
+
+    body = {
+        "method": method,
+        "position_local": enu("position"),
+        "covariance_enu_m2": matrix("covariance"),
+        "covariance_source": source,
+        "crlb_enu_m2": matrix("crlb"),
+        "error": {
+            "cep50_m": slot("error", 0), "sep50_m": slot("error", 1), "vertical_sigma_m": slot("error", 2),
+            "gdop": slot("error", 3), "sqrt_trace_m": slot("error", 4),
+            "ellipse95": {"semi_major_m": slot("error", 5), "semi_minor_m": slot("error", 6),
+                          "orientation_deg": slot("error", 7)},
+        },
+        "residuals": [
+            {"station_id": station, "measurement_index": index, "component": component,
+             "residual": slot("residual", m), "normalized": slot("normalized", m), "used": used,
+             "excluded": excluded}
+            for m, (station, index, component, used, excluded) in enumerate(residuals)
+        ],
+        "fit": {"chi2": slot("fit", 0), "dof": dof, "p_value": slot("fit", 1), "sigma_scale": slot("fit", 2)},
+        "converged": converged,
+        "iterations": iterations,
+        "warnings": slot("warnings"),
+    }
+    if geodetic:
+        body["position"] = {"lat_deg": slot("geodetic", 0), "lon_deg": slot("geodetic", 1),
+                            "alt_m": slot("geodetic", 2)}
+        body["position_ecef_m"] = [slot("ecef", i) for i in range(3)]
+        body["covariance_ecef_m2"] = matrix("covariance_ecef")
+    if coarse:
+        body["stages"] = {"coarse": enu("coarse")}
+    if bearing_errors:
+        body["estimated_bearing_errors_deg"] = slot("bearing_errors")
+    parts = _SLOT.split(orjson.dumps(body))
+    slots = [names[int(i)] for i in parts[1::2]]
+    widths = [width if w is None else w for w in _BLOCKS.values()]
+    first = dict(zip(_BLOCKS, np.cumsum([0, *widths[:-1]]).tolist()))
+    pieces, piece_starts, piece_lengths = _text_spans(parts[0::2])
+    return _Template(np.frombuffer(pieces, dtype=np.uint8), piece_starts, piece_lengths,
+                     np.array([first[block] + column for block, column in slots], dtype=np.intp))
+
+
+@numba.njit(cache=True, nogil=True)
+def _number_spans(text, starts, lengths):
+    """Where each number of orjson's text of a flat array of ``N > 0`` numbers (``[a,b,...]``) is.
+
+    Parameters
+    ----------
+    text : ndarray of uint8
+    starts, lengths : ndarray of int, shape ``(N,)``
+        Filled with each number's first byte in ``text`` and its length.
+    """
+    k = 0
+    start = 1
+    for i in range(1, text.size):
+        if text[i] == 44 or text[i] == 93:  # the comma after a number, or the closing bracket
+            starts[k] = start
+            lengths[k] = i - start
+            k += 1
+            start = i + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _write_bodies(pieces, piece_starts, piece_lengths, columns, rows, values, value_starts, value_lengths, out, at,
+                  ends):
+    """Write the bodies of ``rows`` from one template into ``out`` from ``at`` on; return where they end.
+
+    Parameters
+    ----------
+    pieces : ndarray of uint8
+        The template's ``S + 1`` constant pieces, joined; ``piece_starts``, ``piece_lengths`` ``(S + 1,)`` say
+        where each is.
+    columns : ndarray of int, shape ``(S,)``
+        The value column that fills each slot.
+    rows : ndarray of int, shape ``(G,)``
+    values : ndarray of uint8
+        The values' text; ``value_starts``, ``value_lengths`` ``(B, W)`` say where each row's values are.
+    out : ndarray of uint8
+    at : int
+    ends : ndarray of int, shape ``(B,)``
+        Set at ``rows``: where each body ends in ``out``.
+    """
+    k = numba.uint64(at)  # unsigned offsets: no negative-index wraparound per byte (twice as fast)
+    for b in rows:
+        for j in range(columns.size + 1):
+            start, length = numba.uint64(piece_starts[j]), numba.uint64(piece_lengths[j])
+            for i in range(length):
+                out[k + i] = pieces[start + i]
+            k += length
+            if j < columns.size:
+                start, length = numba.uint64(value_starts[b, columns[j]]), numba.uint64(value_lengths[b, columns[j]])
+                for i in range(length):
+                    out[k + i] = values[start + i]
+                k += length
+        ends[b] = k
+    return k
+
+
+def _text_spans(texts: list) -> tuple[bytes, np.ndarray, np.ndarray]:
+    """``texts`` joined, and where each one is in the join: ``(joined, starts (N,), lengths (N,))``."""
+    lengths = np.fromiter(map(len, texts), dtype=np.int64, count=len(texts))
+    return b"".join(texts), np.cumsum(lengths) - lengths, lengths
+
+
 def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     """Response bodies of a :class:`core.estimators.FixBatch`: a fix body, or the problem body of its error.
 
     Conversions (error summaries, geodetic positions, ECEF covariances,
-    degrees) run once over the batch; only the dicts are built per fix. The
-    matrices and the ECEF position are numpy views (orjson's
-    ``OPT_SERIALIZE_NUMPY`` writes them byte for byte as it writes lists), which
-    spares some fifty Python objects per fix.
+    degrees) run once over the batch, and so does writing their numbers as
+    JSON text (one orjson call). Fixes of one structure (the residuals'
+    stations, components and flags, the frame, stages...) share a template
+    (:func:`_fix_template`); every body is then its template's pieces and
+    its values' text in turn, written by one compiled loop per template: no
+    Python object per value. A fix asking for renderings is read back from
+    its text to make them.
 
     Parameters
     ----------
@@ -665,7 +859,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     Returns
     -------
     list of dict
-        ``{"ok": True, "fix": body}`` or ``{"ok": False, "error": problem body}`` per problem.
+        ``{"ok": True, "fix": JsonObject}`` or ``{"ok": False, "error": problem body}`` per problem.
     """
     batch = fixes.problems
     size = batch.size
@@ -673,88 +867,96 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     position = np.where(ok[:, None], fixes.position_enu_m, 0.0)
     covariance = np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0)
     summary = error_summaries(covariance)
-    geodetic = batch.geodetic
     origin_ecef, rotation = batch.frame_placements()
     ecef = geodesy.enu_to_ecef_placed(position, origin_ecef, rotation)
     lat, lon, alt = geodesy.ecef_to_geodetic(ecef)
     covariance_ecef = np.swapaxes(rotation, -1, -2) @ covariance @ rotation
-
-    position_l = position.tolist()
-    covariance_l = list(np.ascontiguousarray(covariance))
-    crlb_l = list(np.ascontiguousarray(fixes.crlb_enu_m2))
-    ecef_l = list(np.ascontiguousarray(ecef))
-    covariance_ecef_l = list(np.ascontiguousarray(covariance_ecef))
-    lat_l, lon_l, alt_l = np.degrees(lat).tolist(), np.degrees(lon).tolist(), alt.tolist()
-    cep, sep = summary.cep50_m.tolist(), summary.sep50_m.tolist()
-    vertical, sqrt_trace = summary.vertical_sigma_m.tolist(), summary.gdop_m.tolist()
-    gdops = [v if math.isfinite(v) else None for v in fixes.gdop.tolist()]
-    major, minor = summary.ellipse_semi_major_m.tolist(), summary.ellipse_semi_minor_m.tolist()
-    orientation = np.degrees(summary.ellipse_orientation_rad).tolist()
     is_angle = (batch.kinds == _AZ) | (batch.kinds == _EL)
-    residual_l = np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals).tolist()
-    normalized_l = fixes.normalized_residuals.tolist()
-    used_l, excluded_l = fixes.used.tolist(), fixes.excluded.tolist()
-    component_l = [[KIND_NAMES[k] for k in row] for row in batch.kinds.tolist()]
-    station_l = batch.station_index.tolist()
-    source_l = batch.source_index.tolist()
-    counts = batch.n_measurements.tolist()
-    chi2, dof = fixes.chi2.tolist(), fixes.dof.tolist()
-    p_value = [None if math.isnan(v) else v for v in fixes.p_value.tolist()]
-    sigma_scale = [None if math.isnan(v) else v for v in fixes.sigma_scale.tolist()]
-    converged, iterations = fixes.converged.tolist(), fixes.iterations.tolist()
     coarse = fixes.coarse_position_enu_m
-    has_coarse = (~np.isnan(coarse[:, 0])).tolist()
-    coarse_l = np.nan_to_num(coarse).tolist()
-    geodetic_l = geodetic.tolist()
-    method, source = fixes.method, fixes.covariance_source
+    bearing_errors = [None if e is None else orjson.dumps(np.degrees(e).tolist())
+                      for e in fixes.estimated_bearing_errors_rad]
 
+    # The text of every value and where it is, columns by block in _BLOCKS' order: the numbers, then the
+    # warnings and the bearing errors (one text each per fix).
+    numbers = np.concatenate([
+        position, covariance.reshape(size, 9), fixes.crlb_enu_m2.reshape(size, 9), summary.cep50_m[:, None],
+        summary.sep50_m[:, None], summary.vertical_sigma_m[:, None], fixes.gdop[:, None], summary.gdop_m[:, None],
+        summary.ellipse_semi_major_m[:, None], summary.ellipse_semi_minor_m[:, None],
+        np.degrees(summary.ellipse_orientation_rad)[:, None],
+        np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals), fixes.normalized_residuals,
+        fixes.chi2[:, None], fixes.p_value[:, None], fixes.sigma_scale[:, None], np.degrees(lat)[:, None],
+        np.degrees(lon)[:, None], alt[:, None], ecef, covariance_ecef.reshape(size, 9),
+        np.where(np.isnan(coarse), 0.0, np.minimum(np.maximum(coarse, -_MAX), _MAX)),
+    ], axis=-1, dtype=np.float64)
+    width = batch.kinds.shape[1]
+    number_text = orjson.dumps(numbers.ravel(), option=_NUMPY)
+    text, text_starts, text_lengths = _text_spans(
+        [orjson.dumps([{"code": w.code, "message": w.message} for w in warnings]) if warnings else b"[]"
+         for warnings in fixes.warnings] + [e or b"" for e in bearing_errors])
+    number_starts, number_lengths = np.empty(numbers.size, dtype=np.int64), np.empty(numbers.size, dtype=np.int64)
+    if numbers.size:
+        _number_spans(np.frombuffer(number_text, dtype=np.uint8), number_starts, number_lengths)
+    value_starts = np.concatenate([number_starts.reshape(size, -1),
+                                   (text_starts + len(number_text)).reshape(2, size).T], axis=-1)
+    value_lengths = np.concatenate([number_lengths.reshape(size, -1), text_lengths.reshape(2, size).T], axis=-1)
+
+    # Fixes of one structure share a template. The structure as a row of integers groups them (padding
+    # columns included: rows that differ only there make two groups of one template).
+    staged = ~np.isnan(coarse[:, 0])
+    has_bearing_errors = np.array([e is not None for e in bearing_errors], dtype=bool)
+    structure = np.concatenate([
+        batch.n_measurements[:, None], fixes.dof[:, None], fixes.converged[:, None], fixes.iterations[:, None],
+        batch.geodetic[:, None], staged[:, None], has_bearing_errors[:, None], batch.station_index,
+        batch.source_index, batch.kinds, fixes.used, fixes.excluded], axis=-1, dtype=np.int64)
+    rows = np.flatnonzero(ok)
+    keys = structure[rows].view(f"V{structure.shape[1] * 8}").ravel()
+    groups: dict[tuple, list[int]] = {}
+    for b, key in zip(rows.tolist(), keys.tolist()):
+        groups.setdefault((key, batch.station_ids[b]), []).append(b)
+
+    # Each body: its template's pieces and its values in turn, all written into one buffer.
+    work = []
+    for members in groups.values():
+        r = members[0]
+        n, ids = int(batch.n_measurements[r]), batch.station_ids[r]
+        residuals = tuple(zip([ids[s] for s in batch.station_index[r, :n].tolist()], batch.source_index[r, :n].tolist(),
+                              [KIND_NAMES[k] for k in batch.kinds[r, :n].tolist()], fixes.used[r, :n].tolist(),
+                              fixes.excluded[r, :n].tolist()))
+        template = _fix_template(width, fixes.method, fixes.covariance_source, residuals, int(fixes.dof[r]),
+                                 bool(fixes.converged[r]), int(fixes.iterations[r]), bool(batch.geodetic[r]),
+                                 bool(staged[r]), bool(has_bearing_errors[r]))
+        work.append((template, np.array(members)))
+    texts: list[bytes | None] = [None] * size
+    if work:
+        values = np.frombuffer(number_text + text, dtype=np.uint8)
+        written = np.empty(sum(len(members) * template.pieces.size for template, members in work)
+                           + int(value_lengths.sum()), dtype=np.uint8)
+        ends = np.empty(size, dtype=np.int64)
+        end = 0
+        for template, members in work:
+            end = _write_bodies(template.pieces, template.piece_starts, template.piece_lengths, template.columns,
+                                members, values, value_starts, value_lengths, written, end, ends)
+        written = written[:end].tobytes()
+        order = np.concatenate([members for _, members in work]).tolist()
+        body_ends = ends[order].tolist()
+        for b, start, stop in zip(order, [0] + body_ends[:-1], body_ends):
+            texts[b] = written[start:stop]
+
+    known = {"method": fixes.method}
     out: list[dict] = []
-    for b in range(size):
-        if not ok[b]:
+    for b, text in enumerate(texts):
+        if text is None:
             out.append({"ok": False, "error": localization_problem(fixes.errors[b])})
             continue
-        p = position_l[b]
-        ids = batch.station_ids[b]
-        stations, components, sources = station_l[b], component_l[b], source_l[b]
-        res, nres, used, excluded = residual_l[b], normalized_l[b], used_l[b], excluded_l[b]
-        body = {
-            "method": method,
-            "position_local": {"east_m": p[0], "north_m": p[1], "up_m": p[2]},
-            "covariance_enu_m2": covariance_l[b],
-            "covariance_source": source,
-            "crlb_enu_m2": crlb_l[b],
-            "error": {
-                "cep50_m": cep[b], "sep50_m": sep[b], "vertical_sigma_m": vertical[b], "gdop": gdops[b],
-                "sqrt_trace_m": sqrt_trace[b],
-                "ellipse95": {"semi_major_m": major[b], "semi_minor_m": minor[b], "orientation_deg": orientation[b]},
-            },
-            "residuals": [
-                {"station_id": ids[stations[m]], "measurement_index": sources[m], "component": components[m],
-                 "residual": res[m], "normalized": nres[m], "used": used[m], "excluded": excluded[m]}
-                for m in range(counts[b])
-            ],
-            "fit": {"chi2": chi2[b], "dof": dof[b], "p_value": p_value[b], "sigma_scale": sigma_scale[b]},
-            "converged": converged[b],
-            "iterations": iterations[b],
-            "warnings": [{"code": w.code, "message": w.message} for w in fixes.warnings[b]],
-        }
-        if geodetic_l[b]:
-            body["position"] = {"lat_deg": lat_l[b], "lon_deg": lon_l[b], "alt_m": alt_l[b]}
-            body["position_ecef_m"] = ecef_l[b]
-            body["covariance_ecef_m2"] = covariance_ecef_l[b]
-        if has_coarse[b]:
-            c = coarse_l[b]
-            body["stages"] = {"coarse": {"east_m": c[0], "north_m": c[1], "up_m": c[2]}}
-        bearing_errors = fixes.estimated_bearing_errors_rad[b]
-        if bearing_errors is not None:
-            body["estimated_bearing_errors_deg"] = np.degrees(bearing_errors).tolist()
         wanted = formats[b]
         if wanted:
+            body = orjson.loads(text)
             if "geojson" in wanted:
                 body["geojson"] = fix_geojson(body, wanted)
             if "cot" in wanted:
                 body["cot"] = fix_cot(body, wanted)
-        out.append({"ok": True, "fix": body})
+            text = orjson.dumps(body)
+        out.append({"ok": True, "fix": JsonObject(text, known)})
     return out
 
 

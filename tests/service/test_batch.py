@@ -355,11 +355,12 @@ def test_a_fix_is_the_same_bytes_when_a_larger_problem_pads_it(mix):
     """Padding to a batch's widest problem changes no bit of any method's fix: every sum over measurements,
     lines or pairs is added in order (numpy's pairwise sums over eight or more terms round differently once
     zeros are appended)."""
+    from service.responses import dumps
     from service.translate import fix_results
 
     def body(result):
         out = result.get("fix") or {k: v for k, v in result["error"].items() if k not in ("request_id", "instance")}
-        return orjson.dumps(out, option=orjson.OPT_SERIALIZE_NUMPY)
+        return dumps(out)
 
     options = [None, {"loss": "huber"}, {"outliers": "exclude"}]
     for trial in range(4):

@@ -6,14 +6,9 @@ import asyncio
 import copy
 import threading
 
-import pytest
-
-import orjson
-
 from service import coalesce
-
-NUMPY = orjson.OPT_SERIALIZE_NUMPY
 from service.coalesce import Coalescer
+from service.responses import dumps
 from service.translate import fix_results
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.test_batch import _noisy, _subset, assert_close, mixed_batch
@@ -85,7 +80,7 @@ def test_one_drain_takes_everything_queued_and_matches_each_alone():
     for (body, rid), result in zip(items, results):
         (alone,) = fix_results([body], rid)
         failures += not alone["ok"]
-        assert orjson.dumps({**result, "index": 0}, option=NUMPY) == orjson.dumps(alone, option=NUMPY)
+        assert dumps({**result, "index": 0}) == dumps(alone)
     assert failures >= 1
 
 
@@ -100,7 +95,7 @@ def test_an_idle_service_solves_a_lone_request_at_once():
 
     coalescer, first, second = asyncio.run(run())
     assert (coalescer.drains, coalescer.solved) == (2, 2)
-    assert orjson.dumps(first, option=NUMPY) == orjson.dumps(second, option=NUMPY)
+    assert dumps(first) == dumps(second)
 
 
 def test_a_bug_in_one_problem_fails_only_its_request(make_client, monkeypatch, tmp_path):
@@ -144,7 +139,7 @@ def test_results_go_to_cancelled_waiters_without_harm():
 
     done, again = asyncio.run(run())
     assert isinstance(done[1], asyncio.CancelledError)
-    assert orjson.dumps(done[0], option=NUMPY) == orjson.dumps(again, option=NUMPY)
+    assert dumps(done[0]) == dumps(again)
 
 
 def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch, caplog):
@@ -165,4 +160,4 @@ def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch, caplog)
     assert "shared solve of 3 fixes failed" in caplog.text
     for k in (0, 2):
         expected = real_fix_results([items[k][0]], items[k][1])[0]
-        assert orjson.dumps(results[k], option=NUMPY) == orjson.dumps(expected, option=NUMPY)
+        assert dumps(results[k]) == dumps(expected)
