@@ -358,7 +358,7 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     stations, rotations = batch.measurement_stations()
     origin_ecef, origin_rotation = batch.frame_placements()
     weighted = weighting is Weighting.FIRST_ORDER
-    rows, rhs, used, sigma, position, status, scale = _orthogonal_kernel(
+    rows, _, used, sigma, position, status, scale = _orthogonal_kernel(
         is_line, np.ascontiguousarray(batch.values, dtype=float), elevation, sigma_elevation,
         np.ascontiguousarray(batch.sigmas, dtype=float), np.ascontiguousarray(stations, dtype=float),
         np.ascontiguousarray(rotations, dtype=float), normals is not Normals.AZIMUTH_PLANE,
