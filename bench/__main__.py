@@ -169,26 +169,28 @@ EXTRA_NOTES = """
 
 The machine is shared and its speed moves between sessions and within one
 (the same commit's one-fix time was 376-409 us on 2026-12-02 at 08:00 and
-700-836 us at 15:00 on the same machine, quiet): compare ratios within one
-run only.
+700-836 us at 15:00, and about 1,400 us at 17:40 on the same machine): compare
+ratios within one run only.
 
 **Rows 1 and 7, one fix.** Every per-problem loop is compiled (start, LM,
-finisher, verdicts, lines of sight, error summary, batch building); what is
-left is Python and numpy call overhead around them, about 150-200 calls of
-1-2 us each for a batch of one: the reader (~70 us), the start's and the
-LM's glue (~80 us), the finisher's glue (~50 us), the iteration over method
-groups (~40 us) and the bodies (~40 us). The 50 us target needs the whole
-pipeline of a batch of one as a few kernel calls with nothing between them
-(one compiled pass from the read arrays to the verdict bits): not done.
-Over HTTP the fix route also pays the framework and a thread hop: the echo
-route alone (parse and return the same body) runs at about 0.35-0.4x healthz.
+finisher and verdicts in one call, lines of sight, error summary, batch
+building, model values and weights); what is left is Python and numpy call
+overhead around them: about 280 Python-level calls for the solve of a batch
+of one and some 60 numpy calls in the writer, at 1-7 us each on this
+machine. The 50 us target needs the whole pipeline of a batch of one as a few
+kernel calls with nothing between them (one compiled pass from the read
+arrays to the written text): not done. The writer writes fix bodies from
+templates (row 2's gain), which costs a lone fix more than the dicts did
+(about 330 against 200 us in one A/B). Over HTTP the fix route also pays the
+framework and a thread hop (about 200 us here by itself).
 
-**Row 2, batches over HTTP.** The core is 9-35 % of the POST. The rest is
-Python object work under the GIL: parse, read, response dicts and serialise
-(notes above, one thread), which does not overlap across the two cores.
-Closing it needs either bodies and reads without Python objects per field, or
-the batch split across processes (each parsing, solving and writing its half
-to bytes): not done.
+**Row 2, batches over HTTP.** Serialising is now a copy of template pieces
+and orjson's text of all numbers; what remains is Python object work under
+the GIL: parse, read (the per-problem dict walk) and the writer's per-part
+numpy, which does not overlap across the two cores. Closing it needs a read
+without Python objects per field (a compiled reader of the JSON bytes), or
+the batch split across processes (each parsing, solving and writing its
+half): not done.
 
 **Row 3, the scipy ratio.** Core kernels per four-station problem on one
 thread: weighted-EOVE start ~2.5 us, LM ~2.7 us, finisher ~1.5 us; about
