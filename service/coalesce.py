@@ -10,9 +10,8 @@ share one batched read, solve and write. Requests that arrive while a drain
 is running queue up for the next.
 
 A body's result is what it gets alone (the batched core is row-independent);
-its error stays its own. If the shared call fails with anything else (a
-bug), it is logged and every body of that drain is solved again alone, so
-the bug fails only the request that triggers it.
+its error stays its own, and so does a bug's 500 (:func:`fix_results` solves
+each body alone when the shared call fails).
 
 The coalescer belongs to one app (``app.state``, made in the lifespan) and
 binds to no event loop until a drain runs; a drain ends in the same step that
@@ -23,38 +22,12 @@ from __future__ import annotations
 
 import asyncio
 import contextvars
-import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 from core.parallel import Stopped
 from service.translate import fix_results
-
-logger = logging.getLogger("passive_locator")
-
-
-def solve_together(items: list[tuple[object, str | None]],
-                   should_stop: Callable[[], bool] | None = None) -> list[dict | BaseException]:
-    """Results of ``(body, request_id)`` items as one :func:`fix_results` call; each gets its own result.
-
-    A failure of the shared call falls back to solving each body alone, so
-    one body's bug fails only its request. ``should_stop`` is asked between
-    parts of the solve (raises :class:`core.parallel.Stopped`).
-    """
-    try:
-        return fix_results([body for body, _ in items], [rid for _, rid in items], should_stop)
-    except Stopped:
-        raise
-    except Exception:
-        logger.exception("shared solve of %d fixes failed; solving each alone", len(items))
-    out: list[dict | BaseException] = []
-    for body, rid in items:
-        try:
-            out.append(fix_results([body], rid, should_stop)[0])
-        except Exception as error:
-            out.append(error)
-    return out
 
 
 def _never() -> bool:
@@ -128,8 +101,8 @@ class Coalescer:
             return self._stopping.is_set() or all(stop() for stop in stops)
 
         try:
-            work = loop.run_in_executor(self._worker, contextvars.copy_context().run, solve_together,
-                                        [item[:2] for item in taken], should_stop)
+            work = loop.run_in_executor(self._worker, contextvars.copy_context().run, fix_results,
+                                        [item[0] for item in taken], [item[1] for item in taken], should_stop)
         except RuntimeError:  # the worker is shut down: the app is stopping
             work = loop.create_future()
             work.set_exception(Stopped())

@@ -13,6 +13,7 @@ every response validates against it.
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import re
 import typing
@@ -30,6 +31,7 @@ from core.error_summary import error_summary
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import FixBatch, SolveOptions, iter_solutions
 from core.measurements import KIND_NAMES, Kind
+from core.parallel import Stopped
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from core.problem_batch import ProblemBatch, build_problem_batch
 from core.simulation.measurements import evaluate
@@ -39,6 +41,8 @@ from service.maps import coverage_geojson, coverage_png
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
 from service.responses import JsonObject
+
+logger = logging.getLogger("passive_locator")
 
 _AZ, _EL, _RG, _TOA = int(Kind.AZIMUTH), int(Kind.ELEVATION), int(Kind.RANGE), int(Kind.TOA)
 
@@ -963,6 +967,11 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
 def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
     """Results of parsed FixRequest bodies: read, solved and written as one batch.
 
+    A failure that is no problem's own error (a bug) fails only the bodies
+    that meet it: the shared call's exception is logged, each body is then
+    solved alone, and a body that fails alone too gets a 500
+    ``internal_error`` in its slot (logged with its request id).
+
     Parameters
     ----------
     bodies : list
@@ -985,6 +994,32 @@ def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
     """
     if request_ids is None or isinstance(request_ids, str):
         request_ids = [request_ids] * len(bodies)
+    if len(bodies) > 1:
+        try:
+            return _shared_results(bodies, request_ids, should_stop)
+        except Stopped:
+            raise
+        except Exception:
+            logger.exception("shared solve of %d fixes failed; solving each alone", len(bodies))
+    return [{**_alone(body, request_id, should_stop), "index": slot}
+            for slot, (body, request_id) in enumerate(zip(bodies, request_ids))]
+
+
+def _alone(body, request_id: str | None, should_stop) -> dict:
+    """One body's result, solved alone; a bug is its slot's 500 ``internal_error``."""
+    try:
+        return _shared_results([body], [request_id], should_stop)[0]
+    except Stopped:
+        raise
+    except Exception:
+        logger.exception("fix failed", extra={"request_id": request_id})
+        return {"ok": False, "error": problem_body(500, "internal_error",
+                                                   f"internal error; quote request id {request_id}",
+                                                   request_id=request_id)}
+
+
+def _shared_results(bodies: list, request_ids: list, should_stop) -> list[dict]:
+    """:func:`fix_results` as one read, solve and write, which any exception fails whole."""
     results: list[dict | None] = [None] * len(bodies)
 
     def put(slot: int, result: dict) -> None:

@@ -221,6 +221,31 @@ def test_a_malformed_problem_fails_only_its_slot(client):
         assert_close(results[k]["fix"], single)
 
 
+def test_a_bug_in_one_problem_fails_only_its_slot(client, monkeypatch):
+    from service import translate
+
+    real = translate.iter_solutions
+
+    def buggy(batch, methods, options, should_stop=None):
+        if any(o.max_iterations == 17 for o in options):
+            raise ZeroDivisionError("a bug")
+        return real(batch, methods, options, should_stop)
+
+    monkeypatch.setattr(translate, "iter_solutions", buggy)
+    good = _noisy(bearing_request(STATIONS_300KM, TARGET), 43)
+    poisoned = copy.deepcopy(good) | {"options": {"max_iterations": 17}}
+    response = client.post("/v1/fixes/batch", json={"problems": [good, poisoned, good]},
+                           headers={"x-request-id": "bug-1"})
+    assert response.status_code == 200
+    results = response.json()["results"]
+    assert [r["ok"] for r in results] == [True, False, True]
+    assert (results[1]["error"]["status"], results[1]["error"]["code"]) == (500, "internal_error")
+    assert "bug-1" in results[1]["error"]["detail"]
+    single = client.post("/v1/fixes", json=good).json()
+    for k in (0, 2):
+        assert_close(results[k]["fix"], single)
+
+
 def test_unsolvable_and_unknown_station_are_reported_in_their_slots(client):
     good = _noisy(bearing_request(STATIONS_300KM, TARGET), 43)
     unknown = copy.deepcopy(good)

@@ -6,7 +6,7 @@ import asyncio
 import copy
 import threading
 
-from service import coalesce
+from service import translate
 from service.coalesce import Coalescer
 from service.responses import dumps
 from service.translate import fix_results
@@ -98,28 +98,41 @@ def test_an_idle_service_solves_a_lone_request_at_once():
     assert dumps(first) == dumps(second)
 
 
+def _poisoned_core(monkeypatch, shared_too: bool = False) -> None:
+    """A core that raises (a bug) on a problem whose max_iterations is 17, and on any batch if ``shared_too``."""
+    real = translate.iter_solutions
+
+    def buggy(batch, methods, options, should_stop=None):
+        if shared_too and batch.size > 1:
+            raise ZeroDivisionError("a bug in the shared call")
+        if any(o.max_iterations == 17 for o in options):
+            raise ZeroDivisionError("a bug in this problem")
+        return real(batch, methods, options, should_stop)
+
+    monkeypatch.setattr(translate, "iter_solutions", buggy)
+
+
+def _good_and_poisoned() -> tuple[dict, dict]:
+    good = _noisy(bearing_request(STATIONS_300KM, TARGET), 5)
+    poisoned = copy.deepcopy(good)
+    poisoned["options"] = {"max_iterations": 17}
+    return good, poisoned
+
+
 def test_a_bug_in_one_problem_fails_only_its_request(make_client, monkeypatch, tmp_path):
     from fastapi.testclient import TestClient
 
     from service.app import create_app
     from service.settings import Settings
 
-    good = _noisy(bearing_request(STATIONS_300KM, TARGET), 5)
-    poisoned = copy.deepcopy(good)
-    poisoned["options"] = {"max_iterations": 17}
-    real_fix_results = coalesce.fix_results
-
-    def buggy_fix_results(bodies, request_ids=None, should_stop=None):
-        if any(b.get("options", {}).get("max_iterations") == 17 for b in bodies):
-            raise ZeroDivisionError("a bug")
-        return real_fix_results(bodies, request_ids, should_stop)
-
-    monkeypatch.setattr(coalesce, "fix_results", buggy_fix_results)
+    good, poisoned = _good_and_poisoned()
+    _poisoned_core(monkeypatch)
     app = create_app(Settings(store=f"sqlite:///{tmp_path}/bug.db"))
     with TestClient(app, raise_server_exceptions=False) as client:
         responses = _post_concurrently(client, [good, poisoned, good, good])
     assert [r.status_code for r in responses] == [200, 500, 200, 200]
     assert responses[1].headers["content-type"].startswith("application/problem+json")
+    assert responses[1].json()["code"] == "internal_error"
     expected = make_client().post("/v1/fixes", json=good).json()
     for k in (0, 2, 3):
         assert_close(responses[k].json(), expected)
@@ -143,21 +156,14 @@ def test_results_go_to_cancelled_waiters_without_harm():
 
 
 def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch, caplog):
-    items = _items()[:3]
-    poisoned = items[1][0]
-    real_fix_results = coalesce.fix_results
-
-    def buggy_fix_results(bodies, request_ids=None, should_stop=None):
-        if len(bodies) > 1:
-            raise ZeroDivisionError("a bug in the shared call")
-        if bodies[0] is poisoned:
-            raise ZeroDivisionError("a bug in this problem")
-        return real_fix_results(bodies, request_ids, should_stop)
-
-    monkeypatch.setattr(coalesce, "fix_results", buggy_fix_results)
-    results = coalesce.solve_together(items)
-    assert isinstance(results[1], ZeroDivisionError)
-    assert "shared solve of 3 fixes failed" in caplog.text
+    good, poisoned = _good_and_poisoned()
+    expected = fix_results([good], "rid-0")[0]
+    _poisoned_core(monkeypatch, shared_too=True)
+    results = fix_results([good, poisoned, good], ["rid-0", "rid-1", "rid-2"])
+    assert "shared solve of 3 fixes failed" in caplog.text and "a bug in this problem" in caplog.text
+    assert [r["index"] for r in results] == [0, 1, 2]
+    error = results[1]["error"]
+    assert not results[1]["ok"] and (error["status"], error["code"], error["request_id"]) == (500, "internal_error",
+                                                                                             "rid-1")
     for k in (0, 2):
-        expected = real_fix_results([items[k][0]], items[k][1])[0]
-        assert dumps(results[k]) == dumps(expected)
+        assert dumps({**results[k], "index": 0}) == dumps(expected)

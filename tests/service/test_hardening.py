@@ -12,7 +12,7 @@ import tracemalloc
 import orjson
 import pytest
 
-from service import cli, coalesce, logs
+from service import cli, logs, translate
 from service.middleware import TokenBucket
 from service.problems import ApiError
 from service.stores.guard import GuardedStore
@@ -230,17 +230,17 @@ def test_log_lines_are_json_with_time_level_and_request_id_and_no_measurements(c
     assert not any(azimuth in orjson.dumps(line).decode() for line in captured_logs())
 
 
-def test_the_coalescer_logs_the_exception_its_fallback_absorbs(monkeypatch, captured_logs):
-    real = coalesce.fix_results
+def test_the_shared_solve_logs_the_exception_its_fallback_absorbs(monkeypatch, captured_logs):
+    real = translate.iter_solutions
 
-    def broken_when_shared(bodies, request_ids=None, should_stop=None):
-        if len(bodies) > 1:
+    def broken_when_shared(batch, methods, options, should_stop=None):
+        if batch.size > 1:
             raise RuntimeError("the batched path broke")
-        return real(bodies, request_ids, should_stop)
+        return real(batch, methods, options, should_stop)
 
-    monkeypatch.setattr(coalesce, "fix_results", broken_when_shared)
+    monkeypatch.setattr(translate, "iter_solutions", broken_when_shared)
     body = bearing_request(STATIONS_300KM, TARGET)
-    solved = coalesce.solve_together([(body, "a"), (body, "b")])
+    solved = translate.fix_results([body, body], ["a", "b"])
     assert all(result["ok"] for result in solved)
     errors = [line for line in captured_logs() if line["level"] == "error"]
     assert errors and "the batched path broke" in errors[0]["exception"]
