@@ -173,14 +173,14 @@ class ProblemBatch:
         """
         if sigmas is None:
             return self._model_values_and_weights[1]
-        return self._model_kernel(sigmas)[1]
+        return self._model_values_weights(sigmas)[1]
 
     @cached_property
     def _model_values_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
-        model_values, weights = self._model_kernel(self.sigmas)
+        model_values, weights = self._model_values_weights(self.sigmas)
         return _frozen(model_values), _frozen(weights)
 
-    def _model_kernel(self, sigmas) -> tuple[np.ndarray, np.ndarray]:
+    def _model_values_weights(self, sigmas) -> tuple[np.ndarray, np.ndarray]:
         return _model_kernel(np.ascontiguousarray(self.kinds, dtype=np.int8), np.ascontiguousarray(self.values),
                              np.ascontiguousarray(sigmas, dtype=float), np.ascontiguousarray(self.valid))
 

@@ -320,13 +320,14 @@ def _positions_kernel(rows, rhs, used, sigma, stations, rotations, altitude_m, g
 def _orthogonal_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad, stations_enu_m,
                        rotations, use_vertical, use_horizontal, altitude_m, geodetic, origin_ecef_m, origin_rotation,
                        weighted, passes):
-    """:func:`_rows_kernel` then :func:`_positions_kernel`, in one call: the stacked rows, their right-hand
-    sides, which are used and their sigmas, then each problem's fix, its status and each row's noise scale."""
+    """:func:`_rows_kernel` then :func:`_positions_kernel`, in one call: the stacked rows, which are used and
+    their sigmas (what the propagated covariance needs), then each problem's fix, its status and each row's noise
+    scale."""
     rows, rhs, used, sigma = _rows_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad,
                                           stations_enu_m, rotations, use_vertical, use_horizontal)
     position, status, scale = _positions_kernel(rows, rhs, used, sigma, stations_enu_m, rotations, altitude_m,
                                                 geodetic, origin_ecef_m, origin_rotation, weighted, passes)
-    return rows, rhs, used, sigma, position, status, scale
+    return rows, used, sigma, position, status, scale
 
 
 def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: Weighting, name: str,
@@ -358,7 +359,7 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     stations, rotations = batch.measurement_stations()
     origin_ecef, origin_rotation = batch.frame_placements()
     weighted = weighting is Weighting.FIRST_ORDER
-    rows, _, used, sigma, position, status, scale = _orthogonal_kernel(
+    rows, used, sigma, position, status, scale = _orthogonal_kernel(
         is_line, np.ascontiguousarray(batch.values, dtype=float), elevation, sigma_elevation,
         np.ascontiguousarray(batch.sigmas, dtype=float), np.ascontiguousarray(stations, dtype=float),
         np.ascontiguousarray(rotations, dtype=float), normals is not Normals.AZIMUTH_PLANE,
