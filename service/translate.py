@@ -707,7 +707,6 @@ class _Template:
     columns: np.ndarray
 
 
-@functools.lru_cache(maxsize=1024)
 def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: int, converged: bool,
                   iterations: int, geodetic: bool, coarse: bool, bearing_errors: bool) -> _Template:
     """The template of the fix bodies of one structure.
@@ -779,6 +778,19 @@ def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: i
     pieces, piece_starts, piece_lengths = _text_spans(parts[0::2])
     return _Template(np.frombuffer(pieces, dtype=np.uint8), piece_starts, piece_lengths,
                      np.array([first[block] + column for block, column in slots], dtype=np.intp))
+
+
+#: Templates of fixes with at most this many residuals are kept, the last 1024 used: about 20 KB each at most
+#: (128-character station ids), where one of 2048 residuals takes about 0.5 MB (kept, a client could make the
+#: cache hold half a gigabyte).
+_KEPT_RESIDUALS = 64
+_kept_template = functools.lru_cache(maxsize=1024)(_fix_template)
+
+
+def _template(width: int, method: str, source: str, residuals: tuple, *structure) -> _Template:
+    """:func:`_fix_template`, from the cache when the structure is small enough to keep."""
+    build = _kept_template if len(residuals) <= _KEPT_RESIDUALS else _fix_template
+    return build(width, method, source, residuals, *structure)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -926,7 +938,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         residuals = tuple(zip([ids[s] for s in batch.station_index[r, :n].tolist()], batch.source_index[r, :n].tolist(),
                               [KIND_NAMES[k] for k in batch.kinds[r, :n].tolist()], fixes.used[r, :n].tolist(),
                               fixes.excluded[r, :n].tolist()))
-        template = _fix_template(width, fixes.method, fixes.covariance_source, residuals, int(fixes.dof[r]),
+        template = _template(width, fixes.method, fixes.covariance_source, residuals, int(fixes.dof[r]),
                                  bool(fixes.converged[r]), int(fixes.iterations[r]), bool(batch.geodetic[r]),
                                  bool(staged[r]), bool(has_bearing_errors[r]))
         work.append((template, np.array(members)))

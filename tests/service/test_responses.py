@@ -26,3 +26,18 @@ def test_a_fix_reads_as_the_body_it_writes():
         fix = result["fix"]
         written = orjson.loads(dumps(fix))
         assert dict(fix) == written and fix["method"] == written["method"]
+
+
+def test_the_templates_of_large_fixes_are_not_kept():
+    from service import translate
+    from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
+
+    small = bearing_request(STATIONS_300KM, TARGET)
+    large = bearing_request(STATIONS_300KM, TARGET)
+    large["measurements"] = large["measurements"] * 12  # each bearing an azimuth and an elevation residual
+    residuals = 2 * len(large["measurements"])
+    assert residuals > translate._KEPT_RESIDUALS
+    translate._kept_template.cache_clear()
+    results = fix_results([small, large])
+    assert all(r["ok"] for r in results) and len(results[1]["fix"]["residuals"]) == residuals
+    assert translate._kept_template.cache_info().currsize == 1
