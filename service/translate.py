@@ -287,7 +287,10 @@ class _Reject(Exception):
 def _number(value, bounds=None) -> float:
     if type(value) is not float and type(value) is not int:
         raise _Reject
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:  # an integer past float's range: the schema words the error
+        raise _Reject from None
     if not math.isfinite(value):
         raise _Reject
     if bounds is not None and not bounds[0] <= value <= bounds[1]:

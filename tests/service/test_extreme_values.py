@@ -10,6 +10,7 @@ holds only finite numbers, or a 4xx problem+json; a 422 for an invalid value nam
 from __future__ import annotations
 
 import copy
+import json
 import math
 
 import orjson
@@ -294,3 +295,25 @@ def test_extreme_combinations_in_a_session(client, create, second, model):
                      session_schemas.MeasurementResult, ())
     state = client.get(f"/v1/sessions/{session_id}", params={"formats": "cot,geojson"})
     check_answer(state.status_code, state.content, state.headers["content-type"], session_schemas.SessionState, ())
+
+
+@pytest.mark.parametrize("path", [("constraints", "altitude_m"), ("options", "tolerance_m"), ("options", "loss_scale"),
+                                  ("options", "initial_guess", "lat_deg")], ids=lambda p: ".".join(p))
+def test_an_integer_past_the_float_range_is_a_422_at_its_field(client, path):
+    # 10**400 is valid JSON (orjson will not write it, the stdlib will); float() of it overflows
+    body = _geodetic_fix()
+    target = body
+    for key in path[:-1]:
+        target = target.setdefault(key, {})
+    target[path[-1]] = 10**400
+    if path[-1] == "lat_deg":
+        target["lon_deg"] = 109.0
+    content = json.dumps(body).encode()
+    single = client.post("/v1/fixes", content=content, headers={"content-type": "application/json"})
+    assert single.status_code == 422 and single.json()["errors"][0]["loc"] == list(path)
+    batch = client.post("/v1/fixes/batch", content=json.dumps({"problems": [body, _geodetic_fix()]}).encode(),
+                        headers={"content-type": "application/json"})
+    assert batch.status_code == 200
+    results = batch.json()["results"]
+    assert results[0]["error"]["status"] == 422 and results[0]["error"]["errors"][0]["loc"] == list(path)
+    assert results[1]["ok"]
