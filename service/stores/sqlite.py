@@ -9,14 +9,19 @@ a ``seq`` it saw acknowledged. The price is one fsync per write.
 
 Concurrency: :meth:`SqliteStore.update` runs load-change-save inside
 ``BEGIN IMMEDIATE``, which takes the database's write lock before reading,
-so writers are serialised across threads and across processes sharing the
-file (waiting up to ``busy_timeout_s``); readers are not blocked (WAL).
+so writers are serialised across processes sharing the file (waiting up to
+``busy_timeout_s``); readers are not blocked (WAL). Within one process the
+writers first queue on a lock of the store's: SQLite's own wait is a sleep
+with growing backoff, under which a writer among eight busy threads could
+lose the race for 0.5 s and answer 503 while the file was never
+contended for that long (measured: 42 of about 3,500 posts at 8 clients).
 Each thread has its own connection; ``:memory:`` (one database per
 connection) uses a single connection behind a lock instead.
 """
 
 from __future__ import annotations
 
+import collections
 import math
 import os
 import sqlite3
@@ -71,8 +76,9 @@ class SqliteStore(SessionStore):
         self._connections: list[sqlite3.Connection] = []
         self._registry_lock = threading.Lock()
         self._memory_lock = threading.RLock()
+        self._writer = _Turns()
         self._shared: sqlite3.Connection | None = self._connect() if self.memory else None
-        with self._db() as db, _write(db):
+        with self._db() as db, self._write(db):
             for statement in _SCHEMA.split(";"):
                 if statement.strip():
                     db.execute(statement)
@@ -116,7 +122,7 @@ class SqliteStore(SessionStore):
         return record
 
     def create(self, record: SessionRecord) -> None:
-        with self._db() as db, _write(db):
+        with self._db() as db, self._write(db):
             db.execute("DELETE FROM sessions WHERE expires_at <= ?", (self.now(),))
             db.execute("INSERT INTO sessions (id, owner, version, expires_at, record) VALUES (?, ?, ?, ?, ?)",
                        (record.id, record.owner, record.version, record.expires_at, record.to_json()))
@@ -135,7 +141,7 @@ class SqliteStore(SessionStore):
         return records[:limit], len(records) > limit
 
     def update(self, owner: str, session_id: str, change: Change) -> SessionRecord | None:
-        with self._db() as db, _write(db):
+        with self._db() as db, self._write(db):
             row = db.execute("SELECT record FROM sessions WHERE id = ?", (session_id,)).fetchone()
             record = self._live(row, owner, self.now())
             if record is None:
@@ -149,7 +155,7 @@ class SqliteStore(SessionStore):
             return new
 
     def delete(self, owner: str, session_id: str) -> bool:
-        with self._db() as db, _write(db):
+        with self._db() as db, self._write(db):
             row = db.execute("SELECT record FROM sessions WHERE id = ?", (session_id,)).fetchone()
             if self._live(row, owner, self.now()) is None:
                 return False
@@ -170,7 +176,7 @@ class SqliteStore(SessionStore):
             When the write fails or the check finds damage.
         """
         with self._db() as db:
-            with _write(db):
+            with self._write(db):
                 db.execute("INSERT OR REPLACE INTO readiness (id, checked_at) VALUES (1, ?)", (self.now(),))
             now = time.monotonic()
             if now - self._integrity_checked_at >= self.integrity_interval_s:
@@ -179,6 +185,33 @@ class SqliteStore(SessionStore):
                     raise sqlite3.DatabaseError(f"integrity check failed: {'; '.join(verdict[:3])}")
                 self._integrity_checked_at = now
 
+    @contextmanager
+    def _write(self, db: sqlite3.Connection) -> Iterator[None]:
+        """``BEGIN IMMEDIATE`` ... ``COMMIT``, rolled back on any exception, one writer of this process at a time.
+
+        The write lock is taken before the first read, so a read-modify-write
+        cannot interleave with another writer's (no lost update, no upgrade
+        deadlock). Waiting longer than the busy timeout, for this process's
+        writers or for another process's lock, is a 503.
+        """
+        if not self._writer.acquire(timeout=self.busy_timeout_s):
+            raise _busy()
+        try:
+            try:
+                db.execute("BEGIN IMMEDIATE")
+            except sqlite3.OperationalError as error:
+                if "locked" in str(error) or "busy" in str(error):
+                    raise _busy() from error
+                raise
+            try:
+                yield
+            except BaseException:
+                db.execute("ROLLBACK")
+                raise
+            db.execute("COMMIT")
+        finally:
+            self._writer.release()
+
     def close(self) -> None:
         with self._registry_lock:
             connections, self._connections = self._connections, []
@@ -186,24 +219,41 @@ class SqliteStore(SessionStore):
             db.close()
 
 
-@contextmanager
-def _write(db: sqlite3.Connection) -> Iterator[None]:
-    """``BEGIN IMMEDIATE`` ... ``COMMIT``, rolled back on any exception.
+class _Turns:
+    """A lock that serves its waiters in arrival order: a release hands it to the longest waiter.
 
-    The write lock is taken before the first read, so a read-modify-write
-    cannot interleave with another writer's (no lost update, no upgrade
-    deadlock). A lock held longer than the busy timeout is a 503.
+    A plain ``threading.Lock`` lets the releasing thread take it again before
+    a woken waiter gets the GIL, so one busy writer can keep another out
+    until its timeout.
     """
-    try:
-        db.execute("BEGIN IMMEDIATE")
-    except sqlite3.OperationalError as error:
-        if "locked" in str(error) or "busy" in str(error):
-            raise ApiError(503, "store_busy", "the session store is busy; retry",
-                           headers={"Retry-After": "1"}) from error
-        raise
-    try:
-        yield
-    except BaseException:
-        db.execute("ROLLBACK")
-        raise
-    db.execute("COMMIT")
+
+    def __init__(self) -> None:
+        self._mutex = threading.Lock()
+        self._held = False
+        self._queue: collections.deque[threading.Event] = collections.deque()
+
+    def acquire(self, timeout: float) -> bool:
+        with self._mutex:
+            if not self._held:
+                self._held = True
+                return True
+            turn = threading.Event()
+            self._queue.append(turn)
+        if turn.wait(timeout):
+            return True
+        with self._mutex:
+            if turn.is_set():  # handed over as the wait timed out
+                return True
+            self._queue.remove(turn)
+            return False
+
+    def release(self) -> None:
+        with self._mutex:
+            if self._queue:
+                self._queue.popleft().set()
+            else:
+                self._held = False
+
+
+def _busy() -> ApiError:
+    return ApiError(503, "store_busy", "the session store is busy; retry", headers={"Retry-After": "1"})
