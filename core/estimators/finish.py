@@ -121,6 +121,10 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     else:
         inefficient = np.zeros(size, dtype=bool)
     own = estimates.warnings or [()] * size
+    if np.any(flags & UNUSED):
+        unused = present & ~valid & ~excluded
+        unused_kinds = np.bitwise_or.reduce(np.where(unused, 1 << batch.kinds.astype(np.int64), 0), axis=-1)
+        unused_counts = np.count_nonzero(unused, axis=-1)
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
     for b in (flagged & ~failed).nonzero()[0]:
         found = list(own[b])
@@ -173,12 +177,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
                     f"keeps {100.0 * robust_factor[b, m]:.1f} % of its weight under the {estimates.loss[0]} loss "
                     f"(scale {estimates.loss[1]:g} sigma)"))
         if bits & UNUSED:
-            unused = present[b] & ~valid[b] & ~excluded[b]
-            kinds = frozenset(batch.kinds[b, unused].tolist())
-            found.append(FixWarning(
-                "measurements_unused",
-                f"{method} does not use the {_kind_list(kinds)} measurements "
-                f"({np.count_nonzero(unused)} left out of the fit and its verdicts); ml uses every kind"))
+            found.append(_unused_warning(method, int(unused_kinds[b]), int(unused_counts[b])))
         warnings[b] = tuple(found)
 
     coarse = estimates.coarse_position_enu_m
@@ -209,10 +208,13 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     )
 
 
-@functools.cache
-def _kind_list(codes: frozenset) -> str:
-    """The names of kind codes, sorted, comma-separated."""
-    return ", ".join(sorted(KIND_NAMES[code] for code in codes))
+@functools.lru_cache(maxsize=1024)
+def _unused_warning(method: str, kind_bits: int, count: int) -> FixWarning:
+    """The ``measurements_unused`` warning of ``count`` measurements of the kinds set in ``kind_bits``
+    (bit ``k``: kind code ``k``); one object for every fix that says the same."""
+    kinds = ", ".join(sorted(name for code, name in enumerate(KIND_NAMES) if kind_bits >> code & 1))
+    return FixWarning("measurements_unused", f"{method} does not use the {kinds} measurements ({count} left out of "
+                                             "the fit and its verdicts); ml uses every kind")
 
 
 def _station_list(batch: ProblemBatch, b: int, rows) -> str:
