@@ -310,7 +310,7 @@ def gdop(covariance_enu_m2, sigma_ref_m):
     ndarray, shape (B,)
         The position (not time) dilution; NaN where ``sigma_ref_m`` is.
     """
-    trace = np.maximum(np.trace(covariance_enu_m2, axis1=-2, axis2=-1), 0.0)
+    trace = np.maximum(covariance_enu_m2.trace(axis1=-2, axis2=-1), 0.0)
     return np.sqrt(trace) / sigma_ref_m
 
 

@@ -620,7 +620,7 @@ def build_problem_batch(
 
     guess = np.array(initial_guess, dtype=float).reshape(-1, 3)
     geodetic_guess = np.asarray(geodetic_guess, dtype=bool) & ~np.isnan(guess[:, 0])
-    if np.any(geodetic_guess):
+    if geodetic_guess.any():
         k = np.flatnonzero(geodetic_guess)
         guess[k] = geodesy.geodetic_to_enu(guess[k, 0], guess[k, 1], guess[k, 2],
                                            origin[k, 0], origin[k, 1], origin[k, 2])

@@ -584,8 +584,8 @@ def read_fix_requests(bodies: list) -> FixRequests:
     if accepted:
         station_counts = np.array(station_counts)
         measurement_counts = np.array(measurement_counts)
-        station_owner = np.repeat(np.arange(len(accepted)), station_counts)
-        scalar_owner = np.repeat(np.arange(len(accepted)), measurement_counts)
+        station_owner = np.arange(len(accepted)).repeat(station_counts)
+        scalar_owner = np.arange(len(accepted)).repeat(measurement_counts)
         geodetic = np.array([s[0] for s in settings], dtype=bool)
         coords, coords_ok = _numeric(coordinates, 3)
         table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
@@ -600,7 +600,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
         bad = np.zeros(len(accepted), dtype=bool)
         bad[station_owner[~coords_ok]] = True
         bad[scalar_owner[~scalars_ok]] = True
-        if np.any(bad):
+        if bad.any():
             rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
             keep = np.flatnonzero(~bad)
             station_keep, scalar_keep = ~bad[station_owner], ~bad[scalar_owner]
@@ -855,7 +855,7 @@ def _write_bodies(pieces, piece_starts, piece_lengths, columns, rows, values, va
 def _text_spans(texts: list) -> tuple[bytes, np.ndarray, np.ndarray]:
     """``texts`` joined, and where each one is in the join: ``(joined, starts (N,), lengths (N,))``."""
     lengths = np.fromiter(map(len, texts), dtype=np.int64, count=len(texts))
-    return b"".join(texts), np.cumsum(lengths) - lengths, lengths
+    return b"".join(texts), lengths.cumsum() - lengths, lengths
 
 
 def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
@@ -889,7 +889,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     origin_ecef, rotation = batch.frame_placements()
     ecef = geodesy.enu_to_ecef_placed(position, origin_ecef, rotation)
     lat, lon, alt = geodesy.ecef_to_geodetic(ecef)
-    covariance_ecef = np.swapaxes(rotation, -1, -2) @ covariance @ rotation
+    covariance_ecef = rotation.swapaxes(-1, -2) @ covariance @ rotation
     is_angle = (batch.kinds == _AZ) | (batch.kinds == _EL)
     coarse = fixes.coarse_position_enu_m
     bearing_errors = [None if e is None else orjson.dumps(np.degrees(e).tolist())
@@ -927,7 +927,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         batch.n_measurements[:, None], fixes.dof[:, None], fixes.converged[:, None], fixes.iterations[:, None],
         batch.geodetic[:, None], staged[:, None], has_bearing_errors[:, None], batch.station_index,
         batch.source_index, batch.kinds, fixes.used, fixes.excluded], axis=-1, dtype=np.int64)
-    rows = np.flatnonzero(ok)
+    rows = ok.nonzero()[0]
     keys = structure[rows].view(f"V{structure.shape[1] * 8}").ravel()
     groups: dict[tuple, list[int]] = {}
     for b, key in zip(rows.tolist(), keys.tolist()):

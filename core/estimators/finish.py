@@ -107,7 +107,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         source = "information" if source == "information" else "crlb"
     else:
         covariance = np.asarray(estimates.covariance_enu_m2, dtype=float).reshape(size, 3, 3)
-    covariance = 0.5 * (covariance + np.swapaxes(covariance, -1, -2))
+    covariance = 0.5 * (covariance + covariance.swapaxes(-1, -2))
 
     mismatch = positive & (p_value < SIGMA_MISMATCH_P)
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
@@ -121,7 +121,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     else:
         inefficient = np.zeros(size, dtype=bool)
     own = estimates.warnings or [()] * size
-    if np.any(flags & UNUSED):
+    if (flags & UNUSED).any():
         unused = present & ~valid & ~excluded
         unused_kinds = np.bitwise_or.reduce(np.where(unused, 1 << batch.kinds.astype(np.int64), 0), axis=-1)
         unused_counts = np.count_nonzero(unused, axis=-1)

@@ -328,7 +328,7 @@ class FixBatch:
     def scaled_by_fit(self) -> "FixBatch":
         """The covariances scaled by ``sigma_scale^2`` where the fit has degrees of freedom
         (scipy's ``curve_fit(absolute_sigma=False)``); ``covariance_source`` gains ``_scaled``."""
-        scale = np.where(self.dof > 0, np.nan_to_num(self.sigma_scale, nan=1.0) ** 2, 1.0)
+        scale = np.where((self.dof > 0) & ~np.isnan(self.sigma_scale), self.sigma_scale ** 2, 1.0)
         return replace(self, covariance_enu_m2=self.covariance_enu_m2 * scale[:, None, None],
                        covariance_source=f"{self.covariance_source}_scaled")
 
