@@ -168,33 +168,45 @@ EXTRA_NOTES = """
 ## Where the time goes, and what would close the misses
 
 The machine is shared and its speed moves between sessions and within one
-(the same commit's one-fix time was 376-409 us on 2026-12-02 at 08:00 and
-700-836 us at 15:00, and about 1,400 us at 17:40 on the same machine): compare
-ratios within one run only.
+(one commit's one-fix time was 376-409 us on 2026-12-02 at 08:00, 700-836 us
+at 15:00 and about 1,400 us at 17:40; two nearly identical commits gave 317
+and 419 us on 2026-12-03 at 06:39 and 06:57): compare ratios within one run
+only. Row 2 is not a ratio, and its rows near the line flip between runs
+(los_intersection: 24,656 fixes/s at 06:39, 17,962 at 06:57).
 
-**Rows 1 and 7, one fix.** Every per-problem loop is compiled (start, LM,
+**Row 1, one fix over HTTP.** The echo route (the fix route's shape with a
+solve that costs nothing: orjson body, owner, a hop to a worker thread and
+back, answer) reaches 0.46-0.52x healthz at c=1 and c=16 in these runs: the
+route shape alone sits at the c=1 target and below the c=16 one, before any
+fix work. The fix adds its read, solve and write; timed inside the server,
+that call took 1,040-1,130 us of thread CPU per fix against 470-660 us in a
+loop in one process (same code, same body). Neither disabling nor freezing
+the garbage collector, nor a shorter GIL switch interval, changed it
+measurably; the cause was not found.
+
+**Row 7, one fix in core.** Every per-problem loop is compiled (start, LM,
 finisher and verdicts in one call, lines of sight, error summary, batch
 building, model values and weights); what is left is Python and numpy call
-overhead around them: about 280 Python-level calls for the solve of a batch
-of one and some 60 numpy calls in the writer, at 1-7 us each on this
-machine. The 50 us target needs the whole pipeline of a batch of one as a few
-kernel calls with nothing between them (one compiled pass from the read
-arrays to the written text): not done. The writer writes fix bodies from
-templates (row 2's gain), which costs a lone fix more than the dicts did
-(about 330 against 200 us in one A/B). Over HTTP the fix route also pays the
-framework and a thread hop (about 200 us here by itself).
+overhead around them: about 580 Python-level calls for reading, solving and
+writing one fix (cProfile), at 0.3-7 us each here. The 50 us target needs a
+batch of one to run as a few kernel calls with nothing between them (one
+compiled pass from the read arrays to the written text): not done.
 
-**Row 2, batches over HTTP.** Serialising is now a copy of template pieces
-and orjson's text of all numbers; what remains is Python object work under
-the GIL: parse, read (the per-problem dict walk) and the writer's per-part
-numpy, which does not overlap across the two cores. Closing it needs a read
-without Python objects per field (a compiled reader of the JSON bytes), or
-the batch split across processes (each parsing, solving and writing its
-half): not done.
+**Row 2, batches over HTTP.** Serialising is a copy of template pieces and
+orjson's text of all numbers; what remains for ML is Python object work
+under the GIL: parse, read (the per-problem dict walk, about 14 us a
+problem) and the writer's per-part work, which does not overlap across the
+two cores. Closing it needs a read without Python objects per field (a
+compiled reader of the JSON bytes), or the batch split across processes.
+tls and ctls also spend about 30 us a problem in numpy-vectorised core steps
+(plane passes, Newton iterations, the one-point chi-square check):
+compiling those is what would bring them near the line.
 
 **Row 3, the scipy ratio.** Core kernels per four-station problem on one
-thread: weighted-EOVE start ~2.5 us, LM ~2.7 us, finisher ~1.5 us; about
-80 % of the LM is the measurement model (atan2, divisions).
+thread: weighted-EOVE start ~2.5 us, LM ~2.5 us, finisher ~1.6 us, glue
+~1.7 us. The ratio moves with the machine (168x on 2026-12-02 at 19:15, 81x
+and 95x on 2026-12-03): scipy's per-problem Python loop speeds up and slows
+down more than the compiled batch does.
 """
 
 if __name__ == "__main__":
