@@ -180,9 +180,9 @@ back, answer) reaches 0.46-0.52x healthz at c=1 and c=16 in these runs: the
 route shape alone sits at the c=1 target and below the c=16 one, before any
 fix work. The fix adds its read, solve and write; timed inside the server,
 that call took 1,040-1,130 us of thread CPU per fix against 470-660 us in a
-loop in one process (same code, same body). Neither disabling nor freezing
-the garbage collector, nor a shorter GIL switch interval, changed it
-measurably; the cause was not found.
+loop in one process (same code, same body). Disabling or freezing the
+garbage collector, or a shorter GIL switch interval, did not change the
+route's rate beyond this machine's noise; the cause was not found.
 
 **Row 7, one fix in core.** Every per-problem loop is compiled (start, LM,
 finisher and verdicts in one call, lines of sight, error summary, batch
