@@ -182,7 +182,12 @@ fix work. The fix adds its read, solve and write; timed inside the server,
 that call took 1,040-1,130 us of thread CPU per fix against 470-660 us in a
 loop in one process (same code, same body). Disabling or freezing the
 garbage collector, or a shorter GIL switch interval, did not change the
-route's rate beyond this machine's noise; the cause was not found.
+route's rate beyond this machine's noise. Cold caches do account for it: the
+same loop in the server process costs 515-860 us a call, and in one process
+with the caches thrashed between calls (an 8 MB sum and a JSON parse) 1,120-
+1,327 us against 684-779 us without. A lone request finds the caches cold
+after the event loop's turn, so its cost grows with how much code and data
+one fix touches: fewer, larger kernel calls would help it twice.
 
 **Row 7, one fix in core.** Every per-problem loop is compiled (start, LM,
 finisher and verdicts in one call, lines of sight, error summary, batch
