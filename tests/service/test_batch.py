@@ -400,3 +400,41 @@ def test_a_fix_is_the_same_bytes_when_a_larger_problem_pads_it(mix):
                 alone = fix_results([small])[0]
                 padded = fix_results([wide, small])[1]
                 assert body(alone) == body(padded), (mix, trial, method, option)
+
+
+_PADDING_PROBE = """
+import copy, json, resource
+import numpy as np
+from bench.scenarios import four_station_requests
+from service.translate import fix_results
+
+def peak_mb():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+small = four_station_requests(3000, np.random.default_rng(1))
+large = copy.deepcopy(small[0])
+large["measurements"] = [dict(m) for m in large["measurements"]] * 256
+fix_results(small[:10] + [large])
+fix_results(small)
+alone = peak_mb()
+results = fix_results(small + [large])
+print(json.dumps({"growth_mb": peak_mb() - alone, "ok": sum(r["ok"] for r in results)}))
+"""
+
+
+def test_one_large_problem_does_not_pad_a_batch_of_small_ones():
+    """A batch pads every problem to its largest. Read as one batch, 3,000 four-bearing problems and one of
+    1,024 bearings took 253 MB more than the 3,000 alone (memory grew with problems x the largest one, so a
+    cheap batch could take gigabytes); read in groups of like size, 5 MB. Peak RSS in a fresh process."""
+    import json
+    import subprocess
+    import sys
+
+    from tests.service.sessions.helpers import REPO
+
+    run = subprocess.run([sys.executable, "-c", _PADDING_PROBE], cwd=REPO, capture_output=True, text=True,
+                         timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    probe = json.loads(run.stdout.strip().splitlines()[-1])
+    assert probe["ok"] == 3001
+    assert probe["growth_mb"] < 60, probe
