@@ -51,6 +51,10 @@ def resolve_methods(batch: ProblemBatch, methods: list[str]) -> list[str]:
 
 #: Problems per call of an estimator's ``solve_batch``: a larger group is solved in parts of this many.
 PART_PROBLEMS = 2048
+#: ... and of at most about this many measurement pairs (each problem's rows squared, summed; one problem at
+#: the least): the pairwise methods' time and memory grow with them (ws3d held about 90 MB per problem of
+#: 1,024 bearings at once), and a part is what a deadline or a gone client waits for before the solve stops.
+PART_PAIRS = PART_PROBLEMS * 16**2
 #: Threads that solve the parts of one call at once (the kernels release the GIL).
 MAX_WORKERS = min(2, os.cpu_count() or 1)
 _pool: ThreadPoolExecutor | None = None
@@ -76,10 +80,11 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
 
     Problems with the same method and options are solved together, one
     batched call per size class (padding stays under 2x) and per
-    :data:`PART_PROBLEMS` problems. With more than one part, up to
-    :data:`MAX_WORKERS` threads solve them at once, and each part is
-    yielded, in order, as soon as it and those before it are done (a
-    caller can write the first parts while the next ones are solved).
+    :data:`PART_PROBLEMS` problems or :data:`PART_PAIRS` measurement
+    pairs. With more than one part, up to :data:`MAX_WORKERS` threads
+    solve them at once, and each part is yielded, in order, as soon as it
+    and those before it are done (a caller can write the first parts while
+    the next ones are solved).
 
     Parameters
     ----------
@@ -123,8 +128,10 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
                     ("measurements", int(batch.source_index[b, m]), "sigma_azimuth_rad"))))
             rows = rows[~lacking]
         for group in size_groups(batch.n_measurements[rows], batch.n_stations[rows]):
-            for start in range(0, group.size, PART_PROBLEMS):
-                work.append((rows[group[start:start + PART_PROBLEMS]], spec, opts))
+            width = max(int(batch.n_measurements[rows[group]].max()), 1)
+            step = max(1, min(PART_PROBLEMS, PART_PAIRS // width**2))
+            for start in range(0, group.size, step):
+                work.append((rows[group[start:start + step]], spec, opts))
 
     def solve_part(chosen, spec, opts):
         if should_stop is not None and should_stop():
