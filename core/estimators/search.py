@@ -29,6 +29,11 @@ from core.problem_batch import ProblemBatch
 DISTANCES_M = np.geomspace(100.0, 1e6, 13)
 #: Elevations (rad) tried along an azimuth-only line of sight.
 FAN_ELEVATIONS_RAD = np.deg2rad([-2.0, 1.0, 5.0, 12.0, 25.0, 50.0])
+#: At most about this many candidate-measurement pairs per problem (each candidate is an LM run over all
+#: the problem's measurements): beyond it the lines of sight that carry candidates are thinned evenly. The
+#: largest fix (256 stations, 1,024 bearings) with bearings that fit no point had 3,328 candidates, 12.5 s
+#: of LM for one problem.
+SEARCH_PAIRS = 2**18
 #: Directions around the centroid: a Fibonacci sphere (free height) or a circle (known altitude).
 SPHERE_DIRECTIONS = 26
 CIRCLE_DIRECTIONS = 12
@@ -62,6 +67,11 @@ def candidates(batch: ProblemBatch) -> np.ndarray:
     earlier = (batch.station_index[:, :, None] == batch.station_index[:, None, :]) & is_line[:, None, :] \
         & (rows[None, :] < rows[:, None])
     is_line = is_line & ~np.any(earlier, axis=-1)
+    # Thinned to SEARCH_PAIRS: every stride-th line, counting each line's candidates at their most (the fan).
+    lines_allowed = np.maximum(SEARCH_PAIRS // (DISTANCES_M.size * FAN_ELEVATIONS_RAD.size
+                                                * np.maximum(batch.n_measurements, 1)), 1)
+    stride = -(-is_line.sum(axis=-1) // lines_allowed)
+    is_line = is_line & ((np.cumsum(is_line, axis=-1) - 1) % np.maximum(stride, 1)[:, None] == 0)
     constrained = batch.constrained
     fan = np.concatenate([[np.nan], FAN_ELEVATIONS_RAD])
     # Along each line of sight: (B, M lines, E elevations, D distances); the measured elevation where given.

@@ -8,12 +8,14 @@ Both grow with the size of the problems, which the cost model (the sum of measur
 from __future__ import annotations
 
 import copy
+import random
 
 import numpy as np
 
 import core.estimators as estimators
 from bench.scenarios import four_station_requests, largest_fix_request
 from core.estimators.base import EstimatorSpec
+from core.estimators.search import SEARCH_PAIRS, candidates
 from service.translate import read_fix_requests
 
 
@@ -40,3 +42,19 @@ def test_a_part_holds_at_most_part_pairs_or_one_problem(monkeypatch):
     assert sorted(parts) == [(1, 2048)] * 4 + [(300, 8)]
     assert all(not isinstance(fixes, Exception) and fixes.ok.all() for _, fixes in solved)
 
+
+def test_the_start_search_of_a_large_problem_is_thinned_to_its_budget():
+    """The largest fix with bearings that fit no point (so ML searches for a start): 3,328 candidates before,
+    each an LM run over 2,048 rows (12.5 s for one problem); now at most SEARCH_PAIRS candidate-rows, and a
+    four-station problem keeps a candidate on every line of sight."""
+    body = largest_fix_request("ml")
+    rng = random.Random(1)
+    for m in body["measurements"]:
+        m["azimuth_deg"] = rng.uniform(0.0, 360.0)
+    small = four_station_requests(1, np.random.default_rng(3))[0]
+    batch = read_fix_requests([body, small]).batch
+    points = candidates(batch)
+    found = np.isfinite(points).all(axis=-1).sum(axis=-1)
+    rows = batch.n_measurements
+    assert 0 < found[0] * rows[0] <= SEARCH_PAIRS, (found, rows)
+    assert found[1] == 4 * 13  # four stations' lines, 13 distances each
