@@ -433,7 +433,7 @@ def test_one_large_problem_does_not_pad_a_batch_of_small_ones():
     from tests.service.sessions.helpers import REPO
 
     run = subprocess.run([sys.executable, "-c", _PADDING_PROBE], cwd=REPO, capture_output=True, text=True,
-                         timeout=300)
+                         check=False, timeout=300)
     assert run.returncode == 0, run.stderr[-2000:]
     probe = json.loads(run.stdout.strip().splitlines()[-1])
     assert probe["ok"] == 3001

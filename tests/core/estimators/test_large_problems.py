@@ -12,8 +12,8 @@ import random
 
 import numpy as np
 
-import core.estimators as estimators
 from bench.scenarios import four_station_requests, largest_fix_request
+from core import estimators
 from core.estimators.base import EstimatorSpec
 from core.estimators.search import SEARCH_PAIRS, candidates
 from service.translate import read_fix_requests
