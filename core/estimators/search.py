@@ -30,10 +30,10 @@ DISTANCES_M = np.geomspace(100.0, 1e6, 13)
 #: Elevations (rad) tried along an azimuth-only line of sight.
 FAN_ELEVATIONS_RAD = np.deg2rad([-2.0, 1.0, 5.0, 12.0, 25.0, 50.0])
 #: At most about this many candidate-measurement pairs per problem (each candidate is an LM run over all
-#: the problem's measurements): beyond it the lines of sight that carry candidates are thinned evenly. The
-#: largest fix (256 stations, 1,024 bearings) with bearings that fit no point had 3,328 candidates, 12.5 s
-#: of LM for one problem.
-SEARCH_PAIRS = 2**18
+#: the problem's measurements): beyond it the lines of sight that carry candidates, or the directions around
+#: the centroid, are thinned evenly. The largest fix (256 stations, 1,024 bearings) with bearings that fit
+#: no point had 3,328 candidates, 12.5 s of LM for one problem; 1,024 TOAs that fit no point, 338.
+SEARCH_PAIRS = 2**17
 #: Directions around the centroid: a Fibonacci sphere (free height) or a circle (known altitude).
 SPHERE_DIRECTIONS = 26
 CIRCLE_DIRECTIONS = 12
@@ -90,6 +90,11 @@ def candidates(batch: ProblemBatch) -> np.ndarray:
     sphere, circle = _sphere(SPHERE_DIRECTIONS), _circle(CIRCLE_DIRECTIONS)
     circle = np.concatenate([circle, np.full((SPHERE_DIRECTIONS - CIRCLE_DIRECTIONS, 3), np.nan)])
     directions = np.where(constrained[:, None, None], circle[None], sphere[None])
+    # Thinned to SEARCH_PAIRS as the lines are: every stride-th direction.
+    directions_allowed = np.maximum(SEARCH_PAIRS // (DISTANCES_M.size * np.maximum(batch.n_measurements, 1)), 1)
+    direction_stride = -(-SPHERE_DIRECTIONS // directions_allowed)
+    kept = np.arange(SPHERE_DIRECTIONS)[None, :] % direction_stride[:, None] == 0
+    directions = np.where(kept[..., None], directions, np.nan)
     around = centroid[:, None, None, :] + directions[:, :, None, :] * DISTANCES_M[:, None]
     around = np.where(np.any(is_line, axis=-1)[:, None, None, None], np.nan, around)
     points = np.concatenate([along, around.reshape(size, -1, 3)], axis=1)

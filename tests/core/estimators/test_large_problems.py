@@ -45,16 +45,23 @@ def test_a_part_holds_at_most_part_pairs_or_one_problem(monkeypatch):
 
 def test_the_start_search_of_a_large_problem_is_thinned_to_its_budget():
     """The largest fix with bearings that fit no point (so ML searches for a start): 3,328 candidates before,
-    each an LM run over 2,048 rows (12.5 s for one problem); now at most SEARCH_PAIRS candidate-rows, and a
-    four-station problem keeps a candidate on every line of sight."""
-    body = largest_fix_request("ml")
+    each an LM run over 2,048 rows (12.5 s for one problem); 1,024 TOAs from its 256 stations: 338 around the
+    centroid (14.5 s with outlier exclusion). Now each is within SEARCH_PAIRS candidate-rows, and a
+    four-station problem keeps a candidate on every line of sight, a TOA-only one every direction."""
     rng = random.Random(1)
-    for m in body["measurements"]:
+    bearings = largest_fix_request("ml")
+    for m in bearings["measurements"]:
         m["azimuth_deg"] = rng.uniform(0.0, 360.0)
+    toas = largest_fix_request("ml")
+    toas["measurements"] = [{"type": "toa", "station_id": s["id"], "toa_s": 1000.0 + rng.uniform(0.0, 1e-3),
+                             "sigma_s": 1e-8} for s in toas["stations"] for _ in range(4)]
     small = four_station_requests(1, np.random.default_rng(3))[0]
-    batch = read_fix_requests([body, small]).batch
-    points = candidates(batch)
-    found = np.isfinite(points).all(axis=-1).sum(axis=-1)
+    small_toas = copy.deepcopy(small)
+    small_toas["measurements"] = [{"type": "toa", "station_id": s["id"], "toa_s": 1000.0 + 1e-5 * k,
+                                   "sigma_s": 1e-8} for k, s in enumerate(small["stations"])]
+    batch = read_fix_requests([bearings, toas, small, small_toas]).batch
+    found = np.isfinite(candidates(batch)).all(axis=-1).sum(axis=-1)
     rows = batch.n_measurements
-    assert 0 < found[0] * rows[0] <= SEARCH_PAIRS, (found, rows)
-    assert found[1] == 4 * 13  # four stations' lines, 13 distances each
+    assert (0 < found[:2]).all() and (found[:2] * rows[:2] <= SEARCH_PAIRS).all(), (found, rows)
+    assert found[2] == 4 * 13  # four stations' lines, 13 distances each
+    assert found[3] == 26 * 13  # every direction of the sphere around the centroid, 13 distances each
