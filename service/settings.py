@@ -21,7 +21,8 @@ class Settings(BaseSettings):
         Session store URL: ``sqlite:///path`` (embedded default) or
         ``redis://host:port/db``.
     store_timeout_s : float
-        The backend's own timeout: Redis connect and read, SQLite busy wait.
+        The backend's own timeout: Redis connect and read; a SQLite write's wait for its turn (this process's
+        writers in order, then another process's lock), each wait.
     store_call_timeout_s : float
         A store call not done by then answers 503 (with ``Retry-After``).
     store_workers : int
