@@ -5,17 +5,24 @@ filters: the session service (``service/sessions.py``) decides what a record
 becomes. What a store guarantees is that :meth:`SessionStore.update` is a
 read-modify-write applied one at a time per session, across threads and
 across processes (and, for Redis, across replicas), so two concurrent posts
-to one session never lose each other's epochs.
+to one session never lose each other's epochs. Every backend does it the
+same way: read, change outside any lock, then write only if the session is
+still at the version read (compare-and-set), else read and change again.
+A slow change (a post of 10,000 epochs) thus holds no lock that writes to
+other sessions wait for.
 """
 
 from __future__ import annotations
 
+import random
 import time
 from abc import ABC, abstractmethod
 from dataclasses import asdict, dataclass, replace
 from typing import Any, Callable
 
 import orjson
+
+from service.problems import ApiError
 
 Clock = Callable[[], float]
 
@@ -120,16 +127,18 @@ class SessionStore(ABC):
             Whether live sessions follow the last one returned.
         """
 
-    @abstractmethod
+    #: Compare-and-set attempts of one update before it answers 503 ``store_busy``.
+    max_attempts: int = 100
+
     def update(self, owner: str, session_id: str, change: Change) -> SessionRecord | None:
         """Read-modify-write one session atomically.
 
         ``change`` gets the current record and returns the new one, or None
         to write nothing; whatever it raises propagates and nothing is
         written. The store sets the new record's ``version`` to the old one
-        plus 1. ``change`` may be called more than once (a backend that
-        retries on a conflicting write calls it again on the fresh record),
-        so it must depend only on its argument.
+        plus 1. ``change`` runs outside any lock and is called again on the
+        fresh record when another write came first, so it must depend only
+        on its argument.
 
         Returns
         -------
@@ -137,6 +146,27 @@ class SessionStore(ABC):
             The record as stored after the call (unchanged when ``change``
             returned None); None when the session does not exist for this owner.
         """
+        for attempt in range(self.max_attempts):
+            record = self._load(owner, session_id)
+            if record is None:
+                return None
+            new = change(record)
+            if new is None:
+                return record
+            new = next_version(record, new)
+            if self._swap(session_id, record.version, new):
+                return new
+            time.sleep(random.uniform(0.0, min(0.05, 0.0005 * 2**attempt)))
+        raise ApiError(503, "store_busy", f"session {session_id} is being updated by many clients at once; retry",
+                       headers={"Retry-After": "1"})
+
+    @abstractmethod
+    def _load(self, owner: str, session_id: str) -> SessionRecord | None:
+        """The owner's live session, or None (what :meth:`update` reads)."""
+
+    @abstractmethod
+    def _swap(self, session_id: str, version: int, new: SessionRecord) -> bool:
+        """Write ``new`` if the session is still at ``version``; whether it was written."""
 
     @abstractmethod
     def delete(self, owner: str, session_id: str) -> bool:

@@ -22,8 +22,6 @@ the latest record, and no update is lost whichever replica makes it.
 from __future__ import annotations
 
 import math
-import random
-import time
 from urllib.parse import parse_qsl, urlencode, urlsplit, urlunsplit
 
 import redis
@@ -31,7 +29,7 @@ from redis.backoff import NoBackoff
 from redis.retry import Retry
 
 from service.problems import ApiError
-from service.stores.base import Change, Clock, SessionRecord, SessionStore, next_version
+from service.stores.base import Clock, SessionRecord, SessionStore
 
 DEFAULT_PREFIX = "passive-locator:"
 
@@ -163,22 +161,9 @@ class RedisStore(SessionStore):
                 self.client.zrem(owner_key, *gone)
             start = f"({ids[-1]}"
 
-    def update(self, owner: str, session_id: str, change: Change) -> SessionRecord | None:
-        key = self._session_key(session_id)
-        for attempt in range(self.max_attempts):
-            record = self._load(owner, session_id)
-            if record is None:
-                return None
-            new = change(record)
-            if new is None:
-                return record
-            new = next_version(record, new)
-            if self._compare_and_set(keys=[key], args=[record.version, new.version, new.to_json(),
-                                                       self._ttl_ms(new)]):
-                return new
-            time.sleep(random.uniform(0.0, min(0.05, 0.0005 * 2**attempt)))
-        raise ApiError(503, "store_busy", f"session {session_id} is being updated by many clients at once; retry",
-                       headers={"Retry-After": "1"})
+    def _swap(self, session_id: str, version: int, new: SessionRecord) -> bool:
+        return bool(self._compare_and_set(keys=[self._session_key(session_id)],
+                                          args=[version, new.version, new.to_json(), self._ttl_ms(new)]))
 
     def delete(self, owner: str, session_id: str) -> bool:
         keys = [self._session_key(session_id), self._owner_key(owner)]
