@@ -169,9 +169,10 @@ EXTRA_NOTES = """
 
 The machine is shared and its speed moves between sessions and within one
 (one commit's one-fix time was 376-409 us on 2026-12-02 at 08:00, 700-836 us
-at 15:00 and about 1,400 us at 17:40; two nearly identical commits gave 317
-and 419 us on 2026-12-03 at 06:39 and 06:57): compare ratios within one run
-only. Row 2 is not a ratio, and its rows near the line flip between runs
+at 15:00 and about 1,400 us at 17:40; on 2026-12-03 three commits that do
+not change that path's cost beyond noise gave 317, 419 and 525 us at 06:39,
+06:57 and 07:52, when healthz at c=1 ran at 4,059, 3,625 and 887 req/s):
+compare ratios within one run only. Row 2 is not a ratio, and its rows near the line flip between runs
 (los_intersection: 24,656 fixes/s at 06:39, 17,962 at 06:57).
 
 **Row 1, one fix over HTTP.** The echo route (the fix route's shape with a
