@@ -147,7 +147,7 @@ class SessionStore(ABC):
             returned None); None when the session does not exist for this owner.
         """
         for attempt in range(self.max_attempts):
-            record = self._load(owner, session_id)
+            record = self.get(owner, session_id)
             if record is None:
                 return None
             new = change(record)
@@ -159,10 +159,6 @@ class SessionStore(ABC):
             time.sleep(random.uniform(0.0, min(0.05, 0.0005 * 2**attempt)))
         raise ApiError(503, "store_busy", f"session {session_id} is being updated by many clients at once; retry",
                        headers={"Retry-After": "1"})
-
-    @abstractmethod
-    def _load(self, owner: str, session_id: str) -> SessionRecord | None:
-        """The owner's live session, or None (what :meth:`update` reads)."""
 
     @abstractmethod
     def _swap(self, session_id: str, version: int, new: SessionRecord) -> bool:

@@ -115,15 +115,6 @@ class RedisStore(SessionStore):
     def _ttl_ms(self, record: SessionRecord) -> int:
         return max(1, math.ceil((record.expires_at - self.now()) * 1000.0))
 
-    def _load(self, owner: str, session_id: str) -> SessionRecord | None:
-        raw = self.client.hget(self._session_key(session_id), "r")
-        if raw is None:
-            return None
-        record = SessionRecord.from_json(raw)
-        if record.owner != owner or record.expired(self.now()):
-            return None
-        return record
-
     def create(self, record: SessionRecord) -> None:
         created = self._create(keys=[self._session_key(record.id), self._owner_key(record.owner)],
                                args=[record.version, record.to_json(), self._ttl_ms(record), record.id])
@@ -131,7 +122,13 @@ class RedisStore(SessionStore):
             raise ValueError(f"session {record.id!r} exists")
 
     def get(self, owner: str, session_id: str) -> SessionRecord | None:
-        return self._load(owner, session_id)
+        raw = self.client.hget(self._session_key(session_id), "r")
+        if raw is None:
+            return None
+        record = SessionRecord.from_json(raw)
+        if record.owner != owner or record.expired(self.now()):
+            return None
+        return record
 
     def page(self, owner: str, limit: int, after: str | None = None) -> tuple[list[SessionRecord], bool]:
         owner_key = self._owner_key(owner)
@@ -168,7 +165,7 @@ class RedisStore(SessionStore):
     def delete(self, owner: str, session_id: str) -> bool:
         keys = [self._session_key(session_id), self._owner_key(owner)]
         for _ in range(self.max_attempts):
-            record = self._load(owner, session_id)
+            record = self.get(owner, session_id)
             if record is None:
                 return False
             if self._delete(keys=keys, args=[record.version, session_id]):

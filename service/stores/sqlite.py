@@ -133,7 +133,9 @@ class SqliteStore(SessionStore):
                        (record.id, record.owner, record.version, record.expires_at, record.to_json()))
 
     def get(self, owner: str, session_id: str) -> SessionRecord | None:
-        return self._load(owner, session_id)
+        with self._db() as db:
+            row = db.execute("SELECT record FROM sessions WHERE id = ?", (session_id,)).fetchone()
+        return self._live(row, owner, self.now())
 
     def page(self, owner: str, limit: int, after: str | None = None) -> tuple[list[SessionRecord], bool]:
         with self._db() as db:
@@ -142,11 +144,6 @@ class SqliteStore(SessionStore):
                 (owner, after or "", self.now(), limit + 1)).fetchall()
         records = [SessionRecord.from_json(row[0]) for row in rows]
         return records[:limit], len(records) > limit
-
-    def _load(self, owner: str, session_id: str) -> SessionRecord | None:
-        with self._db() as db:
-            row = db.execute("SELECT record FROM sessions WHERE id = ?", (session_id,)).fetchone()
-        return self._live(row, owner, self.now())
 
     def _swap(self, session_id: str, version: int, new: SessionRecord) -> bool:
         text = new.to_json()
