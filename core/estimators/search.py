@@ -52,6 +52,15 @@ def _circle(count: int) -> np.ndarray:
     return np.stack([np.cos(a), np.sin(a), np.zeros(count)], axis=-1)
 
 
+def _thinned(carriers, candidates_each: int, rows):
+    """``carriers`` ``(B, K)`` (lines of sight or directions) with every stride-th one kept, so that a
+    problem's kept carriers x ``candidates_each`` x its ``rows`` ``(B,)`` stay within :data:`SEARCH_PAIRS`
+    (one carrier at the least)."""
+    allowed = np.maximum(SEARCH_PAIRS // (candidates_each * np.maximum(rows, 1)), 1)
+    stride = np.maximum(-(-carriers.sum(axis=-1) // allowed), 1)
+    return carriers & ((carriers.cumsum(axis=-1) - 1) % stride[:, None] == 0)
+
+
 def candidates(batch: ProblemBatch) -> np.ndarray:
     """Candidate points ``(B, C, 3)`` of every problem (common frame; NaN where a problem has fewer).
 
@@ -67,11 +76,8 @@ def candidates(batch: ProblemBatch) -> np.ndarray:
     earlier = (batch.station_index[:, :, None] == batch.station_index[:, None, :]) & is_line[:, None, :] \
         & (rows[None, :] < rows[:, None])
     is_line = is_line & ~np.any(earlier, axis=-1)
-    # Thinned to SEARCH_PAIRS: every stride-th line, counting each line's candidates at their most (the fan).
-    lines_allowed = np.maximum(SEARCH_PAIRS // (DISTANCES_M.size * FAN_ELEVATIONS_RAD.size
-                                                * np.maximum(batch.n_measurements, 1)), 1)
-    stride = -(-is_line.sum(axis=-1) // lines_allowed)
-    is_line = is_line & ((np.cumsum(is_line, axis=-1) - 1) % np.maximum(stride, 1)[:, None] == 0)
+    # Each line's candidates counted at their most (the fan).
+    is_line = _thinned(is_line, DISTANCES_M.size * FAN_ELEVATIONS_RAD.size, batch.n_measurements)
     constrained = batch.constrained
     fan = np.concatenate([[np.nan], FAN_ELEVATIONS_RAD])
     # Along each line of sight: (B, M lines, E elevations, D distances); the measured elevation where given.
@@ -90,10 +96,7 @@ def candidates(batch: ProblemBatch) -> np.ndarray:
     sphere, circle = _sphere(SPHERE_DIRECTIONS), _circle(CIRCLE_DIRECTIONS)
     circle = np.concatenate([circle, np.full((SPHERE_DIRECTIONS - CIRCLE_DIRECTIONS, 3), np.nan)])
     directions = np.where(constrained[:, None, None], circle[None], sphere[None])
-    # Thinned to SEARCH_PAIRS as the lines are: every stride-th direction.
-    directions_allowed = np.maximum(SEARCH_PAIRS // (DISTANCES_M.size * np.maximum(batch.n_measurements, 1)), 1)
-    direction_stride = -(-SPHERE_DIRECTIONS // directions_allowed)
-    kept = np.arange(SPHERE_DIRECTIONS)[None, :] % direction_stride[:, None] == 0
+    kept = _thinned(~np.isnan(directions[..., 0]), DISTANCES_M.size, batch.n_measurements)
     directions = np.where(kept[..., None], directions, np.nan)
     around = centroid[:, None, None, :] + directions[:, :, None, :] * DISTANCES_M[:, None]
     around = np.where(np.any(is_line, axis=-1)[:, None, None, None], np.nan, around)
