@@ -1069,8 +1069,6 @@ def _size_classes(bodies: list) -> list[list[int]]:
     measurement counts (a bearing is one or two rows), a problem is padded
     to at most four times its own rows. Anything but a problem counts as size 1.
     """
-    if len(bodies) == 1:
-        return [[0]]
     stations = np.ones(len(bodies), dtype=np.intp)
     measurements = np.ones(len(bodies), dtype=np.intp)
     for slot, body in enumerate(bodies):
