@@ -2,10 +2,11 @@
 
 The echo route is the yardstick for the single-fix row: the fix route's shape
 with a solve that costs nothing. Like ``POST /v1/fixes`` it is an ``async``
-route behind the same middleware that reads the body with orjson, checks the
-owner, hands the parsed body to a one-thread executor and waits for it there
-(as the coalescer's drain does), then answers with orjson; the worker only
-returns the body. It exists only in this instance, never in the product API.
+route behind the same middleware that decodes the body as the fix route does
+(:func:`service.wire.decode_fix`, else orjson), checks the owner, hands the
+body to a one-thread executor and waits for it there (as the coalescer's
+drain does), then answers with the body's JSON; the worker only returns the
+body. It exists only in this instance, never in the product API.
 """
 
 from __future__ import annotations
@@ -13,11 +14,13 @@ from __future__ import annotations
 import asyncio
 from concurrent.futures import ThreadPoolExecutor
 
+import msgspec
 from fastapi import FastAPI, Request
+from starlette.responses import Response
 
 from service.app import create_app
 from service.deps import get_owner, parse_json
-from service.responses import JsonResponse
+from service.wire import decode_fix
 from service.settings import Settings
 
 
@@ -27,10 +30,12 @@ def create_bench_app(settings: Settings | None = None) -> FastAPI:
     worker = ThreadPoolExecutor(1, thread_name_prefix="echo")
 
     @app.post("/bench/echo", include_in_schema=False)
-    async def echo(http: Request) -> JsonResponse:
-        body = parse_json(await http.body())
+    async def echo(http: Request) -> Response:
+        raw = await http.body()
+        body = decode_fix(raw) or parse_json(raw)
         get_owner(http)
-        return JsonResponse(await asyncio.get_running_loop().run_in_executor(worker, lambda: body))
+        body = await asyncio.get_running_loop().run_in_executor(worker, lambda: body)
+        return Response(msgspec.json.encode(body), media_type="application/json")
 
     return app
 

@@ -76,17 +76,18 @@ def _single_phase_times(count: int = 300) -> dict[str, float]:
     from service.deps import parse_json
     from service.responses import JsonResponse
     from service.translate import fix_bodies, read_fix_requests
+    from service.wire import decode_fix
 
     bodies = [orjson.dumps(b) for b in four_station_requests(count, np.random.default_rng(12))]
     error_summary(np.eye(3))  # its interpolation tables are built once per process, on first use: not per fix
-    totals = dict.fromkeys(("parse (orjson)", "read (reader, geodesy)", "solve (start + LM + finish)",
+    totals = dict.fromkeys(("decode (msgspec)", "read (reader, geodesy)", "solve (start + LM + finish)",
                             "bodies (summaries, dicts)", "serialise (orjson)"), 0.0)
     for body in bodies[:30]:  # warm up as row 7 does (first calls after import resolve types and fill caches)
-        read = read_fix_requests([parse_json(body)])
+        read = read_fix_requests([decode_fix(body) or parse_json(body)])
         fix_bodies(solve_many(read.batch, read.methods, read.options)[0][1], read.formats)
     for body in bodies:
         t0 = time.perf_counter()
-        parsed = parse_json(body)
+        parsed = decode_fix(body) or parse_json(body)
         t1 = time.perf_counter()
         read = read_fix_requests([parsed])
         t2 = time.perf_counter()
@@ -190,6 +191,7 @@ def _phase_times(problems: list) -> dict[str, float]:
     from core.estimators import solve_many
     from service.responses import JsonResponse
     from service.translate import fix_bodies, read_fix_requests
+    from service.wire import decode_batch
 
     raw = orjson.dumps({"problems": problems})
     times: dict[str, float] = {}
@@ -197,8 +199,8 @@ def _phase_times(problems: list) -> dict[str, float]:
     gc.disable()
     try:
         t = time.perf_counter()
-        parsed = orjson.loads(raw)["problems"]
-        times["parse JSON (orjson)"] = time.perf_counter() - t
+        parsed = decode_batch(raw)
+        times["decode JSON (msgspec structs)"] = time.perf_counter() - t
         t = time.perf_counter()
         read = read_fix_requests(parsed)
         times["read + build batch (reader, geodesy)"] = time.perf_counter() - t

@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextvars
 
 from service.problems import ApiError
+from service.wire import measurement_count, requested_method
 
 #: The ``max_fix_cost`` of the app serving this request (set per request by the middleware).
 fix_cost_limit: contextvars.ContextVar[int | None] = contextvars.ContextVar("fix_cost_limit", default=None)
@@ -65,14 +66,11 @@ def check_grid(cells: int, rows: int, limit: int) -> None:
 
 
 def batch_cost(problems: list) -> int:
-    """``sum of weight x measurements`` over parsed problem dicts (anything malformed costs 1)."""
+    """``sum of weight x measurements`` over parsed or decoded problems (anything malformed costs 1)."""
     total = 0
     for body in problems:
-        if type(body) is dict:
-            measurements = body.get("measurements")
-            total += (len(measurements) if type(measurements) is list else 1) * method_weight(body.get("method"))
-        else:
-            total += 1
+        count = measurement_count(body)
+        total += 1 if count is None else count * method_weight(requested_method(body))
     return total
 
 

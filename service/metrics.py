@@ -38,6 +38,7 @@ from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disa
 from prometheus_client import multiprocess
 
 from core.estimators import REGISTRY as METHODS
+from service.wire import requested_method
 
 PREFIX = "passive_locator_"
 CONTENT_TYPE = "text/plain; version=0.0.4; charset=utf-8"
@@ -110,7 +111,7 @@ class Metrics:
             if result["ok"]:
                 tally[result["fix"]["method"], "ok"] += 1
             else:
-                method = problem.get("method", "auto") if isinstance(problem, dict) else None
+                method = requested_method(problem)
                 tally[method if isinstance(method, str) else None, result["error"]["code"]] += 1
         for (method, outcome), count in tally.items():
             self.fix(method, outcome, count)

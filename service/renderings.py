@@ -242,8 +242,9 @@ def batch_geojson(results: list[dict], problems: list) -> dict:
     return {"type": "FeatureCollection", "features": features}
 
 
-def problem_renderings(problem: dict) -> Renderings:
-    if "observed_at" not in problem and "cot" not in problem:
+def problem_renderings(problem) -> Renderings:
+    """The ``observed_at`` and ``cot`` options of a parsed or decoded problem (a decoded one has neither)."""
+    if type(problem) is not dict or "observed_at" not in problem and "cot" not in problem:
         return Renderings()
     from service.schemas import FixRequest
 

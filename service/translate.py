@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 import orjson
+from msgspec import UNSET
 from pydantic import ValidationError
 
 from core import geodesy
@@ -35,7 +36,7 @@ from core.parallel import Stopped
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
 from core.problem_batch import ProblemBatch, build_problem_batch, size_groups
 from core.simulation.measurements import evaluate
-from service import schemas
+from service import schemas, wire
 from service.limits import check_grid, fix_within_limit
 from service.maps import coverage_geojson, coverage_png
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
@@ -223,35 +224,26 @@ def error_dict(summary, gdops, i: int = 0) -> dict:
 
 # --- Fix requests: one reader, one solve, one writer, for POST /v1/fixes (a batch of one) and the batch route. ---
 
-#: The fields the reader handles, per request model. A test holds each set against the model's own fields,
-#: so a field added to the schema fails it until the reader handles the field.
+#: The fields the reader handles, per request model: the :mod:`service.wire` structs' fields (and ``type``, their
+#: tag). A test holds each set against the model's own fields, so a field added to the schema fails it until the
+#: reader handles the field.
 READ_FIELDS = {
-    schemas.FixRequest: frozenset(("frame", "origin", "stations", "measurements", "method", "constraints", "options",
-                                   "formats", "observed_at", "cot")),
     # A body with observed_at or cot options is read through the schema (they shape only its renderings).
+    schemas.FixRequest: frozenset(wire.FixBody.__struct_fields__) | {"observed_at", "cot"},
     schemas.CotOptions: frozenset(schemas.CotOptions.model_fields),
-    schemas.Station: frozenset(("id", "position")),
+    schemas.Station: frozenset(wire.Station.__struct_fields__),
     schemas.GeodeticPosition: frozenset(("lat_deg", "lon_deg", "alt_m")),
     schemas.LocalPosition: frozenset(("east_m", "north_m", "up_m")),
-    schemas.BearingMeasurement: frozenset(("type", "station_id", "azimuth_deg", "elevation_deg", "sigma_azimuth_deg",
-                                           "sigma_elevation_deg")),
-    schemas.RangeMeasurement: frozenset(("type", "station_id", "range_m", "sigma_m")),
-    schemas.ToaMeasurement: frozenset(("type", "station_id", "toa_s", "sigma_s")),
-    schemas.Options: frozenset(("max_iterations", "tolerance_m", "initial_guess", "variant", "outliers",
-                                "absolute_sigma", "loss", "loss_scale")),
-    schemas.Constraints: frozenset(("altitude_m",)),
+    schemas.BearingMeasurement: frozenset(wire.Bearing.__struct_fields__) | {"type"},
+    schemas.RangeMeasurement: frozenset(wire.Range.__struct_fields__) | {"type"},
+    schemas.ToaMeasurement: frozenset(wire.Toa.__struct_fields__) | {"type"},
+    schemas.Options: frozenset(wire.Options.__struct_fields__),
+    schemas.Constraints: frozenset(wire.Constraints.__struct_fields__),
 }
-_GEODETIC_KEYS = READ_FIELDS[schemas.GeodeticPosition]
-_LOCAL_KEYS = READ_FIELDS[schemas.LocalPosition]
-_REQUEST_KEYS = READ_FIELDS[schemas.FixRequest]
-_STATION_KEYS = READ_FIELDS[schemas.Station]
-_BEARING_KEYS = READ_FIELDS[schemas.BearingMeasurement]
-_RANGE_KEYS = READ_FIELDS[schemas.RangeMeasurement]
-_TOA_KEYS = READ_FIELDS[schemas.ToaMeasurement]
-_OPTION_KEYS = READ_FIELDS[schemas.Options]
-_CONSTRAINT_KEYS = READ_FIELDS[schemas.Constraints]
 _FORMATS = frozenset(typing.get_args(schemas.Format))
 _METHODS = schemas.METHODS
+_FRAME = schemas.FixRequest.model_fields["frame"].default
+_METHOD = schemas.FixRequest.model_fields["method"].default
 _DEFAULT_OPTIONS = schemas.Options()
 _VARIANTS = frozenset(typing.get_args(schemas.Variant))
 _OUTLIERS = frozenset(typing.get_args(schemas.Options.model_fields["outliers"].annotation))
@@ -259,8 +251,6 @@ _LOSSES = frozenset(typing.get_args(schemas.Options.model_fields["loss"].annotat
 _DEFAULT_SOLVE = SolveOptions(_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m, _DEFAULT_OPTIONS.variant,
                               _DEFAULT_OPTIONS.outliers, _DEFAULT_OPTIONS.absolute_sigma, _DEFAULT_OPTIONS.loss,
                               _DEFAULT_OPTIONS.loss_scale)
-#: A request with only these fields needs no per-field settings beyond frame and method.
-_PLAIN_KEYS = frozenset(("frame", "method", "stations", "measurements"))
 _NAN3 = (math.nan, math.nan, math.nan)
 
 
@@ -284,16 +274,9 @@ class _Reject(Exception):
     """The lean reader cannot vouch for this problem: the schema and :func:`to_problem` decide."""
 
 
-def _number(value, bounds=None) -> float:
-    if type(value) is not float and type(value) is not int:
-        raise _Reject
-    try:
-        value = float(value)
-    except OverflowError:  # an integer past float's range: the schema words the error
-        raise _Reject from None
-    if not math.isfinite(value):
-        raise _Reject
-    if bounds is not None and not bounds[0] <= value <= bounds[1]:
+def _number(value, bounds) -> float:
+    """A decoded float within its closed bounds (NaN, which only a non-JSON ``NaN`` literal gives, is not)."""
+    if not bounds[0] <= value <= bounds[1]:
         raise _Reject
     return value
 
@@ -324,74 +307,61 @@ _SIGMA_BOUNDS = np.array([{_AZ: _SIGMA_AZIMUTH, _EL: _SIGMA_ELEVATION, _RG: _SIG
 _MEASUREMENTS_MAX = schemas.MAX_FIX_MEASUREMENTS
 _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
                        if getattr(rule, "max_length", None) is not None)
-_ABSENT = object()
 
 
-def _position(body, geodetic: bool) -> tuple[float, float, float]:
-    """A position dict as core coordinates: ``(lat_rad, lon_rad, alt_m)`` or ``(east_m, north_m, up_m)``."""
-    if type(body) is not dict:
-        raise _Reject
+def _position(position: wire.Position, geodetic: bool) -> tuple[float, float, float]:
+    """A position as core coordinates, ``(lat_rad, lon_rad, alt_m)`` or ``(east_m, north_m, up_m)`` (``_Reject``
+    unless it holds the fields of the frame's position model only)."""
     if geodetic:
-        if not body.keys() <= _GEODETIC_KEYS:
+        if position.lat_deg is UNSET or position.lon_deg is UNSET or position.east_m is not UNSET \
+                or position.north_m is not UNSET or position.up_m is not UNSET:
             raise _Reject
-        return (math.radians(_number(body["lat_deg"], _LAT)), math.radians(_number(body["lon_deg"], _LON)),
-                _number(body.get("alt_m", 0.0), _ALT))
-    if not body.keys() <= _LOCAL_KEYS or "lat_deg" in body or "lon_deg" in body:
+        return (math.radians(_number(position.lat_deg, _LAT)), math.radians(_number(position.lon_deg, _LON)),
+                0.0 if position.alt_m is UNSET else _number(position.alt_m, _ALT))
+    if position.east_m is UNSET or position.north_m is UNSET or position.lat_deg is not UNSET \
+            or position.lon_deg is not UNSET or position.alt_m is not UNSET:
         raise _Reject
-    return (_number(body["east_m"], _EAST), _number(body["north_m"], _NORTH), _number(body.get("up_m", 0.0), _UP))
+    return (_number(position.east_m, _EAST), _number(position.north_m, _NORTH),
+            0.0 if position.up_m is UNSET else _number(position.up_m, _UP))
 
 
 #: The renderings of a request that asks for none (one object shared by all such requests).
 _PLAIN = Renderings()
 
 
-def _problem_settings(body: dict) -> tuple:
-    """Frame, origin, method, options, guess, altitude and renderings of one FixRequest dict (``_Reject`` if
-    unusual)."""
-    frame = body.get("frame", "wgs84")
-    if frame != "wgs84" and frame != "local" or "cot" in body or "observed_at" in body:
-        raise _Reject
+def _problem_settings(body: wire.FixBody, frame: str, method: str) -> tuple:
+    """Frame, origin, method, options, guess, altitude and renderings of a body with more than stations and
+    measurements (``_Reject`` if unusual)."""
     geodetic = frame == "wgs84"
-    method = body.get("method", "auto")
-    if type(method) is not str or method not in _METHODS:
-        raise _Reject
-    origin = body.get("origin")
-    origin = _NAN3 if origin is None else _position(origin, True)
-    options = body.get("options", _ABSENT)
+    origin = _NAN3 if body.origin is None else _position(body.origin, True)
+    options = body.options
     solve, guess, guess_geodetic = _DEFAULT_SOLVE, _NAN3, False
-    if options is not _ABSENT:
-        if type(options) is not dict or not options.keys() <= _OPTION_KEYS:
+    if options is not UNSET:
+        default = _DEFAULT_OPTIONS
+        iterations = default.max_iterations if options.max_iterations is UNSET else options.max_iterations
+        outliers = default.outliers if options.outliers is UNSET else options.outliers
+        absolute_sigma = default.absolute_sigma if options.absolute_sigma is UNSET else options.absolute_sigma
+        loss = default.loss if options.loss is UNSET else options.loss
+        if not _ITERATIONS[0] <= iterations <= _ITERATIONS[1] or outliers not in _OUTLIERS or loss not in _LOSSES \
+                or options.variant is not None and options.variant not in _VARIANTS:
             raise _Reject
-        iterations = options.get("max_iterations", _DEFAULT_OPTIONS.max_iterations)
-        if type(iterations) is not int or not _ITERATIONS[0] <= iterations <= _ITERATIONS[1]:
-            raise _Reject
-        variant = options.get("variant")
-        if variant is not None and variant not in _VARIANTS:
-            raise _Reject
-        outliers = options.get("outliers", _DEFAULT_OPTIONS.outliers)
-        absolute_sigma = options.get("absolute_sigma", _DEFAULT_OPTIONS.absolute_sigma)
-        loss = options.get("loss", _DEFAULT_OPTIONS.loss)
-        if outliers not in _OUTLIERS or type(absolute_sigma) is not bool or loss not in _LOSSES:
-            raise _Reject
-        solve = SolveOptions(iterations, _number(options.get("tolerance_m", _DEFAULT_OPTIONS.tolerance_m), _TOLERANCE),
-                             variant, outliers, absolute_sigma, loss,
-                             _number(options.get("loss_scale", _DEFAULT_OPTIONS.loss_scale), _LOSS_SCALE))
-        raw = options.get("initial_guess")
+        solve = SolveOptions(iterations,
+                             default.tolerance_m if options.tolerance_m is UNSET else _number(options.tolerance_m,
+                                                                                              _TOLERANCE),
+                             options.variant, outliers, absolute_sigma, loss,
+                             default.loss_scale if options.loss_scale is UNSET else _number(options.loss_scale,
+                                                                                            _LOSS_SCALE))
+        raw = options.initial_guess
         if raw is not None:
-            guess_geodetic = type(raw) is dict and ("lat_deg" in raw or "lon_deg" in raw)
+            guess_geodetic = raw.lat_deg is not UNSET or raw.lon_deg is not UNSET
             if guess_geodetic and not geodetic and math.isnan(origin[0]):
                 raise _Reject
             guess = _position(raw, guess_geodetic)
-    constraints = body.get("constraints")
     altitude = math.nan
-    if constraints is not None:
-        if type(constraints) is not dict or not constraints.keys() <= _CONSTRAINT_KEYS:
-            raise _Reject
-        value = constraints.get("altitude_m")
-        altitude = math.nan if value is None else _number(value, _ALTITUDE)
-    formats = body.get("formats", ())
-    if formats != () and (type(formats) is not list or len(formats) > 2
-                          or any(type(f) is not str or f not in _FORMATS for f in formats)):
+    if body.constraints is not None and body.constraints.altitude_m is not None:
+        altitude = _number(body.constraints.altitude_m, _ALTITUDE)
+    formats = body.formats
+    if formats is not UNSET and (len(formats) > 2 or any(f not in _FORMATS for f in formats)):
         raise _Reject
     return geodetic, origin, method, solve, guess, guess_geodetic, altitude, Renderings(formats) if formats else _PLAIN
 
@@ -402,7 +372,8 @@ _PLAIN_SETTINGS = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_S
 
 
 def _read(bodies: list):
-    """Structure checks and raw columns of the problems that look plainly valid (numbers are checked later, in bulk).
+    """Structure checks and raw columns of the problems that decode as :class:`service.wire.FixBody` and look
+    plainly valid (the numbers are checked later, in bulk).
 
     Returns
     -------
@@ -410,99 +381,92 @@ def _read(bodies: list):
     settings : list of tuple (see :func:`_problem_settings`)
     station_counts, measurement_counts : list of int
     station_ids : list of tuple of str
-    coordinates : list
-        Raw station position values, API units, three per station, flattened.
+    coordinates : list of float
+        Station positions, API units, three per station, flattened (a missing height is 0).
     scalars : list of int
         The scalar measurements' structure, four per measurement (kind, station, bearing, source),
         flattened.
-    readings : list
-        Their raw values, API units, two per measurement (value, sigma), flattened; a missing azimuth
+    readings : list of float
+        Their values, API units, two per measurement (value, sigma), flattened; a missing azimuth
         sigma is NaN.
     rest : list of int
     """
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
     coordinates, scalars, readings, rest = [], [], [], []
     add_coordinates, add_scalar, add_reading = coordinates.extend, scalars.extend, readings.extend
-    geodetic_keys, local_keys, station_keys = _GEODETIC_KEYS, _LOCAL_KEYS, _STATION_KEYS
-    bearing_keys, range_keys, toa_keys, id_max = _BEARING_KEYS, _RANGE_KEYS, _TOA_KEYS, _STATION_ID_MAX
-    nan = math.nan
-    plain = _PLAIN_SETTINGS
-    for slot, body in enumerate(bodies):
+    id_max, unset, nan, plain = _STATION_ID_MAX, UNSET, math.nan, _PLAIN_SETTINGS
+    Bearing, Range = wire.Bearing, wire.Range
+    for slot, raw in enumerate(bodies):
+        body = wire.as_fix_body(raw)
+        if body is None:
+            rest.append(slot)
+            continue
         n_coordinates, n_scalars, n_readings = len(coordinates), len(scalars), len(readings)
         try:
-            if type(body) is not dict:
-                raise _Reject
-            keys = body.keys()
-            if keys <= _PLAIN_KEYS:
-                setting = plain.get((body.get("frame", "wgs84"), body.get("method", "auto")))
+            frame = _FRAME if body.frame is unset else body.frame
+            method = _METHOD if body.method is unset else body.method
+            if body.origin is None and body.options is unset and body.constraints is None and body.formats is unset:
+                setting = plain.get((frame, method))
                 if setting is None:
                     raise _Reject
-            elif keys <= _REQUEST_KEYS:
-                setting = _problem_settings(body)
+            elif frame in ("wgs84", "local") and method in _METHODS:
+                setting = _problem_settings(body, frame, method)
             else:
                 raise _Reject
             geodetic = setting[0]
-            stations = body["stations"]
-            if type(stations) is not list or not 0 < len(stations) <= 256:
+            stations = body.stations
+            if not 0 < len(stations) <= 256:
                 raise _Reject
             ids: dict[str, int] = {}
             for station in stations:
-                if type(station) is not dict or station.keys() != station_keys:
-                    raise _Reject
-                sid, position = station["id"], station["position"]
-                if type(sid) is not str or not 0 < len(sid) <= id_max or sid in ids or type(position) is not dict:
+                sid, position = station.id, station.position
+                if not 0 < len(sid) <= id_max or sid in ids:
                     raise _Reject
                 ids[sid] = len(ids)
                 if geodetic:
-                    if not position.keys() <= geodetic_keys:
+                    if position.lat_deg is unset or position.lon_deg is unset or position.east_m is not unset \
+                            or position.north_m is not unset or position.up_m is not unset:
                         raise _Reject
-                    add_coordinates((position["lat_deg"], position["lon_deg"], position.get("alt_m", 0.0)))
+                    add_coordinates((position.lat_deg, position.lon_deg,
+                                     0.0 if position.alt_m is unset else position.alt_m))
                 else:
-                    if not position.keys() <= local_keys or "lat_deg" in position or "lon_deg" in position:
+                    if position.east_m is unset or position.north_m is unset or position.lat_deg is not unset \
+                            or position.lon_deg is not unset or position.alt_m is not unset:
                         raise _Reject
-                    add_coordinates((position["east_m"], position["north_m"], position.get("up_m", 0.0)))
-            measurements = body["measurements"]
-            if type(measurements) is not list or not 0 < len(measurements) <= _MEASUREMENTS_MAX \
-                    or not fix_within_limit(len(ids), len(measurements)):
+                    add_coordinates((position.east_m, position.north_m, 0.0 if position.up_m is unset else position.up_m))
+            measurements = body.measurements
+            if not 0 < len(measurements) <= _MEASUREMENTS_MAX or not fix_within_limit(len(ids), len(measurements)):
                 raise _Reject
             n_bearings = 0
             for i, m in enumerate(measurements):
-                if type(m) is not dict:
-                    raise _Reject
-                kind = m.get("type")
-                station = ids.get(m.get("station_id"))
+                station = ids.get(m.station_id)
                 if station is None:
                     raise _Reject
-                if kind == "bearing":
-                    if not m.keys() <= bearing_keys:
+                kind = type(m)
+                if kind is Bearing:
+                    sigma_azimuth, elevation, sigma_elevation = m.sigma_azimuth_deg, m.elevation_deg, m.sigma_elevation_deg
+                    if sigma_azimuth is None:
+                        sigma_azimuth = nan
+                    elif sigma_azimuth != sigma_azimuth:  # a NaN literal: not the absent sigma that NaN stands for
                         raise _Reject
-                    sigma_azimuth = m.get("sigma_azimuth_deg")
-                    elevation, sigma_elevation = m.get("elevation_deg"), m.get("sigma_elevation_deg")
                     if elevation is not None:
                         if sigma_elevation is None:
                             raise _Reject
                         add_scalar((_AZ, station, n_bearings, i, _EL, station, n_bearings, i))
-                        add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth, elevation,
-                                     sigma_elevation))
+                        add_reading((m.azimuth_deg, sigma_azimuth, elevation, sigma_elevation))
                     elif sigma_elevation is not None:
                         raise _Reject
                     else:
                         add_scalar((_AZ, station, n_bearings, i))
-                        add_reading((m["azimuth_deg"], nan if sigma_azimuth is None else sigma_azimuth))
+                        add_reading((m.azimuth_deg, sigma_azimuth))
                     n_bearings += 1
-                elif kind == "range":
-                    if m.keys() != range_keys:
-                        raise _Reject
+                elif kind is Range:
                     add_scalar((_RG, station, -1, i))
-                    add_reading((m["range_m"], m["sigma_m"]))
-                elif kind == "toa":
-                    if m.keys() != toa_keys:
-                        raise _Reject
-                    add_scalar((_TOA, station, -1, i))
-                    add_reading((m["toa_s"], m["sigma_s"]))
+                    add_reading((m.range_m, m.sigma_m))
                 else:
-                    raise _Reject
-        except (_Reject, KeyError, TypeError):
+                    add_scalar((_TOA, station, -1, i))
+                    add_reading((m.toa_s, m.sigma_s))
+        except _Reject:
             del coordinates[n_coordinates:], scalars[n_scalars:], readings[n_readings:]
             rest.append(slot)
             continue
@@ -512,28 +476,6 @@ def _read(bodies: list):
         station_ids.append(tuple(ids))
         measurement_counts.append((len(scalars) - n_scalars) // 4)
     return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest
-
-
-def _numeric(flat: list, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of raw JSON numbers (flattened) as floats ``(R, width)``, and which rows hold only numbers.
-
-    JSON numbers convert as pydantic converts them; a row with anything else (a boolean, which the strict
-    schema refuses, a string, null, a list, a huge integer) is marked for the full path.
-    """
-    types = set(map(type, flat))
-    try:
-        if types == {float}:
-            table = np.array(flat, dtype=float)
-        else:
-            table = np.array(flat) if flat and bool not in types else None
-    except ValueError:  # a list where a number belongs: ragged
-        table = None
-    if table is not None and table.dtype.kind in "fiu":
-        return table.astype(float, copy=False).reshape(-1, width), np.ones(len(flat) // width, dtype=bool)
-    rows = [flat[i:i + width] for i in range(0, len(flat), width)]
-    good = np.array([all(type(v) in (float, int) and abs(v) < 1e300 for v in row) for row in rows], dtype=bool)
-    table = np.array([row if ok else [0.0] * width for row, ok in zip(rows, good)], dtype=float).reshape(-1, width)
-    return table, good
 
 
 def _within(values, bounds) -> np.ndarray:
@@ -587,15 +529,15 @@ def read_fix_requests(bodies: list) -> FixRequests:
         station_owner = np.arange(len(accepted)).repeat(station_counts)
         scalar_owner = np.arange(len(accepted)).repeat(measurement_counts)
         geodetic = np.array([s[0] for s in settings], dtype=bool)
-        coords, coords_ok = _numeric(coordinates, 3)
+        coords = np.array(coordinates, dtype=float).reshape(-1, 3)
         table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
-        reading, scalars_ok = _numeric(readings, 2)
+        reading = np.array(readings, dtype=float).reshape(-1, 2)
         kinds = table[:, 0].astype(np.int8)
         values, sigmas = reading[:, 0], reading[:, 1]
         on_earth = geodetic[station_owner]
-        coords_ok &= _within(coords, _COORDINATE_BOUNDS[on_earth.astype(np.intp)]).all(axis=-1)
+        coords_ok = _within(coords, _COORDINATE_BOUNDS[on_earth.astype(np.intp)]).all(axis=-1)
         is_az, is_el = kinds == _AZ, kinds == _EL
-        scalars_ok &= _within(values, _VALUE_BOUNDS[kinds]) & (_within(sigmas, _SIGMA_BOUNDS[kinds])
+        scalars_ok = _within(values, _VALUE_BOUNDS[kinds]) & (_within(sigmas, _SIGMA_BOUNDS[kinds])
                                                                | (is_az & np.isnan(sigmas)))
         bad = np.zeros(len(accepted), dtype=bool)
         bad[station_owner[~coords_ok]] = True
@@ -639,7 +581,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
     built: list[Problem] = []
     for slot in rest:
         try:
-            request = schemas.FixRequest.model_validate(bodies[slot])
+            request = schemas.FixRequest.model_validate(wire.as_builtins(bodies[slot]))
         except ValidationError as error:
             errors[slot] = _invalid(error)
             continue
@@ -1072,7 +1014,9 @@ def _size_classes(bodies: list) -> list[list[int]]:
     stations = np.ones(len(bodies), dtype=np.intp)
     measurements = np.ones(len(bodies), dtype=np.intp)
     for slot, body in enumerate(bodies):
-        if type(body) is dict:
+        if type(body) is wire.FixBody:
+            stations[slot], measurements[slot] = len(body.stations), len(body.measurements)
+        elif type(body) is dict:
             listed = body.get("stations"), body.get("measurements")
             if type(listed[0]) is list:
                 stations[slot] = len(listed[0])

@@ -27,6 +27,7 @@ from service.limits import check_batch
 from service.renderings import batch_geojson
 from service.responses import JsonResponse
 from service.translate import fix_results
+from service.wire import decode_batch
 from service.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
@@ -85,7 +86,13 @@ RawBody = Annotated[bytes, Depends(_raw_body)]
 
 
 def _problems(raw: bytes) -> tuple[list, list]:
-    """The ``problems`` list and ``formats`` of a batch body; 400/422 as for any body when it is not one."""
+    """The ``problems`` list and ``formats`` of a batch body; 400/422 as for any body when it is not one.
+
+    The problems are :class:`service.wire.FixBody` structs when every one decodes as such, else parsed JSON.
+    """
+    problems = decode_batch(raw)
+    if problems is not None and 0 < len(problems) <= MAX_PROBLEMS:
+        return problems, []
     data = parse_json(raw)
     if type(data) is dict and data.keys() == {"problems"}:
         problems = data["problems"]

@@ -21,6 +21,7 @@ from service.problems import MEDIA_TYPE
 from service.renderings import problem_renderings
 from service.responses import JsonResponse
 from service.translate import crlb_response
+from service.wire import decode_fix, requested_method
 from service.watch import watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
@@ -37,7 +38,8 @@ _HINT = "ask for fewer stations or measurements"
 async def create_fix(http: Request) -> Response:
     # The body and the owner are read here rather than as dependencies: resolving two dependencies cost the
     # framework 50-80 us a request (measured in process), a sixth of this route's work besides the solve.
-    body = parse_json(await http.body())
+    raw = await http.body()
+    body = decode_fix(raw) or parse_json(raw)
     get_owner(http)
     coalescer = http.app.state.fix_coalescer
     result = await watched(http, lambda should_stop: coalescer.submit(body, request_id(http), should_stop), _HINT)
@@ -48,7 +50,7 @@ async def create_fix(http: Request) -> Response:
             tak.push_fix(http.app, fix, problem_renderings(body))
         return JsonResponse(fix)
     error = result["error"]
-    method = body.get("method", "auto") if type(body) is dict else "auto"
+    method = requested_method(body)
     http.app.state.metrics.fix(method if type(method) is str and method in schemas.METHODS else "invalid", error["code"])
     return Response(orjson.dumps(error), status_code=error["status"], media_type=MEDIA_TYPE)
 
