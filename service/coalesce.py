@@ -1,6 +1,6 @@
 """Concurrent single fixes share one batched solve.
 
-``POST /v1/fixes`` hands its parsed body to the app's :class:`Coalescer`.
+``POST /v1/fixes`` hands its decoded body to the app's :class:`Coalescer`.
 One drain at a time takes *everything queued at that moment* (there is no
 waiting window: a lone request on an idle service is solved at once, alone)
 and runs :func:`service.translate.fix_results` on the drained bodies on its own
@@ -59,7 +59,7 @@ class Coalescer:
 
     def submit(self, body, request_id: str | None = None,
                should_stop: Callable[[], bool] | None = None) -> asyncio.Future:
-        """A future of one parsed FixRequest body's result (``{"index": 0, "ok", "fix" | "error"}``), solved
+        """A future of one FixRequest body's result (``{"index": 0, "ok", "fix" | "error"}``), solved
         together with whatever else is queued.
 
         A drain stops between parts (the future raises :class:`core.parallel.Stopped`) when the server stops

@@ -1,7 +1,7 @@
 """The one translation between HTTP schemas (degrees, request order) and core types.
 
 Fix requests, single or batched, take one road: :func:`fix_results` reads
-parsed bodies into one core batch (:func:`read_fix_requests`), solves it with
+decoded bodies (:mod:`service.wire`) into one core batch (:func:`read_fix_requests`), solves it with
 :func:`core.estimators.iter_solutions` and writes every fix from the batch's
 arrays (:func:`fix_bodies`, which writes each fix body as JSON text, read
 as a mapping on demand: :class:`service.responses.JsonObject`). Responses
@@ -510,12 +510,13 @@ class FixRequests:
 
 
 def read_fix_requests(bodies: list) -> FixRequests:
-    """Read parsed FixRequest bodies into one core batch.
+    """Read FixRequest bodies (:class:`service.wire.FixBody` structs or parsed JSON) into one core batch.
 
-    A body that is plainly valid (the exact fields, types and bounds of
-    :class:`schemas.FixRequest`, known and unique station ids) is read in
-    bulk: structure problem by problem, numbers converted and range-checked
-    for all at once, the frames placed by :func:`core.problem_batch.build_problem_batch`.
+    A body that is plainly valid (a FixBody, or parsed JSON that converts to
+    one, within the bounds of :class:`schemas.FixRequest`, with known and
+    unique station ids) is read in bulk: structure problem by problem, numbers
+    range-checked for all at once, the frames placed by
+    :func:`core.problem_batch.build_problem_batch`.
     Any other body is validated by the schema and built by :func:`to_problem`,
     which decide and word its error, and joins the same batch.
     """
@@ -922,7 +923,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
 
 
 def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
-    """Results of parsed FixRequest bodies: read, solved and written as one batch.
+    """Results of FixRequest bodies (see :func:`read_fix_requests`): read, solved and written as one batch.
 
     A failure that is no problem's own error (a bug) fails only the bodies
     that meet it: the shared call's exception is logged, each body is then

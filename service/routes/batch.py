@@ -4,7 +4,7 @@ The problems go through :func:`~service.translate.fix_results`, the same
 read, solve and write as ``POST /v1/fixes``; a problem's error stays in its
 slot; the solve stops between parts at the request deadline, when the
 client goes away or when the server stops (:mod:`service.watch`: 503
-``deadline_exceeded``). The body is parsed here with orjson, not by the framework, and the
+``deadline_exceeded``). The body is decoded here (:mod:`service.wire`), not by the framework, and the
 cyclic garbage collector is paused while the request's million small objects
 are made and dropped (it would otherwise rescan them over and over: about
 five times the work of the parse itself).

@@ -1,6 +1,6 @@
 """Fixes and planning bounds.
 
-``POST /v1/fixes`` hands its parsed body to the app's
+``POST /v1/fixes`` hands its decoded body (:mod:`service.wire`) to the app's
 :class:`~service.coalesce.Coalescer`, which solves every fix queued at that
 moment as one batch on a worker thread, through the same
 :func:`~service.translate.fix_results` as ``POST /v1/fixes/batch``: a single
