@@ -801,6 +801,23 @@ def _text_spans(texts: list) -> tuple[bytes, np.ndarray, np.ndarray]:
     return b"".join(texts), lengths.cumsum() - lengths, lengths
 
 
+def _warning_texts(warnings_per_fix) -> list[bytes]:
+    """Each fix's warnings as JSON text, written once for the fixes that hold the same warning objects (the
+    finisher shares one object among the fixes a warning says the same of)."""
+    written: dict[tuple, bytes] = {}
+    texts = []
+    for warnings in warnings_per_fix:
+        if not warnings:
+            texts.append(b"[]")
+            continue
+        key = tuple(map(id, warnings))  # the objects are alive for the whole call: an id names one
+        text = written.get(key)
+        if text is None:
+            text = written[key] = orjson.dumps([{"code": w.code, "message": w.message} for w in warnings])
+        texts.append(text)
+    return texts
+
+
 def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     """Response bodies of a :class:`core.estimators.FixBatch`: a fix body, or the problem body of its error.
 
@@ -852,9 +869,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     ], axis=-1, dtype=np.float64)
     width = batch.kinds.shape[1]
     number_text = orjson.dumps(numbers.ravel(), option=_NUMPY)
-    text, text_starts, text_lengths = _text_spans(
-        [orjson.dumps([{"code": w.code, "message": w.message} for w in warnings]) if warnings else b"[]"
-         for warnings in fixes.warnings] + [e or b"" for e in bearing_errors])
+    text, text_starts, text_lengths = _text_spans(_warning_texts(fixes.warnings) + [e or b"" for e in bearing_errors])
     number_starts, number_lengths = np.empty(numbers.size, dtype=np.int64), np.empty(numbers.size, dtype=np.int64)
     if numbers.size:
         _number_spans(np.frombuffer(number_text, dtype=np.uint8), number_starts, number_lengths)
