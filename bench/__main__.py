@@ -176,7 +176,7 @@ compare ratios within one run only. Row 2 is not a ratio, and its rows near the 
 (los_intersection: 24,656 fixes/s at 06:39, 17,962 at 06:57).
 
 **Row 1, one fix over HTTP.** The echo route (the fix route's shape with a
-solve that costs nothing: orjson body, owner, a hop to a worker thread and
+solve that costs nothing: the decoded body, owner, a hop to a worker thread and
 back, answer) reaches 0.46-0.52x healthz at c=1 and c=16 in these runs: the
 route shape alone sits at the c=1 target and below the c=16 one, before any
 fix work. The fix adds its read, solve and write; timed inside the server,
@@ -198,15 +198,20 @@ writing one fix (cProfile), at 0.3-7 us each here. The 50 us target needs a
 batch of one to run as a few kernel calls with nothing between them (one
 compiled pass from the read arrays to the written text): not done.
 
-**Row 2, batches over HTTP.** Serialising is a copy of template pieces and
-orjson's text of all numbers; what remains for ML is Python object work
-under the GIL: parse, read (the per-problem dict walk, about 14 us a
-problem) and the writer's per-part work, which does not overlap across the
-two cores. Closing it needs a read without Python objects per field (a
-compiled reader of the JSON bytes), or the batch split across processes.
-tls and ctls also spend about 30 us a problem in numpy-vectorised core steps
-(plane passes, Newton iterations, the one-point chi-square check):
-compiling those is what would bring them near the line.
+**Row 2, batches over HTTP.** The body is decoded by msgspec into typed
+structs (no dict per object) and walked once, about 5 us a problem; the
+core's kernels release the GIL and run on two threads beside the writer.
+What remains on the request's one thread, for 10,000 ML problems: decode
+~35 ms, read and frame placement ~80-100 ms, the writer ~80-110 ms
+(templates, orjson's text of the numbers, one JsonObject per fix) and the
+final serialisation ~25 ms; the POST's end-to-end time is about 40 ms more
+than the server's own (request log). Going much further needs that thread's
+work split across processes, or the per-fix objects of the response gone.
+The azimuth-line methods (ws3d, ple3d, tls, ctls, taylor_wls) spend 10-25 us
+a problem in numpy-vectorised steps (PLE passes with forward-mode
+derivatives, Newton iterations, the crossing check), which hold the GIL
+against the writer: compiling those per problem is what would bring them
+to the line.
 
 **Row 3, the scipy ratio.** Core kernels per four-station problem on one
 thread: weighted-EOVE start ~2.5 us, LM ~2.5 us, finisher ~1.6 us, glue
