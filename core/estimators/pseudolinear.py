@@ -31,19 +31,25 @@ with ``G = d position / d angles`` carried exactly alongside the passes
 differentiated by central differences of 10 m, which the surface's curvature
 makes exact to about 1e-12).
 
-Every problem of a batch runs at once: the passes are a fixed number of
-vectorised steps over the batch.
+The passes run one problem at a time in a compiled kernel (the lines of
+sight and their derivatives are a few dozen numbers: numpy's call overhead
+over the batch cost ws3d about 20 us a problem), the same code for a problem
+alone and in any batch.
 """
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 
 from core.errors import LocalizationError, TooFewMeasurements
-from core.estimators.azimuth_lines import Lines, azimuth_normals, crossing_errors, has_elevations, solve_2x2
+from core.estimators.azimuth_lines import Lines, crossing_errors, has_elevations
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
-from core.linalg import row_sums, weighted_gram
+from core.linalg import gram_point
+from core.problem import frame_placements, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
 #: Horizontal/height passes; fixed so that the estimator is one smooth map of the data.
@@ -52,128 +58,231 @@ PASSES = 6
 FOOT_STEP_M = 10.0
 
 
-def _foot_gradient(lines: Lines, candidate_enu_m) -> np.ndarray:
-    """Gradient ``(B, 3)`` of the up coordinate of the foot on the altitude surface w.r.t. the point."""
-    offsets = FOOT_STEP_M * np.concatenate([np.eye(3), -np.eye(3)])
-    feet = lines.onto_altitude(candidate_enu_m[:, None, :] + offsets)[..., 2]
-    return (feet[:, :3] - feet[:, 3:]) / (2 * FOOT_STEP_M)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _horizontal_point(position, origins, rotations, horizontal, gradient):
+    """Horizontal distance ``(n,)`` of a point ``(3,)`` from each line's station (its frame), and its
+    gradient ``(n, 3)``, into ``horizontal`` and ``gradient``."""
+    for k in range(origins.shape[0]):
+        east = north = 0.0
+        for i in range(3):
+            delta = position[i] - origins[k, i]
+            east += rotations[k, 0, i] * delta
+            north += rotations[k, 1, i] * delta
+        horizontal[k] = math.hypot(east, north)
+        safe = horizontal[k] if horizontal[k] > 0 else 1.0
+        for i in range(3):
+            gradient[k, i] = (east * rotations[k, 0, i] + north * rotations[k, 1, i]) / safe
 
 
-def _stages(lines: Lines, horizontal_weights, d_horizontal_weights, height_weights, d_height_weights):
-    """Run the two stages to their fixed point, with the derivatives w.r.t. every angle.
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _foot_up(point, altitude_m, geodetic, origin_ecef_m, origin_rotation):
+    """The up coordinate of ``point``'s foot on the altitude surface."""
+    foot = point.copy()
+    onto_altitude_point(foot, altitude_m, geodetic, origin_ecef_m, origin_rotation)
+    return foot[2]
 
-    The angles are ``P = 2K`` parameters: each line's azimuth, then each
-    line's elevation. A term of line k that depends on its own angle only
-    lands in that angle's slot directly, so a pass works on ``(B, K)`` and
-    ``(B, P)`` arrays.
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _stages_point(origins, rotations, azimuth, elevation, has_elevation, hw, dhw, vw, dvw, weighted,
+                  altitude_m, geodetic, origin_ecef_m, origin_rotation, position, d_position, horizontal,
+                  d_horizontal):
+    """Run one problem's two stages to their fixed point, with the derivatives w.r.t. every angle.
+
+    The angles are ``P = 2n`` parameters: each line's azimuth, then each line's elevation; a term of line
+    k that depends on its own angle only lands in that angle's slot.
 
     Parameters
     ----------
-    lines : Lines
-    horizontal_weights, height_weights : ndarray, shape (B, K)
-        Zero on padding (and, for heights, on lines without elevation).
-    d_horizontal_weights, d_height_weights : ndarray, shape (B, K, P), or None
-        None where the weights do not depend on the angles.
-
-    Returns
-    -------
-    position_enu_m : ndarray, shape (B, 3)
-    d_position : ndarray, shape (B, 3, P)
-    horizontal_m : ndarray, shape (B, K)
+    origins : ndarray, shape (n, 3)
+    rotations : ndarray, shape (n, 3, 3)
+    azimuth, elevation : ndarray, shape (n,)
+    has_elevation : ndarray of bool, shape (n,)
+    hw, vw : ndarray, shape (n,)
+        Horizontal and height weights (heights: zero on lines without elevation).
+    dhw, dvw : ndarray, shape (n, P)
+        Their derivatives, used when ``weighted``.
+    altitude_m : float
+        NaN where the height comes from the elevations.
+    position : ndarray, shape (3,)
+    d_position : ndarray, shape (3, P)
+    horizontal : ndarray, shape (n,)
         Horizontal distance of the fix from each line's station, in the station's frame.
-    d_horizontal : ndarray, shape (B, K, P)
+    d_horizontal : ndarray, shape (n, P)
+        Outputs.
     """
-    size, k = lines.mask.shape
-    zeros = np.zeros((size, k))
-
-    def slots(azimuth_part, elevation_part=zeros):
-        return np.concatenate([azimuth_part, elevation_part], axis=-1)
-
-    rotations, origins = lines.rotations, lines.origins_enu_m
-    az, el = lines.azimuth_rad, lines.elevation_rad
-    sin_az, cos_az = np.sin(az), np.cos(az)
-    normals, along = azimuth_normals(lines)
-    n0, n1, n2 = normals[..., 0], normals[..., 1], normals[..., 2]
-    h0, h1, h2 = along[..., 0], along[..., 1], along[..., 2]
-    rhs = np.sum(normals * origins, axis=-1)
-    along_rhs = np.sum(along * origins, axis=-1)
-    hw, dhw = horizontal_weights, d_horizontal_weights
-    hw2 = hw * hw
-    g00, g01, g11 = row_sums(n0 * n0 * hw2), row_sums(n0 * n1 * hw2), row_sums(n1 * n1 * hw2)
-    gram = np.stack([np.stack([g00, g01], -1), np.stack([g01, g11], -1)], -2)
-    dg00, dg01, dg11 = slots(-2 * h0 * n0 * hw2), slots(-(h0 * n1 + n0 * h1) * hw2), slots(-2 * h1 * n1 * hw2)
-    if dhw is not None:
-        dg00 = dg00 + _contract(2 * n0 * n0 * hw, dhw)
-        dg01 = dg01 + _contract(2 * n0 * n1 * hw, dhw)
-        dg11 = dg11 + _contract(2 * n1 * n1 * hw, dhw)
-    c0, c1 = row_sums(n0 * n2 * hw2), row_sums(n1 * n2 * hw2)
-
-    constrained = lines.constrained
-    free = ~constrained
-    up = np.where(constrained, lines.altitude_m, lines.mean_origin()[:, 2])
-    d_up = np.zeros((size, 2 * k))
-    # stage 2's heights: z_s + d_i (R_i^T [sin az, cos az, tan el])_z
-    slope = rotations[..., 0, 2] * sin_az + rotations[..., 1, 2] * cos_az + rotations[..., 2, 2] * np.tan(el)
-    d_slope_az = rotations[..., 0, 2] * cos_az - rotations[..., 1, 2] * sin_az
-    d_slope_el = rotations[..., 2, 2] / np.cos(el) ** 2 * lines.has_elevation
-    vw, dvw = height_weights, d_height_weights
-    vw_total = row_sums(vw)
-    vw_total = np.where(vw_total > 0, vw_total, 1.0)
-    foot_rows = np.flatnonzero(constrained)
-    foot_lines = lines.take(foot_rows) if foot_rows.size else None
-    any_free = bool(np.any(free))
+    n = origins.shape[0]
+    p_count = 2 * n
+    constrained = not math.isnan(altitude_m)
+    normals = np.empty((n, 3))
+    along = np.empty((n, 3))
+    rhs, along_rhs = np.empty(n), np.empty(n)
+    slope, d_slope_az, d_slope_el = np.empty(n), np.empty(n), np.empty(n)
+    for k in range(n):
+        c, s = math.cos(azimuth[k]), math.sin(azimuth[k])
+        rhs[k] = along_rhs[k] = 0.0
+        for i in range(3):
+            normals[k, i] = c * rotations[k, 0, i] - s * rotations[k, 1, i]
+            along[k, i] = s * rotations[k, 0, i] + c * rotations[k, 1, i]
+            rhs[k] += normals[k, i] * origins[k, i]
+            along_rhs[k] += along[k, i] * origins[k, i]
+        slope[k] = rotations[k, 0, 2] * s + rotations[k, 1, 2] * c + rotations[k, 2, 2] * math.tan(elevation[k])
+        d_slope_az[k] = rotations[k, 0, 2] * c - rotations[k, 1, 2] * s
+        d_slope_el[k] = rotations[k, 2, 2] / math.cos(elevation[k]) ** 2 if has_elevation[k] else 0.0
+    g00 = g01 = g11 = c0 = c1 = 0.0
+    dg00, dg01, dg11 = np.zeros(p_count), np.zeros(p_count), np.zeros(p_count)
+    for k in range(n):
+        n0, n1, n2, h0, h1 = normals[k, 0], normals[k, 1], normals[k, 2], along[k, 0], along[k, 1]
+        hw2 = hw[k] * hw[k]
+        g00 += n0 * n0 * hw2
+        g01 += n0 * n1 * hw2
+        g11 += n1 * n1 * hw2
+        c0 += n0 * n2 * hw2
+        c1 += n1 * n2 * hw2
+        dg00[k] = -2 * h0 * n0 * hw2
+        dg01[k] = -(h0 * n1 + n0 * h1) * hw2
+        dg11[k] = -2 * h1 * n1 * hw2
+    if weighted:
+        for p in range(p_count):
+            for k in range(n):
+                n0, n1 = normals[k, 0], normals[k, 1]
+                dg00[p] += 2 * n0 * n0 * hw[k] * dhw[k, p]
+                dg01[p] += 2 * n0 * n1 * hw[k] * dhw[k, p]
+                dg11[p] += 2 * n1 * n1 * hw[k] * dhw[k, p]
+    inverse_det = 1.0 / (g00 * g11 - g01 * g01)
+    if constrained:
+        up = altitude_m
+    else:
+        up = 0.0
+        for k in range(n):
+            up += origins[k, 2]
+        up /= max(n, 1)
+    d_up = np.zeros(p_count)
+    vw_total = 0.0
+    for k in range(n):
+        vw_total += vw[k]
+    if not vw_total > 0:
+        vw_total = 1.0
+    d_right0, d_right1 = np.empty(p_count), np.empty(p_count)
+    residual = np.empty(n)
+    heights = np.empty(n)
+    gradient = np.empty((n, 3))
+    point = np.empty(3)
+    east = north = 0.0
     for _ in range(PASSES):
-        residual = rhs - n2 * up[:, None]
-        data = residual * hw
-        own = (h2 * up[:, None] - along_rhs) * hw
-        right0, right1 = row_sums(n0 * hw * data), row_sums(n1 * hw * data)
-        d_right0 = slots(-h0 * hw * data + n0 * hw * own) - c0[:, None] * d_up
-        d_right1 = slots(-h1 * hw * data + n1 * hw * own) - c1[:, None] * d_up
-        if dhw is not None:
-            d_right0 = d_right0 + _contract(2 * n0 * residual * hw, dhw)
-            d_right1 = d_right1 + _contract(2 * n1 * residual * hw, dhw)
-        east_north = solve_2x2(gram, np.stack([right0, right1], -1))
-        east, north = east_north[:, 0, None], east_north[:, 1, None]
-        d_east_north = solve_2x2(gram, np.stack([d_right0 - dg00 * east - dg01 * north,
-                                                 d_right1 - dg01 * east - dg11 * north], 1))
-        candidate = np.concatenate([east_north, up[:, None]], axis=-1)
-        d_candidate = np.concatenate([d_east_north, d_up[:, None, :]], axis=1)
-        if any_free:
-            horizontal, gradient = _horizontal(lines, candidate)
-            heights = origins[..., 2] + horizontal * slope
-            new_up = row_sums(vw * heights) / vw_total
-            toward = row_sums(np.swapaxes((vw * slope)[..., None] * gradient, 1, 2))
-            d_new_up = (np.einsum("bi,bip->bp", toward, d_candidate)
-                        + slots(vw * horizontal * d_slope_az, vw * horizontal * d_slope_el))
-            if dvw is not None:
-                d_new_up = d_new_up + _contract(heights - new_up[:, None], dvw)
-            up = np.where(free, new_up, up)
-            d_up = np.where(free[:, None], d_new_up / vw_total[:, None], d_up)
-        if foot_lines is not None:
-            c = candidate[foot_rows]
-            up[foot_rows] = foot_lines.onto_altitude(c)[:, 2]
-            d_up[foot_rows] = np.einsum("bi,bip->bp", _foot_gradient(foot_lines, c), d_candidate[foot_rows])
-    position = np.concatenate([east_north, up[:, None]], axis=-1)
-    d_position = np.concatenate([d_east_north, d_up[:, None, :]], axis=1)
-    horizontal, gradient = _horizontal(lines, position)
-    return position, d_position, horizontal, np.matmul(gradient, d_position)
+        right0 = right1 = 0.0
+        d_right0[:] = 0.0
+        d_right1[:] = 0.0
+        for k in range(n):
+            residual[k] = rhs[k] - normals[k, 2] * up
+            data = residual[k] * hw[k]
+            own = (along[k, 2] * up - along_rhs[k]) * hw[k]
+            right0 += normals[k, 0] * hw[k] * data
+            right1 += normals[k, 1] * hw[k] * data
+            d_right0[k] = -along[k, 0] * hw[k] * data + normals[k, 0] * hw[k] * own
+            d_right1[k] = -along[k, 1] * hw[k] * data + normals[k, 1] * hw[k] * own
+        for p in range(p_count):
+            d_right0[p] -= c0 * d_up[p]
+            d_right1[p] -= c1 * d_up[p]
+            if weighted:
+                for k in range(n):
+                    d_right0[p] += 2 * normals[k, 0] * residual[k] * hw[k] * dhw[k, p]
+                    d_right1[p] += 2 * normals[k, 1] * residual[k] * hw[k] * dhw[k, p]
+        east = (g11 * right0 - g01 * right1) * inverse_det
+        north = (g00 * right1 - g01 * right0) * inverse_det
+        for p in range(p_count):
+            r0 = d_right0[p] - dg00[p] * east - dg01[p] * north
+            r1 = d_right1[p] - dg01[p] * east - dg11[p] * north
+            d_position[0, p] = (g11 * r0 - g01 * r1) * inverse_det
+            d_position[1, p] = (g00 * r1 - g01 * r0) * inverse_det
+            d_position[2, p] = d_up[p]
+        point[0], point[1], point[2] = east, north, up
+        if constrained:
+            up = _foot_up(point, altitude_m, geodetic, origin_ecef_m, origin_rotation)
+            foot_gradient = np.empty(3)
+            for i in range(3):
+                shifted = point.copy()
+                shifted[i] = point[i] + FOOT_STEP_M
+                high = _foot_up(shifted, altitude_m, geodetic, origin_ecef_m, origin_rotation)
+                shifted[i] = point[i] - FOOT_STEP_M
+                low = _foot_up(shifted, altitude_m, geodetic, origin_ecef_m, origin_rotation)
+                foot_gradient[i] = (high - low) / (2 * FOOT_STEP_M)
+            for p in range(p_count):
+                d_up[p] = (foot_gradient[0] * d_position[0, p] + foot_gradient[1] * d_position[1, p]
+                           + foot_gradient[2] * d_position[2, p])
+        else:
+            _horizontal_point(point, origins, rotations, horizontal, gradient)
+            new_up = 0.0
+            toward = np.zeros(3)
+            for k in range(n):
+                heights[k] = origins[k, 2] + horizontal[k] * slope[k]
+                new_up += vw[k] * heights[k]
+                for i in range(3):
+                    toward[i] += vw[k] * slope[k] * gradient[k, i]
+            new_up /= vw_total
+            for p in range(p_count):
+                d_new_up = toward[0] * d_position[0, p] + toward[1] * d_position[1, p] + toward[2] * d_position[2, p]
+                if p < n:
+                    d_new_up += vw[p] * horizontal[p] * d_slope_az[p]
+                else:
+                    d_new_up += vw[p - n] * horizontal[p - n] * d_slope_el[p - n]
+                if weighted:
+                    for k in range(n):
+                        d_new_up += (heights[k] - new_up) * dvw[k, p]
+                d_up[p] = d_new_up / vw_total
+            up = new_up
+    position[0], position[1], position[2] = east, north, up
+    for p in range(p_count):
+        d_position[2, p] = d_up[p]
+    _horizontal_point(position, origins, rotations, horizontal, gradient)
+    for k in range(n):
+        for p in range(p_count):
+            d_horizontal[k, p] = (gradient[k, 0] * d_position[0, p] + gradient[k, 1] * d_position[1, p]
+                                  + gradient[k, 2] * d_position[2, p])
 
 
-def _contract(per_line, d_per_line):
-    """``sum_k x_k dy_k`` ``(B, P)`` of ``x`` ``(B, K)`` and ``dy`` ``(B, K, P)``, added in line order (so
-    that padding lines change no bit)."""
-    return row_sums(np.swapaxes(per_line[..., None] * d_per_line, 1, 2))
-
-
-def _horizontal(lines: Lines, position_enu_m):
-    """Horizontal distance ``(B, K)`` of points from each line's station (its frame) and its gradient ``(B, K, 3)``."""
-    delta = position_enu_m[:, None, :] - lines.origins_enu_m
-    rotations = lines.rotations
-    east = np.sum(rotations[..., 0, :] * delta, axis=-1)
-    north = np.sum(rotations[..., 1, :] * delta, axis=-1)
-    horizontal = np.hypot(east, north)
-    safe = np.where(horizontal > 0, horizontal, 1.0)[..., None]
-    return horizontal, (east[..., None] * rotations[..., 0, :] + north[..., None] * rotations[..., 1, :]) / safe
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pseudolinear_kernel(count, origins, rotations, azimuth, elevation, has_elevation, sigma_azimuth,
+                         sigma_elevation, altitude_m, geodetic, origin_ecef_m, origin_rotation, weighted, position,
+                         covariance):
+    """PLE or WS3D positions and covariances of every problem (see :func:`pseudolinear_positions`)."""
+    for b in range(count.size):
+        n = count[b]
+        p_count = 2 * n
+        o, r = origins[b, :n], rotations[b, :n]
+        az, el, has_el = azimuth[b, :n], elevation[b, :n], has_elevation[b, :n]
+        ones = np.ones(n)
+        height_ones = np.zeros(n)
+        for k in range(n):
+            if has_el[k]:
+                height_ones[k] = 1.0
+        constant = np.zeros((n, p_count))  # the first pass's weights do not depend on the angles
+        d_position = np.empty((3, p_count))
+        horizontal = np.empty(n)
+        d_horizontal = np.empty((n, p_count))
+        _stages_point(o, r, az, el, has_el, ones, constant, height_ones, constant, False, altitude_m[b], geodetic[b],
+                      origin_ecef_m[b], origin_rotation[b], position[b], d_position, horizontal, d_horizontal)
+        if weighted:
+            hw, vw = np.empty(n), np.empty(n)
+            dhw, dvw = np.empty((n, p_count)), np.empty((n, p_count))
+            for k in range(n):
+                near = horizontal[k] < 1e-9
+                distance = 1e-9 if near else horizontal[k]
+                hw[k] = 1.0 / (sigma_azimuth[b, k] * distance)
+                cos_el = math.cos(el[k])
+                vw[k] = height_ones[k] * cos_el**4 / (sigma_elevation[b, k] * distance) ** 2
+                for p in range(p_count):
+                    d_distance = 0.0 if near else d_horizontal[k, p]
+                    dhw[k, p] = -(hw[k] / distance) * d_distance
+                    dvw[k, p] = -(2 * vw[k] / distance) * d_distance
+                dvw[k, n + k] -= 4 * math.tan(el[k]) * vw[k]
+            _stages_point(o, r, az, el, has_el, hw, dhw, vw, dvw, True, altitude_m[b], geodetic[b], origin_ecef_m[b],
+                          origin_rotation[b], position[b], d_position, horizontal, d_horizontal)
+        variance = np.empty(p_count)
+        constrained = not math.isnan(altitude_m[b])
+        for k in range(n):
+            variance[k] = sigma_azimuth[b, k] ** 2
+            variance[n + k] = sigma_elevation[b, k] ** 2 if has_el[k] and not constrained else 0.0
+        gram_point(d_position, variance, covariance[b])
 
 
 def pseudolinear_positions(lines: Lines, weighted: bool):
@@ -190,25 +299,17 @@ def pseudolinear_positions(lines: Lines, weighted: bool):
     position_enu_m : ndarray, shape (B, 3)
     covariance_enu_m2 : ndarray, shape (B, 3, 3)
     """
-    mask = lines.mask
-    size, k = mask.shape
-    ones = mask.astype(float)
-    height_ones = ones * lines.has_elevation
-    position, d_position, horizontal, d_horizontal = _stages(lines, ones, None, height_ones, None)
-    if weighted:
-        near = horizontal < 1e-9
-        distance = np.where(near, 1e-9, horizontal)
-        d_distance = np.where(near[..., None], 0.0, d_horizontal)
-        hw = ones / (lines.sigma_azimuth_rad * distance)
-        dhw = -(hw / distance)[..., None] * d_distance
-        cos_el = np.cos(lines.elevation_rad)
-        vw = height_ones * cos_el**4 / (lines.sigma_elevation_rad * distance) ** 2
-        own_el = np.concatenate([np.zeros((k, k)), np.eye(k)], axis=1)
-        dvw = -(2 * vw / distance)[..., None] * d_distance - (4 * np.tan(lines.elevation_rad) * vw)[..., None] * own_el
-        position, d_position, _, _ = _stages(lines, hw, dhw, vw, dvw)
-    elevation_variance = np.where(lines.has_elevation & ~lines.constrained[:, None], lines.sigma_elevation_rad**2, 0)
-    variance = np.concatenate([np.where(mask, lines.sigma_azimuth_rad**2, 0.0), elevation_variance], axis=-1)
-    covariance = weighted_gram(d_position, variance)
+    size = lines.mask.shape[0]
+    position = np.full((size, 3), np.nan)
+    covariance = np.full((size, 3, 3), np.nan)
+    origin_ecef_m, origin_rotation = frame_placements(lines.origin)
+    _pseudolinear_kernel(lines.count, np.ascontiguousarray(lines.origins_enu_m),
+                         np.ascontiguousarray(lines.rotations), np.ascontiguousarray(lines.azimuth_rad),
+                         np.ascontiguousarray(lines.elevation_rad), np.ascontiguousarray(lines.has_elevation),
+                         np.ascontiguousarray(lines.sigma_azimuth_rad), np.ascontiguousarray(lines.sigma_elevation_rad),
+                         np.ascontiguousarray(lines.altitude_m, dtype=float), np.ascontiguousarray(lines.geodetic),
+                         np.ascontiguousarray(origin_ecef_m), np.ascontiguousarray(origin_rotation), weighted,
+                         position, covariance)
     return position, covariance
 
 
