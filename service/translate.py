@@ -433,7 +433,8 @@ def _read(bodies: list):
                     if position.east_m is unset or position.north_m is unset or position.lat_deg is not unset \
                             or position.lon_deg is not unset or position.alt_m is not unset:
                         raise _Reject
-                    add_coordinates((position.east_m, position.north_m, 0.0 if position.up_m is unset else position.up_m))
+                    add_coordinates((position.east_m, position.north_m,
+                                     0.0 if position.up_m is unset else position.up_m))
             measurements = body.measurements
             if not 0 < len(measurements) <= _MEASUREMENTS_MAX or not fix_within_limit(len(ids), len(measurements)):
                 raise _Reject
@@ -444,7 +445,8 @@ def _read(bodies: list):
                     raise _Reject
                 kind = type(m)
                 if kind is Bearing:
-                    sigma_azimuth, elevation, sigma_elevation = m.sigma_azimuth_deg, m.elevation_deg, m.sigma_elevation_deg
+                    sigma_azimuth, elevation = m.sigma_azimuth_deg, m.elevation_deg
+                    sigma_elevation = m.sigma_elevation_deg
                     if sigma_azimuth is None:
                         sigma_azimuth = nan
                     elif sigma_azimuth != sigma_azimuth:  # a NaN literal: not the absent sigma that NaN stands for
