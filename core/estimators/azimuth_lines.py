@@ -27,8 +27,10 @@ problem returns ``{row: LocalizationError}`` instead of raising.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
@@ -172,40 +174,70 @@ def inverse_2x2(matrix):
 def _point_chi2(lines: Lines, normals_enu, weights) -> np.ndarray:
     """Smallest chi-square ``(B,)`` of the azimuths, as undirected lines, through one horizontal point.
 
-    Weighted pseudolinear start, then Gauss-Newton steps; the best point seen counts.
+    Weighted pseudolinear start, then Gauss-Newton steps; the best point seen counts (compiled, one
+    problem at a time).
     """
-    up = lines.mean_origin()[:, 2]
-    rhs = np.sum(normals_enu * lines.origins_enu_m, axis=-1) - normals_enu[..., 2] * up[:, None]
-    point = np.concatenate([_weighted_fit(normals_enu[..., 0], normals_enu[..., 1], rhs, weights), up[:, None]], -1)
-    east_axis, north_axis = lines.rotations[..., 0, :], lines.rotations[..., 1, :]
-    best = np.full(lines.mask.shape[0], np.inf)
-    active = np.ones_like(best, dtype=bool)
-    for _ in range(POINT_FIT_STEPS):
-        delta = point[:, None, :] - lines.origins_enu_m
-        east, north = np.sum(east_axis * delta, axis=-1), np.sum(north_axis * delta, axis=-1)
-        horizontal2 = np.maximum(east**2 + north**2, 1e-18)
-        twice = 2.0 * (lines.azimuth_rad - np.arctan2(east, north))
-        miss = 0.5 * np.arctan2(np.sin(twice), np.cos(twice))
-        chi2 = row_sums((miss * weights) ** 2)
-        improved = chi2 < best * (1.0 - 1e-9)
-        best = np.where(active & ~improved, np.minimum(best, chi2), best)
-        active &= improved
-        if not np.any(active):
-            break
-        best = np.where(active, chi2, best)
-        jacobian = (north[..., None] * east_axis - east[..., None] * north_axis) / horizontal2[..., None]
-        step = _weighted_fit(jacobian[..., 0], jacobian[..., 1], miss, weights)
-        point[:, :2] += np.where(active[:, None], step, 0.0)
+    best = np.empty(lines.mask.shape[0])
+    _point_chi2_kernel(lines.count, np.ascontiguousarray(lines.origins_enu_m), np.ascontiguousarray(lines.rotations),
+                       np.ascontiguousarray(lines.azimuth_rad), np.ascontiguousarray(normals_enu),
+                       np.ascontiguousarray(weights, dtype=float), best)
     return best
 
 
-def _weighted_fit(column0, column1, rhs, weights):
-    """Weighted least squares ``(B, 2)`` of ``[column0 column1] x = rhs``, all ``(B, K)``, by its normal equations."""
-    w2 = weights * weights
-    a00, a11 = row_sums(w2 * column0 * column0), row_sums(w2 * column1 * column1)
-    a01 = row_sums(w2 * column0 * column1)
-    normal = np.stack([np.stack([a00, a01], -1), np.stack([a01, a11], -1)], -2)
-    return solve_2x2(normal, np.stack([row_sums(w2 * column0 * rhs), row_sums(w2 * column1 * rhs)], -1))
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _weighted_fit_point(column0, column1, rhs, weights):
+    """Weighted least squares ``(x0, x1)`` of ``[column0 column1] x = rhs``, all ``(n,)``, by its normal
+    equations (a singular system gives inf or NaN)."""
+    a00 = a01 = a11 = r0 = r1 = 0.0
+    for k in range(column0.size):
+        w2 = weights[k] * weights[k]
+        a00 += w2 * column0[k] * column0[k]
+        a11 += w2 * column1[k] * column1[k]
+        a01 += w2 * column0[k] * column1[k]
+        r0 += w2 * column0[k] * rhs[k]
+        r1 += w2 * column1[k] * rhs[k]
+    inverse_det = 1.0 / (a00 * a11 - a01 * a01)
+    return (a11 * r0 - a01 * r1) * inverse_det, (a00 * r1 - a01 * r0) * inverse_det
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _point_chi2_kernel(count, origins, rotations, azimuth, normals, weights, best):
+    """:func:`_point_chi2` of every problem into ``best`` ``(B,)``."""
+    for b in range(count.size):
+        n = count[b]
+        up = 0.0
+        for k in range(n):
+            up += origins[b, k, 2]
+        up /= max(n, 1)
+        rhs = np.empty(n)
+        for k in range(n):
+            rhs[k] = (normals[b, k, 0] * origins[b, k, 0] + normals[b, k, 1] * origins[b, k, 1]
+                      + normals[b, k, 2] * origins[b, k, 2]) - normals[b, k, 2] * up
+        east0, north0 = _weighted_fit_point(normals[b, :n, 0], normals[b, :n, 1], rhs, weights[b, :n])
+        point = np.array([east0, north0, up])
+        miss, jacobian0, jacobian1 = np.empty(n), np.empty(n), np.empty(n)
+        best[b] = np.inf
+        for _ in range(POINT_FIT_STEPS):
+            chi2 = 0.0
+            for k in range(n):
+                east = north = 0.0
+                for i in range(3):
+                    delta = point[i] - origins[b, k, i]
+                    east += rotations[b, k, 0, i] * delta
+                    north += rotations[b, k, 1, i] * delta
+                horizontal2 = max(east * east + north * north, 1e-18)
+                twice = 2.0 * (azimuth[b, k] - math.atan2(east, north))
+                miss[k] = 0.5 * math.atan2(math.sin(twice), math.cos(twice))
+                chi2 += (miss[k] * weights[b, k]) ** 2
+                jacobian0[k] = (north * rotations[b, k, 0, 0] - east * rotations[b, k, 1, 0]) / horizontal2
+                jacobian1[k] = (north * rotations[b, k, 0, 1] - east * rotations[b, k, 1, 1]) / horizontal2
+            if not chi2 < best[b] * (1.0 - 1e-9):
+                best[b] = min(best[b], chi2)
+                break
+            best[b] = chi2
+            step0, step1 = _weighted_fit_point(jacobian0, jacobian1, miss, weights[b, :n])
+            point[0] += step0
+            point[1] += step1
 
 
 def _eigenvalues_2x2(rows) -> np.ndarray:
