@@ -54,7 +54,7 @@ Covariance (``covariance_source``):
   the data needed (all perturbed azimuth sets run as one batch).
 
 The start is the EOVE fix on the altitude surface (the pseudolinear least
-squares), taken from the registry. Every problem of a batch runs at once: the
+squares), its position only. Every problem of a batch runs at once: the
 plane passes, Newton iterations, step halvings and projection passes are a
 fixed or bounded number of vectorised steps over the problems still running.
 
@@ -83,7 +83,8 @@ from core.estimators.azimuth_lines import (
     solve_2x2,
     tangent_plane,
 )
-from core.estimators.base import AZIMUTHS, SolveOptions, get_estimator, register
+from core.estimators.base import AZIMUTHS, SolveOptions, register
+from core.estimators.orthogonal_vector import Normals, Weighting, solve_orthogonal_batch
 from core.estimators.result import Estimates, FixWarning
 from core.linalg import jacobi_svd, row_sums, weighted_gram
 from core.problem_batch import ProblemBatch
@@ -117,7 +118,8 @@ class _Solution:
         rows = np.setdiff1d(np.arange(batch.size), list(self.errors))
         position = np.zeros((0, 3))
         if rows.size:
-            start = get_estimator("eove").estimate(batch.take(rows), replace(options, variant=None))
+            start = solve_orthogonal_batch(batch.take(rows), normals=Normals.BOTH, weighting=Weighting.UNIT,
+                                           name="eove", with_covariance=False)
             self.errors.update({int(rows[j]): error for j, error in start.errors.items()})
             kept = np.setdiff1d(np.arange(rows.size), list(start.errors))
             rows, position = rows[kept], np.asarray(start.position_enu_m)[kept]
