@@ -27,8 +27,8 @@ from service.limits import check_batch
 from service.renderings import batch_geojson
 from service.responses import JsonResponse
 from service.translate import fix_results
-from service.wire import decode_batch
 from service.watch import in_pool, watched
+from service.wire import decode_batch
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 

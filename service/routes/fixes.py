@@ -21,8 +21,8 @@ from service.problems import MEDIA_TYPE
 from service.renderings import problem_renderings
 from service.responses import JsonResponse
 from service.translate import crlb_response
-from service.wire import decode_fix, requested_method
 from service.watch import watched
+from service.wire import decode_fix, requested_method
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
