@@ -452,6 +452,12 @@ def eove(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     return solve_orthogonal_batch(batch, normals=Normals.BOTH, weighting=Weighting.UNIT, name="eove")
 
 
+def eove_start(batch: ProblemBatch) -> Estimates:
+    """:func:`eove`'s positions and errors without the covariance: the start of the iterative azimuth methods."""
+    return solve_orthogonal_batch(batch, normals=Normals.BOTH, weighting=Weighting.UNIT, name="eove",
+                                  with_covariance=False)
+
+
 @register("weighted_eove", "EOVE with rows weighted by their first-order noise: the small-noise BLUE",
           uses=ANGLES)
 def weighted_eove(batch: ProblemBatch, options: SolveOptions) -> Estimates:

@@ -55,7 +55,8 @@ import numpy as np
 
 from core.crlb import OBSERVABILITY_THRESHOLD
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
-from core.estimators.base import ANGLES, SolveOptions, get_estimator, register
+from core.estimators.base import ANGLES, SolveOptions, register
+from core.estimators.orthogonal_vector import eove_start
 from core.estimators.result import Estimates, FixWarning
 from core.measurements import AZIMUTH, ELEVATION, KIND_NAMES, MeasurementModel
 from core.problem import local_axes
@@ -273,7 +274,7 @@ def _checks(batch: ProblemBatch) -> dict[int, LocalizationError]:
     return errors
 
 
-def _starts(batch: ProblemBatch, rows, options: SolveOptions):
+def _starts(batch: ProblemBatch, rows):
     """Start ``(R, 3)`` of problems ``rows``: the initial guess, else EOVE (azimuth planes only without
     elevations, the pseudolinear solution); its names and the failures of the start."""
     starts = batch.initial_guess_enu_m[rows].copy()
@@ -283,7 +284,7 @@ def _starts(batch: ProblemBatch, rows, options: SolveOptions):
     failures: dict[int, LocalizationError] = {}
     need = np.flatnonzero(~guessed)
     if need.size:
-        eove = get_estimator("eove").estimate(batch.take(rows[need]), options)
+        eove = eove_start(batch.take(rows[need]))
         starts[need] = eove.position_enu_m
         for k, error in eove.errors.items():
             message = error.message
@@ -330,7 +331,7 @@ def taylor_wls(batch: ProblemBatch, options: SolveOptions) -> Estimates:
                         estimated_bearing_errors_rad=bearing_errors, details=details)
     if candidates.size == 0:
         return nothing
-    starts, start_names, failures = _starts(batch, candidates, options)
+    starts, start_names, failures = _starts(batch, candidates)
     errors.update({int(candidates[k]): e for k, e in failures.items()})
     keep = np.array([k not in failures for k in range(candidates.size)], dtype=bool)
     problems, starts = candidates[keep], starts[keep]

@@ -84,7 +84,7 @@ from core.estimators.azimuth_lines import (
     tangent_plane,
 )
 from core.estimators.base import AZIMUTHS, SolveOptions, register
-from core.estimators.orthogonal_vector import Normals, Weighting, solve_orthogonal_batch
+from core.estimators.orthogonal_vector import eove_start
 from core.estimators.result import Estimates, FixWarning
 from core.linalg import jacobi_svd, row_sums, weighted_gram
 from core.problem_batch import ProblemBatch
@@ -118,8 +118,7 @@ class _Solution:
         rows = np.setdiff1d(np.arange(batch.size), list(self.errors))
         position = np.zeros((0, 3))
         if rows.size:
-            start = solve_orthogonal_batch(batch.take(rows), normals=Normals.BOTH, weighting=Weighting.UNIT,
-                                           name="eove", with_covariance=False)
+            start = eove_start(batch.take(rows))
             self.errors.update({int(rows[j]): error for j, error in start.errors.items()})
             kept = np.setdiff1d(np.arange(rows.size), list(start.errors))
             rows, position = rows[kept], np.asarray(start.position_enu_m)[kept]
