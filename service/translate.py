@@ -309,20 +309,27 @@ _STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields[
                        if getattr(rule, "max_length", None) is not None)
 
 
-def _position(position: wire.Position, geodetic: bool) -> tuple[float, float, float]:
-    """A position as core coordinates, ``(lat_rad, lon_rad, alt_m)`` or ``(east_m, north_m, up_m)`` (``_Reject``
-    unless it holds the fields of the frame's position model only)."""
+def _coordinates(position: wire.Position, geodetic: bool) -> tuple[float, float, float]:
+    """A position's raw coordinates in API units, ``(lat_deg, lon_deg, alt_m)`` or ``(east_m, north_m, up_m)``
+    (``_Reject`` unless it holds the fields of the frame's position model only)."""
     if geodetic:
         if position.lat_deg is UNSET or position.lon_deg is UNSET or position.east_m is not UNSET \
                 or position.north_m is not UNSET or position.up_m is not UNSET:
             raise _Reject
-        return (math.radians(_number(position.lat_deg, _LAT)), math.radians(_number(position.lon_deg, _LON)),
-                0.0 if position.alt_m is UNSET else _number(position.alt_m, _ALT))
+        return position.lat_deg, position.lon_deg, 0.0 if position.alt_m is UNSET else position.alt_m
     if position.east_m is UNSET or position.north_m is UNSET or position.lat_deg is not UNSET \
             or position.lon_deg is not UNSET or position.alt_m is not UNSET:
         raise _Reject
-    return (_number(position.east_m, _EAST), _number(position.north_m, _NORTH),
-            0.0 if position.up_m is UNSET else _number(position.up_m, _UP))
+    return position.east_m, position.north_m, 0.0 if position.up_m is UNSET else position.up_m
+
+
+def _position(position: wire.Position, geodetic: bool) -> tuple[float, float, float]:
+    """A position as core coordinates within the schema's bounds, ``(lat_rad, lon_rad, alt_m)`` or
+    ``(east_m, north_m, up_m)``."""
+    a, b, c = _coordinates(position, geodetic)
+    if geodetic:
+        return math.radians(_number(a, _LAT)), math.radians(_number(b, _LON)), _number(c, _ALT)
+    return _number(a, _EAST), _number(b, _NORTH), _number(c, _UP)
 
 
 #: The renderings of a request that asks for none (one object shared by all such requests).
@@ -394,7 +401,7 @@ def _read(bodies: list):
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
     coordinates, scalars, readings, rest = [], [], [], []
     add_coordinates, add_scalar, add_reading = coordinates.extend, scalars.extend, readings.extend
-    id_max, unset, nan, plain = _STATION_ID_MAX, UNSET, math.nan, _PLAIN_SETTINGS
+    id_max, unset, nan, plain, coordinates_of = _STATION_ID_MAX, UNSET, math.nan, _PLAIN_SETTINGS, _coordinates
     Bearing, Range = wire.Bearing, wire.Range
     for slot, raw in enumerate(bodies):
         body = wire.as_fix_body(raw)
@@ -423,18 +430,7 @@ def _read(bodies: list):
                 if not 0 < len(sid) <= id_max or sid in ids:
                     raise _Reject
                 ids[sid] = len(ids)
-                if geodetic:
-                    if position.lat_deg is unset or position.lon_deg is unset or position.east_m is not unset \
-                            or position.north_m is not unset or position.up_m is not unset:
-                        raise _Reject
-                    add_coordinates((position.lat_deg, position.lon_deg,
-                                     0.0 if position.alt_m is unset else position.alt_m))
-                else:
-                    if position.east_m is unset or position.north_m is unset or position.lat_deg is not unset \
-                            or position.lon_deg is not unset or position.alt_m is not unset:
-                        raise _Reject
-                    add_coordinates((position.east_m, position.north_m,
-                                     0.0 if position.up_m is unset else position.up_m))
+                add_coordinates(coordinates_of(position, geodetic))
             measurements = body.measurements
             if not 0 < len(measurements) <= _MEASUREMENTS_MAX or not fix_within_limit(len(ids), len(measurements)):
                 raise _Reject
