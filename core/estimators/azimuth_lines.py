@@ -37,7 +37,7 @@ from scipy.stats import chi2 as chi2_distribution
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.linalg import row_sums
 from core.measurements import ELEVATION, KIND_NAMES, RANGE, TOA
-from core.problem import local_axes, onto_altitude
+from core.problem import frame_placements, local_axes_point, onto_altitude
 from core.problem_batch import ProblemBatch
 
 #: Probability with which azimuth lines from a truly collinear geometry are
@@ -372,11 +372,56 @@ class TangentPlane:
         return np.einsum("bki,bkl,blj->bij", self.axes_enu, covariance_plane_m2, self.axes_enu)
 
 
-def tangent_plane(lines: Lines, position_enu_m) -> TangentPlane:
-    """The planes tangent to the altitude surfaces at points ``(B, 3)``, centred under the stations."""
-    axes = local_axes(position_enu_m, lines.origin, lines.geodetic)[:, :2]
-    offset = lines.mean_origin() - position_enu_m
-    return TangentPlane(position_enu_m + np.einsum("bi,bij->bj", np.einsum("bij,bj->bi", axes, offset), axes), axes)
+def plane_and_equations(lines: Lines, position_enu_m) -> tuple[TangentPlane, AzimuthEquations]:
+    """The planes tangent to the altitude surfaces at points ``(B, 3)``, centred under the stations (the foot
+    of the stations' centroid), and every azimuth line written as a linear equation in their coordinates
+    (compiled, one problem at a time)."""
+    size, width = lines.mask.shape
+    centre, axes = np.empty((size, 3)), np.empty((size, 2, 3))
+    rows, along_rows = np.zeros((size, width, 2)), np.zeros((size, width, 2))
+    rhs, along_rhs = np.zeros((size, width)), np.zeros((size, width))
+    origin_ecef_m, origin_rotation = frame_placements(lines.origin)
+    _plane_equations_kernel(lines.count, np.ascontiguousarray(lines.origins_enu_m),
+                            np.ascontiguousarray(lines.rotations), np.ascontiguousarray(lines.azimuth_rad),
+                            np.ascontiguousarray(position_enu_m, dtype=float), np.ascontiguousarray(lines.geodetic),
+                            np.ascontiguousarray(origin_ecef_m), np.ascontiguousarray(origin_rotation), centre, axes,
+                            rows, rhs, along_rows, along_rhs)
+    return TangentPlane(centre, axes), AzimuthEquations(rows, rhs, along_rows, along_rhs)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _plane_equations_kernel(count, origins, rotations, azimuth, position, geodetic, origin_ecef_m, origin_rotation,
+                            centre, axes, rows, rhs, along_rows, along_rhs):
+    """Each problem's tangent plane (``centre``, ``axes``) and its lines' equations (see
+    :func:`plane_and_equations`); the equations of padding lines stay zero."""
+    local = np.empty((3, 3))
+    for b in range(count.size):
+        n = count[b]
+        local_axes_point(position[b], geodetic[b], origin_ecef_m[b], origin_rotation[b], local)
+        mean = np.zeros(3)
+        for k in range(n):
+            for j in range(3):
+                mean[j] += origins[b, k, j]
+        for j in range(3):
+            mean[j] = mean[j] / max(n, 1) - position[b, j]
+        along0 = local[0, 0] * mean[0] + local[0, 1] * mean[1] + local[0, 2] * mean[2]
+        along1 = local[1, 0] * mean[0] + local[1, 1] * mean[1] + local[1, 2] * mean[2]
+        for j in range(3):
+            axes[b, 0, j], axes[b, 1, j] = local[0, j], local[1, j]
+            centre[b, j] = position[b, j] + (along0 * local[0, j] + along1 * local[1, j])
+        for k in range(n):
+            c, s = math.cos(azimuth[b, k]), math.sin(azimuth[b, k])
+            r0, r1 = rhs[b, k], along_rhs[b, k]
+            for j in range(3):
+                normal = c * rotations[b, k, 0, j] - s * rotations[b, k, 1, j]
+                horizontal = s * rotations[b, k, 0, j] + c * rotations[b, k, 1, j]
+                relative = origins[b, k, j] - centre[b, j]
+                for i in range(2):
+                    rows[b, k, i] += normal * local[i, j]
+                    along_rows[b, k, i] += horizontal * local[i, j]
+                r0 += normal * relative
+                r1 += horizontal * relative
+            rhs[b, k], along_rhs[b, k] = r0, r1
 
 
 def plane_spread_m(lines: Lines, plane: TangentPlane) -> np.ndarray:
@@ -407,17 +452,3 @@ class AzimuthEquations:
     rhs: np.ndarray
     along_rows: np.ndarray
     along_rhs: np.ndarray
-
-
-def azimuth_equations(lines: Lines, plane: TangentPlane) -> AzimuthEquations:
-    """Write every azimuth line as a linear equation in the plane's coordinates."""
-    normals, horizontal = azimuth_normals(lines)
-    mask = lines.mask
-    relative = lines.origins_enu_m - plane.centre_enu_m[:, None, :]
-    axes_t = np.swapaxes(plane.axes_enu, -1, -2)[:, None]
-    return AzimuthEquations(
-        rows=np.matmul(normals[..., None, :], axes_t)[..., 0, :] * mask[..., None],
-        rhs=np.sum(normals * relative, axis=-1) * mask,
-        along_rows=np.matmul(horizontal[..., None, :], axes_t)[..., 0, :] * mask[..., None],
-        along_rhs=np.sum(horizontal * relative, axis=-1) * mask,
-    )

@@ -74,14 +74,13 @@ from core.estimators.azimuth_lines import (
     AzimuthEquations,
     Lines,
     TangentPlane,
-    azimuth_equations,
     azimuth_only_errors,
     crossing_errors,
     has_elevations,
     inverse_2x2,
+    plane_and_equations,
     plane_spread_m,
     solve_2x2,
-    tangent_plane,
 )
 from core.estimators.base import AZIMUTHS, SolveOptions, register
 from core.estimators.orthogonal_vector import eove_start
@@ -147,8 +146,7 @@ class _Solution:
         """
         state = None
         for _ in range(PLANE_PASSES):
-            plane = tangent_plane(self.lines, self.position)
-            equations = azimuth_equations(self.lines, plane)
+            plane, equations = plane_and_equations(self.lines, self.position)
             current = plane.coordinates(self.position)
             plane_m, state, at_infinity = solve_in_plane(plane, equations, current, state)
             self.fail(at_infinity, f"{self.name}: the total-least-squares solution lies at infinity "
