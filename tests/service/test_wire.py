@@ -66,7 +66,8 @@ VALUES = [0, 3, -7, 2.5, -1e-300, 1e300, 10**20, 10**400, True, False, None, "",
 
 
 def _paths(node, path=()):
-    yield path
+    """Every ``(path, node)`` of a body, the body itself first."""
+    yield path, node
     if isinstance(node, dict):
         for key, value in node.items():
             yield from _paths(value, (*path, key))
@@ -98,20 +99,14 @@ def _mutations() -> list:
     bodies = []
     for base in (FULL, LOCAL):
         bodies.append(base)
-        for path in list(_paths(base))[1:]:
+        for path, node in list(_paths(base))[1:]:
             bodies.extend(_changed(base, path, _set(value)) for value in VALUES)
             bodies.append(_changed(base, path, _delete))
             bodies.append(_changed(base, path, _set(copy.deepcopy(base)["stations"][0])))
-        for path in _paths(base):
-            if path == () or isinstance(eval_path(base, path), dict):
+        for path, node in _paths(base):
+            if isinstance(node, dict):
                 bodies.append(_changed(base, (*path, "colour"), _set("red")) if path else {**base, "colour": "red"})
     return bodies
-
-
-def eval_path(body, path):
-    for key in path:
-        body = body[key]
-    return body
 
 
 #: A GeoJSON fix's time is the moment it was written (the bodies carry no observed_at).
