@@ -308,7 +308,7 @@ class ProblemBatch:
         n = int(self.n_stations[idx].max(initial=1))
         m = int(self.n_measurements[idx].max(initial=1))
         return ProblemBatch(
-            station_ids=tuple(self.station_ids[i] for i in idx),
+            station_ids=tuple(map(self.station_ids.__getitem__, idx.tolist())),
             origin=self.origin[idx],
             geodetic=self.geodetic[idx],
             n_stations=self.n_stations[idx],

@@ -69,6 +69,28 @@ def _workers() -> ThreadPoolExecutor:
         return _pool
 
 
+def _groups(names: list[str], options: list) -> dict[tuple, np.ndarray]:
+    """The rows of each distinct (method name, options) pair, in order of first appearance.
+
+    Rows are told apart by their name and the identity of their options object, in C-level passes over the
+    batch; one row of each distinct pair is then hashed by value, so equal options sent as separate objects
+    still share a group.
+    """
+    if len(dict.fromkeys(names)) <= 1 and len(dict.fromkeys(map(id, options))) <= 1:
+        return {(names[0], options[0]): np.arange(len(names))} if names else {}
+    pairs = list(zip(names, map(id, options)))
+    codes = dict.fromkeys(pairs)
+    for code, pair in enumerate(codes):
+        codes[pair] = code
+    coded = np.fromiter(map(codes.__getitem__, pairs), dtype=np.intp, count=len(pairs))
+    order = np.argsort(coded, kind="stable")
+    groups: dict[tuple, np.ndarray] = {}
+    for rows in np.split(order, np.flatnonzero(np.diff(coded[order])) + 1):
+        key = (names[rows[0]], options[rows[0]])
+        groups[key] = np.sort(np.concatenate([groups[key], rows])) if key in groups else rows
+    return dict(sorted(groups.items(), key=lambda item: item[1][0]))
+
+
 def solve_many(batch: ProblemBatch, methods, options,
                should_stop=None) -> list[tuple[np.ndarray, FixBatch | LocalizationError]]:
     """Fixes of every problem of a batch, each with its own method and options: :func:`iter_solutions` as a list."""
@@ -106,12 +128,8 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
     if options is None or isinstance(options, SolveOptions):
         options = [options or SolveOptions()] * size
     missing = (batch.valid & np.isnan(batch.sigmas)).any(axis=-1)
-    groups: dict[tuple, list[int]] = {}
-    for b, (name, opts) in enumerate(zip(resolve_methods(batch, methods), options)):
-        groups.setdefault((name, opts), []).append(b)
     work: list = []
-    for (name, opts), rows in groups.items():
-        rows = np.asarray(rows, dtype=np.intp)
+    for (name, opts), rows in _groups(resolve_methods(batch, methods), options).items():
         try:
             spec = get_estimator(name)
             _check_variant(spec, opts)
