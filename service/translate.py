@@ -911,11 +911,11 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         for template, members in work:
             end = _write_bodies(template.pieces, template.piece_starts, template.piece_lengths, template.columns,
                                 members, values, value_starts, value_lengths, written, end, ends)
-        written = written[:end].tobytes()
         order = np.concatenate([members for _, members in work]).tolist()
         body_ends = ends[order].tolist()
+        view = memoryview(written)  # each body copied out once (no whole-buffer bytes to slice again)
         for b, start, stop in zip(order, [0] + body_ends[:-1], body_ends):
-            texts[b] = written[start:stop]
+            texts[b] = bytes(view[start:stop])
 
     known = {"method": fixes.method}
     out: list[dict] = []
