@@ -4,8 +4,11 @@ A route validates the request (``service.session_schemas``) and calls one
 function here, which translates to core types (radians, SI), loads the record
 from the store, runs the pure core filter step and saves what comes back.
 Everything that decides a post's outcome (If-Match, duplicates, time order,
-the filter steps) runs inside the store's atomic read-modify-write, so it is
-decided against the latest record and concurrent posts cannot interleave.
+the filter steps) is decided against the record the store's atomic
+read-modify-write writes over, so concurrent posts cannot interleave; the
+filter steps of a long post run beforehand on a worker thread under the
+request deadline (:class:`MeasurementsChange`), not on the store's threads
+within its call deadline.
 """
 
 from __future__ import annotations
@@ -15,13 +18,16 @@ import binascii
 import math
 import re
 import secrets
+import time
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
+from typing import Callable
 
 import numpy as np
 
 from core import geodesy
 from core.errors import LocalizationError
+from core.parallel import Stopped
 from core.tracking import Epoch as TrackerEpoch
 from core.tracking import TrackerConfig, TrackState, new_state, step_many
 from service import session_schemas as schemas
@@ -247,19 +253,54 @@ class PostOutcome:
     duplicates: int
 
 
-def post_measurements(store: SessionStore, owner: str, session_id: str, batch: schemas.MeasurementBatch,
-                      if_match: str | None = None) -> PostOutcome:
-    """Apply a batch of epochs: all of its new ones, or (on any error) none.
+#: Epochs a post's filter runs between two looks at its ``should_stop``.
+STOP_CHECK_EPOCHS = 256
+#: A post of at most this many epochs is decided within the store's update call (its filter steps take a few
+#: ms at most, and two more hops would cost a real-time feed 10-20 % of its posts/s); a longer one is
+#: prepared first on a worker thread, under the request deadline (:class:`MeasurementsChange`).
+INLINE_EPOCHS = 32
 
-    Raises
+
+class MeasurementsChange:
+    """What a batch of epochs does to its session: all of its new epochs, or (on any error) none.
+
+    Called with a record, it returns the new record (or None: nothing new), and depends on that record
+    only, as :meth:`service.stores.SessionStore.update` requires. The filter steps are the expensive part,
+    so for a long post a route first calls :meth:`prepare` with the record it read, on a worker thread; the
+    store's update, which must not hold its thread and deadline for them, then finds the session still at
+    that version and takes the prepared record. A post that another write overtook is decided again there,
+    against the latest record.
+
+    Raises (when called or prepared)
     ------
     ApiError
-        404 unknown session; 412 stale ``If-Match``; 409 a new epoch's
-        ``time_s`` not after the previous one's; 422 an epoch the filter refuses.
+        412 stale ``If-Match``; 409 a new epoch's ``time_s`` not after the previous one's; 422 an epoch
+        the filter refuses.
+    core.parallel.Stopped
+        When ``should_stop`` (of :meth:`prepare`) said so.
     """
-    counts = {}
 
-    def change(record: SessionRecord) -> SessionRecord | None:
+    def __init__(self, batch: schemas.MeasurementBatch, if_match: str | None = None,
+                 clock: Callable[[], float] = time.time):
+        self.batch, self.if_match, self.clock = batch, if_match, clock
+        self.applied = self.duplicates = 0
+        self._prepared: tuple | None = None
+
+    def prepare(self, record: SessionRecord, should_stop=None) -> None:
+        """Decide the change for ``record`` now (``should_stop`` is asked every :data:`STOP_CHECK_EPOCHS`
+        epochs)."""
+        new = self._change(record, should_stop)
+        self._prepared = (record.id, record.version, new, self.applied, self.duplicates)
+
+    def __call__(self, record: SessionRecord) -> SessionRecord | None:
+        prepared = self._prepared
+        if prepared is not None and prepared[:2] == (record.id, record.version):
+            new, self.applied, self.duplicates = prepared[2:]
+            return new
+        return self._change(record, None)
+
+    def _change(self, record: SessionRecord, should_stop) -> SessionRecord | None:
+        batch, if_match = self.batch, self.if_match
         if if_match is not None and not if_match_accepts(if_match, record.version):
             raise _problem(412, "precondition_failed",
                            f"If-Match {if_match} is stale: the session is at version {etag(record)}")
@@ -268,7 +309,7 @@ def post_measurements(store: SessionStore, owner: str, session_id: str, batch: s
             while first_new < len(batch.measurements) and batch.measurements[first_new].seq <= record.last_seq:
                 first_new += 1
         fresh = batch.measurements[first_new:]
-        counts.update(applied=len(fresh), duplicates=first_new)
+        self.applied, self.duplicates = len(fresh), first_new
         previous_time, previous_seq = record.last_time_s, record.last_seq
         for i, epoch in enumerate(fresh, start=first_new):
             if previous_time is not None and not epoch.time_s > previous_time:
@@ -284,6 +325,8 @@ def post_measurements(store: SessionStore, owner: str, session_id: str, batch: s
 
         def epochs():
             for i, epoch in enumerate(fresh, start=first_new):
+                if should_stop is not None and (i - first_new) % STOP_CHECK_EPOCHS == 0 and should_stop():
+                    raise Stopped()
                 current[0] = i
                 yield tracker_epoch(epoch)
 
@@ -295,11 +338,16 @@ def post_measurements(store: SessionStore, owner: str, session_id: str, batch: s
             loc = ("measurements", i) if field is None else ("measurements", i, field)
             raise _problem(422, error.code, f"measurements[{i}] (seq {batch.measurements[i].seq}): {error.message}; "
                                             "nothing of this post was applied", loc) from error
-        now = store.now()
+        now = self.clock()
         return replace(record, state=state.to_dict(), last_seq=fresh[-1].seq, last_time_s=fresh[-1].time_s,
                        updates=record.updates + len(fresh), updated_at=now, expires_at=now + record.ttl_s)
 
-    record = store.update(owner, session_id, change) if _SESSION_ID.fullmatch(session_id) else None
+
+def post_measurements(store: SessionStore, owner: str, session_id: str, change: MeasurementsChange,
+                      read: SessionRecord | None = None) -> PostOutcome:
+    """Apply a :class:`MeasurementsChange` to its session, atomically (404 unknown session); ``read``: the
+    record it was prepared for (:meth:`SessionStore.update`)."""
+    record = store.update(owner, session_id, change, read) if _SESSION_ID.fullmatch(session_id) else None
     if record is None:
         raise not_found(session_id)
-    return PostOutcome(record, counts["applied"], counts["duplicates"])
+    return PostOutcome(record, change.applied, change.duplicates)

@@ -17,6 +17,7 @@ from service.problems import ApiError
 from service.responses import JsonResponse
 from service.schemas import Problem
 from service.stores.guard import GuardedStore
+from service.watch import in_pool, watched
 
 
 async def get_store(request: Request) -> GuardedStore:
@@ -32,7 +33,10 @@ _ETAG = {"ETag": {"description": "the session's version, quoted: send it back in
 _NOT_FOUND = {404: {"model": Problem, "description": "no such session for this key (or it expired)"}}
 _INVALID = {422: {"model": Problem, "description": "invalid values, with the field path"}}
 _UNAVAILABLE = {503: {"model": Problem, "description": "the session store is unavailable, too slow, or could not "
-                                                       "serialise this write in time; retry after Retry-After",
+                                                       "serialise this write in time (store_unavailable, "
+                                                       "store_busy), or a post's filter steps did not finish "
+                                                       "within the request deadline (deadline_exceeded); retry "
+                                                       "after Retry-After",
                       "headers": {"Retry-After": {"description": "seconds", "schema": {"type": "string"}}}}}
 #: One server-sent event, as parsed from the stream (OpenAPI 3.1 has ``schema`` describe each event of a
 #: ``text/event-stream``; 3.2 names it ``itemSchema``). ``data`` is one line of JSON: a SessionState for
@@ -96,7 +100,13 @@ async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, ow
                       if_match: Annotated[str | None, Header(description='"<version>" from an ETag: apply only '
                                                                          "if the session is still at it")] = None,
                       ) -> JsonResponse:
-    outcome = await store.run(sessions.post_measurements, owner, session_id, batch, if_match)
+    change = sessions.MeasurementsChange(batch, if_match, store.now)
+    record = None
+    if len(batch.measurements) > sessions.INLINE_EPOCHS:
+        record = await store.run(sessions.get, owner, session_id)
+        await watched(request, in_pool(None, lambda should_stop: change.prepare(record, should_stop)),
+                      "post fewer epochs at a time")
+    outcome = await store.run(sessions.post_measurements, owner, session_id, change, record)
     metrics = request.app.state.metrics
     metrics.count("session_updates_total", 1 if outcome.applied else 0)
     metrics.count("session_epochs_applied_total", outcome.applied)

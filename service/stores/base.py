@@ -130,7 +130,8 @@ class SessionStore(ABC):
     #: Compare-and-set attempts of one update before it answers 503 ``store_busy``.
     max_attempts: int = 100
 
-    def update(self, owner: str, session_id: str, change: Change) -> SessionRecord | None:
+    def update(self, owner: str, session_id: str, change: Change,
+               read: SessionRecord | None = None) -> SessionRecord | None:
         """Read-modify-write one session atomically.
 
         ``change`` gets the current record and returns the new one, or None
@@ -140,6 +141,13 @@ class SessionStore(ABC):
         fresh record when another write came first, so it must depend only
         on its argument.
 
+        Parameters
+        ----------
+        read : SessionRecord, optional
+            The owner's session as the caller read it: the first attempt
+            writes over it without reading it again (and reads again when
+            the session moved on since).
+
         Returns
         -------
         SessionRecord or None
@@ -147,7 +155,7 @@ class SessionStore(ABC):
             returned None); None when the session does not exist for this owner.
         """
         for attempt in range(self.max_attempts):
-            record = self.get(owner, session_id)
+            record = read if attempt == 0 and read is not None else self.get(owner, session_id)
             if record is None:
                 return None
             new = change(record)

@@ -132,7 +132,8 @@ class GuardedStore:
         #: Called with the operation's name on every store failure (the app counts them in its metrics).
         self.on_failure: Callable[[str], None] = lambda operation: None
 
-    def _now(self) -> float:
+    def now(self) -> float:
+        """The store's clock (the backend's ``now``): Unix seconds."""
         return self.clock()
 
     def backend(self) -> SessionStore:
@@ -141,7 +142,7 @@ class GuardedStore:
         if backend is None:
             with self._open_lock:
                 if self._backend is None:
-                    self._backend = self._open_backend(self._now)
+                    self._backend = self._open_backend(self.now)
                 backend = self._backend
         return backend
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import time
 
 import numpy as np
 import orjson
@@ -325,3 +326,67 @@ def test_metrics_count_applied_and_duplicate_epochs(client, epochs):
     assert sample(text, "passive_locator_session_epochs_applied_total") == 12
     assert sample(text, "passive_locator_session_epochs_duplicate_total") == 5
     assert sample(text, "passive_locator_session_updates_total") == 2
+
+
+def test_a_post_whose_filter_outlasts_the_store_call_deadline_is_applied(store_url, clock, epochs, monkeypatch):
+    # The filter steps run before the store's read-modify-write, not inside its call deadline: a post whose
+    # steps take longer than store_call_timeout_s is a 200, not a 503 store_unavailable on a healthy store.
+    from service import sessions
+
+    real = sessions.step_many
+
+    def slow_steps(*args):
+        time.sleep(0.4)
+        return real(*args)
+
+    monkeypatch.setattr(sessions, "step_many", slow_steps)
+    with TestClient(create_app(Settings(store=store_url, store_call_timeout_s=0.1))) as c:
+        c.app.state.store.clock = clock
+        session = create(c)
+        count = sessions.INLINE_EPOCHS + 1
+        response = post(c, session["id"], epochs[:count])
+        assert response.status_code == 200, response.text
+        assert (response.json()["applied"], response.json()["version"]) == (count, 2)
+
+
+def test_a_post_past_the_request_deadline_is_503_and_applies_nothing(store_url, clock, epochs, monkeypatch):
+    from service import sessions
+
+    real = sessions.tracker_epoch
+
+    def slow_epoch(epoch):
+        time.sleep(0.02)
+        return real(epoch)
+
+    monkeypatch.setattr(sessions, "tracker_epoch", slow_epoch)
+    monkeypatch.setattr(sessions, "STOP_CHECK_EPOCHS", 4)
+    with TestClient(create_app(Settings(store=store_url, request_deadline_s=0.2))) as c:
+        c.app.state.store.clock = clock
+        session = create(c)
+        started = time.monotonic()
+        response = post(c, session["id"], epochs)
+        assert response.status_code == 503 and response.json()["code"] == "deadline_exceeded", response.text
+        assert time.monotonic() - started < 0.2 + 1.5  # the steps stopped at a check, well before all 60 ran
+        time.sleep(0.2)
+        state = c.get(f"/v1/sessions/{session['id']}").json()
+        assert (state["version"], state["updates"]) == (1, 0)
+
+
+def test_a_post_overtaken_by_another_is_decided_again_against_the_latest_record(store, clock, epochs):
+    # A change prepared for version 1 while another post wrote version 2: the store reads again, and the
+    # change is decided against version 2 (its overlapping epochs are duplicates there), never written over it.
+    from service import session_schemas as schemas
+    from service import sessions
+
+    request = schemas.SessionCreate.model_validate(create_body())
+    first = sessions.create(store, "alice", request)
+    late = sessions.MeasurementsChange(schemas.MeasurementBatch.model_validate({"measurements": epochs[:8]}),
+                                       clock=store.now)
+    late.prepare(first)
+    assert late.applied == 8
+    early = sessions.MeasurementsChange(schemas.MeasurementBatch.model_validate({"measurements": epochs[:5]}),
+                                        clock=store.now)
+    assert sessions.post_measurements(store, "alice", first.id, early).record.version == 2
+    outcome = sessions.post_measurements(store, "alice", first.id, late, first)
+    assert (outcome.record.version, outcome.applied, outcome.duplicates) == (3, 3, 5)
+    assert (outcome.record.updates, outcome.record.last_seq) == (8, epochs[7]["seq"])
