@@ -55,6 +55,20 @@ def seen_from_station(east_m, north_m, up_m, stations_enu_m, rotations, m):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def ahead_point(east_m, north_m, up_m, stations_enu_m, rotations, m, azimuth_rad, elevation_rad):
+    """How far a common-frame point lies ahead of station ``m`` along its line of sight (m; negative:
+    behind it), with the point's east and north in the station's ENU; ``elevation_rad`` NaN for an
+    azimuth-only bearing (the horizontal direction alone)."""
+    e, n, u = seen_from_station(east_m, north_m, up_m, stations_enu_m, rotations, m)
+    has_elevation = not math.isnan(elevation_rad)
+    cos_el = math.cos(elevation_rad) if has_elevation else 1.0
+    ahead = cos_el * math.sin(azimuth_rad) * e + cos_el * math.cos(azimuth_rad) * n
+    if has_elevation:
+        ahead += math.sin(elevation_rad) * u
+    return ahead, e, n
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def measure_point(east_m, north_m, up_m, bias_m, stations_enu_m, rotations, m, kind):
     """One measurement's prediction and its Jacobian w.r.t. ``(east, north, up, bias)`` of the common frame.
 

@@ -358,3 +358,30 @@ def test_bearings_meeting_only_behind_a_station_say_so():
     with pytest.raises(UnobservableGeometry, match="behind a station"):
         solve(problem, "ml")
     assert "behind_station" in {w.code for w in solve(problem, "eove").warnings}
+
+
+def _stated_too_small(problem, seed):
+    """``problem`` measured with noise ten times what its sigmas say: every fit's chi-square is implausible."""
+    from dataclasses import replace
+
+    target = problem.frame.from_geodetic(d2r(TARGET_DEG[0]), d2r(TARGET_DEG[1]), TARGET_DEG[2])
+    noisy = measure(problem, target, np.random.default_rng(seed))
+    return replace(noisy, sigmas=noisy.sigmas / 10.0)
+
+
+@pytest.mark.parametrize("mix, searched", [("bearings", False), ("bearings_and_ranges", True)])
+def test_only_fits_that_may_have_another_basin_are_searched_again(monkeypatch, mix, searched):
+    # Sigmas stated 10x too small make every fit implausible (p < IMPLAUSIBLE_P). Lines of sight meeting ahead
+    # of their stations have one basin, so ML does not run the start search (53 LM runs a problem here) that
+    # could only find the same fit; a range adds a second crossing of each line, so those are searched.
+    import core.estimators.ml as ml
+
+    calls = []
+    real = ml.searched_starts
+    monkeypatch.setattr(ml, "searched_starts", lambda batch, *args: calls.append(batch.size) or real(batch, *args))
+    measurements = bearings("wesn") if mix == "bearings" else bearings_and_ranges("wesn")
+    problems = [_stated_too_small(build_problem(geodetic_stations("wesn"), measurements), seed) for seed in range(8)]
+    fixes = solve_batch(problems, "ml")
+    assert all(fix.p_value < ml.IMPLAUSIBLE_P for fix in fixes)
+    assert all("sigma_mismatch" in codes(fix) for fix in fixes)
+    assert (sum(calls) == len(problems)) if searched else (calls == [])
