@@ -221,8 +221,6 @@ def _phase_times(problems: list) -> dict[str, float]:
     return times
 
 
-#: The methods that locate from azimuths only: their problems carry the target altitude.
-AZIMUTH_ONLY = ("tls", "ctls")
 #: The closed forms of the batch row (issue 9's list), each measured like ML.
 CLOSED_FORMS = ("weighted_eove", "eove", "los_intersection", "ple3d", "ws3d", "angle_range", "tls", "ctls",
                 "taylor_wls")
@@ -234,8 +232,7 @@ def batch_row(url: str, size: int, method: str = "ml", repeats: int = 3) -> tupl
     from service.translate import read_fix_requests
 
     target = 25_000 if method == "ml" else 20_000
-    problems = four_station_requests(size, np.random.default_rng(22), method=method,
-                                     with_range=method == "angle_range", with_altitude=method in AZIMUTH_ONLY)
+    problems = four_station_requests(size, np.random.default_rng(22), method=method)
     body = orjson.dumps({"problems": problems})
     connection = _connection(url)
     status, data = _post(connection, "/v1/fixes/batch", body)

@@ -18,10 +18,15 @@ SIGMA_DEG = 0.5
 
 #: Relative sigma of the range a request carries with ``with_range``.
 RANGE_SIGMA = 0.01
+#: The methods that need a range beside the bearings, and those that locate from azimuths only (their
+#: problems carry the target altitude).
+NEEDS_RANGE = ("angle_range",)
+AZIMUTH_ONLY = ("tls", "ctls")
 
 
 def four_station_requests(count: int, rng: np.random.Generator, method: str = "ml",
-                          with_range: bool = False, with_altitude: bool = False) -> list[dict]:
+                          with_range: bool | None = None, with_altitude: bool | None = None,
+                          stated_sigma_deg: float = SIGMA_DEG) -> list[dict]:
     """``count`` FixRequest bodies: four stations within ~40 km, a target 20-60 km away.
 
     Parameters
@@ -29,16 +34,23 @@ def four_station_requests(count: int, rng: np.random.Generator, method: str = "m
     count : int
     rng : numpy.random.Generator
     method : str
-    with_range : bool
-        Add a range from the first station (sigma ``RANGE_SIGMA`` of it), as ``angle_range`` needs.
-    with_altitude : bool
-        Give the target's true altitude (``constraints.altitude_m``), as the azimuth-only methods need.
+    with_range : bool, optional
+        Add a range from the first station (sigma ``RANGE_SIGMA`` of it); default: when ``method`` needs one
+        (:data:`NEEDS_RANGE`).
+    with_altitude : bool, optional
+        Give the target's true altitude (``constraints.altitude_m``); default: for the azimuth-only methods
+        (:data:`AZIMUTH_ONLY`).
+    stated_sigma_deg : float
+        The bearings' sigmas as the requests state them (the noise drawn is :data:`SIGMA_DEG` whatever this
+        says: a smaller value makes every fit's chi-square implausible, as misstated sigmas do).
 
     Returns
     -------
     list of dict
         JSON-ready FixRequest bodies (frame ``wgs84``, bearings with elevation).
     """
+    with_range = method in NEEDS_RANGE if with_range is None else with_range
+    with_altitude = method in AZIMUTH_ONLY if with_altitude is None else with_altitude
     base_lat = np.radians(34.0 + rng.uniform(-1.0, 1.0, count))
     base_lon = np.radians(108.0 + rng.uniform(-1.0, 1.0, count))
     offsets = rng.uniform(-0.2, 0.2, (count, 4, 2))
@@ -68,8 +80,8 @@ def four_station_requests(count: int, rng: np.random.Generator, method: str = "m
                                                      "lon_deg": math.degrees(station_lon[b, s]),
                                                      "alt_m": float(station_alt[b, s])}})
             measurements.append({"type": "bearing", "station_id": sid, "azimuth_deg": float(azimuth[b, s]),
-                                 "elevation_deg": float(elevation[b, s]), "sigma_azimuth_deg": SIGMA_DEG,
-                                 "sigma_elevation_deg": SIGMA_DEG})
+                                 "elevation_deg": float(elevation[b, s]), "sigma_azimuth_deg": stated_sigma_deg,
+                                 "sigma_elevation_deg": stated_sigma_deg})
         if with_range:
             measurements.append({"type": "range", "station_id": "rx-1", "range_m": float(ranges[b]),
                                  "sigma_m": RANGE_SIGMA * float(ranges[b])})
