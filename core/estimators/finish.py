@@ -23,8 +23,8 @@ from core.crlb import (OBSERVABILITY_THRESHOLD, gdop, invert_point, normal_point
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_code, loss_point
 from core.estimators.result import Estimates, FixBatch, FixWarning
-from core.measurements import (AZIMUTH, ELEVATION, KIND_NAMES, SPEED_OF_LIGHT_MPS, TOA, measure_point,
-                               seen_from_station, toa_offset_point)
+from core.measurements import (AZIMUTH, ELEVATION, KIND_NAMES, SPEED_OF_LIGHT_MPS, TOA, ahead_point, measure_point,
+                               toa_offset_point)
 from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
@@ -330,14 +330,8 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
             lines += 1
             dx, dy, dz = east - stations_b[m, 0], north - stations_b[m, 1], up - stations_b[m, 2]
             distance = max(math.sqrt(dx * dx + dy * dy + dz * dz), 1e-9)
-            e, n, u = seen_from_station(east, north, up, stations_b, rotations_b, m)
-            azimuth, el = values[b, m], elevation_rad[b, m]
-            has_el = not math.isnan(el)
-            cos_el = math.cos(el) if has_el else 1.0
-            along = cos_el * math.sin(azimuth) * e + cos_el * math.cos(azimuth) * n
-            if has_el:
-                along += math.sin(el) * u
-            behind[b, m] = along < 0
+            ahead, e, n = ahead_point(east, north, up, stations_b, rotations_b, m, values[b, m], elevation_rad[b, m])
+            behind[b, m] = ahead < 0
             zenith[b, m] = math.hypot(e, n) < 1e-4 * distance
             seen[m, 0], seen[m, 1], seen[m, 2] = dx / distance, dy / distance, dz / distance
         if lines >= 2:
