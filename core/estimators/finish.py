@@ -136,10 +136,9 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
             found.append(FixWarning("ill_conditioned", "information matrix nearly singular "
                                                        f"(min scaled eigenvalue {min_eigenvalue[b]:.1e})"))
         if inefficient[b]:
-            ratio = np.trace(covariance[b]) / np.trace(crlb[b])
             found.append(FixWarning(
                 "inefficient_method",
-                f"{method}'s covariance is {ratio:.0f} x the CRLB in this geometry "
+                f"{method}'s covariance is {own_trace[b] / bound_trace[b]:.0f} x the CRLB in this geometry "
                 "(its equations are nearly degenerate here); ml or weighted_eove reach the bound"))
         if bits & BEHIND:
             found.append(FixWarning("behind_station",
