@@ -8,7 +8,10 @@ The cost here is scipy's times two, so that with ``linear`` it is chi-square.
 The Levenberg-Marquardt iteration (:mod:`core.estimators.ml`) uses the loss as
 scipy does: the gradient weights each measurement by ``rho'``, the Gauss-Newton
 matrix by ``rho' + 2 rho'' z`` (floored at machine epsilon: a measurement past
-the loss's bend adds no curvature).
+the loss's bend adds no curvature). Its steps are Jacobi-scaled by the larger
+of that matrix's diagonal and the one weighted by ``rho'``: when every
+residual is past the bend the first vanishes, and the damping, relative to
+it, no longer shortened the steps (the fit stopped short of its minimum).
 """
 
 from __future__ import annotations
@@ -20,6 +23,9 @@ import numpy as np
 
 #: The losses, as ``options.loss`` and scipy name them.
 LOSSES = ("linear", "huber", "soft_l1", "cauchy", "arctan")
+#: The losses whose ``rho`` stops growing (a measurement far enough out loses all its weight): they have a minimum
+#: for each subset of measurements they set aside.
+REDESCENDING = ("cauchy", "arctan")
 #: Floor of a measurement's Gauss-Newton weight factor (scipy's ``EPS``).
 CURVATURE_FLOOR = np.finfo(float).eps
 

@@ -47,7 +47,7 @@ from core.crlb import batch_information
 from core.errors import AmbiguousGeometry, LocalizationError
 from core.angles import wrap_point
 from core.estimators.base import SolveOptions, register
-from core.estimators.loss import CURVATURE_FLOOR, loss_code, loss_point
+from core.estimators.loss import CURVATURE_FLOOR, REDESCENDING, loss_code, loss_point
 from core.estimators.result import Estimates, FixWarning
 from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
@@ -201,6 +201,11 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
                     information[i, j] = total + (1.0 - free[i] if i == j else 0.0)
             for i in range(4):
                 d = information[i, i]
+                if loss_code != 0:
+                    d_gradient = 0.0
+                    for m in range(count):
+                        d_gradient += local[i, m] * gradient_w[m] * local[i, m]
+                    d = max(d, d_gradient)
                 scale[i] = 1.0 / math.sqrt(d if d > 0.0 else 1.0)
             for i in range(4):
                 for j in range(4):
@@ -256,8 +261,9 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
 
     One compiled kernel runs each problem's iteration on its own (so a problem's result does not depend on
     the batch it is in): Jacobi-scaled normal equations of ``(east, north, up, b)`` with the Marquardt
-    damping ``lambda diag(J^T W J)``, a step accepted when the cost does not rise; with a known altitude
-    the step moves along the local east and north and the point is put back on the altitude surface
+    damping ``lambda diag(J^T W J)`` (with a robust loss, the larger of the Gauss-Newton and the ``rho'``
+    weighted diagonal: :mod:`core.estimators.loss`), a step accepted when the cost does not rise; with a
+    known altitude the step moves along the local east and north and the point is put back on the altitude surface
     (:func:`core.problem.onto_altitude`, the same geodesy). The model is
     :func:`core.measurements.measure_point`, the loss :func:`core.estimators.loss.loss_point`.
 
@@ -499,7 +505,8 @@ def _one_basin_kernel(positions_enu_m, stations_enu_m, rotations, kinds, valid, 
 
 def one_basin(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     """``(B,)``: whether a fit's basin is the only one the start search could find: the problem measures
-    angles only (no range or TOA) and the fit lies ahead of every line of sight.
+    angles only (no range or TOA) and the fit lies ahead of every line of sight (under a loss that is not
+    :data:`~core.estimators.loss.REDESCENDING`: those have a minimum per subset of measurements set aside).
 
     Ranges and TOAs make several crossings (a line of sight meets a sphere or hyperboloid twice), and a fit
     behind a station sits where its bearing points away; lines of sight that meet ahead of their stations
@@ -569,7 +576,9 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     implausible = p_value < IMPLAUSIBLE_P
     retry = missing | ~solution.converged
     if implausible.any():
-        retry |= implausible & ~one_basin(batch, solution.position_enu_m)
+        if options.loss not in REDESCENDING:
+            implausible &= ~one_basin(batch, solution.position_enu_m)
+        retry |= implausible
     warnings: list[tuple] = [()] * batch.size
     if retry.any():
         rows = np.flatnonzero(retry)
