@@ -145,8 +145,8 @@ class SessionStore(ABC):
         ----------
         read : SessionRecord, optional
             The owner's session as the caller read it: the first attempt
-            writes over it without reading it again (and reads again when
-            the session moved on since).
+            writes over it without reading it again, unless it has expired
+            since (and reads again when the session moved on).
 
         Returns
         -------
@@ -155,7 +155,8 @@ class SessionStore(ABC):
             returned None); None when the session does not exist for this owner.
         """
         for attempt in range(self.max_attempts):
-            record = read if attempt == 0 and read is not None else self.get(owner, session_id)
+            fresh = attempt > 0 or read is None or not read.expires_at > self.now()
+            record = self.get(owner, session_id) if fresh else read
             if record is None:
                 return None
             new = change(record)

@@ -302,3 +302,14 @@ def test_a_change_that_lost_the_race_is_made_again_on_the_fresh_record(store):
     final = store.get("alice", "0001")
     assert final.state["n"] == 2 and final.version == 3
     assert calls == [1, 2]  # read at version 1, lost the race, changed again at version 2
+
+
+def test_update_over_a_record_read_before_writes_over_it_only_while_it_is_current_and_live(store, clock):
+    store.create(make_record("0001", now=store.now()))
+    read = store.get("alice", "0001")
+    assert store.update("alice", "0001", bump, read).state["n"] == 1
+    # A stale read: the update reads again and changes the latest record (version 2), not the one given.
+    assert store.update("alice", "0001", bump, read).state["n"] == 2
+    latest = store.get("alice", "0001")
+    clock.advance(latest.ttl_s + 1.0)
+    assert store.update("alice", "0001", bump, latest) is None  # expired since it was read: not revived
