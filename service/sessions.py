@@ -271,11 +271,11 @@ class MeasurementsChange:
     that version and takes the prepared record. A post that another write overtook is decided again there,
     against the latest record.
 
-    Raises (when called or prepared)
+    Raises
     ------
     ApiError
-        412 stale ``If-Match``; 409 a new epoch's ``time_s`` not after the previous one's; 422 an epoch
-        the filter refuses.
+        When called or prepared: 412 stale ``If-Match``; 409 a new epoch's ``time_s`` not after the previous
+        one's; 422 an epoch the filter refuses.
     core.parallel.Stopped
         When ``should_stop`` (of :meth:`prepare`) said so.
     """
