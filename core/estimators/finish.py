@@ -126,16 +126,21 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         unused_kinds = np.bitwise_or.reduce(np.where(unused, 1 << batch.kinds.astype(np.int64), 0), axis=-1)
         unused_counts = np.count_nonzero(unused, axis=-1)
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
-    for b in (flagged & ~failed).nonzero()[0]:
+    rows = np.flatnonzero(flagged & ~failed)
+    # The flagged rows' figures as Python numbers: numpy scalars cost twice as much to index and to format.
+    (converged_of, iterations_of, bits_of, inefficient_of, mismatch_of, worst_of, worst_value_of, chi2_of, dof_of,
+     p_value_of, plain_scale_of) = (np.take(a, rows).tolist() for a in (
+        converged, iterations, flags, inefficient, mismatch, worst, worst_value, chi2, dof, p_value, plain_scale))
+    for j, b in enumerate(rows.tolist()):
         found = list(own[b])
-        if not converged[b] and not any(w.code == "not_converged" for w in found):
-            found.append(FixWarning("not_converged", f"{method} did not converge in {int(iterations[b])} iterations; "
+        if not converged_of[j] and not any(w.code == "not_converged" for w in found):
+            found.append(FixWarning("not_converged", f"{method} did not converge in {iterations_of[j]} iterations; "
                                                      "the last accepted iterate is returned"))
-        bits = int(flags[b])
+        bits = bits_of[j]
         if bits & ILL:
             found.append(FixWarning("ill_conditioned", "information matrix nearly singular "
                                                        f"(min scaled eigenvalue {min_eigenvalue[b]:.1e})"))
-        if inefficient[b]:
+        if inefficient_of[j]:
             found.append(FixWarning(
                 "inefficient_method",
                 f"{method}'s covariance is {own_trace[b] / bound_trace[b]:.0f} x the CRLB in this geometry "
@@ -151,17 +156,17 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
             found.append(FixWarning("azimuth_undefined",
                                     f"the fix is at the zenith of {_station_list(batch, b, zenith[b])}"))
         if bits & OUTLIER:
-            w = worst[b]
+            w = worst_of[j]
             station = batch.station_ids[b][batch.station_index[b, w]]
             found.append(FixWarning(
                 "outlier_suspected",
-                f"measurement {int(batch.source_index[b, w])} ({KIND_NAMES[batch.kinds[b, w]]} at "
-                f"{station}) has a studentized residual of {worst_value[b]:.1f}"))
-        if mismatch[b]:
+                f"measurement {batch.source_index[b, w]} ({KIND_NAMES[batch.kinds[b, w]]} at "
+                f"{station}) has a studentized residual of {worst_value_of[j]:.1f}"))
+        if mismatch_of[j]:
             found.append(FixWarning(
                 "sigma_mismatch",
-                f"chi2 = {chi2[b]:.1f} on {dof[b]} dof (p = {p_value[b]:.1e}): residuals are "
-                f"{plain_scale[b]:.2f} x what the stated sigmas allow"))
+                f"chi2 = {chi2_of[j]:.1f} on {dof_of[j]} dof (p = {p_value_of[j]:.1e}): residuals are "
+                f"{plain_scale_of[j]:.2f} x what the stated sigmas allow"))
         if bits & EXCLUDED:
             for source in sorted(set(batch.source_index[b, excluded[b]].tolist())):
                 found.append(FixWarning("measurement_excluded",
