@@ -390,3 +390,22 @@ def test_a_post_overtaken_by_another_is_decided_again_against_the_latest_record(
     outcome = sessions.post_measurements(store, "alice", first.id, late, first)
     assert (outcome.record.version, outcome.applied, outcome.duplicates) == (3, 3, 5)
     assert (outcome.record.updates, outcome.record.last_seq) == (8, epochs[7]["seq"])
+
+
+def test_a_long_post_prepared_off_the_store_call_answers_as_a_short_one(client, epochs):
+    from service import sessions
+
+    long = sessions.INLINE_EPOCHS + 1
+    session = create(client)
+    assert post(client, "0" * 32, epochs[:long]).status_code == 404
+    stale = post(client, session["id"], epochs[:long], headers={"If-Match": '"7"'})
+    assert stale.status_code == 412 and stale.json()["code"] == "precondition_failed"
+    backwards = [dict(e) for e in epochs[:long]]
+    backwards[long - 1]["time_s"] = backwards[long - 2]["time_s"]
+    response = post(client, session["id"], backwards)
+    assert response.status_code == 409 and response.json()["errors"][0]["loc"] == ["measurements", long - 1, "time_s"]
+    assert client.get(f"/v1/sessions/{session['id']}").json()["updates"] == 0
+    first = post(client, session["id"], epochs[:long]).json()
+    assert (first["applied"], first["duplicates"], first["version"]) == (long, 0, 2)
+    overlapping = post(client, session["id"], epochs[long - 10:2 * long - 10]).json()
+    assert (overlapping["applied"], overlapping["duplicates"], overlapping["version"]) == (long - 10, 10, 3)
