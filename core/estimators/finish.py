@@ -127,10 +127,11 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         unused_counts = np.count_nonzero(unused, axis=-1)
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
     rows = np.flatnonzero(flagged & ~failed)
-    # The flagged rows' figures as Python numbers: numpy scalars cost twice as much to index and to format.
-    (converged_of, iterations_of, bits_of, inefficient_of, mismatch_of, worst_of, worst_value_of, chi2_of, dof_of,
-     p_value_of, plain_scale_of) = (np.take(a, rows).tolist() for a in (
-        converged, iterations, flags, inefficient, mismatch, worst, worst_value, chi2, dof, p_value, plain_scale))
+    if rows.size:
+        # The flagged rows' figures as Python numbers: numpy scalars cost twice as much to index and to format.
+        (converged_of, iterations_of, bits_of, inefficient_of, mismatch_of, worst_of, worst_value_of, chi2_of,
+         dof_of, p_value_of, plain_scale_of) = (np.take(a, rows).tolist() for a in (
+            converged, iterations, flags, inefficient, mismatch, worst, worst_value, chi2, dof, p_value, plain_scale))
     for j, b in enumerate(rows.tolist()):
         found = list(own[b])
         if not converged_of[j] and not any(w.code == "not_converged" for w in found):
