@@ -73,22 +73,24 @@ def _groups(names: list[str], options: list) -> dict[tuple, np.ndarray]:
     """The rows of each distinct (method name, options) pair, in order of first appearance.
 
     Rows are told apart by their name and the identity of their options object, in C-level passes over the
-    batch; one row of each distinct pair is then hashed by value, so equal options sent as separate objects
-    still share a group.
+    batch; one row of each distinct pair of objects is then hashed by value, so equal options sent as
+    separate objects (one per request) still share a group.
     """
     if len(dict.fromkeys(names)) <= 1 and len(dict.fromkeys(map(id, options))) <= 1:
         return {(names[0], options[0]): np.arange(len(names))} if names else {}
     pairs = list(zip(names, map(id, options)))
-    codes = dict.fromkeys(pairs)
-    for code, pair in enumerate(codes):
-        codes[pair] = code
-    coded = np.fromiter(map(codes.__getitem__, pairs), dtype=np.intp, count=len(pairs))
-    order = np.argsort(coded, kind="stable")
-    groups: dict[tuple, np.ndarray] = {}
-    for rows in np.split(order, np.flatnonzero(np.diff(coded[order])) + 1):
-        key = (names[rows[0]], options[rows[0]])
-        groups[key] = np.sort(np.concatenate([groups[key], rows])) if key in groups else rows
-    return dict(sorted(groups.items(), key=lambda item: item[1][0]))
+    pair_codes = dict.fromkeys(pairs)
+    for code, pair in enumerate(pair_codes):
+        pair_codes[pair] = code
+    by_pair = np.fromiter(map(pair_codes.__getitem__, pairs), dtype=np.intp, count=len(pairs))
+    first_rows = np.unique(by_pair, return_index=True)[1].tolist()  # the first row of each pair, by its code
+    value_codes: dict[tuple, int] = {}
+    pair_values = np.array([value_codes.setdefault((names[r], options[r]), len(value_codes)) for r in first_rows])
+    by_value = pair_values[by_pair]
+    order = np.argsort(by_value, kind="stable")
+    keys = list(value_codes)
+    return {keys[int(by_value[rows[0]])]: rows
+            for rows in np.split(order, np.flatnonzero(np.diff(by_value[order])) + 1)}
 
 
 def solve_many(batch: ProblemBatch, methods, options,

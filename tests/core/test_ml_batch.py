@@ -191,3 +191,16 @@ def test_a_problem_whose_bearing_lost_its_azimuth_has_one_line_fewer():
     assert alone.count == np.count_nonzero(is_line) == 2
     np.testing.assert_array_equal(alone.azimuth_rad, batch.values[0, is_line[0]])
     np.testing.assert_array_equal(alone.elevation_rad, elevation[0, is_line[0]])
+
+
+def test_problems_group_by_method_and_options_value_in_order_of_first_appearance():
+    from core.estimators import _groups
+
+    a, b, c = SolveOptions(), SolveOptions(), SolveOptions(max_iterations=3)  # a == b, separate objects
+    groups = _groups(["ml", "tls", "ml", "ml", "tls", "ml"], [a, b, c, a, a, b])
+    assert [(name, opts.max_iterations, rows.tolist()) for (name, opts), rows in groups.items()] == [
+        ("ml", 50, [0, 3, 5]), ("tls", 50, [1, 4]), ("ml", 3, [2])]
+    # One options object per problem, as a batch of requests that each send options has them: one group.
+    ((key, rows),) = _groups(["ml"] * 1000, [SolveOptions(outliers="exclude") for _ in range(1000)]).items()
+    assert key == ("ml", SolveOptions(outliers="exclude")) and rows.tolist() == list(range(1000))
+    assert _groups([], []) == {}
