@@ -30,7 +30,7 @@ from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
 from core.error_summary import error_summary
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
-from core.estimators import FixBatch, SolveOptions, iter_solutions
+from core.estimators import PART_PROBLEMS, FixBatch, SolveOptions, iter_solutions
 from core.measurements import KIND_NAMES, Kind
 from core.parallel import Stopped
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
@@ -998,19 +998,30 @@ def _shared_results(bodies: list, request_ids: list, should_stop) -> list[dict]:
             for_request(result["error"], request_ids[slot])
         results[slot] = {"index": slot, **result}
 
-    for group in _size_classes(bodies):
-        read = read_fix_requests([bodies[slot] for slot in group])
-        for j, error in read.errors.items():
-            put(group[j], {"ok": False, "error": error})
-        if read.batch is None:
-            continue
-        for rows, fixes in iter_solutions(read.batch, read.methods, read.options, should_stop):
-            if isinstance(fixes, LocalizationError):
-                for r in rows.tolist():
-                    put(group[read.slots[r]], {"ok": False, "error": localization_problem(fixes)})
-                continue
-            for r, result in zip(rows.tolist(), fix_bodies(fixes, [read.formats[r] for r in rows])):
-                put(group[read.slots[r]], result)
+    # Read in chunks of a solve part, each set solving on the solver threads while the next one is read
+    # (reading holds the GIL, the compiled solves do not), then write every chunk's fixes in turn.
+    chunks = [group[start:start + PART_PROBLEMS] for group in _size_classes(bodies)
+              for start in range(0, len(group), PART_PROBLEMS)]
+    started = []
+    try:
+        for chunk in chunks:
+            read = read_fix_requests([bodies[slot] for slot in chunk])
+            for j, error in read.errors.items():
+                put(chunk[j], {"ok": False, "error": error})
+            if read.batch is not None:
+                started.append((chunk, read, iter_solutions(read.batch, read.methods, read.options, should_stop,
+                                                            background=len(chunks) > 1)))
+        for chunk, read, solutions in started:
+            for rows, fixes in solutions:
+                if isinstance(fixes, LocalizationError):
+                    for r in rows.tolist():
+                        put(chunk[read.slots[r]], {"ok": False, "error": localization_problem(fixes)})
+                    continue
+                for r, result in zip(rows.tolist(), fix_bodies(fixes, [read.formats[r] for r in rows])):
+                    put(chunk[read.slots[r]], result)
+    finally:
+        for *_, solutions in started:
+            solutions.close()
     return results
 
 

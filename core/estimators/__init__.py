@@ -99,16 +99,18 @@ def solve_many(batch: ProblemBatch, methods, options,
     return list(iter_solutions(batch, methods, options, should_stop))
 
 
-def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
+def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, background: bool = False):
     """Fixes of every problem of a batch, each with its own method and options, part by part.
 
     Problems with the same method and options are solved together, one
     batched call per size class (padding stays under 2x) and per
     :data:`PART_PROBLEMS` problems or :data:`PART_PAIRS` measurement
-    pairs. With more than one part, up to :data:`MAX_WORKERS` threads
-    solve them at once, and each part is yielded, in order, as soon as it
-    and those before it are done (a caller can write the first parts while
-    the next ones are solved).
+    pairs. With more than one part (or ``background``), up to
+    :data:`MAX_WORKERS` threads solve them, started by this call, and each
+    part is yielded, in order, as soon as it and those before it are done
+    (a caller can write the first parts, or read its next batch, while the
+    next ones are solved). A single part is otherwise solved as it is asked
+    for, on the caller's thread.
 
     Parameters
     ----------
@@ -118,12 +120,15 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
     options : SolveOptions or sequence of SolveOptions, length B, optional
     should_stop : callable returning bool, optional
         Asked before each part is solved; True raises :class:`core.parallel.Stopped`.
+    background : bool
+        Start solving on the threads now, even a single part.
 
-    Yields
-    ------
-    (rows, FixBatch or LocalizationError)
+    Returns
+    -------
+    iterator of (rows, FixBatch or LocalizationError)
         ``rows`` indexes ``batch``; a LocalizationError stands for every
         problem of its rows (an unknown method or variant, a missing sigma).
+        Closing it cancels the parts not started.
     """
     size = batch.size
     methods = [methods] * size if isinstance(methods, str) else list(methods)
@@ -163,12 +168,15 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None):
         return fixes if opts.absolute_sigma else fixes.scaled_by_fit()
 
     parts = sum(len(item) == 3 for item in work)
-    if parts <= 1 or MAX_WORKERS == 1:
-        for item in work:
-            yield item if len(item) == 2 else (item[0], solve_part(*item))
-        return
+    if MAX_WORKERS == 1 or (parts <= 1 and not background):
+        return ((item if len(item) == 2 else (item[0], solve_part(*item))) for item in work)
     pool = _workers()
-    futures = [None if len(item) == 2 else pool.submit(solve_part, *item) for item in work]
+    return _in_order(work, [None if len(item) == 2 else pool.submit(solve_part, *item) for item in work])
+
+
+def _in_order(work: list, futures: list):
+    """Each work item's result as :func:`iter_solutions` yields it, waiting on its future; the futures not
+    started are cancelled when the iteration ends or is closed."""
     try:
         for item, future in zip(work, futures):
             yield item if future is None else (item[0], future.result())

@@ -226,10 +226,10 @@ def test_a_bug_in_one_problem_fails_only_its_slot(client, monkeypatch):
 
     real = translate.iter_solutions
 
-    def buggy(batch, methods, options, should_stop=None):
+    def buggy(batch, methods, options, should_stop=None, **kwargs):
         if any(o.max_iterations == 17 for o in options):
             raise ZeroDivisionError("a bug")
-        return real(batch, methods, options, should_stop)
+        return real(batch, methods, options, should_stop, **kwargs)
 
     monkeypatch.setattr(translate, "iter_solutions", buggy)
     good = _noisy(bearing_request(STATIONS_300KM, TARGET), 43)
@@ -304,6 +304,19 @@ def test_parts_on_worker_threads_give_the_same_bodies(client, monkeypatch):
     parts = client.post("/v1/fixes/batch", json={"problems": problems}, headers=same_id).json()
     assert_close(parts, whole, "batch")
     assert [r["ok"] for r in parts["results"]] == [True] * 3 + [False] + [True] * 4
+
+
+def test_a_batch_read_in_chunks_while_earlier_chunks_solve_gives_the_same_bytes(client, monkeypatch):
+    # More problems than one read chunk: each chunk is read while those before it solve on the threads.
+    from service import translate
+
+    problems = mixed_batch()
+    same_id = {"x-request-id": "chunks"}
+    whole = client.post("/v1/fixes/batch", json={"problems": problems}, headers=same_id)
+    monkeypatch.setattr(translate, "PART_PROBLEMS", 3)
+    chunked = client.post("/v1/fixes/batch", json={"problems": problems}, headers=same_id)
+    assert chunked.status_code == whole.status_code == 200
+    assert chunked.content == whole.content
 
 
 def test_the_reader_knows_every_validator_of_the_request_schema():

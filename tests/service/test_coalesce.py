@@ -102,12 +102,12 @@ def _poisoned_core(monkeypatch, shared_too: bool = False) -> None:
     """A core that raises (a bug) on a problem whose max_iterations is 17, and on any batch if ``shared_too``."""
     real = translate.iter_solutions
 
-    def buggy(batch, methods, options, should_stop=None):
+    def buggy(batch, methods, options, should_stop=None, **kwargs):
         if shared_too and batch.size > 1:
             raise ZeroDivisionError("a bug in the shared call")
         if any(o.max_iterations == 17 for o in options):
             raise ZeroDivisionError("a bug in this problem")
-        return real(batch, methods, options, should_stop)
+        return real(batch, methods, options, should_stop, **kwargs)
 
     monkeypatch.setattr(translate, "iter_solutions", buggy)
 

@@ -233,10 +233,10 @@ def test_log_lines_are_json_with_time_level_and_request_id_and_no_measurements(c
 def test_the_shared_solve_logs_the_exception_its_fallback_absorbs(monkeypatch, captured_logs):
     real = translate.iter_solutions
 
-    def broken_when_shared(batch, methods, options, should_stop=None):
+    def broken_when_shared(batch, methods, options, should_stop=None, **kwargs):
         if batch.size > 1:
             raise RuntimeError("the batched path broke")
-        return real(batch, methods, options, should_stop)
+        return real(batch, methods, options, should_stop, **kwargs)
 
     monkeypatch.setattr(translate, "iter_solutions", broken_when_shared)
     body = bearing_request(STATIONS_300KM, TARGET)
