@@ -990,7 +990,7 @@ def _alone(body, request_id: str | None, should_stop) -> dict:
 
 
 def _shared_results(bodies: list, request_ids: list, should_stop) -> list[dict]:
-    """:func:`fix_results` as one read, solve and write, which any exception fails whole."""
+    """:func:`fix_results` as one shared read, solve and write (chunk by chunk), which any exception fails whole."""
     results: list[dict | None] = [None] * len(bodies)
 
     def put(slot: int, result: dict) -> None:
