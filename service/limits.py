@@ -1,11 +1,12 @@
 """The cost model: what one request may ask of the machine (422 ``over_limit`` naming the limit above it).
 
 Costs are in units of about one batched ML measurement row. Every method is
-solved batched now, at about the cost of ML per problem (10,000 four-station
-problems in core, estimate and finish, us per fix: ml 42, weighted_eove 27,
-eove 21, ove 55, los_intersection 35, ple3d 42, ws3d 49, angle_range 72 with
-its range, tls 32, ctls 32, taylor_wls 55; ``python -m bench.closed_form_core``),
-so every method weighs 1:
+solved batched, within 4x of ML's cost per problem (10,000 four-station
+problems in core, estimate and finish on one thread, us per fix, 2026-12-03:
+ml 9.7, weighted_eove 10.4, eove 8.6, ove 29.9, los_intersection 15.7, ple3d
+10.4, ws3d 15.2, angle_range 38.5 with its range, tls 38.1 and ctls 31.8 with
+the altitude, taylor_wls 27.3; ``python -m bench.closed_form_core -r 5 10000
+<methods>``), so every method weighs 1:
 
 - evaluation: ``trials x sum over methods of weight x measurement rows``
   (``max_evaluation_cost``);
