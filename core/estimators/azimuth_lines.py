@@ -128,10 +128,6 @@ class Lines:
         """The lines of the problems ``rows``."""
         return Lines(**{name: getattr(self, name)[rows] for name in self.__dataclass_fields__})
 
-    def mean_origin(self) -> np.ndarray:
-        """Mean station position ``(B, 3)`` over each problem's lines."""
-        return row_sums(np.swapaxes(self.origins_enu_m, 1, 2)) / np.maximum(self.count, 1)[:, None]
-
     def onto_altitude(self, position_enu_m) -> np.ndarray:
         """Points ``(B, ..., 3)`` moved onto each problem's known altitude."""
         extra = np.ndim(position_enu_m) - 2
@@ -140,7 +136,7 @@ class Lines:
 
 
 def azimuth_normals(lines: Lines):
-    """Normals of the azimuth planes and horizontal line-of-sight directions.
+    """Normals of the azimuth planes and horizontal line-of-sight directions (:func:`azimuth_directions_point`).
 
     Returns
     -------
@@ -150,9 +146,29 @@ def azimuth_normals(lines: Lines):
         ``h_i``: unit horizontal line-of-sight direction (station's
         horizontal plane), common frame; ``d n_i / d az_i = -h_i``.
     """
-    az = lines.azimuth_rad[..., None]
-    east, north = lines.rotations[..., 0, :], lines.rotations[..., 1, :]
-    return np.cos(az) * east - np.sin(az) * north, np.sin(az) * east + np.cos(az) * north
+    normals, horizontal = np.empty(lines.origins_enu_m.shape), np.empty(lines.origins_enu_m.shape)
+    _azimuth_directions_kernel(np.ascontiguousarray(lines.azimuth_rad), np.ascontiguousarray(lines.rotations),
+                               normals, horizontal)
+    return normals, horizontal
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def azimuth_directions_point(azimuth_rad, rotation, normal, horizontal):
+    """One line's azimuth-plane normal and horizontal line-of-sight direction in the common frame, written
+    into ``normal`` and ``horizontal`` ``(3,)``, from its azimuth and its station's rotation ``(3, 3)``
+    (station ENU <- common ENU); the one coding of both (compiled)."""
+    c, s = math.cos(azimuth_rad), math.sin(azimuth_rad)
+    for i in range(3):
+        normal[i] = c * rotation[0, i] - s * rotation[1, i]
+        horizontal[i] = s * rotation[0, i] + c * rotation[1, i]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _azimuth_directions_kernel(azimuth_rad, rotations, normals, horizontal):
+    size, width = azimuth_rad.shape
+    for b in range(size):
+        for k in range(width):
+            azimuth_directions_point(azimuth_rad[b, k], rotations[b, k], normals[b, k], horizontal[b, k])
 
 
 def solve_2x2(matrix, right):
@@ -395,6 +411,7 @@ def _plane_equations_kernel(count, origins, rotations, azimuth, position, geodet
     """Each problem's tangent plane (``centre``, ``axes``) and its lines' equations (see
     :func:`plane_and_equations`); the equations of padding lines stay zero."""
     local = np.empty((3, 3))
+    normal, horizontal = np.empty(3), np.empty(3)
     for b in range(count.size):
         n = count[b]
         local_axes_point(position[b], geodetic[b], origin_ecef_m[b], origin_rotation[b], local)
@@ -410,17 +427,15 @@ def _plane_equations_kernel(count, origins, rotations, azimuth, position, geodet
             axes[b, 0, j], axes[b, 1, j] = local[0, j], local[1, j]
             centre[b, j] = position[b, j] + (along0 * local[0, j] + along1 * local[1, j])
         for k in range(n):
-            c, s = math.cos(azimuth[b, k]), math.sin(azimuth[b, k])
+            azimuth_directions_point(azimuth[b, k], rotations[b, k], normal, horizontal)
             r0, r1 = rhs[b, k], along_rhs[b, k]
             for j in range(3):
-                normal = c * rotations[b, k, 0, j] - s * rotations[b, k, 1, j]
-                horizontal = s * rotations[b, k, 0, j] + c * rotations[b, k, 1, j]
                 relative = origins[b, k, j] - centre[b, j]
                 for i in range(2):
-                    rows[b, k, i] += normal * local[i, j]
-                    along_rows[b, k, i] += horizontal * local[i, j]
-                r0 += normal * relative
-                r1 += horizontal * relative
+                    rows[b, k, i] += normal[j] * local[i, j]
+                    along_rows[b, k, i] += horizontal[j] * local[i, j]
+                r0 += normal[j] * relative
+                r1 += horizontal[j] * relative
             rhs[b, k], along_rhs[b, k] = r0, r1
 
 

@@ -45,7 +45,7 @@ import numba
 import numpy as np
 
 from core.errors import LocalizationError, TooFewMeasurements
-from core.estimators.azimuth_lines import Lines, crossing_errors, has_elevations
+from core.estimators.azimuth_lines import Lines, azimuth_directions_point, crossing_errors, has_elevations
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
 from core.linalg import gram_point
@@ -118,11 +118,10 @@ def _stages_point(origins, rotations, azimuth, elevation, has_elevation, hw, dhw
     rhs, along_rhs = np.empty(n), np.empty(n)
     slope, d_slope_az, d_slope_el = np.empty(n), np.empty(n), np.empty(n)
     for k in range(n):
+        azimuth_directions_point(azimuth[k], rotations[k], normals[k], along[k])
         c, s = math.cos(azimuth[k]), math.sin(azimuth[k])
         rhs[k] = along_rhs[k] = 0.0
         for i in range(3):
-            normals[k, i] = c * rotations[k, 0, i] - s * rotations[k, 1, i]
-            along[k, i] = s * rotations[k, 0, i] + c * rotations[k, 1, i]
             rhs[k] += normals[k, i] * origins[k, i]
             along_rhs[k] += along[k, i] * origins[k, i]
         slope[k] = rotations[k, 0, 2] * s + rotations[k, 1, 2] * c + rotations[k, 2, 2] * math.tan(elevation[k])
