@@ -18,7 +18,6 @@ import binascii
 import math
 import re
 import secrets
-import time
 from dataclasses import dataclass, replace
 from datetime import datetime, timezone
 from typing import Callable
@@ -280,8 +279,7 @@ class MeasurementsChange:
         When ``should_stop`` (of :meth:`prepare`) said so.
     """
 
-    def __init__(self, batch: schemas.MeasurementBatch, if_match: str | None = None,
-                 clock: Callable[[], float] = time.time):
+    def __init__(self, batch: schemas.MeasurementBatch, if_match: str | None, clock: Callable[[], float]):
         self.batch, self.if_match, self.clock = batch, if_match, clock
         self.applied = self.duplicates = 0
         self._prepared: tuple | None = None

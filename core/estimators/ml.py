@@ -504,9 +504,9 @@ def _one_basin_kernel(positions_enu_m, stations_enu_m, rotations, kinds, valid, 
 
 
 def one_basin(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
-    """``(B,)``: whether a fit's basin is the only one the start search could find: the problem measures
-    angles only (no range or TOA) and the fit lies ahead of every line of sight (under a loss that is not
-    :data:`~core.estimators.loss.REDESCENDING`: those have a minimum per subset of measurements set aside).
+    """``(B,)``: whether a fit's basin is the only one the start search could find, under a loss that is not
+    :data:`~core.estimators.loss.REDESCENDING` (those have a minimum per subset of measurements set aside):
+    the problem measures angles only (no range or TOA) and the fit lies ahead of every line of sight.
 
     Ranges and TOAs make several crossings (a line of sight meets a sphere or hyperboloid twice), and a fit
     behind a station sits where its bearing points away; lines of sight that meet ahead of their stations

@@ -380,11 +380,11 @@ def test_a_post_overtaken_by_another_is_decided_again_against_the_latest_record(
 
     request = schemas.SessionCreate.model_validate(create_body())
     first = sessions.create(store, "alice", request)
-    late = sessions.MeasurementsChange(schemas.MeasurementBatch.model_validate({"measurements": epochs[:8]}),
+    late = sessions.MeasurementsChange(schemas.MeasurementBatch.model_validate({"measurements": epochs[:8]}), None,
                                        clock=store.now)
     late.prepare(first)
     assert late.applied == 8
-    early = sessions.MeasurementsChange(schemas.MeasurementBatch.model_validate({"measurements": epochs[:5]}),
+    early = sessions.MeasurementsChange(schemas.MeasurementBatch.model_validate({"measurements": epochs[:5]}), None,
                                         clock=store.now)
     assert sessions.post_measurements(store, "alice", first.id, early).record.version == 2
     outcome = sessions.post_measurements(store, "alice", first.id, late, first)
