@@ -71,6 +71,34 @@ def _model_kernel(kinds, values, sigmas, valid):
     return model_values, weights
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _derived_kernel(n_measurements, kinds, used, station_index, values, sigmas, bearing_index, stations_enu_m,
+                    station_rotations, altitude_m):
+    """Every array a batch derives from its own, in one pass (see :attr:`ProblemBatch._derived`).
+
+    ``used`` is ``(B, M)``, or ``(0, 0)`` for every present measurement.
+    """
+    size, width = kinds.shape
+    present = np.zeros((size, width), dtype=np.bool_)
+    for b in range(size):
+        present[b, :n_measurements[b]] = True
+    valid = present.copy() if used.shape[0] == 0 else present & used
+    has_toa, constrained = np.zeros(size, dtype=np.bool_), np.empty(size, dtype=np.bool_)
+    stations = np.empty((size, width, 3))
+    rotations = np.empty((size, width, 3, 3))
+    for b in range(size):
+        constrained[b] = not math.isnan(altitude_m[b])
+        for m in range(width):
+            has_toa[b] |= kinds[b, m] == TOA
+            s = station_index[b, m]
+            stations[b, m] = stations_enu_m[b, s]
+            rotations[b, m] = station_rotations[b, s]
+    model_values, weights = _model_kernel(kinds, values, sigmas, valid)
+    is_line, elevation, sigma_elevation = _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas)
+    return (present, valid, has_toa, constrained, model_values, weights, stations, rotations, is_line, elevation,
+            sigma_elevation)
+
+
 def _frozen(array: np.ndarray) -> np.ndarray:
     """``array``, read-only: a batch computes its masks once and hands the same array to every caller."""
     array.flags.writeable = False
@@ -135,28 +163,40 @@ class ProblemBatch:
         return int(self.n_measurements.size)
 
     @cached_property
+    def _derived(self) -> tuple:
+        """The arrays derived from the batch's own (:func:`_derived_kernel`): computed together on first use,
+        read-only."""
+        used = np.zeros((0, 0), dtype=np.bool_) if self.used is None else np.ascontiguousarray(self.used)
+        c = np.ascontiguousarray
+        return tuple(map(_frozen, _derived_kernel(
+            c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used,
+            c(self.station_index, dtype=np.intp), c(self.values, dtype=float), c(self.sigmas, dtype=float),
+            c(self.bearing_index, dtype=np.intp), c(self.stations_enu_m, dtype=float),
+            c(self.station_rotations, dtype=float), c(self.altitude_m, dtype=float))))
+
+    @property
     def present(self) -> np.ndarray:
         """``(B, M)``: True on real measurements, False on padding."""
-        return _frozen(np.arange(self.kinds.shape[1]) < self.n_measurements[:, None])
+        return self._derived[0]
 
-    @cached_property
+    @property
     def valid(self) -> np.ndarray:
         """``(B, M)``: True on the measurements an estimator uses (real and not set aside by :meth:`with_used`)."""
-        return self.present if self.used is None else _frozen(self.used.copy())
+        return self._derived[1]
 
     def with_used(self, used) -> "ProblemBatch":
         """The same problems with only ``used`` ``(B, M)`` (and present) measurements in the fit."""
         return replace(self, used=self.present & np.asarray(used, dtype=bool))
 
-    @cached_property
+    @property
     def constrained(self) -> np.ndarray:
         """``(B,)``: a known altitude is given."""
-        return _frozen(~np.isnan(self.altitude_m))
+        return self._derived[3]
 
-    @cached_property
+    @property
     def has_toa(self) -> np.ndarray:
         """``(B,)``: some measurement is a TOA (so the emission offset is a free parameter)."""
-        return _frozen((self.kinds == TOA).any(axis=-1))
+        return self._derived[2]
 
     def model_values(self) -> np.ndarray:
         """Values ``(B, M)`` in model units (TOA as pseudo-range metres; computed once, read-only)."""
@@ -175,10 +215,9 @@ class ProblemBatch:
             return self._model_values_and_weights[1]
         return self._model_values_weights(sigmas)[1]
 
-    @cached_property
+    @property
     def _model_values_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
-        model_values, weights = self._model_values_weights(self.sigmas)
-        return _frozen(model_values), _frozen(weights)
+        return self._derived[4:6]
 
     def _model_values_weights(self, sigmas) -> tuple[np.ndarray, np.ndarray]:
         return _model_kernel(np.ascontiguousarray(self.kinds, dtype=np.int8), np.ascontiguousarray(self.values),
@@ -216,12 +255,7 @@ class ProblemBatch:
 
     def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
         """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement (computed once)."""
-        return self._measurement_stations
-
-    @cached_property
-    def _measurement_stations(self):
-        rows = np.arange(self.size)[:, None]
-        return self.stations_enu_m[rows, self.station_index], self.station_rotations[rows, self.station_index]
+        return self._derived[6:8]
 
     def lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bearings as lines of sight, one per azimuth row (computed once).
@@ -234,13 +268,7 @@ class ProblemBatch:
             The bearing's elevation and its sigma on its azimuth row; NaN
             for an azimuth-only bearing and off azimuth rows.
         """
-        return self._lines_of_sight
-
-    @cached_property
-    def _lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        return _lines_of_sight_kernel(np.ascontiguousarray(self.valid), np.ascontiguousarray(self.kinds),
-                                      np.ascontiguousarray(self.bearing_index), np.ascontiguousarray(self.values),
-                                      np.ascontiguousarray(self.sigmas))
+        return self._derived[8:11]
 
     def by_bearing(self, values, kind: int, fill=np.nan) -> np.ndarray:
         """Per-measurement values ``(B, M)`` of the ``kind`` rows (azimuth or elevation) laid out per bearing.
