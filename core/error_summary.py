@@ -110,7 +110,7 @@ _TABLE_INTERVALS = 32
 _tables: tuple[np.ndarray, np.ndarray] | None = None
 
 
-def _radius50_tables() -> tuple[np.ndarray, np.ndarray]:
+def radius50_tables() -> tuple[np.ndarray, np.ndarray]:
     """CEP50 / sqrt(l1) at ``sqrt(l2/l1) = u_i`` and SEP50 / sqrt(l1) at ``(sqrt(l2/l1), sqrt(l3/l1)) = (u_i, u_j)``.
 
     Built from the reference quadrature on first use (a race builds them twice, harmlessly).
@@ -141,10 +141,11 @@ def _lagrange_point(ratio, weights):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _summary_kernel(covariance_enu_m2, circle, sphere, interpolate):
+def summaries_kernel(covariance_enu_m2, circle, sphere, interpolate):
     """Per covariance ``(B, 3, 3)``: the horizontal and 3D eigenvalues (ascending, floored at 0), the major
-    axis's direction clockwise from north, (``interpolate``) CEP50 and SEP50 from the tables, the vertical
-    sigma, ``sqrt(trace)``, the 95 % ellipse's semi-axes, and whether every entry is finite."""
+    axis's direction clockwise from north, (``interpolate``) CEP50 and SEP50 from the tables (``circle,
+    sphere``: :func:`radius50_tables`), the vertical sigma, ``sqrt(trace)``, the 95 % ellipse's semi-axes, and
+    whether every entry is finite. Compiled callers call it directly."""
     size = covariance_enu_m2.shape[0]
     horizontal, spatial = np.empty((size, 2)), np.empty((size, 3))
     orientation, cep, sep = np.empty(size), np.full(size, np.nan), np.full(size, np.nan)
@@ -253,8 +254,8 @@ def error_summary(covariance_enu_m2, exact: bool = False) -> ErrorSummary:
         Fields of shape (B,) (or scalars' shape (1,) for a single matrix).
     """
     cov = np.ascontiguousarray(covariance_enu_m2, dtype=float).reshape(-1, 3, 3)
-    circle, sphere = _radius50_tables()
-    lam_h, lam_3, orientation, cep, sep, vertical, root_trace, semi_major, semi_minor, finite = _summary_kernel(
+    circle, sphere = radius50_tables()
+    lam_h, lam_3, orientation, cep, sep, vertical, root_trace, semi_major, semi_minor, finite = summaries_kernel(
         cov, circle, sphere, not exact)
     if exact:
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # a non-finite one is NaN below

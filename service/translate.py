@@ -28,7 +28,7 @@ from pydantic import ValidationError
 from core import geodesy
 from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
-from core.error_summary import error_summary
+from core.error_summary import error_summary, radius50_tables, summaries_kernel
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators import PART_PROBLEMS, FixBatch, SolveOptions, iter_solutions
 from core.measurements import KIND_NAMES, Kind
@@ -605,21 +605,6 @@ def _invalid(error: ValidationError) -> dict:
     return problem_body(422, "invalid_input", detail, errors)
 
 
-#: Error summaries are computed this many at a time: their quadrature arrays (B x 192) then stay in cache
-#: (about four times faster than one pass over 10,000 covariances).
-_SUMMARY_CHUNK = 256
-
-
-def error_summaries(covariance_enu_m2):
-    """:func:`core.error_summary.error_summary` of ``(B, 3, 3)`` covariances, in cache-sized chunks."""
-    parts = [error_summary(covariance_enu_m2[i:i + _SUMMARY_CHUNK])
-             for i in range(0, max(len(covariance_enu_m2), 1), _SUMMARY_CHUNK)]
-    if len(parts) == 1:
-        return parts[0]
-    return type(parts[0])(*(np.concatenate([getattr(p, f) for p in parts])
-                            for f in parts[0].__dataclass_fields__))
-
-
 #: A template's slot marker, written raw: the slot's number between NUL bytes, which orjson never writes
 #: (it escapes control characters in strings, station ids included).
 _SLOT = re.compile(rb"\x00(\d+)\x00")
@@ -816,6 +801,73 @@ def _warning_texts(warnings_per_fix) -> list[bytes]:
     return texts
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fix_numbers(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, residuals, normalized, kinds, chi2,
+                 p_value, sigma_scale, coarse_enu_m, origin_ecef_m, rotation, circle, sphere):
+    """Every number of each fix body, in :data:`_BLOCKS` order (the first eleven blocks), in one pass.
+
+    Parameters
+    ----------
+    ok : ndarray of bool, shape (B,)
+        Fixes whose position and covariance are written (zeros for the others).
+    position_enu_m, covariance_enu_m2, crlb_enu_m2 : ndarray, shape (B, 3), (B, 3, 3), (B, 3, 3)
+    gdop, chi2, p_value, sigma_scale : ndarray, shape (B,)
+    residuals, normalized : ndarray, shape (B, M)
+        Residuals in model units (angles in radians: written in degrees).
+    kinds : ndarray of int8, shape (B, M)
+    coarse_enu_m : ndarray, shape (B, 3)
+        NaN where no coarse stage ran (written as 0).
+    origin_ecef_m, rotation : ndarray, shape (B, 3), (B, 3, 3)
+        Each frame's placement (:meth:`core.problem_batch.ProblemBatch.frame_placements`).
+    circle, sphere : ndarray
+        :func:`core.error_summary.radius50_tables`.
+
+    Returns
+    -------
+    ndarray, shape (B, 50 + 2 M)
+    """
+    size, width = residuals.shape
+    position, covariance = np.zeros((size, 3)), np.zeros((size, 3, 3))
+    for b in range(size):
+        if ok[b]:
+            position[b], covariance[b] = position_enu_m[b], covariance_enu_m2[b]
+    _, _, orientation, cep, sep, vertical, root_trace, semi_major, semi_minor, _ = summaries_kernel(
+        covariance, circle, sphere, True)
+    out = np.empty((size, 50 + 2 * width))
+    to_degrees = 180.0 / math.pi
+    turned = np.empty((3, 3))
+    for b in range(size):
+        row, r = out[b], rotation[b]
+        row[0:3] = position[b]
+        row[3:12] = covariance[b].ravel()
+        row[12:21] = crlb_enu_m2[b].ravel()
+        row[21], row[22], row[23], row[24] = cep[b], sep[b], vertical[b], gdop[b]
+        row[25], row[26], row[27] = root_trace[b], semi_major[b], semi_minor[b]
+        row[28] = orientation[b] * to_degrees
+        k = 29
+        for m in range(width):
+            angle = kinds[b, m] == _AZ or kinds[b, m] == _EL
+            row[k + m] = residuals[b, m] * to_degrees if angle else residuals[b, m]
+            row[k + width + m] = normalized[b, m]
+        k += 2 * width
+        row[k], row[k + 1], row[k + 2] = chi2[b], p_value[b], sigma_scale[b]
+        x, y, z = geodesy.enu_to_ecef_point(position[b, 0], position[b, 1], position[b, 2], origin_ecef_m[b], r)
+        lat, lon, alt = geodesy.ecef_to_geodetic_point(x, y, z)
+        row[k + 3], row[k + 4], row[k + 5] = lat * to_degrees, lon * to_degrees, alt
+        row[k + 6], row[k + 7], row[k + 8] = x, y, z
+        c = covariance[b]
+        for i in range(3):  # rotation^T covariance rotation
+            for j in range(3):
+                turned[i, j] = r[0, i] * c[0, j] + r[1, i] * c[1, j] + r[2, i] * c[2, j]
+        for i in range(3):
+            for j in range(3):
+                row[k + 9 + 3 * i + j] = turned[i, 0] * r[0, j] + turned[i, 1] * r[1, j] + turned[i, 2] * r[2, j]
+        for i in range(3):
+            c = coarse_enu_m[b, i]
+            row[k + 18 + i] = 0.0 if math.isnan(c) else min(max(c, -_MAX), _MAX)
+    return out
+
+
 def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     """Response bodies of a :class:`core.estimators.FixBatch`: a fix body, or the problem body of its error.
 
@@ -841,30 +893,17 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     batch = fixes.problems
     size = batch.size
     ok = fixes.ok
-    position = np.where(ok[:, None], fixes.position_enu_m, 0.0)
-    covariance = np.where(ok[:, None, None], fixes.covariance_enu_m2, 0.0)
-    summary = error_summaries(covariance)
-    origin_ecef, rotation = batch.frame_placements()
-    ecef = geodesy.enu_to_ecef_placed(position, origin_ecef, rotation)
-    lat, lon, alt = geodesy.ecef_to_geodetic(ecef)
-    covariance_ecef = rotation.swapaxes(-1, -2) @ covariance @ rotation
-    is_angle = (batch.kinds == _AZ) | (batch.kinds == _EL)
     coarse = fixes.coarse_position_enu_m
     bearing_errors = [None if e is None else orjson.dumps(np.degrees(e).tolist())
                       for e in fixes.estimated_bearing_errors_rad]
 
     # The text of every value and where it is, columns by block in _BLOCKS' order: the numbers, then the
     # warnings and the bearing errors (one text each per fix).
-    numbers = np.concatenate([
-        position, covariance.reshape(size, 9), fixes.crlb_enu_m2.reshape(size, 9), summary.cep50_m[:, None],
-        summary.sep50_m[:, None], summary.vertical_sigma_m[:, None], fixes.gdop[:, None], summary.gdop_m[:, None],
-        summary.ellipse_semi_major_m[:, None], summary.ellipse_semi_minor_m[:, None],
-        np.degrees(summary.ellipse_orientation_rad)[:, None],
-        np.where(is_angle, np.degrees(fixes.residuals), fixes.residuals), fixes.normalized_residuals,
-        fixes.chi2[:, None], fixes.p_value[:, None], fixes.sigma_scale[:, None], np.degrees(lat)[:, None],
-        np.degrees(lon)[:, None], alt[:, None], ecef, covariance_ecef.reshape(size, 9),
-        np.where(np.isnan(coarse), 0.0, np.minimum(np.maximum(coarse, -_MAX), _MAX)),
-    ], axis=-1, dtype=np.float64)
+    numbers = _fix_numbers(ok, *(np.ascontiguousarray(a, dtype=float) for a in (
+        fixes.position_enu_m, fixes.covariance_enu_m2, fixes.crlb_enu_m2, fixes.gdop, fixes.residuals,
+        fixes.normalized_residuals)), np.ascontiguousarray(batch.kinds, dtype=np.int8),
+        *(np.ascontiguousarray(a, dtype=float) for a in (fixes.chi2, fixes.p_value, fixes.sigma_scale, coarse)),
+        *batch.frame_placements(), *radius50_tables())
     width = batch.kinds.shape[1]
     number_text = orjson.dumps(numbers.ravel(), option=_NUMPY)
     text, text_starts, text_lengths = _text_spans(_warning_texts(fixes.warnings) + [e or b"" for e in bearing_errors])
