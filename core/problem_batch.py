@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from functools import cached_property
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numba
 import numpy as np
@@ -84,19 +84,46 @@ def _derived_kernel(n_measurements, kinds, used, station_index, values, sigmas, 
         present[b, :n_measurements[b]] = True
     valid = present.copy() if used.shape[0] == 0 else present & used
     has_toa, constrained = np.zeros(size, dtype=np.bool_), np.empty(size, dtype=np.bool_)
+    lacks_sigma, has_elevation = np.zeros(size, dtype=np.bool_), np.zeros(size, dtype=np.bool_)
+    dof = np.empty(size, dtype=np.int64)
     stations = np.empty((size, width, 3))
     rotations = np.empty((size, width, 3, 3))
     for b in range(size):
         constrained[b] = not math.isnan(altitude_m[b])
+        known = 0
         for m in range(width):
             has_toa[b] |= kinds[b, m] == TOA
+            has_elevation[b] |= valid[b, m] and kinds[b, m] == ELEVATION
+            lacks_sigma[b] |= valid[b, m] and math.isnan(sigmas[b, m])
+            if valid[b, m] and math.isfinite(sigmas[b, m]):
+                known += 1
             s = station_index[b, m]
             stations[b, m] = stations_enu_m[b, s]
             rotations[b, m] = station_rotations[b, s]
+        dof[b] = known - (2 if constrained[b] else 3) - (1 if has_toa[b] else 0)
     model_values, weights = _model_kernel(kinds, values, sigmas, valid)
     is_line, elevation, sigma_elevation = _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas)
     return (present, valid, has_toa, constrained, model_values, weights, stations, rotations, is_line, elevation,
-            sigma_elevation)
+            sigma_elevation, lacks_sigma, has_elevation, dof)
+
+
+class _Derived(NamedTuple):
+    """What :func:`_derived_kernel` returns, by name (shapes in :class:`ProblemBatch`'s properties)."""
+
+    present: np.ndarray
+    valid: np.ndarray
+    has_toa: np.ndarray
+    constrained: np.ndarray
+    model_values: np.ndarray
+    weights: np.ndarray
+    measurement_stations_enu_m: np.ndarray
+    measurement_rotations: np.ndarray
+    is_line: np.ndarray
+    elevation_rad: np.ndarray
+    sigma_elevation_rad: np.ndarray
+    lacks_sigma: np.ndarray
+    has_elevation: np.ndarray
+    dof: np.ndarray
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -163,12 +190,12 @@ class ProblemBatch:
         return int(self.n_measurements.size)
 
     @cached_property
-    def _derived(self) -> tuple:
+    def _derived(self) -> _Derived:
         """The arrays derived from the batch's own (:func:`_derived_kernel`): computed together on first use,
         read-only."""
         used = np.zeros((0, 0), dtype=np.bool_) if self.used is None else np.ascontiguousarray(self.used)
         c = np.ascontiguousarray
-        return tuple(map(_frozen, _derived_kernel(
+        return _Derived(*map(_frozen, _derived_kernel(
             c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used,
             c(self.station_index, dtype=np.intp), c(self.values, dtype=float), c(self.sigmas, dtype=float),
             c(self.bearing_index, dtype=np.intp), c(self.stations_enu_m, dtype=float),
@@ -177,12 +204,12 @@ class ProblemBatch:
     @property
     def present(self) -> np.ndarray:
         """``(B, M)``: True on real measurements, False on padding."""
-        return self._derived[0]
+        return self._derived.present
 
     @property
     def valid(self) -> np.ndarray:
         """``(B, M)``: True on the measurements an estimator uses (real and not set aside by :meth:`with_used`)."""
-        return self._derived[1]
+        return self._derived.valid
 
     def with_used(self, used) -> "ProblemBatch":
         """The same problems with only ``used`` ``(B, M)`` (and present) measurements in the fit."""
@@ -191,12 +218,28 @@ class ProblemBatch:
     @property
     def constrained(self) -> np.ndarray:
         """``(B,)``: a known altitude is given."""
-        return self._derived[3]
+        return self._derived.constrained
 
     @property
     def has_toa(self) -> np.ndarray:
         """``(B,)``: some measurement is a TOA (so the emission offset is a free parameter)."""
-        return self._derived[2]
+        return self._derived.has_toa
+
+    @property
+    def lacks_sigma(self) -> np.ndarray:
+        """``(B,)``: some measurement in use has no sigma."""
+        return self._derived.lacks_sigma
+
+    @property
+    def has_elevation(self) -> np.ndarray:
+        """``(B,)``: some elevation is in use."""
+        return self._derived.has_elevation
+
+    @property
+    def dof(self) -> np.ndarray:
+        """``(B,)`` int: degrees of freedom of a fit to the measurements in use with a stated sigma (their count
+        less the position's free coordinates and a TOA offset)."""
+        return self._derived.dof
 
     def model_values(self) -> np.ndarray:
         """Values ``(B, M)`` in model units (TOA as pseudo-range metres; computed once, read-only)."""
@@ -217,7 +260,7 @@ class ProblemBatch:
 
     @property
     def _model_values_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._derived[4:6]
+        return self._derived.model_values, self._derived.weights
 
     def _model_values_weights(self, sigmas) -> tuple[np.ndarray, np.ndarray]:
         return _model_kernel(np.ascontiguousarray(self.kinds, dtype=np.int8), np.ascontiguousarray(self.values),
@@ -255,7 +298,7 @@ class ProblemBatch:
 
     def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
         """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement (computed once)."""
-        return self._derived[6:8]
+        return self._derived.measurement_stations_enu_m, self._derived.measurement_rotations
 
     def lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bearings as lines of sight, one per azimuth row (computed once).
@@ -268,7 +311,8 @@ class ProblemBatch:
             The bearing's elevation and its sigma on its azimuth row; NaN
             for an azimuth-only bearing and off azimuth rows.
         """
-        return self._derived[8:11]
+        derived = self._derived
+        return derived.is_line, derived.elevation_rad, derived.sigma_elevation_rad
 
     def by_bearing(self, values, kind: int, fill=np.nan) -> np.ndarray:
         """Per-measurement values ``(B, M)`` of the ``kind`` rows (azimuth or elevation) laid out per bearing.
@@ -580,6 +624,8 @@ def size_groups(n_measurements, n_stations=None) -> list[np.ndarray]:
     list of ndarray of int
         Each group in input order; groups by increasing size.
     """
+    if len(n_measurements) <= 1:
+        return [np.arange(len(n_measurements))] if len(n_measurements) else []
     sizes = np.maximum(np.asarray(n_measurements, dtype=np.intp), 1)
     if n_stations is not None:
         sizes = np.maximum(sizes, np.asarray(n_stations, dtype=np.intp))

@@ -11,6 +11,7 @@ Importing this package registers every estimator module.
 from __future__ import annotations
 
 import importlib
+import math
 import os
 import pkgutil
 import threading
@@ -134,7 +135,7 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, b
     methods = [methods] * size if isinstance(methods, str) else list(methods)
     if options is None or isinstance(options, SolveOptions):
         options = [options or SolveOptions()] * size
-    missing = (batch.valid & np.isnan(batch.sigmas)).any(axis=-1)
+    missing = batch.lacks_sigma
     work: list = []
     for (name, opts), rows in _groups(resolve_methods(batch, methods), options).items():
         try:
@@ -273,7 +274,7 @@ def _check_variant(spec, options: SolveOptions) -> None:
 def _check_loss(spec, options: SolveOptions) -> None:
     if options.loss not in LOSSES:
         raise InvalidInput(f"loss must be one of {', '.join(LOSSES)}; got {options.loss!r}", ("loss",))
-    if not (np.isfinite(options.loss_scale) and options.loss_scale > 0):
+    if not (math.isfinite(options.loss_scale) and options.loss_scale > 0):
         raise InvalidInput(f"loss_scale must be a positive number of sigmas; got {options.loss_scale!r}",
                            ("loss_scale",))
     if options.loss != "linear" and not spec.robust:

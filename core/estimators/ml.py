@@ -387,7 +387,7 @@ def mirror_applies(batch: ProblemBatch) -> np.ndarray:
     """``(B,)``: where a fix's mirror image through its stations' plane may fit as well (:func:`mirror_points`):
     unconstrained problems without an elevation (ranges, TOAs and azimuths cannot tell a point from its mirror
     through the plane of nearly coplanar stations)."""
-    return ~batch.constrained & ~(batch.valid & (batch.kinds == ELEVATION)).any(axis=-1)
+    return ~batch.constrained & ~batch.has_elevation
 
 
 def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
@@ -570,8 +570,7 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     missing = ~np.isfinite(starts).all(axis=-1)
     solution = iterate(batch, np.where(missing[:, None], batch.stations_enu_m[:, 0] + [0.0, 0.0, 1.0], starts),
                        options)
-    dof = (batch.valid & np.isfinite(batch.sigmas)).sum(axis=-1) - (
-        np.where(batch.constrained, 2, 3) + batch.has_toa)
+    dof = batch.dof
     p_value = chdtrc(np.maximum(dof, 1), solution.cost)
     implausible = p_value < IMPLAUSIBLE_P
     retry = missing | ~solution.converged

@@ -231,7 +231,8 @@ class FixBatch:
     def ok(self) -> np.ndarray:
         """``(B,)``: True where the problem has a fix."""
         ok = np.ones(self.size, dtype=bool)
-        ok[list(self.errors)] = False
+        if self.errors:
+            ok[list(self.errors)] = False
         return ok
 
     def fix(self, b: int) -> Fix | LocalizationError:
@@ -329,8 +330,10 @@ class FixBatch:
         """The covariances scaled by ``sigma_scale^2`` where the fit has degrees of freedom
         (scipy's ``curve_fit(absolute_sigma=False)``); ``covariance_source`` gains ``_scaled``."""
         scale = np.where((self.dof > 0) & ~np.isnan(self.sigma_scale), self.sigma_scale ** 2, 1.0)
-        return replace(self, covariance_enu_m2=self.covariance_enu_m2 * scale[:, None, None],
-                       covariance_source=f"{self.covariance_source}_scaled")
+        scaled = object.__new__(FixBatch)  # replace() without __init__'s 25 frozen assignments: no derived state
+        scaled.__dict__.update(self.__dict__, covariance_enu_m2=self.covariance_enu_m2 * scale[:, None, None],
+                               covariance_source=f"{self.covariance_source}_scaled")
+        return scaled
 
 
 _MEASUREMENT_FIELDS = ("residuals", "normalized_residuals", "studentized_residuals", "used", "excluded")
