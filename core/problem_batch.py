@@ -84,7 +84,7 @@ def _derived_kernel(n_measurements, kinds, used, station_index, values, sigmas, 
         present[b, :n_measurements[b]] = True
     valid = present.copy() if used.shape[0] == 0 else present & used
     has_toa, constrained = np.zeros(size, dtype=np.bool_), np.empty(size, dtype=np.bool_)
-    lacks_sigma, has_elevation = np.zeros(size, dtype=np.bool_), np.zeros(size, dtype=np.bool_)
+    lacks_sigma, kind_counts = np.zeros(size, dtype=np.bool_), np.zeros((size, 4), dtype=np.int64)
     dof = np.empty(size, dtype=np.int64)
     stations = np.empty((size, width, 3))
     rotations = np.empty((size, width, 3, 3))
@@ -93,10 +93,10 @@ def _derived_kernel(n_measurements, kinds, used, station_index, values, sigmas, 
         known = 0
         for m in range(width):
             has_toa[b] |= kinds[b, m] == TOA
-            has_elevation[b] |= valid[b, m] and kinds[b, m] == ELEVATION
-            lacks_sigma[b] |= valid[b, m] and math.isnan(sigmas[b, m])
-            if valid[b, m] and math.isfinite(sigmas[b, m]):
-                known += 1
+            if valid[b, m]:
+                kind_counts[b, kinds[b, m]] += 1
+                lacks_sigma[b] |= math.isnan(sigmas[b, m])
+                known += 1 if math.isfinite(sigmas[b, m]) else 0
             s = station_index[b, m]
             stations[b, m] = stations_enu_m[b, s]
             rotations[b, m] = station_rotations[b, s]
@@ -104,7 +104,7 @@ def _derived_kernel(n_measurements, kinds, used, station_index, values, sigmas, 
     model_values, weights = _model_kernel(kinds, values, sigmas, valid)
     is_line, elevation, sigma_elevation = _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas)
     return (present, valid, has_toa, constrained, model_values, weights, stations, rotations, is_line, elevation,
-            sigma_elevation, lacks_sigma, has_elevation, dof)
+            sigma_elevation, lacks_sigma, kind_counts, dof)
 
 
 class _Derived(NamedTuple):
@@ -122,7 +122,7 @@ class _Derived(NamedTuple):
     elevation_rad: np.ndarray
     sigma_elevation_rad: np.ndarray
     lacks_sigma: np.ndarray
-    has_elevation: np.ndarray
+    kind_counts: np.ndarray
     dof: np.ndarray
 
 
@@ -231,9 +231,9 @@ class ProblemBatch:
         return self._derived.lacks_sigma
 
     @property
-    def has_elevation(self) -> np.ndarray:
-        """``(B,)``: some elevation is in use."""
-        return self._derived.has_elevation
+    def kind_counts(self) -> np.ndarray:
+        """``(B, 4)`` int: how many measurements of each kind (column ``Kind``) are in use."""
+        return self._derived.kind_counts
 
     @property
     def dof(self) -> np.ndarray:

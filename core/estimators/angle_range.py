@@ -210,8 +210,7 @@ def coarse_fix(batch: ProblemBatch) -> CoarseFixes:
         one range; a LocalizationError when no coarse form applies to the mix.
     """
     size = batch.size
-    n_azimuth = np.count_nonzero(batch.valid & (batch.kinds == AZIMUTH), axis=-1)
-    n_range = np.count_nonzero(batch.valid & (batch.kinds == RANGE), axis=-1)
+    n_azimuth, n_range = batch.kind_counts[:, AZIMUTH], batch.kind_counts[:, RANGE]
     errors: dict[int, LocalizationError] = {}
     for b in np.flatnonzero((n_azimuth == 0) | (n_range == 0)).tolist():
         errors[b] = TooFewMeasurements(

@@ -355,7 +355,7 @@ def azimuth_only_errors(batch: ProblemBatch, name: str) -> dict[int, Localizatio
 
 def has_elevations(batch: ProblemBatch) -> np.ndarray:
     """``(B,)``: some bearing carries an elevation."""
-    return np.any(batch.valid & (batch.kinds == ELEVATION), axis=-1)
+    return batch.kind_counts[:, ELEVATION] > 0
 
 
 @dataclass(frozen=True)

@@ -387,7 +387,7 @@ def mirror_applies(batch: ProblemBatch) -> np.ndarray:
     """``(B,)``: where a fix's mirror image through its stations' plane may fit as well (:func:`mirror_points`):
     unconstrained problems without an elevation (ranges, TOAs and azimuths cannot tell a point from its mirror
     through the plane of nearly coplanar stations)."""
-    return ~batch.constrained & ~batch.has_elevation
+    return ~batch.constrained & (batch.kind_counts[:, ELEVATION] == 0)
 
 
 def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:

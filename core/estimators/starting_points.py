@@ -271,7 +271,7 @@ class _Starts:
 
     def _pending_with(self, kind, at_least=1):
         batch = self.batch
-        return self.pending & ((batch.valid & (batch.kinds == kind)).sum(axis=-1) >= at_least)
+        return self.pending & (batch.kind_counts[:, kind] >= at_least)
 
     def weighted_eove(self):
         k = self._pending_with(AZIMUTH).nonzero()[0]

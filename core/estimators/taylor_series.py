@@ -279,7 +279,7 @@ def _starts(batch: ProblemBatch, rows):
     elevations, the pseudolinear solution); its names and the failures of the start."""
     starts = batch.initial_guess_enu_m[rows].copy()
     guessed = ~np.isnan(starts[:, 0])
-    has_elevation = np.any(batch.valid[rows] & (batch.kinds[rows] == ELEVATION), axis=-1)
+    has_elevation = batch.kind_counts[rows, ELEVATION] > 0
     names = np.where(guessed, "initial_guess", np.where(has_elevation, "eove", "pseudolinear")).tolist()
     failures: dict[int, LocalizationError] = {}
     need = np.flatnonzero(~guessed)
@@ -401,7 +401,7 @@ def taylor_wls(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     errors_rad[b_solved] = results["errors_rad"][solved]
     azimuth_errors = batch.by_bearing(errors_rad, AZIMUTH)
     elevation_errors = batch.by_bearing(errors_rad, ELEVATION)
-    n_bearings = np.count_nonzero(batch.valid & (batch.kinds == AZIMUTH), axis=-1)
+    n_bearings = batch.kind_counts[:, AZIMUTH]
     with_sigma = solved[~np.isnan(estimated[solved])]
     all_sigmas = batch.sigmas.copy()
     b_estimated = problems[with_sigma]
