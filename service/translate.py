@@ -476,9 +476,48 @@ def _read(bodies: list):
     return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest
 
 
-def _within(values, bounds) -> np.ndarray:
-    """Whether each value is inside its closed bounds ``(..., 2)`` (rows as :func:`_bounds` gives them)."""
-    return (values >= bounds[..., 0]) & (values <= bounds[..., 1])
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _checked_core_units(coordinates, on_earth, kinds, values, sigmas, coordinate_bounds, value_bounds, sigma_bounds):
+    """The lean reader's bulk checks and conversion to core units, in one pass.
+
+    Parameters
+    ----------
+    coordinates : ndarray, shape (S, 3)
+        Station coordinates as sent: ``(lat_deg, lon_deg, alt_m)`` where ``on_earth`` ``(S,)``, else
+        ``(east_m, north_m, up_m)``.
+    kinds : ndarray of int8, shape (T,)
+    values, sigmas : ndarray, shape (T,)
+        As sent (angles in degrees; an azimuth's sigma may be NaN: not given).
+    coordinate_bounds : ndarray, shape (2, 3, 2)
+        Closed bounds per frame (local, geodetic) and coordinate; ``value_bounds``, ``sigma_bounds`` ``(4, 2)``
+        per kind code.
+
+    Returns
+    -------
+    coordinates_ok : ndarray of bool, shape (S,)
+    scalars_ok : ndarray of bool, shape (T,)
+    coordinates : ndarray, shape (S, 3)
+        Latitude and longitude in radians.
+    values, sigmas : ndarray, shape (T,)
+        Angles in radians.
+    """
+    coordinates_ok, scalars_ok = np.ones(coordinates.shape[0], dtype=np.bool_), np.ones(kinds.size, dtype=np.bool_)
+    core_coordinates, core_values, core_sigmas = coordinates.copy(), values.copy(), sigmas.copy()
+    for i in range(coordinates.shape[0]):
+        frame = 1 if on_earth[i] else 0
+        for j in range(3):
+            c = coordinates[i, j]
+            coordinates_ok[i] &= coordinate_bounds[frame, j, 0] <= c <= coordinate_bounds[frame, j, 1]
+        if on_earth[i]:
+            core_coordinates[i, 0] = math.radians(coordinates[i, 0])
+            core_coordinates[i, 1] = math.radians(coordinates[i, 1])
+    for t in range(kinds.size):
+        k, value, sigma = kinds[t], values[t], sigmas[t]
+        scalars_ok[t] = value_bounds[k, 0] <= value <= value_bounds[k, 1] and (
+            sigma_bounds[k, 0] <= sigma <= sigma_bounds[k, 1] or (k == _AZ and math.isnan(sigma)))
+        if k == _AZ or k == _EL:
+            core_values[t], core_sigmas[t] = math.radians(value), math.radians(sigma)
+    return coordinates_ok, scalars_ok, core_coordinates, core_values, core_sigmas
 
 
 @dataclass(frozen=True)
@@ -532,12 +571,9 @@ def read_fix_requests(bodies: list) -> FixRequests:
         table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
         reading = np.array(readings, dtype=float).reshape(-1, 2)
         kinds = table[:, 0].astype(np.int8)
-        values, sigmas = reading[:, 0], reading[:, 1]
-        on_earth = geodetic[station_owner]
-        coords_ok = _within(coords, _COORDINATE_BOUNDS[on_earth.astype(np.intp)]).all(axis=-1)
-        is_az, is_el = kinds == _AZ, kinds == _EL
-        scalars_ok = _within(values, _VALUE_BOUNDS[kinds]) & (_within(sigmas, _SIGMA_BOUNDS[kinds])
-                                                               | (is_az & np.isnan(sigmas)))
+        coords_ok, scalars_ok, coords, values, sigmas = _checked_core_units(
+            coords, geodetic[station_owner], kinds, np.ascontiguousarray(reading[:, 0]),
+            np.ascontiguousarray(reading[:, 1]), _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS)
         bad = np.zeros(len(accepted), dtype=bool)
         bad[station_owner[~coords_ok]] = True
         bad[scalar_owner[~scalars_ok]] = True
@@ -549,13 +585,9 @@ def read_fix_requests(bodies: list) -> FixRequests:
             settings = [settings[i] for i in keep]
             station_ids = [station_ids[i] for i in keep]
             station_counts, measurement_counts, geodetic = station_counts[keep], measurement_counts[keep], geodetic[keep]
-            coords, on_earth = coords[station_keep], on_earth[station_keep]
-            table, kinds, is_az, is_el = table[scalar_keep], kinds[scalar_keep], is_az[scalar_keep], is_el[scalar_keep]
+            coords, table, kinds = coords[station_keep], table[scalar_keep], kinds[scalar_keep]
             values, sigmas = values[scalar_keep], sigmas[scalar_keep]
         if accepted:
-            coords = np.where(on_earth[:, None], np.concatenate([np.radians(coords[:, :2]), coords[:, 2:]], axis=-1),
-                              coords)
-            angle = is_az | is_el
             lean = build_problem_batch(
                 station_counts=station_counts,
                 station_ids=station_ids,
@@ -565,8 +597,8 @@ def read_fix_requests(bodies: list) -> FixRequests:
                 measurement_counts=measurement_counts,
                 kinds=kinds,
                 station_index=table[:, 1],
-                values=np.where(angle, np.radians(values), values),
-                sigmas=np.where(angle, np.radians(sigmas), sigmas),
+                values=values,
+                sigmas=sigmas,
                 bearing_index=table[:, 2],
                 source_index=table[:, 3],
                 altitude_m=np.array([s[6] for s in settings], dtype=float),
