@@ -26,6 +26,7 @@ from msgspec import UNSET
 from pydantic import ValidationError
 
 from core import geodesy
+from core import kernels as core_kernels
 from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
 from core.error_summary import error_summary, radius50_tables, summaries_kernel
@@ -1004,6 +1005,37 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
             text = orjson.dumps(body)
         out.append({"ok": True, "fix": JsonObject(text, known)})
     return out
+
+
+#: Fix bodies that reach every kernel of this module: geodetic and local frames, every measurement kind, an
+#: azimuth without a sigma, a known altitude, renderings, and a body the lean reader hands to the schema.
+_WARM_BODIES = [
+    {"frame": "wgs84", "formats": ["geojson", "cot"],
+     "stations": [{"id": "a", "position": {"lat_deg": 34.0, "lon_deg": 108.0, "alt_m": 400.0}},
+                  {"id": "b", "position": {"lat_deg": 34.1, "lon_deg": 108.2, "alt_m": 450.0}},
+                  {"id": "c", "position": {"lat_deg": 34.2, "lon_deg": 108.0}}],
+     "measurements": [{"type": "bearing", "station_id": "a", "azimuth_deg": 45.0, "elevation_deg": 1.0,
+                       "sigma_azimuth_deg": 0.5, "sigma_elevation_deg": 0.5},
+                      {"type": "bearing", "station_id": "b", "azimuth_deg": 330.0, "sigma_azimuth_deg": 0.5},
+                      {"type": "range", "station_id": "c", "range_m": 20000.0, "sigma_m": 50.0},
+                      {"type": "toa", "station_id": "a", "toa_s": 1e-4, "sigma_s": 1e-7},
+                      {"type": "toa", "station_id": "b", "toa_s": 1.2e-4, "sigma_s": 1e-7}]},
+    {"frame": "local", "method": "taylor_wls", "constraints": {"altitude_m": 1000.0},
+     "stations": [{"id": "a", "position": {"east_m": 0.0, "north_m": 0.0}},
+                  {"id": "b", "position": {"east_m": 10000.0, "north_m": 0.0}},
+                  {"id": "c", "position": {"east_m": 0.0, "north_m": 10000.0, "up_m": 50.0}}],
+     "measurements": [{"type": "bearing", "station_id": s, "azimuth_deg": a} for s, a in
+                      (("a", 40.0), ("b", 300.0), ("c", 150.0))]},
+    {"stations": [], "measurements": []},
+]
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's on-disk cache) every kernel a request can reach: the core's
+    (:func:`core.kernels.compile_kernels`) and this module's, by reading, solving and writing
+    :data:`_WARM_BODIES`. Run at install and image build time (which fill the cache) and in the lifespan."""
+    core_kernels.compile_kernels()
+    fix_results(_WARM_BODIES)
 
 
 def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:

@@ -1,7 +1,7 @@
-"""``core.kernels.compile_kernels`` (run at install, image build and in the lifespan) compiles every kernel a
-fix or a session step can reach with the argument types the estimators and filters pass, so that no request
-pays numba's compilation (seconds). Checked in a fresh process: after it, a varied workload adds no compiled
-signature anywhere."""
+"""``service.translate.compile_kernels`` (run at install, image build and in the lifespan) compiles every kernel
+a fix or a session step can reach, the core's and the service's, with the argument types the estimators,
+filters and the reader and writer pass, so that no request pays numba's compilation (seconds). Checked in a
+fresh process: after it, a varied workload adds no compiled signature anywhere."""
 
 from __future__ import annotations
 
@@ -15,18 +15,20 @@ _WORKLOAD = textwrap.dedent('''
     import importlib, pkgutil
     import numpy as np
     import core
+    import service
     from numba.core.registry import CPUDispatcher
 
     def signatures():
         out = {}
-        for info in pkgutil.walk_packages(core.__path__, "core."):
+        for info in [*pkgutil.walk_packages(core.__path__, "core."),
+                     *pkgutil.walk_packages(service.__path__, "service.")]:
             module = importlib.import_module(info.name)
             for name, value in vars(module).items():
                 if isinstance(value, CPUDispatcher) and value.__module__ == module.__name__:
                     out[f"{module.__name__}.{name}"] = len(value.signatures)
         return out
 
-    from core.kernels import compile_kernels
+    from service.translate import compile_kernels
     compile_kernels()
     before = signatures()
 
@@ -68,6 +70,18 @@ _WORKLOAD = textwrap.dedent('''
         state = new_state(config)
         for epoch in track.epochs:
             state = step(state, epoch, config)
+    from service.translate import fix_results
+    from service.wire import decode_batch
+    rng = np.random.default_rng(9)
+    bodies = [{"frame": "wgs84", "method": method, "formats": formats,
+               "stations": [{"id": sid, "position": {"lat_deg": 33.8 + 0.2 * k, "lon_deg": 108.1 - 0.1 * k}}
+                            for k, sid in enumerate("pqrs")],
+               "measurements": [{"type": "bearing", "station_id": sid, "azimuth_deg": float(rng.uniform(0, 360)),
+                                 "sigma_azimuth_deg": 1.0} for sid in "pqrs"]}
+              for method in ("ml", "weighted_eove", "ws3d") for formats in ([], ["cot"])]
+    fix_results(bodies)
+    fix_results(bodies[:1])
+    fix_results(decode_batch(__import__("orjson").dumps({"problems": bodies})))
     after = signatures()
     grew = sorted(name for name in after if after[name] > before.get(name, 0))
     print("GREW", grew)
