@@ -243,7 +243,7 @@ class ProblemBatch:
 
     def model_values(self) -> np.ndarray:
         """Values ``(B, M)`` in model units (TOA as pseudo-range metres; computed once, read-only)."""
-        return self._model_values_and_weights[0]
+        return self._derived.model_values
 
     def weights(self, sigmas=None) -> np.ndarray:
         """``1 / sigma^2`` ``(B, M)`` in model units; 0 on padding and where no sigma is known.
@@ -255,12 +255,8 @@ class ProblemBatch:
             read-only).
         """
         if sigmas is None:
-            return self._model_values_and_weights[1]
+            return self._derived.weights
         return self._model_values_weights(sigmas)[1]
-
-    @property
-    def _model_values_and_weights(self) -> tuple[np.ndarray, np.ndarray]:
-        return self._derived.model_values, self._derived.weights
 
     def _model_values_weights(self, sigmas) -> tuple[np.ndarray, np.ndarray]:
         return _model_kernel(np.ascontiguousarray(self.kinds, dtype=np.int8), np.ascontiguousarray(self.values),
