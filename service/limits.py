@@ -42,21 +42,22 @@ def over_limit(name: str, cost: int, limit: int, loc: list, what: str) -> ApiErr
     return ApiError(422, "over_limit", detail, [{"loc": loc, "msg": detail, "type": "over_limit"}])
 
 
-def evaluation_cost(trials: int, methods, rows: int, exclude: bool = False) -> int:
-    """``trials x rows x method weights``, times ``1 + MAX_EXCLUSIONS`` with outlier exclusion (each trial
-    may be solved again once per exclusion: the worst case is priced)."""
-    from core.estimators import MAX_EXCLUSIONS
+def evaluation_cost(trials: int, methods, rows: int, exclude: bool = False, sources: int = 1) -> int:
+    """``trials x rows x method weights``, times the solves a trial may need with outlier exclusion: the
+    first, then per exclusion (at most ``MAX_EXCLUSIONS``, and one fewer than the ``sources`` request
+    measurements) a refit of each candidate (at most ``EXCLUSION_CANDIDATES``): the worst case is priced."""
+    from core.estimators import EXCLUSION_CANDIDATES, MAX_EXCLUSIONS
 
-    refits = 1 + MAX_EXCLUSIONS if exclude else 1
-    return trials * rows * sum(method_weight(m) for m in methods) * refits
+    refits = 1 + min(MAX_EXCLUSIONS, sources - 1) * min(EXCLUSION_CANDIDATES, sources) if exclude else 1
+    return trials * rows * sum(method_weight(m) for m in methods) * max(refits, 1)
 
 
-def check_evaluation(trials: int, methods, rows: int, limit: int, exclude: bool = False) -> None:
-    cost = evaluation_cost(trials, methods, rows, exclude)
+def check_evaluation(trials: int, methods, rows: int, limit: int, exclude: bool = False, sources: int = 1) -> None:
+    cost = evaluation_cost(trials, methods, rows, exclude, sources)
     if cost > limit:
         raise over_limit("max_evaluation_cost", cost, limit, ["trials"],
                          f"{trials} trials x {len(methods)} methods x {rows} measurement rows"
-                         + (" x (1 + the exclusions each trial may refit)" if exclude else ""))
+                         + (" x (1 + the refits each trial's exclusions may take)" if exclude else ""))
 
 
 def check_grid(cells: int, rows: int, limit: int) -> None:

@@ -19,7 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from core.errors import InvalidInput, LocalizationError
+from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators.base import REGISTRY, SolveOptions, get_estimator
 from core.estimators.loss import LOSSES
 from core.estimators.result import Fix, FixBatch, FixWarning
@@ -191,42 +191,88 @@ def _in_order(work: list, futures: list):
 EXCLUSION_P = 0.01
 #: At most this many measurements are excluded from one problem.
 MAX_EXCLUSIONS = 8
+#: Each exclusion tries leaving out at most this many request measurements (the most suspect): a refit each.
+EXCLUSION_CANDIDATES = 8
 
 
 def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: FixBatch) -> FixBatch:
     """Fault detection and exclusion (RAIM FDE) over a batch.
 
-    While a fix fails the chi-square test (``p < EXCLUSION_P``) and one more
-    exclusion leaves it a degree of freedom, the request measurement with
-    the largest studentized residual (a bearing's azimuth and elevation
-    together) is excluded and the problem solved again. A refit that fails
-    keeps the fix before it and ends that problem's exclusions. The
-    covariance and CRLB are those of the measurements used; every excluded
-    one is named in a warning.
+    While a fix fails the chi-square test (``p < EXCLUSION_P``), or has no
+    fit to test (the iteration did not converge, or ran off to where the
+    geometry is unobservable), each of its :data:`EXCLUSION_CANDIDATES` most
+    suspect request measurements (largest studentized residual first; a
+    bearing's azimuth and elevation together) is left out in turn and the
+    problem solved again (all at once, as one batch): the exclusion whose
+    converged refit, with a degree of freedom left, has the highest p-value
+    is made, and the test is run again on that fit. This is the largest-studentized-residual rule
+    computed exactly: for a linear model, leaving a measurement out lowers
+    chi-square by its studentized residual squared; here the refit also
+    unmasks a gross error that a nonlinear or robust fit absorbed (one
+    bearing 20 deg off on nearly parallel lines of sight can pull the fit to
+    itself, or off to infinity). A problem no exclusion helps keeps the fix
+    it has. The covariance and CRLB are those of the measurements used;
+    every excluded one is named in a warning.
     """
     used = batch.valid.copy()
     excluded = np.zeros_like(used)
     settled = np.zeros(batch.size, dtype=bool)
-    every = np.arange(batch.size)
     for _ in range(MAX_EXCLUSIONS):
-        worst = np.argmax(np.where(fixes.used, np.abs(fixes.studentized_residuals), -1.0), axis=-1)
-        drop = used & (batch.source_index == batch.source_index[every, worst][:, None])
-        left = fixes.dof - np.count_nonzero(drop & np.isfinite(batch.sigmas), axis=-1)
-        failing = ~settled & fixes.ok & (np.nan_to_num(fixes.p_value, nan=1.0) < EXCLUSION_P) & (left > 0)
-        rows = np.flatnonzero(failing)
+        testing = ~settled & fixes.ok & (~fixes.converged | (np.nan_to_num(fixes.p_value, nan=1.0) < EXCLUSION_P))
+        for b, error in fixes.errors.items():
+            testing[b] = not settled[b] and isinstance(error, UnobservableGeometry)
+        rows = np.flatnonzero(testing)
         if rows.size == 0:
             break
-        sub = batch.take(rows)
-        width = sub.kinds.shape[1]
-        refit = spec.solve_batch(sub.with_used((used & ~drop)[rows, :width]), options,
-                                 excluded=(excluded | drop)[rows, :width])
-        accepted = refit.ok
-        settled[rows[~accepted]] = True
-        keep = rows[accepted]
-        used[keep] &= ~drop[keep]
-        excluded[keep] |= drop[keep]
-        fixes = fixes.replace_rows(keep, refit.take(np.flatnonzero(accepted)))
+        found, drops, refits = _best_exclusions(spec, batch, options, used, excluded, rows,
+                                                np.abs(fixes.studentized_residuals))
+        settled[rows[~found]] = True
+        keep = rows[found]
+        used[keep] &= ~drops
+        excluded[keep] |= drops
+        fixes = fixes.replace_rows(keep, refits)
     return fixes
+
+
+def _best_exclusions(spec, batch: ProblemBatch, options: SolveOptions, used, excluded, rows, suspicion):
+    """For each problem of ``rows``, the request measurement whose exclusion fits best (see
+    :func:`exclude_outliers`): the most suspect ones (by ``suspicion`` ``(B, M)``, NaN first) are left out in
+    turn, all solved as one batch.
+
+    Returns
+    -------
+    found : ndarray of bool, shape (R,)
+        Whether some exclusion gives a converged fit with a degree of freedom left.
+    drops : ndarray of bool, shape (F, M)
+        The measurements excluded, for the ``F`` problems found.
+    refits : FixBatch
+        Their fixes, in order.
+    """
+    owners, sources = [], []
+    for b in rows.tolist():
+        order = np.argsort(-np.nan_to_num(suspicion[b, used[b]], nan=np.inf), kind="stable")
+        ranked = dict.fromkeys(batch.source_index[b, used[b]][order].tolist())
+        for source in list(ranked)[:EXCLUSION_CANDIDATES]:
+            owners.append(b)
+            sources.append(source)
+    owners, sources = np.array(owners, dtype=np.intp), np.array(sources, dtype=np.intp)
+    drops = used[owners] & (batch.source_index[owners] == sources[:, None])
+    trials = batch.take(owners)
+    width = trials.kinds.shape[1]
+    trials = trials.with_used((used[owners] & ~drops)[:, :width])
+    refits = spec.solve_batch(trials, options, excluded=(excluded[owners] | drops)[:, :width])
+    score = np.where(refits.ok & refits.converged & (trials.dof > 0), np.nan_to_num(refits.p_value, nan=-1.0),
+                     -np.inf)
+    found = np.zeros(rows.size, dtype=bool)
+    chosen = []
+    first, end = np.searchsorted(owners, rows).tolist(), np.searchsorted(owners, rows, side="right").tolist()
+    for j, (lo, hi) in enumerate(zip(first, end)):  # each problem's candidates are consecutive
+        k = lo + int(np.argmax(score[lo:hi])) if hi > lo else -1
+        if k >= 0 and score[k] > -np.inf:
+            found[j] = True
+            chosen.append(k)
+    chosen = np.array(chosen, dtype=np.intp)
+    return found, drops[chosen], refits.take(chosen)
 
 
 def solve_batch(problems, method=AUTO, options=None) -> list[Fix | LocalizationError]:

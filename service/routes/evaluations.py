@@ -39,7 +39,8 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
     methods = list(dict.fromkeys(request.methods))
     rows = int(problem.kinds.size)
     exclude = request.options.outliers == "exclude"
-    check_evaluation(request.trials, methods, rows, settings.max_evaluation_cost, exclude)
+    check_evaluation(request.trials, methods, rows, settings.max_evaluation_cost, exclude,
+                     len(set(problem.source_index.tolist())))
     chunk = max(1, CHUNK_UNITS // (rows * max(method_weight(m) for m in methods) * (2 if exclude else 1)))
 
     def run(should_stop):

@@ -114,3 +114,39 @@ def test_measurements_a_method_does_not_use_are_left_out_of_its_verdicts():
     flagged = np.mean([any(w.code in ("outlier_suspected", "sigma_mismatch") for w in f.warnings)
                        for f in solve_batch(draws, "eove")])
     assert flagged <= 0.05
+
+
+# A far target on nearly parallel lines of sight: four stations within 15 km, the target 100 km out. One
+# azimuth 20 deg off can pull the fit onto itself (a masked error: its own residual small) or send it off to
+# infinity (no fit at all), so residuals at the fit cannot name it; leaving each bearing out in turn can.
+FAR_TARGET = np.array([13e3, 100e3, 2e3])
+FAR_STATIONS = [(f"f{k}", LocalPoint(e, n, 0.0)) for k, (e, n) in
+                enumerate([(-15e3, 0.0), (15e3, 2e3), (0.0, -8e3), (5e3, 10e3)])]
+
+
+@pytest.mark.parametrize("loss", ["linear", "huber"])
+def test_a_gross_bearing_on_nearly_parallel_lines_is_found_by_leaving_each_out(loss):
+    problem = build_problem(FAR_STATIONS, [Bearing(sid, 0.0, 0.0, SIGMA, SIGMA) for sid, _ in FAR_STATIONS])
+    rng = np.random.default_rng(3)
+    draws, culprits = [], []
+    for _ in range(TRIALS):
+        noisy = measure(problem, FAR_TARGET, rng)
+        culprit = int(rng.integers(len(FAR_STATIONS)))
+        values = noisy.values.copy()
+        values[2 * culprit] += np.deg2rad(20.0)
+        draws.append(noisy.with_values(values))
+        culprits.append(culprit)
+    fixes = solve_batch(draws, "ml", SolveOptions(outliers="exclude", loss=loss))
+    assert all(not isinstance(f, Exception) for f in fixes)
+    named = [np.array_equal(np.flatnonzero(f.excluded), np.flatnonzero(problem.source_index == c))
+             for f, c in zip(fixes, culprits)]
+    assert np.mean(named) >= 0.95
+    # Each fix then sits within the chi-square (3 dof) 99.9 % region of the bound of what it used.
+    outside = 0
+    for f, c in zip(fixes, culprits):
+        sigmas = problem.sigmas.copy()
+        sigmas[problem.source_index == c] = np.inf
+        bound = information_at(problem, FAR_TARGET, sigmas=sigmas).covariance_enu_m2[0]
+        error = f.position_enu_m - FAR_TARGET
+        outside += error @ np.linalg.solve(bound, error) > chi2_distribution.ppf(0.999, 3)
+    assert outside <= 0.01 * TRIALS
