@@ -242,7 +242,8 @@ def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue
     spread_m = float(np.max(np.linalg.norm(stations - stations.mean(axis=0), axis=-1))) + 1e3
     if np.linalg.norm(position_enu_m - stations.mean(axis=0)) > 1e4 * spread_m:
         return ("the bearings have no common point in front of the stations: the fit runs off to infinity "
-                "(lines of sight diverge, or meet only behind a station); check the bearings, or use eove "
+                "(lines of sight diverge, or meet only behind a station, as one gross bearing can make them); "
+                "check the bearings, send options.outliers \"exclude\" to leave each out in turn, or use eove "
                 "to see where the lines meet")
     return ("the measurements do not determine the position: the information matrix is singular "
             f"(min scaled eigenvalue {min_eigenvalue:.1e}); add stations, elevations or an altitude constraint")
