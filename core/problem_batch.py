@@ -72,9 +72,8 @@ def _model_kernel(kinds, values, sigmas, valid):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _derived_kernel(n_measurements, kinds, used, station_index, values, sigmas, bearing_index, stations_enu_m,
-                    station_rotations, altitude_m):
-    """Every array a batch derives from its own, in one pass (see :attr:`ProblemBatch._derived`).
+def _masks_kernel(n_measurements, kinds, used, sigmas, altitude_m):
+    """The masks and counts a batch derives from its own, in one pass (see :attr:`ProblemBatch._masks`).
 
     ``used`` is ``(B, M)``, or ``(0, 0)`` for every present measurement.
     """
@@ -86,8 +85,6 @@ def _derived_kernel(n_measurements, kinds, used, station_index, values, sigmas, 
     has_toa, constrained = np.zeros(size, dtype=np.bool_), np.empty(size, dtype=np.bool_)
     lacks_sigma, kind_counts = np.zeros(size, dtype=np.bool_), np.zeros((size, 4), dtype=np.int64)
     dof = np.empty(size, dtype=np.int64)
-    stations = np.empty((size, width, 3))
-    rotations = np.empty((size, width, 3, 3))
     for b in range(size):
         constrained[b] = not math.isnan(altitude_m[b])
         known = 0
@@ -97,23 +94,42 @@ def _derived_kernel(n_measurements, kinds, used, station_index, values, sigmas, 
                 kind_counts[b, kinds[b, m]] += 1
                 lacks_sigma[b] |= math.isnan(sigmas[b, m])
                 known += 1 if math.isfinite(sigmas[b, m]) else 0
+        dof[b] = known - (2 if constrained[b] else 3) - (1 if has_toa[b] else 0)
+    return present, valid, has_toa, constrained, lacks_sigma, kind_counts, dof
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _geometry_kernel(valid, kinds, station_index, values, sigmas, bearing_index, stations_enu_m, station_rotations):
+    """The model values and weights, each measurement's station and rotation, and the lines of sight, in one
+    call (see :attr:`ProblemBatch._geometry`)."""
+    size, width = kinds.shape
+    stations = np.empty((size, width, 3))
+    rotations = np.empty((size, width, 3, 3))
+    for b in range(size):
+        for m in range(width):
             s = station_index[b, m]
             stations[b, m] = stations_enu_m[b, s]
             rotations[b, m] = station_rotations[b, s]
-        dof[b] = known - (2 if constrained[b] else 3) - (1 if has_toa[b] else 0)
     model_values, weights = _model_kernel(kinds, values, sigmas, valid)
     is_line, elevation, sigma_elevation = _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas)
-    return (present, valid, has_toa, constrained, model_values, weights, stations, rotations, is_line, elevation,
-            sigma_elevation, lacks_sigma, kind_counts, dof)
+    return model_values, weights, stations, rotations, is_line, elevation, sigma_elevation
 
 
-class _Derived(NamedTuple):
-    """What :func:`_derived_kernel` returns, by name (shapes in :class:`ProblemBatch`'s properties)."""
+class _Masks(NamedTuple):
+    """What :func:`_masks_kernel` returns, by name (shapes in :class:`ProblemBatch`'s properties)."""
 
     present: np.ndarray
     valid: np.ndarray
     has_toa: np.ndarray
     constrained: np.ndarray
+    lacks_sigma: np.ndarray
+    kind_counts: np.ndarray
+    dof: np.ndarray
+
+
+class _Geometry(NamedTuple):
+    """What :func:`_geometry_kernel` returns, by name."""
+
     model_values: np.ndarray
     weights: np.ndarray
     measurement_stations_enu_m: np.ndarray
@@ -121,9 +137,6 @@ class _Derived(NamedTuple):
     is_line: np.ndarray
     elevation_rad: np.ndarray
     sigma_elevation_rad: np.ndarray
-    lacks_sigma: np.ndarray
-    kind_counts: np.ndarray
-    dof: np.ndarray
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -190,26 +203,34 @@ class ProblemBatch:
         return int(self.n_measurements.size)
 
     @cached_property
-    def _derived(self) -> _Derived:
-        """The arrays derived from the batch's own (:func:`_derived_kernel`): computed together on first use,
-        read-only."""
+    def _masks(self) -> _Masks:
+        """The masks and counts derived from the batch's own (:func:`_masks_kernel`): computed together on
+        first use, read-only."""
         used = np.zeros((0, 0), dtype=np.bool_) if self.used is None else np.ascontiguousarray(self.used)
         c = np.ascontiguousarray
-        return _Derived(*map(_frozen, _derived_kernel(
-            c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used,
-            c(self.station_index, dtype=np.intp), c(self.values, dtype=float), c(self.sigmas, dtype=float),
-            c(self.bearing_index, dtype=np.intp), c(self.stations_enu_m, dtype=float),
-            c(self.station_rotations, dtype=float), c(self.altitude_m, dtype=float))))
+        return _Masks(*map(_frozen, _masks_kernel(
+            c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used, c(self.sigmas, dtype=float),
+            c(self.altitude_m, dtype=float))))
+
+    @cached_property
+    def _geometry(self) -> _Geometry:
+        """The model values, weights, measurement stations and lines of sight (:func:`_geometry_kernel`):
+        computed together on first use (a batch that is only split into parts never needs them), read-only."""
+        c = np.ascontiguousarray
+        return _Geometry(*map(_frozen, _geometry_kernel(
+            self.valid, c(self.kinds, dtype=np.int8), c(self.station_index, dtype=np.intp),
+            c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.bearing_index, dtype=np.intp),
+            c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float))))
 
     @property
     def present(self) -> np.ndarray:
         """``(B, M)``: True on real measurements, False on padding."""
-        return self._derived.present
+        return self._masks.present
 
     @property
     def valid(self) -> np.ndarray:
         """``(B, M)``: True on the measurements an estimator uses (real and not set aside by :meth:`with_used`)."""
-        return self._derived.valid
+        return self._masks.valid
 
     def with_used(self, used) -> "ProblemBatch":
         """The same problems with only ``used`` ``(B, M)`` (and present) measurements in the fit."""
@@ -218,32 +239,32 @@ class ProblemBatch:
     @property
     def constrained(self) -> np.ndarray:
         """``(B,)``: a known altitude is given."""
-        return self._derived.constrained
+        return self._masks.constrained
 
     @property
     def has_toa(self) -> np.ndarray:
         """``(B,)``: some measurement is a TOA (so the emission offset is a free parameter)."""
-        return self._derived.has_toa
+        return self._masks.has_toa
 
     @property
     def lacks_sigma(self) -> np.ndarray:
         """``(B,)``: some measurement in use has no sigma."""
-        return self._derived.lacks_sigma
+        return self._masks.lacks_sigma
 
     @property
     def kind_counts(self) -> np.ndarray:
         """``(B, 4)`` int: how many measurements of each kind (column ``Kind``) are in use."""
-        return self._derived.kind_counts
+        return self._masks.kind_counts
 
     @property
     def dof(self) -> np.ndarray:
         """``(B,)`` int: degrees of freedom of a fit to the measurements in use with a stated sigma (their count
         less the position's free coordinates and a TOA offset)."""
-        return self._derived.dof
+        return self._masks.dof
 
     def model_values(self) -> np.ndarray:
         """Values ``(B, M)`` in model units (TOA as pseudo-range metres; computed once, read-only)."""
-        return self._derived.model_values
+        return self._geometry.model_values
 
     def weights(self, sigmas=None) -> np.ndarray:
         """``1 / sigma^2`` ``(B, M)`` in model units; 0 on padding and where no sigma is known.
@@ -255,7 +276,7 @@ class ProblemBatch:
             read-only).
         """
         if sigmas is None:
-            return self._derived.weights
+            return self._geometry.weights
         return self._model_values_weights(sigmas)[1]
 
     def _model_values_weights(self, sigmas) -> tuple[np.ndarray, np.ndarray]:
@@ -294,7 +315,7 @@ class ProblemBatch:
 
     def measurement_stations(self) -> tuple[np.ndarray, np.ndarray]:
         """Station position ``(B, M, 3)`` and rotation ``(B, M, 3, 3)`` of every measurement (computed once)."""
-        return self._derived.measurement_stations_enu_m, self._derived.measurement_rotations
+        return self._geometry.measurement_stations_enu_m, self._geometry.measurement_rotations
 
     def lines_of_sight(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Bearings as lines of sight, one per azimuth row (computed once).
@@ -307,8 +328,8 @@ class ProblemBatch:
             The bearing's elevation and its sigma on its azimuth row; NaN
             for an azimuth-only bearing and off azimuth rows.
         """
-        derived = self._derived
-        return derived.is_line, derived.elevation_rad, derived.sigma_elevation_rad
+        geometry = self._geometry
+        return geometry.is_line, geometry.elevation_rad, geometry.sigma_elevation_rad
 
     def by_bearing(self, values, kind: int, fill=np.nan) -> np.ndarray:
         """Per-measurement values ``(B, M)`` of the ``kind`` rows (azimuth or elevation) laid out per bearing.

@@ -104,9 +104,10 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, b
     """Fixes of every problem of a batch, each with its own method and options, part by part.
 
     Problems with the same method and options are solved together, one
-    batched call per size class (padding stays under 2x) and per
-    :data:`PART_PROBLEMS` problems or :data:`PART_PAIRS` measurement
-    pairs. With more than one part (or ``background``), up to
+    batched call per size class (padding stays under 2x) and per part of at
+    most :data:`PART_PROBLEMS` problems or :data:`PART_PAIRS` measurement
+    pairs (a class of several parts is cut into parts of equal size, as
+    many for each thread). With more than one part (or ``background``), up to
     :data:`MAX_WORKERS` threads solve them, started by this call, and each
     part is yielded, in order, as soon as it and those before it are done
     (a caller can write the first parts, or read its next batch, while the
@@ -156,6 +157,9 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, b
         for group in size_groups(batch.n_measurements[rows], batch.n_stations[rows]):
             width = max(int(batch.n_measurements[rows[group]].max()), 1)
             step = max(1, min(PART_PROBLEMS, PART_PAIRS // width**2))
+            parts = -(-group.size // step)
+            if parts > 1:  # as many parts for each thread, of equal size: no thread waits on another's last part
+                step = -(-group.size // (-(-parts // MAX_WORKERS) * MAX_WORKERS))
             for start in range(0, group.size, step):
                 work.append((rows[group[start:start + step]], spec, opts))
 
