@@ -188,15 +188,24 @@ same loop in the server process costs 515-860 us a call, and in one process
 with the caches thrashed between calls (an 8 MB sum and a JSON parse) 1,120-
 1,327 us against 684-779 us without. A lone request finds the caches cold
 after the event loop's turn, so its cost grows with how much code and data
-one fix touches: fewer, larger kernel calls would help it twice.
+one fix touches: fewer, larger kernel calls would help it twice. On
+2026-12-03 at 16:40 the fix route with its read, solve and write replaced by
+a canned answer (coalescer, watch, metrics and response unchanged; an ad-hoc
+app, not part of this bench) answered 2,023 req/s at c=1, 0.39x healthz,
+beside echo's 2,195 and the real route's 993: the route's shape alone is
+below the 0.5x target, and the fix's work, about 305 us in a warm loop,
+costs about 510 us in the server.
 
 **Row 7, one fix in core.** Every per-problem loop is compiled (start, LM,
-finisher and verdicts in one call, lines of sight, error summary, batch
-building, model values and weights); what is left is Python and numpy call
-overhead around them: about 580 Python-level calls for reading, solving and
-writing one fix (cProfile), at 0.3-7 us each here. The 50 us target needs a
-batch of one to run as a few kernel calls with nothing between them (one
-compiled pass from the read arrays to the written text): not done.
+finisher and verdicts in one call, the batch's masks and its geometry in one
+pass each, the reader's checks and unit conversions, the writer's numbers,
+lines of sight, error summary, batch building); what is left is Python and
+numpy call overhead around them: about 420 Python-level calls for reading
+and solving one fix (516 with writing it; cProfile), at 0.3-7 us each here
+(2026-12-03: 275 -> 212 us per fix, read 56 -> 41 us, in the same machine
+phase). The 50 us target needs a batch of one to run as a few kernel calls
+with nothing between them (one compiled pass from the read arrays to the
+written text): not done.
 
 **Row 2, batches over HTTP.** The body is decoded by msgspec into typed
 structs (no dict per object) and walked once, about 5 us a problem; the
@@ -214,10 +223,12 @@ against the writer: compiling those per problem is what would bring them
 to the line.
 
 **Row 3, the scipy ratio.** Core kernels per four-station problem on one
-thread: weighted-EOVE start ~2.5 us, LM ~2.5 us, finisher ~1.6 us, glue
-~1.7 us. The ratio moves with the machine (168x on 2026-12-02 at 19:15, 81x
-and 95x on 2026-12-03): scipy's per-problem Python loop speeds up and slows
-down more than the compiled batch does.
+thread (2026-12-03): weighted-EOVE start ~1.7 us, LM ~2.8 us (3-4 iterations),
+finisher ~1.5 us, masks, geometry, parts and glue ~1.7 us; the parts are cut
+equal, as many per thread. The ratio moves with the machine (168x on
+2026-12-02 at 19:15; 81x, 95x, 86x and 94x on 2026-12-03, the per-round ratios
+of one run spanning 78-110x): scipy's per-problem Python loop speeds up and
+slows down more than the compiled batch does.
 """
 
 if __name__ == "__main__":
