@@ -202,27 +202,26 @@ EXCLUSION_CANDIDATES = 8
 def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: FixBatch) -> FixBatch:
     """Fault detection and exclusion (RAIM FDE) over a batch.
 
-    While a fix fails the chi-square test (``p < EXCLUSION_P``), or has no
-    fit to test (the iteration did not converge, or ran off to where the
-    geometry is unobservable), each of its :data:`EXCLUSION_CANDIDATES` most
-    suspect request measurements (largest studentized residual first; a
-    bearing's azimuth and elevation together) is left out in turn and the
-    problem solved again (all at once, as one batch): the exclusion whose
-    converged refit, with a degree of freedom left, has the highest p-value
-    is made, and the test is run again on that fit. This is the largest-studentized-residual rule
-    computed exactly: for a linear model, leaving a measurement out lowers
-    chi-square by its studentized residual squared; here the refit also
-    unmasks a gross error that a nonlinear or robust fit absorbed (one
-    bearing 20 deg off on nearly parallel lines of sight can pull the fit to
-    itself, or off to infinity). A problem no exclusion helps keeps the fix
-    it has. The covariance and CRLB are those of the measurements used;
-    every excluded one is named in a warning.
+    While a fix fails the chi-square test (``p < EXCLUSION_P``), or ran off
+    to where the geometry is unobservable (as one bearing 20 deg off can
+    make it on nearly parallel lines of sight), each of its
+    :data:`EXCLUSION_CANDIDATES` most suspect request measurements (largest
+    studentized residual first; a bearing's azimuth and elevation together)
+    is left out in turn and the problem solved again, all at once as one
+    batch. The exclusion whose converged refit, with a degree of freedom
+    left, has the highest p-value is made, and the test runs again on that
+    fit. This is the largest-studentized-residual rule computed exactly (for
+    a linear model, leaving a measurement out lowers chi-square by its
+    studentized residual squared); the refit also unmasks a gross error that
+    a nonlinear or robust fit absorbed, its own residual small. A problem no
+    exclusion helps keeps the fix it has. The covariance and CRLB are those
+    of the measurements used; every excluded one is named in a warning.
     """
     used = batch.valid.copy()
     excluded = np.zeros_like(used)
     settled = np.zeros(batch.size, dtype=bool)
     for _ in range(MAX_EXCLUSIONS):
-        testing = ~settled & fixes.ok & (~fixes.converged | (np.nan_to_num(fixes.p_value, nan=1.0) < EXCLUSION_P))
+        testing = ~settled & fixes.ok & (np.nan_to_num(fixes.p_value, nan=1.0) < EXCLUSION_P)
         for b, error in fixes.errors.items():
             testing[b] = not settled[b] and isinstance(error, UnobservableGeometry)
         rows = np.flatnonzero(testing)
