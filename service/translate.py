@@ -896,8 +896,8 @@ def _fix_numbers(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, resid
             for j in range(3):
                 row[k + 9 + 3 * i + j] = turned[i, 0] * r[0, j] + turned[i, 1] * r[1, j] + turned[i, 2] * r[2, j]
         for i in range(3):
-            c = coarse_enu_m[b, i]
-            row[k + 18 + i] = 0.0 if math.isnan(c) else min(max(c, -_MAX), _MAX)
+            coarse = coarse_enu_m[b, i]
+            row[k + 18 + i] = 0.0 if math.isnan(coarse) else min(max(coarse, -_MAX), _MAX)
     return out
 
 
