@@ -64,13 +64,14 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     errors = dict(estimates.errors)
     position = np.array(estimates.position_enu_m, dtype=float).reshape(size, 3)
     failed = np.zeros(size, dtype=bool)
-    failed[list(errors)] = True
-    unfinished = ~failed & ~np.isfinite(position).all(axis=-1)
-    if unfinished.any():
-        for b in np.flatnonzero(unfinished).tolist():
+    if errors:
+        failed[list(errors)] = True
+    finite = np.isfinite(position).all(axis=-1)
+    if not finite.all():
+        for b in np.flatnonzero(~failed & ~finite).tolist():
             errors[b] = LocalizationError(f"{method} produced no finite position for this geometry")
-        failed |= unfinished
-    if failed.any():
+        failed |= ~finite
+    if errors:  # exactly the failed rows
         position[failed] = batch.stations_enu_m[failed, 0] + [0.0, 0.0, 1.0]
 
     stations, rotations = batch.measurement_stations()
@@ -98,8 +99,10 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
 
     source = estimates.covariance_source
     if source == "information":
-        for b in (~failed & ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)).nonzero()[0].tolist():
-            errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b]))
+        unobservable = ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)
+        if unobservable.any():
+            for b in np.flatnonzero(unobservable & ~failed).tolist():
+                errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b]))
     if robust_factor is not None:
         source = "robust"
     elif estimates.covariance_enu_m2 is None:

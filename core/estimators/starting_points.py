@@ -250,14 +250,11 @@ class _Starts:
 
     def __init__(self, batch: ProblemBatch):
         self.batch = batch
-        self.positions = np.full((batch.size, 3), np.nan)
-        self.names: list[str | None] = [None] * batch.size
+        self.pending = np.isnan(batch.initial_guess_enu_m[:, 0])
+        self.positions = np.where(self.pending[:, None], np.nan, batch.initial_guess_enu_m)
+        self.names: list[str | None] = [None if p else "initial_guess" for p in self.pending.tolist()]
         self.failures: dict[int, LocalizationError] = {}
         self.eove_failures: dict[int, LocalizationError] = {}
-        guessed = ~np.isnan(batch.initial_guess_enu_m[:, 0])
-        self.pending = ~guessed
-        if guessed.any():
-            self.settle(np.arange(batch.size), guessed, "initial_guess", batch.initial_guess_enu_m)
 
     def settle(self, k, found, name, start):
         chosen = k[found]
