@@ -17,7 +17,11 @@ measurement by ``rho'``, the normal equations by ``rho' + 2 rho'' z``. The
 finisher then reports the sandwich covariance of the final weights ``rho'``
 (``covariance_source`` ``"robust"``): that of a weighted least-squares fit
 with those weights, which is the bound without a measurement the loss has
-set aside, and never below the bound.
+set aside, and never below the bound. A robust fit whose residuals fail the
+chi-square test (``SUBSET_P``) may sit in the basin of a gross error that
+pulled its closed-form start: it is started again from the closed form of
+each subset that leaves one of its most suspect request measurements out
+(:func:`subset_starts`), and the lowest robust cost is kept.
 
 Ties. Where the measurements leave (almost) no degree of freedom, a second
 point may fit as well: a line of sight crosses a TDOA hyperboloid twice, or
@@ -53,7 +57,7 @@ from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
 from core.geodesy import enu_to_geodetic
 from core.linalg import jacobi_svd
-from core.measurements import AZIMUTH, ELEVATION, ahead_point, measure_point, toa_offset_point
+from core.measurements import AZIMUTH, ELEVATION, ahead_point, measure_point, predict, residuals, toa_offset_point
 from core.problem import local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
@@ -66,6 +70,10 @@ LAMBDA_MAX = 1e12
 #: The search's fits from every candidate run in chunks of about this many measurement slots
 #: (candidates x padded width): the expanded problems then take megabytes, not gigabytes.
 CHUNK_ENTRIES = 1 << 15
+#: A robust fit whose residuals' chi-square p-value is below this is started again from subsets (:func:`subset_starts`).
+SUBSET_P = 0.01
+#: ... each leaving out one of at most this many request measurements, the most suspect first.
+SUBSET_CANDIDATES = 8
 
 
 @dataclass(frozen=True)
@@ -560,6 +568,38 @@ def _point(batch: ProblemBatch, b: int, position_enu_m) -> str:
     return text
 
 
+def normalized_residuals(batch: ProblemBatch, solution: Solution) -> np.ndarray:
+    """``(B, M)``: each measurement's residual over its sigma at the iteration's end (0 where unweighted)."""
+    stations, rotations = batch.measurement_stations()
+    predicted, _ = predict(solution.position_enu_m, solution.bias_m, stations, rotations, batch.kinds)
+    return residuals(batch.model_values(), predicted, batch.kinds) * np.sqrt(batch.weights())
+
+
+def subset_starts(batch: ProblemBatch, rows, suspicion):
+    """Closed-form starts of the subsets of problems ``rows`` that leave one request measurement out (a
+    bearing's azimuth and elevation together), for the :data:`SUBSET_CANDIDATES` measurements with the
+    largest ``suspicion`` ``(B, M)`` (say ``|residual| / sigma``).
+
+    Returns
+    -------
+    owners : ndarray of int, shape (C,)
+        The problem of each start (rows of ``batch``, in the order of ``rows``).
+    starts_enu_m : ndarray, shape (C, 3)
+        NaN where a subset has no closed form.
+    """
+    owners, kept = [], []
+    for b in rows.tolist():
+        valid = batch.valid[b]
+        order = np.argsort(-suspicion[b, valid], kind="stable")
+        for source in list(dict.fromkeys(batch.source_index[b, valid][order].tolist()))[:SUBSET_CANDIDATES]:
+            owners.append(b)
+            kept.append(valid & (batch.source_index[b] != source))
+    owners = np.array(owners, dtype=np.intp)
+    subsets = batch.take(owners)
+    subsets = subsets.with_used(np.array(kept, dtype=bool).reshape(owners.size, -1)[:, :subsets.kinds.shape[1]])
+    return owners, initial_positions(subsets)[0]
+
+
 @register("ml", "maximum likelihood (Levenberg-Marquardt) over any mix of measurements; the reference", robust=True)
 def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     """ML from the closed-form start for the mix; where there is none, or the fit from it did not converge
@@ -597,6 +637,23 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
             if np.all(np.isfinite(rival[ok][j])):
                 warnings[b] = _ambiguous(batch, b, rival[ok][j], starts, names, failures, solution, options)
         p_value[rows] = chdtrc(np.maximum(dof[rows], 1), solution.cost[rows])
+    if options.loss != "linear":
+        normalized = normalized_residuals(batch, solution)
+        failing = chdtrc(np.maximum(dof, 1), np.sum(normalized**2, axis=-1)) < SUBSET_P
+        rows = np.array([b for b in np.flatnonzero(failing & ~missing).tolist()
+                         if not warnings[b] and b not in failures], dtype=np.intp)
+        owners, found = subset_starts(batch, rows, np.abs(normalized)) if rows.size else (rows, np.empty((0, 3)))
+        ok = np.all(np.isfinite(found), axis=-1)
+        owners, found = owners[ok], found[ok]
+        if owners.size:
+            again = iterate(batch.take(owners), found, options)
+            for j in np.flatnonzero(again.converged).tolist():
+                b = int(owners[j])
+                if again.cost[j] < solution.cost[b] * (1.0 - 1e-9):
+                    starts[b], names[b] = found[j], "subset"
+                    for name in Solution.__dataclass_fields__:
+                        getattr(solution, name)[b] = getattr(again, name)[j]
+            p_value[rows] = chdtrc(np.maximum(dof[rows], 1), solution.cost[rows])
     # A closed form's (or the search's) fix may have a mirror image that fits as well: try it.
     check = (mirror_applies(batch) & ~missing & (p_value >= IMPLAUSIBLE_P)).nonzero()[0]
     check = np.array([b for b in check.tolist() if not warnings[b] and b not in failures], dtype=np.intp)
