@@ -391,6 +391,35 @@ class ProblemBatch:
             initial_guess_enu_m=None if np.isnan(guess[0]) else guess.copy(),
         )
 
+    def leave_one_out(self, rows, used, suspicion, count: int) -> tuple[np.ndarray, np.ndarray]:
+        """The subsets of problems ``rows`` that each leave out one request measurement (a bearing's azimuth
+        and elevation together), for the ``count`` most suspect ones of each problem.
+
+        Parameters
+        ----------
+        rows : ndarray of int, shape (R,)
+        used : ndarray of bool, shape (B, M)
+            The measurements in the fit now (candidates are among them).
+        suspicion : ndarray, shape (B, M)
+            Larger first (say ``|studentized residual|``); NaN counts as the largest.
+        count : int
+
+        Returns
+        -------
+        owners : ndarray of int, shape (C,)
+            The problem of each subset, in the order of ``rows``.
+        dropped : ndarray of bool, shape (C, M)
+            The measurements each subset leaves out.
+        """
+        owners, sources = [], []
+        for b in np.asarray(rows, dtype=np.intp).tolist():
+            order = np.argsort(-np.nan_to_num(suspicion[b, used[b]], nan=np.inf), kind="stable")
+            for source in list(dict.fromkeys(self.source_index[b, used[b]][order].tolist()))[:count]:
+                owners.append(b)
+                sources.append(source)
+        owners, sources = np.array(owners, dtype=np.intp), np.array(sources, dtype=np.intp)
+        return owners, used[owners] & (self.source_index[owners] == sources[:, None])
+
     def take(self, indices) -> "ProblemBatch":
         """The sub-batch of ``indices``, padding trimmed to its own largest problem."""
         idx = np.asarray(indices, dtype=np.intp)

@@ -251,15 +251,7 @@ def _best_exclusions(spec, batch: ProblemBatch, options: SolveOptions, used, exc
     refits : FixBatch
         Their fixes, in order.
     """
-    owners, sources = [], []
-    for b in rows.tolist():
-        order = np.argsort(-np.nan_to_num(suspicion[b, used[b]], nan=np.inf), kind="stable")
-        ranked = dict.fromkeys(batch.source_index[b, used[b]][order].tolist())
-        for source in list(ranked)[:EXCLUSION_CANDIDATES]:
-            owners.append(b)
-            sources.append(source)
-    owners, sources = np.array(owners, dtype=np.intp), np.array(sources, dtype=np.intp)
-    drops = used[owners] & (batch.source_index[owners] == sources[:, None])
+    owners, drops = batch.leave_one_out(rows, used, suspicion, EXCLUSION_CANDIDATES)
     trials = batch.take(owners)
     width = trials.kinds.shape[1]
     trials = trials.with_used((used[owners] & ~drops)[:, :width])

@@ -576,9 +576,9 @@ def normalized_residuals(batch: ProblemBatch, solution: Solution) -> np.ndarray:
 
 
 def subset_starts(batch: ProblemBatch, rows, suspicion):
-    """Closed-form starts of the subsets of problems ``rows`` that leave one request measurement out (a
-    bearing's azimuth and elevation together), for the :data:`SUBSET_CANDIDATES` measurements with the
-    largest ``suspicion`` ``(B, M)`` (say ``|residual| / sigma``).
+    """Closed-form starts of the subsets of problems ``rows`` that leave one request measurement out, for their
+    :data:`SUBSET_CANDIDATES` most suspect (:meth:`~core.problem_batch.ProblemBatch.leave_one_out`; by
+    ``suspicion`` ``(B, M)``, say ``|residual| / sigma``).
 
     Returns
     -------
@@ -587,16 +587,9 @@ def subset_starts(batch: ProblemBatch, rows, suspicion):
     starts_enu_m : ndarray, shape (C, 3)
         NaN where a subset has no closed form.
     """
-    owners, kept = [], []
-    for b in rows.tolist():
-        valid = batch.valid[b]
-        order = np.argsort(-suspicion[b, valid], kind="stable")
-        for source in list(dict.fromkeys(batch.source_index[b, valid][order].tolist()))[:SUBSET_CANDIDATES]:
-            owners.append(b)
-            kept.append(valid & (batch.source_index[b] != source))
-    owners = np.array(owners, dtype=np.intp)
+    owners, dropped = batch.leave_one_out(rows, batch.valid, suspicion, SUBSET_CANDIDATES)
     subsets = batch.take(owners)
-    subsets = subsets.with_used(np.array(kept, dtype=bool).reshape(owners.size, -1)[:, :subsets.kinds.shape[1]])
+    subsets = subsets.with_used((batch.valid[owners] & ~dropped)[:, :subsets.kinds.shape[1]])
     return owners, initial_positions(subsets)[0]
 
 
