@@ -45,11 +45,14 @@ def over_limit(name: str, cost: int, limit: int, loc: list, what: str) -> ApiErr
 def evaluation_cost(trials: int, methods, rows: int, exclude: bool = False, sources: int = 1) -> int:
     """``trials x rows x method weights``, times the solves a trial may need with outlier exclusion: the
     first, then per exclusion (at most ``MAX_EXCLUSIONS``, and one fewer than the ``sources`` request
-    measurements) a refit of each candidate (at most ``EXCLUSION_CANDIDATES``): the worst case is priced."""
+    measurements) a refit of each candidate left (at most ``EXCLUSION_CANDIDATES``): the worst case is
+    priced."""
     from core.estimators import EXCLUSION_CANDIDATES, MAX_EXCLUSIONS
 
-    refits = 1 + min(MAX_EXCLUSIONS, sources - 1) * min(EXCLUSION_CANDIDATES, sources) if exclude else 1
-    return trials * rows * sum(method_weight(m) for m in methods) * max(refits, 1)
+    solves = 1
+    if exclude:
+        solves += sum(min(EXCLUSION_CANDIDATES, sources - done) for done in range(min(MAX_EXCLUSIONS, sources - 1)))
+    return trials * rows * sum(method_weight(m) for m in methods) * solves
 
 
 def check_evaluation(trials: int, methods, rows: int, limit: int, exclude: bool = False, sources: int = 1) -> None:
