@@ -411,14 +411,21 @@ class ProblemBatch:
         dropped : ndarray of bool, shape (C, M)
             The measurements each subset leaves out.
         """
-        owners, sources = [], []
-        for b in np.asarray(rows, dtype=np.intp).tolist():
-            order = np.argsort(-np.nan_to_num(suspicion[b, used[b]], nan=np.inf), kind="stable")
-            for source in list(dict.fromkeys(self.source_index[b, used[b]][order].tolist()))[:count]:
-                owners.append(b)
-                sources.append(source)
-        owners, sources = np.array(owners, dtype=np.intp), np.array(sources, dtype=np.intp)
-        return owners, used[owners] & (self.source_index[owners] == sources[:, None])
+        rows = np.asarray(rows, dtype=np.intp)
+        in_use = used[rows]
+        order = np.argsort(np.where(in_use, -np.nan_to_num(suspicion[rows], nan=np.inf), np.inf), axis=1,
+                           kind="stable")
+        sources = np.take_along_axis(self.source_index[rows], order, axis=1)
+        # Walked row by row, most suspect first: each source's first measurement in use is its candidate.
+        flat = np.flatnonzero(np.take_along_axis(in_use, order, axis=1))
+        row = flat // sources.shape[1]
+        _, first = np.unique(row * (int(self.source_index.max(initial=0)) + 1) + sources.ravel()[flat],
+                             return_index=True)
+        flat, row = flat[np.sort(first)], row[np.sort(first)]
+        rank = np.arange(row.size) - np.searchsorted(row, row)
+        flat, row = flat[rank < count], row[rank < count]
+        owners, chosen = rows[row], sources.ravel()[flat]
+        return owners, used[owners] & (self.source_index[owners] == chosen[:, None])
 
     def take(self, indices) -> "ProblemBatch":
         """The sub-batch of ``indices``, padding trimmed to its own largest problem."""

@@ -251,22 +251,19 @@ def _best_exclusions(spec, batch: ProblemBatch, options: SolveOptions, used, exc
     refits : FixBatch
         Their fixes, in order.
     """
-    owners, drops = batch.leave_one_out(rows, used, suspicion, EXCLUSION_CANDIDATES)
+    owners, drops = batch.leave_one_out(rows, used, suspicion, EXCLUSION_CANDIDATES)  # rows ascending
     trials = batch.take(owners)
     width = trials.kinds.shape[1]
     trials = trials.with_used((used[owners] & ~drops)[:, :width])
     refits = spec.solve_batch(trials, options, excluded=(excluded[owners] | drops)[:, :width])
     score = np.where(refits.ok & refits.converged & (trials.dof > 0), np.nan_to_num(refits.p_value, nan=-1.0),
                      -np.inf)
+    problem = np.searchsorted(rows, owners)  # rows ascending: each candidate's index in rows
+    order = np.lexsort((-score, problem))  # per problem, the best score first (the most suspect on a tie)
+    best = order[np.flatnonzero(np.diff(problem[order], prepend=-1))]
+    chosen = best[score[best] > -np.inf]
     found = np.zeros(rows.size, dtype=bool)
-    chosen = []
-    first, end = np.searchsorted(owners, rows).tolist(), np.searchsorted(owners, rows, side="right").tolist()
-    for j, (lo, hi) in enumerate(zip(first, end)):  # each problem's candidates are consecutive
-        k = lo + int(np.argmax(score[lo:hi])) if hi > lo else -1
-        if k >= 0 and score[k] > -np.inf:
-            found[j] = True
-            chosen.append(k)
-    chosen = np.array(chosen, dtype=np.intp)
+    found[problem[chosen]] = True
     return found, drops[chosen], refits.take(chosen)
 
 

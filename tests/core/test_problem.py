@@ -183,3 +183,22 @@ def test_latitude_exactly_at_the_poles_is_valid():
 def test_bearing_sigma_may_be_omitted_only_when_allowed():
     problem = build_problem(LOCAL, [Bearing("a", 0.1, None, None)], require_sigmas=False)
     assert np.isnan(problem.sigmas[0])
+
+
+def test_leave_one_out_lists_each_problems_most_suspect_request_measurements_first():
+    from core.problem_batch import ProblemBatch
+
+    stations = [(f"s{k}", LocalPoint(1e3 * k, 5e2 * k * k, 0.0)) for k in range(4)]
+    bearings = [Bearing(sid, 0.1 * k, 0.01, 0.01, 0.01) for k, (sid, _) in enumerate(stations)]
+    batch = ProblemBatch.from_problems([build_problem(stations, bearings),
+                                        build_problem(stations, bearings[:3] + [Range("s3", 2e3, 5.0)])])
+    # Rows: azimuth and elevation of each bearing (request measurements 0-3); problem 1 ends with a range.
+    suspicion = np.array([[0.5, 3.0, 0.1, 0.2, 2.0, 0.0, 1.0, np.nan],
+                          [0.1, 0.2, 4.0, 0.0, 0.3, 0.3, 9.0, 0.0]])
+    used = batch.valid.copy()
+    used[0, [6, 7]] = False  # problem 0's last bearing is already out
+    owners, dropped = batch.leave_one_out(np.array([0, 1]), used, suspicion, 2)
+    assert owners.tolist() == [0, 0, 1, 1]
+    left_out = [sorted(set(batch.source_index[b, d].tolist())) for b, d in zip(owners, dropped)]
+    assert left_out == [[0], [2], [3], [1]]  # by each one's largest row; a bearing's two rows go together
+    assert not (dropped & ~used[owners]).any()
