@@ -85,6 +85,47 @@ def ecef_to_enu_point(x_m, y_m, z_m, origin_ecef_m, rotation):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def covariance_enu_to_ecef_point(covariance_enu_m2, rotation, out):
+    """Write into ``out`` ``(3, 3)`` an ENU covariance ``(3, 3)`` of the frame with ECEF -> ENU ``rotation``,
+    in ECEF: ``R^T C R`` (compiled; see :func:`covariance_enu_to_ecef`)."""
+    for i in range(3):
+        for j in range(3):
+            total = 0.0
+            for k in range(3):
+                total += rotation[k, i] * (covariance_enu_m2[k, 0] * rotation[0, j] + covariance_enu_m2[k, 1]
+                                           * rotation[1, j] + covariance_enu_m2[k, 2] * rotation[2, j])
+            out[i, j] = total
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _covariances_to_ecef_many(covariance_enu_m2, rotations):
+    out = np.empty_like(covariance_enu_m2)
+    shared = rotations.shape[0] == 1
+    for i in range(covariance_enu_m2.shape[0]):
+        covariance_enu_to_ecef_point(covariance_enu_m2[i], rotations[0 if shared else i], out[i])
+    return out
+
+
+def covariance_enu_to_ecef(covariance_enu_m2, rotation):
+    """ENU covariances in ECEF, ``R^T C R``.
+
+    Parameters
+    ----------
+    covariance_enu_m2 : ndarray, shape (..., 3, 3)
+    rotation : ndarray, shape (3, 3) or (..., 3, 3)
+        ECEF -> ENU of each covariance's frame (:func:`ecef_to_enu_rotation`).
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+    """
+    covariance = np.asarray(covariance_enu_m2, dtype=float)
+    rotations = np.ascontiguousarray(np.asarray(rotation, dtype=float).reshape(-1, 3, 3))
+    return _covariances_to_ecef_many(np.ascontiguousarray(covariance).reshape(-1, 3, 3),
+                                     rotations).reshape(covariance.shape)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _between_frames_many(points, origin_ecef_m, rotations, to_ecef):
     out = np.empty_like(points)
     shared = origin_ecef_m.shape[0] == 1

@@ -116,8 +116,7 @@ class CommonFrame:
 
     def covariance_to_ecef(self, covariance_enu_m2):
         """Rotate covariances ``(..., 3, 3)`` from the frame's ENU to ECEF."""
-        r = self.ecef_to_enu_rotation
-        return r.T @ covariance_enu_m2 @ r
+        return geodesy.covariance_enu_to_ecef(covariance_enu_m2, self.ecef_to_enu_rotation)
 
     def origin_array(self) -> np.ndarray:
         """``(lat_rad, lon_rad, alt_m)`` of the origin, zeros for a flat plane."""

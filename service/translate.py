@@ -868,7 +868,7 @@ def _fix_numbers(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, resid
         covariance, circle, sphere, True)
     out = np.empty((size, 50 + 2 * width))
     to_degrees = 180.0 / math.pi
-    turned = np.empty((3, 3))
+    covariance_ecef = np.empty((3, 3))
     for b in range(size):
         row, r = out[b], rotation[b]
         row[0:3] = position[b]
@@ -888,13 +888,8 @@ def _fix_numbers(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, resid
         lat, lon, alt = geodesy.ecef_to_geodetic_point(x, y, z)
         row[k + 3], row[k + 4], row[k + 5] = lat * to_degrees, lon * to_degrees, alt
         row[k + 6], row[k + 7], row[k + 8] = x, y, z
-        c = covariance[b]
-        for i in range(3):  # rotation^T covariance rotation
-            for j in range(3):
-                turned[i, j] = r[0, i] * c[0, j] + r[1, i] * c[1, j] + r[2, i] * c[2, j]
-        for i in range(3):
-            for j in range(3):
-                row[k + 9 + 3 * i + j] = turned[i, 0] * r[0, j] + turned[i, 1] * r[1, j] + turned[i, 2] * r[2, j]
+        geodesy.covariance_enu_to_ecef_point(covariance[b], r, covariance_ecef)
+        row[k + 9:k + 18] = covariance_ecef.ravel()
         for i in range(3):
             coarse = coarse_enu_m[b, i]
             row[k + 18 + i] = 0.0 if math.isnan(coarse) else min(max(coarse, -_MAX), _MAX)
