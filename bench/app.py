@@ -6,7 +6,9 @@ route behind the same middleware that decodes the body as the fix route does
 (:func:`service.wire.decode_fix`, else orjson), checks the owner, hands the
 body to a one-thread executor and waits for it there (as the coalescer's
 drain does), then answers with the body's JSON; the worker only returns the
-body. It exists only in this instance, never in the product API.
+body. ``POST /bench/echo_inline`` does the same without the hop to the
+worker, so the two tell what the hop alone costs. Both exist only in this
+instance, never in the product API (whose routes run no CPU work on the loop).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from service.wire import decode_fix
 
 
 def create_bench_app(settings: Settings | None = None) -> FastAPI:
-    """``create_app(settings)`` with ``POST /bench/echo`` added."""
+    """``create_app(settings)`` with ``POST /bench/echo`` and ``POST /bench/echo_inline`` added."""
     app = create_app(settings)
     worker = ThreadPoolExecutor(1, thread_name_prefix="echo")
 
@@ -35,6 +37,13 @@ def create_bench_app(settings: Settings | None = None) -> FastAPI:
         body = decode_fix(raw) or parse_json(raw)
         get_owner(http)
         body = await asyncio.get_running_loop().run_in_executor(worker, lambda: body)
+        return Response(msgspec.json.encode(body), media_type="application/json")
+
+    @app.post("/bench/echo_inline", include_in_schema=False)
+    async def echo_inline(http: Request) -> Response:
+        raw = await http.body()
+        body = decode_fix(raw) or parse_json(raw)
+        get_owner(http)
         return Response(msgspec.json.encode(body), media_type="application/json")
 
     return app

@@ -103,16 +103,16 @@ def _single_phase_times(count: int = 300) -> dict[str, float]:
 
 
 def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections: int, rounds: int = 5) -> Row:
-    """Row 1: /v1/fixes against ``GET /healthz`` (and /bench/echo, same body: ``bench.app``), interleaved in rounds
-    on one server.
+    """Row 1: /v1/fixes against ``GET /healthz`` (and /bench/echo and /bench/echo_inline, same body:
+    ``bench.app``), interleaved in rounds on one server.
 
-    Each route gets ``duration_s`` in all, as ``rounds`` runs taken in turn (healthz, fix, echo, healthz, ...),
-    so a burst of load from elsewhere on the machine hits all three alike.
+    Each route gets ``duration_s`` in all, as ``rounds`` runs taken in turn (healthz, fix, echo, echo_inline,
+    healthz, ...), so a burst of load from elsewhere on the machine hits all four alike.
     """
     target = 0.5 if connections == 1 else 0.6
     body = orjson.dumps(four_station_requests(1, np.random.default_rng(11))[0])
     connection = _connection(url)
-    for path in ("/v1/fixes", "/bench/echo"):
+    for path in ("/v1/fixes", "/bench/echo", "/bench/echo_inline"):
         for _ in range(100):
             status, _ = _post(connection, path, body)
             if status != 200:
@@ -120,13 +120,15 @@ def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections
     connection.close()
     rounds = max(1, min(rounds, int(duration_s)))
     each = max(1, int(duration_s // rounds))
-    runs = {"echo": [], "fix": [], "healthz": []}
+    runs = {"echo": [], "inline": [], "fix": [], "healthz": []}
     for _ in range(rounds):
         runs["healthz"].append(load.run(f"{url}/healthz", each, connections))
         runs["fix"].append(load.run(f"{url}/v1/fixes", each, connections, body))
         runs["echo"].append(load.run(f"{url}/bench/echo", each, connections, body))
+        runs["inline"].append(load.run(f"{url}/bench/echo_inline", each, connections, body))
     (fix_rps, fix_p50, fix_p99, fix_fail), (echo_rps, echo_p50, echo_p99, echo_fail), \
-        (health_rps, health_p50, health_p99, health_fail) = (_combined(runs[k]) for k in ("fix", "echo", "healthz"))
+        (inline_rps, _, _, inline_fail), (health_rps, health_p50, health_p99, health_fail) = (
+            _combined(runs[k]) for k in ("fix", "echo", "inline", "healthz"))
     ratio = fix_rps / health_rps
     per_round = [f.requests_per_s / h.requests_per_s for f, h in zip(runs["fix"], runs["healthz"])]
     verdict = "met" if ratio >= target else f"missed: {ratio:.2f}x of healthz is {target / ratio:.1f}x short of {target}x"
@@ -137,12 +139,14 @@ def single_fix_row(url: str, load: LoadGenerator, duration_s: float, connections
         f"healthz {health_rps:,.0f} req/s (p50 {health_p50:.1f}, p99 {health_p99:.1f} ms)",
         f"{ratio:.2f}x healthz", f">= {target}x healthz", verdict,
         [f"c={connections}: body {len(body)} bytes; load generator {runs['fix'][0].generator}; non-2xx or socket "
-         f"errors: {fix_fail + echo_fail + health_fail}; fix/healthz per round: "
+         f"errors: {fix_fail + echo_fail + inline_fail + health_fail}; fix/healthz per round: "
          + ", ".join(f"{r:.2f}" for r in per_round)
          + f"; the same body to /bench/echo (the fix route's shape with a solve that costs nothing: parse, a hop to "
          f"a worker thread and back per request, answer): {echo_rps:,.0f} req/s = {echo_rps / health_rps:.2f}x "
          f"healthz (fix/echo {fix_rps / echo_rps:.2f}x; the fix route's coalescer shares one hop among the requests "
-         "queued together)"]
+         "queued together); /bench/echo_inline (echo without the hop, the solve's place on the loop): "
+         f"{inline_rps:,.0f} req/s = {inline_rps / health_rps:.2f}x healthz, so the hop costs "
+         f"{1e6 / echo_rps - 1e6 / inline_rps:.0f} us a request"]
         + ([] if connections != 1 else [
             "one fix's server-side work in this process (us): "
             + "; ".join(f"{k} {v:.0f}" for k, v in _single_phase_times().items())]))
