@@ -39,9 +39,13 @@ INEFFICIENCY_RATIO = 10.0
 ILL_CONDITIONED_EIGENVALUE = 1e-6
 #: Robust-loss weight factor (``rho'``) below which a measurement is named as downweighted.
 DOWNWEIGHTED_FACTOR = 0.1
+#: A fix whose CRLB (root of its trace) exceeds this many times its distance from its farthest station is not
+#: determined by the measurements: the fit ran off along a direction they do not see (parallel lines of sight
+#: meet at infinity, where every residual vanishes and the Jacobi-scaled information still looks regular).
+RUNAWAY_SIGMA_RATIO = 1e6
 
-# Bits of the verdicts a problem's measurements raise (:func:`_verdicts_kernel`).
-ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED = (1 << k for k in range(8))
+# Bits of the verdicts a problem's measurements raise (:func:`_verdicts_kernel`); RUNAWAY makes the fix an error.
+ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY = (1 << k for k in range(9))
 
 
 def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None) -> FixBatch:
@@ -98,11 +102,11 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         robust_factor = None
 
     source = estimates.covariance_source
-    if source == "information":
-        unobservable = ~(min_eigenvalue > OBSERVABILITY_THRESHOLD)
-        if unobservable.any():
-            for b in np.flatnonzero(unobservable & ~failed).tolist():
-                errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b]))
+    ran_off = (flags & RUNAWAY) != 0
+    unobservable = ran_off | ~(min_eigenvalue > OBSERVABILITY_THRESHOLD) if source == "information" else ran_off
+    if unobservable.any():
+        for b in np.flatnonzero(unobservable & ~failed).tolist():
+            errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b], ran_off[b]))
     if robust_factor is not None:
         source = "robust"
     elif estimates.covariance_enu_m2 is None:
@@ -230,8 +234,9 @@ def _station_list(batch: ProblemBatch, b: int, rows) -> str:
     return ", ".join(sorted({ids[i] for i in batch.station_index[b, rows]}))
 
 
-def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue: float) -> str:
-    """Why the information is singular at an estimate, as specifically as can be told."""
+def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue: float, ran_off: bool) -> str:
+    """Why the information is singular at an estimate (or, ``ran_off``, too small for its distance:
+    ``RUNAWAY_SIGMA_RATIO``), as specifically as can be told."""
     n = int(batch.n_stations[b])
     local = np.einsum("nij,nj->ni", batch.station_rotations[b, :n], position_enu_m - batch.stations_enu_m[b, :n])
     horizontal = np.hypot(local[:, 0], local[:, 1])
@@ -245,9 +250,13 @@ def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue
     spread_m = float(np.max(np.linalg.norm(stations - stations.mean(axis=0), axis=-1))) + 1e3
     if np.linalg.norm(position_enu_m - stations.mean(axis=0)) > 1e4 * spread_m:
         return ("the bearings have no common point in front of the stations: the fit runs off to infinity "
-                "(lines of sight diverge, or meet only behind a station, as one gross bearing can make them); "
-                "check the bearings, send options.outliers \"exclude\" to leave each out in turn, or use eove "
+                "(lines of sight are parallel, diverge, or meet only behind a station, as one gross bearing can make "
+                "them); check the bearings, send options.outliers \"exclude\" to leave each out in turn, or use eove "
                 "to see where the lines meet")
+    if ran_off:
+        return ("the lines of sight are parallel, or in line with the stations, at the fit: the measurements do not "
+                "fix the position along them (its CRLB exceeds a million times its distance from the stations); add "
+                "a station off their line, a range or a TOA")
     return ("the measurements do not determine the position: the information matrix is singular "
             f"(min scaled eigenvalue {min_eigenvalue:.1e}); add stations, elevations or an altitude constraint")
 
@@ -262,7 +271,8 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
     studentized residuals, chi-square and the count of measurements in it, the CRLB, the covariance (the
     CRLB, or with a robust ``loss`` (code, ``-1`` for none) the sandwich of its weights), the smallest
     unit-diagonal information eigenvalue, the loss's weight factors and cost, the reference sigma, and per
-    line of sight whether the fix is behind its station or at its zenith, and the lines' smallest spread."""
+    line of sight whether the fix is behind its station or at its zenith, the lines' smallest spread, and whether
+    the fix ran off (``RUNAWAY_SIGMA_RATIO``)."""
     size, width = kinds.shape
     raw, normalized, studentized = np.zeros((size, width)), np.zeros((size, width)), np.zeros((size, width))
     chi2, known_count = np.zeros(size), np.zeros(size, dtype=np.int64)
@@ -270,6 +280,7 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
     smallest, robust_factor, robust_cost = np.empty(size), np.ones((size, width)), np.zeros(size)
     sigma_ref, spread = np.empty(size), np.full(size, np.pi / 2)
     behind, zenith = np.zeros((size, width), dtype=np.bool_), np.zeros((size, width), dtype=np.bool_)
+    runaway = np.zeros(size, dtype=np.bool_)
     weights, model_values = np.empty(width), np.empty(width)
     jacobian, local = np.empty((4, width)), np.empty((4, width))
     seen = np.empty((width, 3))
@@ -309,6 +320,11 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
                                        origin_rotation[b], axes, free)
         normal_point(jacobian, weights, axes, constrained, free, local, information)
         smallest[b] = invert_point(information, axes, constrained, free, params, crlb[b], work, vectors)
+        reach2 = 0.0
+        for m in range(n_measurements[b]):
+            dx, dy, dz = east - stations_b[m, 0], north - stations_b[m, 1], up - stations_b[m, 2]
+            reach2 = max(reach2, dx * dx + dy * dy + dz * dz)
+        runaway[b] = crlb[b, 0, 0] + crlb[b, 1, 1] + crlb[b, 2, 2] > RUNAWAY_SIGMA_RATIO ** 2 * reach2
         sigma_ref[b] = reference_sigma_point(jacobian, weights)
         for m in range(width):
             known = m < n_measurements[b] and valid[b, m] and math.isfinite(sigmas[b, m])
@@ -354,12 +370,12 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
                         cosine = min(cosine, dot)
             spread[b] = math.acos(cosine)
     return (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
-            sigma_ref, behind, zenith, spread)
+            sigma_ref, behind, zenith, spread, runaway)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith,
-                     is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, robust):
+                     runaway, is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, robust):
     """Per problem, from :func:`_finish_kernel`'s numbers: the degrees of freedom, the plain and the reported
     sigma scale (NaN without dof), the measurement with the largest ``|studentized|`` (numpy's ``argmax``:
     the first NaN, else the first largest) and its value, and the verdict bits (``ILL`` ...)."""
@@ -382,6 +398,7 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
                 largest, worst[b] = magnitude, m
         worst_value[b] = studentized[b, worst[b]] if width else 0.0
         bits = ILL if smallest[b] < ILL_CONDITIONED_EIGENVALUE else 0
+        bits |= RUNAWAY if runaway[b] else 0
         if dof[b] > 0 and abs(worst_value[b]) > OUTLIER_SIGMAS:
             bits |= OUTLIER
         lines = 0
@@ -408,11 +425,11 @@ def _fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations,
     of freedom, sigma scales, worst measurement and verdict bits (``excluded`` ``(B, M)``: measurements
     outlier exclusion set aside)."""
     (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
-     sigma_ref, behind, zenith, spread) = _finish_kernel(
+     sigma_ref, behind, zenith, spread, runaway) = _finish_kernel(
         positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas, n_measurements, valid,
         altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2, is_line, elevation_rad)
     dof, plain_scale, sigma_scale, worst, worst_value, flags = _verdicts_kernel(
-        studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith, is_line,
-        n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0)
+        studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith, runaway,
+        is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0)
     return (raw, normalized, studentized, chi2, crlb, covariance, smallest, robust_factor, sigma_ref, behind, zenith,
             spread, dof, plain_scale, sigma_scale, worst, worst_value, flags)

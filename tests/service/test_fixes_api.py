@@ -239,6 +239,43 @@ def test_parallel_lines_of_sight_are_unobservable(client):
     assert_problem(client.post("/v1/fixes", json=body), 422, code="unobservable")
 
 
+def _on_the_ground(stations_en_m: dict, azimuths_deg: dict, others: list = ()) -> dict:
+    """An ML request in a local frame, stations and target at up 0 (known): azimuth-only bearings, then
+    ``others``."""
+    return {"frame": "local", "method": "ml", "constraints": {"altitude_m": 0.0},
+            "stations": [{"id": s, "position": {"east_m": e, "north_m": n, "up_m": 0.0}}
+                         for s, (e, n) in stations_en_m.items()],
+            "measurements": [{"type": "bearing", "station_id": s, "azimuth_deg": a, "sigma_azimuth_deg": 0.5}
+                             for s, a in azimuths_deg.items()] + list(others)}
+
+
+@pytest.mark.parametrize("stations_en_m", [
+    {"a": (-1000.0, 0.0), "b": (1000.0, 0.0), "c": (0.0, -2000.0)},  # side by side: the lines meet at infinity
+    {"a": (0.0, 0.0), "b": (0.0, 1000.0)},  # in line with the target: the lines coincide
+], ids=["parallel", "in_line"])
+def test_azimuths_that_do_not_fix_a_point_on_a_known_altitude_are_unobservable_not_a_fix(client, stations_en_m):
+    """With the altitude known, every start stage but the search fails and ML's fit slides along the lines
+    until every residual is zero (north 1.4e19 m, or anywhere on the line). Both used to be 200s with a
+    CEP50 of about 5e18 m and only a collinear warning, because the Jacobi-scaled information stays regular."""
+    body = _on_the_ground(stations_en_m, {s: 0.0 for s in stations_en_m})
+    single = assert_problem(client.post("/v1/fixes", json=body), 422, code="unobservable")
+    batch = client.post("/v1/fixes/batch", json={"problems": [body]}).json()["results"][0]
+    assert not batch["ok"] and batch["error"]["code"] == "unobservable"
+    assert batch["error"]["detail"] == single["detail"]
+
+
+def test_azimuths_nearly_parallel_on_a_known_altitude_still_meet_far_away(client):
+    """The control: lines 0.01 deg apart from stations 2 km apart do meet, 11,459 km out in the flat frame, and
+    that is what ML answers, with its (huge but finite) bound and the collinear warning."""
+    stations = {"a": (-1000.0, 0.0), "b": (1000.0, 0.0)}
+    response = client.post("/v1/fixes", json=_on_the_ground(stations, {"a": 0.0, "b": -0.01}))
+    assert response.status_code == 200, response.text
+    fix = response.json()
+    meet_north_m = 2000.0 / math.tan(math.radians(0.01))
+    assert fix["position_local"]["north_m"] == pytest.approx(meet_north_m, rel=1e-6)
+    assert "collinear_geometry" in [w["code"] for w in fix["warnings"]]
+
+
 def test_request_id_echoed_and_generated(client):
     r = client.post("/v1/fixes", json=_good(), headers={"x-request-id": "c2-trace-42"})
     assert r.headers["x-request-id"] == "c2-trace-42"
