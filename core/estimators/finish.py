@@ -44,8 +44,9 @@ DOWNWEIGHTED_FACTOR = 0.1
 #: meet at infinity, where every residual vanishes and the Jacobi-scaled information still looks regular).
 RUNAWAY_SIGMA_RATIO = 1e6
 
-# Bits of the verdicts a problem's measurements raise (:func:`_verdicts_kernel`); RUNAWAY makes the fix an error.
-ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY = (1 << k for k in range(9))
+# Bits of the verdicts a problem's measurements raise (:func:`_verdicts_kernel`, and COARSE_TOA:
+# :func:`_coarse_toas`); RUNAWAY makes the fix an error.
+ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY, COARSE_TOA = (1 << k for k in range(10))
 
 
 def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None) -> FixBatch:
@@ -119,6 +120,8 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     mismatch = positive & (p_value < SIGMA_MISMATCH_P)
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
     iterations = np.zeros(size, dtype=int) if estimates.iterations is None else np.asarray(estimates.iterations)
+    if batch.has_toa.any():
+        flags = flags | np.where(_coarse_toas(batch).any(axis=-1), COARSE_TOA, 0)
     flagged = (flags != 0) | mismatch | ~converged
     if source == "propagated":
         bound_trace = np.trace(crlb, axis1=-2, axis2=-1)
@@ -190,6 +193,8 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
                     f"(scale {estimates.loss[1]:g} sigma)"))
         if bits & UNUSED:
             found.append(_unused_warning(method, int(unused_kinds[b]), int(unused_counts[b])))
+        if bits & COARSE_TOA:
+            found.append(_toa_resolution_warning(batch, b))
         warnings[b] = tuple(found)
 
     coarse = estimates.coarse_position_enu_m
@@ -227,6 +232,25 @@ def _unused_warning(method: str, kind_bits: int, count: int) -> FixWarning:
     kinds = ", ".join(sorted(name for code, name in enumerate(KIND_NAMES) if kind_bits >> code & 1))
     return FixWarning("measurements_unused", f"{method} does not use the {kinds} measurements ({count} left out of "
                                              "the fit and its verdicts); ml uses every kind")
+
+
+def _coarse_toas(batch: ProblemBatch) -> np.ndarray:
+    """``(B, M)``: the used TOAs whose value as sent (seconds since the client's epoch) float64 carries more
+    coarsely than their sigma: its spacing there exceeds the sigma (at 1.7e9 s, 2.4e-7 s or 71 m)."""
+    sent_s = np.abs(batch.values + batch.toa_reference_s[:, None])
+    return batch.valid & (batch.kinds == TOA) & (np.spacing(sent_s) > batch.sigmas)
+
+
+def _toa_resolution_warning(batch: ProblemBatch, b: int) -> FixWarning:
+    coarse = _coarse_toas(batch)[b]
+    sent_s = np.abs(batch.values[b, coarse] + batch.toa_reference_s[b])
+    spacing_s = float(np.spacing(sent_s).max())
+    return FixWarning(
+        "toa_resolution",
+        f"{int(coarse.sum())} TOA(s) sent as about {float(sent_s.max()):.3g} s since an epoch: float64 carries them to "
+        f"{spacing_s:.1e} s ({spacing_s * SPEED_OF_LIGHT_MPS:.2g} m), coarser than their sigma "
+        f"{float(batch.sigmas[b, coarse].min()):.1e} s, so the fix and its covariance are no better than that; send "
+        "TOAs relative to a recent reference (say, seconds after the first arrival)")
 
 
 def _station_list(batch: ProblemBatch, b: int, rows) -> str:

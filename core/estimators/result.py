@@ -37,6 +37,8 @@ WARNING_CODES = {
     "measurements_unused": "the method does not use some kinds of the given measurements (named in the message)",
     "measurement_downweighted": "the robust loss left this measurement under a tenth of its weight (named in the "
                                 "message)",
+    "toa_resolution": "TOAs sent as seconds since a distant epoch: float64 carries them more coarsely than their "
+                      "sigma (send them relative to a recent reference)",
 }
 
 #: Covariance sources: the inverse information at the estimate (ML-type methods), first-order

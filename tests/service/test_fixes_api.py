@@ -276,6 +276,30 @@ def test_azimuths_nearly_parallel_on_a_known_altitude_still_meet_far_away(client
     assert "collinear_geometry" in [w["code"] for w in fix["warnings"]]
 
 
+@pytest.mark.parametrize("epoch_s, sigma_s, warned", [
+    (1.7e9, 1e-8, True),  # float64 spacing at 1.7e9 s is 2.4e-7 s (71 m): the data cannot hold 3 m
+    (1.7e9, 1e-6, False),  # coarser sigma than the spacing
+    (12.0, 1e-8, False),  # seconds since a recent reference: spacing 1.8e-15 s
+])
+def test_toas_sent_since_a_distant_epoch_are_named_when_float64_cannot_carry_their_sigma(client, epoch_s, sigma_s,
+                                                                                        warned):
+    speed_of_light = 299_792_458.0
+    stations = {"a": (-1000.0, 0.0), "b": (1000.0, 0.0), "c": (0.0, -2000.0), "d": (3000.0, 3000.0)}
+    target = (2000.0, 3000.0)
+    toas = [{"type": "toa", "station_id": s, "toa_s": epoch_s + math.dist(stations[s], target) / speed_of_light,
+             "sigma_s": sigma_s} for s in "bcd"]
+    body = _on_the_ground(stations, {"a": 45.0}, toas)  # a sees the target (2000, 3000) north-east
+    single = client.post("/v1/fixes", json=body)
+    assert single.status_code == 200, single.text
+    codes = [w["code"] for w in single.json()["warnings"]]
+    assert ("toa_resolution" in codes) is warned
+    if warned:
+        assert "2.4e-07 s (71 m)" in next(w["message"] for w in single.json()["warnings"]
+                                          if w["code"] == "toa_resolution")
+    batch = client.post("/v1/fixes/batch", json={"problems": [body]}).json()["results"][0]
+    assert batch["fix"]["warnings"] == single.json()["warnings"]
+
+
 def test_request_id_echoed_and_generated(client):
     r = client.post("/v1/fixes", json=_good(), headers={"x-request-id": "c2-trace-42"})
     assert r.headers["x-request-id"] == "c2-trace-42"
