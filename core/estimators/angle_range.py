@@ -190,9 +190,9 @@ def _polar_points(batch: ProblemBatch):
     covariance_enu_m2 : ndarray, shape (B, 3, 3)
     exists : ndarray of bool, shape (B,)
     """
-    points, covariances, found = station_polar_points(batch)
+    points, information, found = station_polar_points(batch)
     exists = np.any(found, axis=-1)
-    point, covariance = fuse_points(points, covariances, found | ~exists[:, None])
+    point, covariance = fuse_points(points, information, found)
     return point, covariance, exists
 
 

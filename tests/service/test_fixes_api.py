@@ -384,3 +384,31 @@ def test_outlier_is_flagged(client):
     codes = {w["code"]: w["message"] for w in fix["warnings"]}
     assert "sigma_mismatch" in codes
     assert "measurement 0 " in codes["outlier_suspected"]  # the culprit, not a neighbour it was smeared onto
+
+
+#: Found by a sweep over the schema's bounds: one station's contradicting bearings, sigmas at their floor and
+#: ceiling, and a 1e9 m range. The polar start's covariance was singular in float64: 500 on every route.
+ONE_STATION_AT_THE_BOUNDS = {
+    "frame": "local",
+    "stations": [{"id": "s0", "position": {"east_m": -1e8, "north_m": -99999999.8, "up_m": 40.8}}],
+    "measurements": [
+        {"type": "bearing", "station_id": "s0", "azimuth_deg": 719.99999892, "sigma_azimuth_deg": 1e-06,
+         "elevation_deg": 72.81395317778299, "sigma_elevation_deg": 1e-06},
+        {"type": "bearing", "station_id": "s0", "azimuth_deg": 276.0054648409979, "sigma_azimuth_deg": 1e-06},
+        {"type": "bearing", "station_id": "s0", "azimuth_deg": -359.99999892, "sigma_azimuth_deg": 180.0,
+         "elevation_deg": -24.077710728367094, "sigma_elevation_deg": 34.377171996865066},
+        {"type": "bearing", "station_id": "s0", "azimuth_deg": -359.99999892, "sigma_azimuth_deg": 179.99999982},
+        {"type": "bearing", "station_id": "s0", "azimuth_deg": 719.99999892, "sigma_azimuth_deg": 1e-06,
+         "elevation_deg": 0.0, "sigma_elevation_deg": 1e-06},
+        {"type": "range", "station_id": "s0", "range_m": 999999999.0, "sigma_m": 0.100001}]}
+
+
+@pytest.mark.parametrize("method", ["angle_range", "ml", "auto"])
+def test_one_station_at_the_schema_bounds_gets_an_answer_not_a_500(client, method):
+    body = {**ONE_STATION_AT_THE_BOUNDS, "method": method}
+    single = client.post("/v1/fixes", json=body)
+    assert single.status_code in (200, 422), single.text
+    slot = client.post("/v1/fixes/batch", json={"problems": [body]}).json()["results"][0]
+    assert slot["ok"] is (single.status_code == 200)
+    assert (slot["fix"] if slot["ok"] else slot["error"]["detail"]) == \
+        (single.json() if slot["ok"] else single.json()["detail"])

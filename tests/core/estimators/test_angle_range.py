@@ -165,3 +165,22 @@ def test_mixed_stations_fine_fix_reaches_the_crlb(scenario, seed):
     assert rmse(fine) == pytest.approx(crlb_rmse(problem, target), rel=0.10)
     assert rmse(fine) < rmse(coarse)
     assert all(f.coarse_position_enu_m is not None and f.details["coarse"] for f in fixes)
+
+
+def test_polar_points_fuse_by_their_information_even_when_a_covariance_is_singular_in_float64():
+    """A 1e9 m range of sigma 0.1 m with a 178 deg azimuth sigma: across the line of sight the polar point's
+    sd is 3e9 m, along it 0.1 m, a covariance conditioned at 1e21 that ``inv`` called singular (a 500 on the
+    fix routes). Its information, built from the same axes, fuses exactly: with an exact second point the
+    fused position is the information-weighted mean, computed here on axes where it is diagonal."""
+    from core.estimators.starting_points import fuse_points
+
+    turn = np.array([[np.cos(0.3), -np.sin(0.3), 0.0], [np.sin(0.3), np.cos(0.3), 0.0], [0.0, 0.0, 1.0]])
+    sd_m = np.array([[0.1, 3e9, 17.0], [5.0, 5.0, 5.0]])
+    information = turn[None] @ np.stack([np.diag(1.0 / s**2) for s in sd_m]) @ turn.T[None]
+    points = np.array([[1e9, 2.0, 3.0], [1e9 + 4.0, -7.0, 11.0]]) @ turn.T
+    fused, covariance = fuse_points(points, information)
+    on_axes = points @ turn  # each point in the frame where both informations are diagonal
+    weights = 1.0 / sd_m**2
+    expected = turn @ (np.sum(weights * on_axes, axis=0) / np.sum(weights, axis=0))
+    np.testing.assert_allclose(fused, expected, rtol=0, atol=1e-6 * np.abs(expected).max())
+    np.testing.assert_allclose(np.diag(turn.T @ covariance @ turn), 1.0 / np.sum(weights, axis=0), rtol=1e-9)
