@@ -23,8 +23,8 @@ from core.crlb import (OBSERVABILITY_THRESHOLD, gdop, invert_point, normal_point
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_code, loss_point
 from core.estimators.result import Estimates, FixBatch, FixWarning
-from core.measurements import (AZIMUTH, ELEVATION, KIND_NAMES, SPEED_OF_LIGHT_MPS, TOA, ahead_point, measure_point,
-                               toa_offset_point)
+from core.measurements import (AZIMUTH, ELEVATION, KIND_NAMES, RANGE, SPEED_OF_LIGHT_MPS, TOA, ahead_point,
+                               measure_point, toa_offset_point)
 from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
@@ -272,7 +272,8 @@ def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue
                 "check the bearings, or use eove to see where the lines meet")
     stations = batch.stations_enu_m[b, :n]
     spread_m = float(np.max(np.linalg.norm(stations - stations.mean(axis=0), axis=-1))) + 1e3
-    if np.linalg.norm(position_enu_m - stations.mean(axis=0)) > 1e4 * spread_m:
+    measured_distance = batch.kind_counts[b, RANGE] + batch.kind_counts[b, TOA] > 0
+    if not measured_distance and np.linalg.norm(position_enu_m - stations.mean(axis=0)) > 1e4 * spread_m:
         return ("the bearings have no common point in front of the stations: the fit runs off to infinity "
                 "(lines of sight are parallel, diverge, or meet only behind a station, as one gross bearing can make "
                 "them); check the bearings, send options.outliers \"exclude\" to leave each out in turn, or use eove "
