@@ -7,13 +7,14 @@ continue, with bit-identical results.
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import Iterable
 
 from core.errors import InvalidInput
 from core.tracking import joint_ukf, velocity_kinematic
 from core.tracking.config import Epoch, TimeNotIncreasing, TrackerConfig, validate_epoch
-from core.tracking.kinematic import kinematic_prior
+from core.tracking.kinematic import C, kinematic_prior
 from core.tracking.state import TrackState, frozen_array
 
 _ADVANCE = {
@@ -73,7 +74,15 @@ def step(state: TrackState, epoch: Epoch, config: TrackerConfig) -> TrackState:
     if state.time_s is not None and not values[0] > state.time_s:
         raise TimeNotIncreasing(f"epoch time_s {values[0]!r} is not after the last applied {state.time_s!r}",
                                 ("time_s",))
-    return _ADVANCE[config.model](state, values, config)
+    advanced = _ADVANCE[config.model](state, values, config)
+    spacing_s = math.ulp(values[4])
+    if spacing_s > config.sigma_toa_s:
+        advanced = replace(advanced, warnings=advanced.warnings + ((
+            "toa_resolution",
+            f"toa_s {values[4]:.3g} s: float64 carries it to {spacing_s:.1e} s ({spacing_s * C:.2g} m), coarser than "
+            f"sigma_toa_s {config.sigma_toa_s:.1e} s, so the TOA differences are no better than that; send toa_s "
+            "relative to a recent reference (say, seconds since the session began)"),))
+    return advanced
 
 
 def step_many(state: TrackState, epochs: Iterable[Epoch], config: TrackerConfig) -> TrackState:

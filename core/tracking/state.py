@@ -63,6 +63,8 @@ WARNING_CODES = {
     "innovation_outlier": "the epoch's measurements disagree with the prediction beyond the chi-square "
                           "99.9 % point: a manoeuvre (the model is constant velocity) or a bad measurement; "
                           "the update is still applied",
+    "toa_resolution": "toa_s is sent as seconds since a distant epoch: float64 carries it more coarsely than "
+                      "sigma_toa_s (send it relative to a recent reference)",
 }
 
 

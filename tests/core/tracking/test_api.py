@@ -6,6 +6,7 @@ import json
 import math
 import subprocess
 import sys
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -260,6 +261,23 @@ def test_step_many_gathers_the_warnings_of_the_batch():
     assert [code for code, _ in batch.warnings] == sorted(set(codes), key=codes.index)
     (message,) = [m for code, m in batch.warnings if code == "range_unobservable"]
     assert f"and {codes.count('range_unobservable') - 1} more epochs" in message
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_toas_sent_since_a_distant_epoch_are_named_when_float64_cannot_carry_their_sigma(model):
+    """The same epochs, sent as Unix times (1.7e9 s: float64 spacing 2.4e-7 s, 71 m, against sigma_toa_s 1e-8 s)
+    and as seconds since the track began; only the first are named, once per epoch."""
+    config = paper_config(model, True)
+    epochs = simulate_emitter(paper_001_scenario(epochs=5), np.random.default_rng(4)).epochs
+    shifted = [replace(e, toa_s=e.toa_s + 1.7e9) for e in epochs]
+    for sent, warned in ((epochs, False), (shifted, True)):
+        state = new_state(config)
+        for epoch in sent:
+            state = step(state, epoch, config)
+            codes = [code for code, _ in state.warnings]
+            assert ("toa_resolution" in codes) is warned
+    message = dict(state.warnings)["toa_resolution"]
+    assert "2.4e-07 s (71 m)" in message and "1.0e-08 s" in message
 
 
 def test_every_warning_code_raised_is_documented():
