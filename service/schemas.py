@@ -256,9 +256,13 @@ class Fit(BaseModel):
     sigma_scale: float | None
 
 
+def codes_in_use(codes: dict[str, str]) -> str:
+    """An open set of warning codes as a description names them: ``code``: meaning, sorted."""
+    return "open set; those in use: " + "; ".join(f"`{code}`: {meaning}" for code, meaning in sorted(codes.items()))
+
+
 class Warning(BaseModel):
-    code: str = Field(description="open set; those in use: " + "; ".join(
-        f"`{code}`: {meaning}" for code, meaning in sorted(WARNING_CODES.items())))
+    code: str = Field(description="fixes: " + codes_in_use(WARNING_CODES) + " (sessions: see SessionState.warnings)")
     message: str
 
 

@@ -13,7 +13,7 @@ from pydantic import BaseModel, Field, model_validator
 from core.tracking import WARNING_CODES as TRACKING_WARNING_CODES
 from service.schemas import (MAX_ABS_TIME_S, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions, FeatureCollection,
                              GeodeticPosition, GeodeticPositionResult, LocalPosition, LocalPositionResult, Position,
-                             Strict, Warning)
+                             Strict, Warning, codes_in_use)
 
 #: JavaScript's largest exact integer: a seq above it would be mangled by many JSON clients.
 MAX_SEQ = 2**53 - 1
@@ -140,9 +140,8 @@ class SessionState(BaseModel):
     pulse_period_s: float = Field(description="current pulse-period estimate (the given one when known)")
     covariance_enu: Matrix6 | None = Field(description="6x6 covariance of [east_m, north_m, up_m, east_mps, "
                                                        "north_mps, up_mps] at the observer")
-    warnings: list[Warning] = Field(description="raised by the last post that applied epochs; codes (open set) in "
-                                                "use: " + "; ".join(f"`{code}`: {meaning}" for code, meaning
-                                                                    in sorted(TRACKING_WARNING_CODES.items())))
+    warnings: list[Warning] = Field(description="raised by the last post that applied epochs; codes: "
+                                                + codes_in_use(TRACKING_WARNING_CODES))
     mode_probabilities: list[float] | None = Field(None, description="with process_noise.imm_accel_sigmas_mps2, "
                                                                      "once the start has settled: the probability "
                                                                      "of each level, in their order")
