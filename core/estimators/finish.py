@@ -46,7 +46,8 @@ RUNAWAY_SIGMA_RATIO = 1e6
 
 # Bits of the verdicts a problem's measurements raise (:func:`_verdicts_kernel`, and COARSE_TOA:
 # :func:`_coarse_toas`); RUNAWAY makes the fix an error.
-ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY, COARSE_TOA = (1 << k for k in range(10))
+(ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY,
+ COARSE_TOA) = (1 << k for k in range(10))
 
 
 def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None) -> FixBatch:
