@@ -131,8 +131,10 @@ def _ellipse_geometry(position: dict, covariance_enu_m2) -> tuple[dict | None, d
     return {"type": "MultiPolygon", "coordinates": [[near], [far]]}, axes
 
 
-def _timestamp(moment: datetime) -> str:
-    return moment.astimezone(timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+def utc_timestamp(moment: datetime) -> str:
+    """An aware time as RFC 3339 / xs:dateTime in UTC to the millisecond, ``0001-01-02T00:00:00.000Z`` (four-digit
+    years: ``strftime("%Y")`` writes year 1 as ``1``)."""
+    return moment.astimezone(timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
 
 
 def _decimal(value: float, places: int) -> str:
@@ -179,10 +181,10 @@ def fix_cot(body: dict, options=()) -> str | None:
 
 def _event(uid, kind, how, start, stale_s, position, covariance, axes, detail="") -> str:
     ce, le = one_sigma_errors(covariance)
-    stamp = _timestamp(start)
+    stamp = utc_timestamp(start)
     return (
         f'<event version="2.0" uid={quoteattr(uid)} type={quoteattr(kind)} how="{how}" time="{stamp}" '
-        f'start="{stamp}" stale="{_timestamp(start + timedelta(seconds=stale_s))}">'
+        f'start="{stamp}" stale="{utc_timestamp(start + timedelta(seconds=stale_s))}">'
         f'<point lat="{_decimal(position["lat_deg"], 8)}" lon="{_decimal(_lon180(position["lon_deg"]), 8)}" '
         f'hae="{_decimal(position["alt_m"], 2)}" ce="{_decimal(ce, 2)}" le="{_decimal(le, 2)}"/>'
         f'<detail>{detail}'
@@ -214,7 +216,7 @@ def fix_features(body: dict, options=()) -> list[dict]:
     """The Point and 95 % ellipse Features of one fix (a null-geometry Point in a flat local frame)."""
     observed = getattr(options, "observed_at", None)
     properties = {"kind": "fix", "method": body["method"], "covariance_source": body.get("covariance_source"),
-                  "time": _timestamp(observed or datetime.now(timezone.utc)), **body["error"]}
+                  "time": utc_timestamp(observed or datetime.now(timezone.utc)), **body["error"]}
     cot = getattr(options, "cot", None)
     if cot is not None and cot.uid:
         properties["uid"] = cot.uid

@@ -7,9 +7,11 @@ default. Units are in the names; angles are degrees.
 
 from __future__ import annotations
 
+from datetime import datetime, timedelta, timezone
 from typing import Annotated, Any, Literal, Union, get_args
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Discriminator, Field, StrictBool, Tag, model_validator
+from pydantic import (AfterValidator, AwareDatetime, BaseModel, ConfigDict, Discriminator, Field, StrictBool, Tag,
+                      model_validator)
 
 from core.estimators import REGISTRY
 from core.estimators.loss import LOSSES
@@ -168,6 +170,25 @@ class Options(EvaluationOptions):
 Format = Literal["geojson", "cot"]
 
 
+#: The longest CoT stale time after the event's start (a week).
+MAX_STALE_S = 7 * 86400.0
+#: observed_at lies within these (UTC): a CoT event's start, and its stale time up to MAX_STALE_S later, are then
+#: times Python, XML Schema and TAK servers can all write (years 1..9999).
+OBSERVED_AT_RANGE = (datetime(1, 1, 2, tzinfo=timezone.utc),
+                     datetime(9999, 12, 31, tzinfo=timezone.utc) - timedelta(seconds=MAX_STALE_S + 86400.0))
+
+
+def _within_observed_range(moment: datetime) -> datetime:
+    low, high = OBSERVED_AT_RANGE
+    if not low <= moment <= high:
+        raise ValueError(f"observed_at must lie between {low.isoformat()} and {high.isoformat()}, so that the CoT "
+                         "stale time after it is a valid time")
+    return moment
+
+
+ObservedAt = Annotated[AwareDatetime, AfterValidator(_within_observed_range)]
+
+
 class CotOptions(Strict):
     """How a fix is sent as Cursor-on-Target (the ``cot`` format, and the TAK feed)."""
 
@@ -176,7 +197,7 @@ class CotOptions(Strict):
                                         "update one marker; absent = a new uid per fix")
     type: str = Field("a-u-G", max_length=64, pattern=r"^[A-Za-z0-9_]+(-[A-Za-z0-9_]+)*$",
                       description="CoT type; default a-u-G, an unknown-affiliation ground track")
-    stale_s: float = Field(300.0, gt=0.0, le=7 * 86400.0, description="stale = start + stale_s")
+    stale_s: float = Field(300.0, gt=0.0, le=MAX_STALE_S, description="stale = start + stale_s")
 
 
 class FixRequest(Strict):
@@ -190,9 +211,10 @@ class FixRequest(Strict):
     constraints: Constraints | None = None
     options: Options = Field(default_factory=Options)
     formats: list[Format] = Field(default_factory=list, max_length=2)
-    observed_at: AwareDatetime | None = Field(
-        None, strict=False, description="RFC 3339 time of the measurements (with an offset): the CoT event's time and start, "
-                          "the GeoJSON time; absent = when the fix is made")
+    observed_at: ObservedAt | None = Field(
+        None, strict=False, description="RFC 3339 time of the measurements (with an offset), from 0001-01-02 to "
+                                         "9999-12-23 UTC: the CoT event's time and start, the GeoJSON time; absent = "
+                                         "when the fix is made")
     cot: CotOptions | None = Field(None, description="CoT uid, type and stale time; a fix that carries them is "
                                                      "also sent to the TAK feed when one is configured")
 

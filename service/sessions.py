@@ -31,6 +31,7 @@ from core.tracking import Epoch as TrackerEpoch
 from core.tracking import TrackerConfig, TrackState, new_state, step_many
 from service import session_schemas as schemas
 from service.problems import ApiError
+from service.renderings import utc_timestamp
 from service.stores import SessionRecord, SessionStore
 
 _SESSION_ID = re.compile(r"[0-9a-f]{32}")
@@ -103,7 +104,7 @@ def tracker_epoch(epoch: schemas.Epoch) -> TrackerEpoch:
 
 
 def _timestamp(unix_s: float) -> str:
-    return datetime.fromtimestamp(unix_s, timezone.utc).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+    return utc_timestamp(datetime.fromtimestamp(unix_s, timezone.utc))
 
 
 def _observer(record: SessionRecord) -> dict:
