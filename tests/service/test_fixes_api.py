@@ -387,7 +387,7 @@ def test_outlier_is_flagged(client):
 
 
 #: Found by a sweep over the schema's bounds: one station's contradicting bearings, sigmas at their floor and
-#: ceiling, and a 1e9 m range. The polar start's covariance was singular in float64: 500 on every route.
+#: ceiling, and a 1e9 m range. The polar points' covariance was singular in float64: angle_range answered 500.
 ONE_STATION_AT_THE_BOUNDS = {
     "frame": "local",
     "stations": [{"id": "s0", "position": {"east_m": -1e8, "north_m": -99999999.8, "up_m": 40.8}}],
