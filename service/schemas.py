@@ -534,6 +534,12 @@ class EvaluationRequest(Strict):
                                                    "per-fix initial_guess)")
 
 
+class FailureReason(BaseModel):
+    code: str = Field(description="the problem code a single fix of such a trial answers with (unobservable, ...)")
+    trials: int = Field(description="failed trials with this code")
+    example: str = Field(description="the detail of the first of them")
+
+
 class MethodEvaluation(BaseModel):
     rmse_m: float | None = Field(description="null when every trial failed")
     rmse_enu_m: list[float] | None
@@ -543,6 +549,8 @@ class MethodEvaluation(BaseModel):
     nees_mean: float | None = Field(description="mean e^T C^-1 e with the method's own covariance; 3 if honest")
     failures: int
     excluded_trials: int = Field(0, description="trials with a fix in which outlier exclusion dropped a measurement")
+    failure_reasons: list[FailureReason] = Field(default_factory=list, description=(
+        "why the failed trials gave no fix, one entry per problem code, most trials first"))
 
 
 class EvaluationResponse(BaseModel):

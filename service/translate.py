@@ -201,6 +201,8 @@ def evaluation_body(request: schemas.EvaluationRequest, problem: Problem, target
             "nees_mean": _finite(r.nees_mean),
             "failures": r.failures,
             "excluded_trials": r.excluded_trials,
+            "failure_reasons": [{"code": code, "trials": count, "example": message} for code, (count, message)
+                                in sorted(r.failure_reasons.items(), key=lambda item: (-item[1][0], item[0]))],
         }
         for name, r in results.items()
     }

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
@@ -113,6 +113,9 @@ class MethodAccuracy:
         Per-trial errors of successful trials.
     excluded_trials : int
         Successful trials in which outlier exclusion dropped at least one measurement.
+    failure_reasons : dict of str to (int, str)
+        Per error code of the failed trials (:attr:`core.errors.LocalizationError.code`): how many, and the
+        first one's message.
     """
 
     rmse_m: float
@@ -124,6 +127,7 @@ class MethodAccuracy:
     failures: int
     errors_enu_m: np.ndarray
     excluded_trials: int = 0
+    failure_reasons: dict = field(default_factory=dict)
 
 
 def evaluate(problem: Problem, target_enu_m, methods, trials: int, seed: int | np.random.SeedSequence = 0,
@@ -198,6 +202,11 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, seed: int | n
         errors = np.concatenate([part[method][0] for part in parts]) if parts else np.zeros((0, 3))
         nees = np.concatenate([part[method][1] for part in parts]) if parts else np.zeros(0)
         excluded = sum(int(part[method][2]) for part in parts)
+        reasons: dict[str, tuple[int, str]] = {}
+        for part in parts:
+            for code, (count, message) in part[method][3].items():
+                earlier, first = reasons.get(code, (0, message))
+                reasons[code] = (earlier + count, first)
         found = len(errors)
         out[method] = MethodAccuracy(
             rmse_m=float(np.sqrt(np.mean(np.sum(errors**2, axis=1)))) if found else float("nan"),
@@ -209,6 +218,7 @@ def evaluate(problem: Problem, target_enu_m, methods, trials: int, seed: int | n
             failures=trials - found,
             errors_enu_m=errors,
             excluded_trials=excluded,
+            failure_reasons=reasons,
         )
     return out
 
@@ -229,9 +239,9 @@ def evaluate_chunk(problem: Problem, target_enu_m, methods, blocks, noise: str, 
 
     Returns
     -------
-    dict of str to (ndarray (F, 3), ndarray (F,), int)
-        Per method: the errors and NEES of the F trials that gave a fix, and how many of them excluded
-        a measurement.
+    dict of str to (ndarray (F, 3), ndarray (F,), int, dict)
+        Per method: the errors and NEES of the F trials that gave a fix, how many of them excluded
+        a measurement, and the failed trials' count and first message per error code.
     """
     from core.estimators import solve_many
 
@@ -241,8 +251,13 @@ def evaluate_chunk(problem: Problem, target_enu_m, methods, blocks, noise: str, 
     batch = trial_batch(problem, draws)
     out = {}
     for method in methods:
-        errors, nees, excluded = [], [], 0
+        errors, nees, excluded, reasons = [], [], 0, {}
         for rows, fixes in solve_many(batch, method, options):
+            failed = [(fixes, rows.size, int(rows.min()))] if isinstance(fixes, LocalizationError) else \
+                [(error, 1, int(rows[b])) for b, error in fixes.errors.items()]
+            for error, count, row in failed:  # the message kept is the earliest trial's, whatever the grouping
+                earlier, first_row, first = reasons.get(error.code, (0, row, error.message))
+                reasons[error.code] = (earlier + count, *min((first_row, first), (row, error.message)))
             if isinstance(fixes, LocalizationError):
                 continue
             ok = fixes.ok
@@ -252,12 +267,13 @@ def evaluate_chunk(problem: Problem, target_enu_m, methods, blocks, noise: str, 
             errors.append(np.column_stack([rows[ok], e]))
             nees.append(_nees(e, fixes.covariance_enu_m2[ok]))
             excluded += int(np.count_nonzero(fixes.excluded[ok].any(axis=1)))
+        reasons = {code: (count, message) for code, (count, _, message) in reasons.items()}
         if errors:
             joined = np.concatenate(errors)
             order = np.argsort(joined[:, 0], kind="stable")
-            out[method] = (joined[order, 1:], np.concatenate(nees)[order], excluded)
+            out[method] = (joined[order, 1:], np.concatenate(nees)[order], excluded, reasons)
         else:
-            out[method] = (np.zeros((0, 3)), np.zeros(0), 0)
+            out[method] = (np.zeros((0, 3)), np.zeros(0), 0, reasons)
     return out
 
 

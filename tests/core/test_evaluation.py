@@ -139,3 +139,16 @@ def test_a_two_worker_local_cluster_gives_the_in_process_result_bit_for_bit():
     np.testing.assert_array_equal(here["ml"].errors_enu_m, by_address["ml"].errors_enu_m)
     np.testing.assert_array_equal(track_here.squared_errors_m2, track_there.squared_errors_m2)
     np.testing.assert_array_equal(track_here.bound_m2, track_there.bound_m2)
+
+
+def test_failed_trials_are_counted_by_error_code_with_the_earliest_trials_message_whatever_the_chunking():
+    """tls has no altitude here and ove sees two lines of sight: every trial of both fails, and says why."""
+    problem = build_problem(STATIONS[:2], [Bearing(i, 0.0, 0.0, 0.5 * DEG, 0.5 * DEG) for i, _ in STATIONS[:2]])
+    small = evaluate(problem, TARGET_ENU_M, ["tls", "ove", "ml"], 60, 5, chunk_trials=7)
+    large = evaluate(problem, TARGET_ENU_M, ["ml", "ove", "tls"], 60, 5, chunk_trials=1000)
+    for method in ("tls", "ove"):
+        (code, (count, message)), = small[method].failure_reasons.items()
+        assert small[method].failures == count == 60
+        assert large[method].failure_reasons == small[method].failure_reasons
+    assert small["tls"].failure_reasons["too_few_measurements"][1].startswith("tls locates from azimuths only")
+    assert small["ml"].failures == 0 and small["ml"].failure_reasons == {}

@@ -37,6 +37,15 @@ def test_evaluation_ml_is_efficient_and_honest(client):
     assert result.methods["eove"].rmse_m >= ml.rmse_m * 0.98  # the ML is the reference
 
 
+def test_an_evaluation_says_why_trials_failed(client):
+    body = {"scenario": _scenario(), "methods": ["tls", "ml"], "trials": 20, "seed": 3}
+    result = client.post("/v1/evaluations", json=body).json()["methods"]
+    (reason,) = result["tls"]["failure_reasons"]
+    assert result["tls"]["failures"] == reason["trials"] == 20 and reason["code"] == "too_few_measurements"
+    assert "constraints.altitude_m" in reason["example"]
+    assert result["ml"]["failures"] == 0 and result["ml"]["failure_reasons"] == []
+
+
 def test_evaluation_is_reproducible_by_seed(client):
     body = {"scenario": _scenario(), "methods": ["ml"], "trials": 50, "seed": 3}
     first = client.post("/v1/evaluations", json=body).json()
