@@ -19,6 +19,14 @@ the altitude, taylor_wls 27.3; ``python -m bench.closed_form_core -r 5 10000
   for each problem of a batch (the largest fix the schema allows,
   256 x 1024, is within 3 s and 300 MB with every method:
   ``python -m bench.largest_fix`` and ``tests/service/test_faults.py``).
+
+los_intersection intersects every pair of lines of sight: a problem of M measurements costs it about
+0.4 us x M^2 in core (414 ms for 2 stations x 1,024 bearings, 33 ms for 256; ml: 1.8 ms), so a fix, a
+batch problem or an evaluation trial costs it at least M^2 / 4 (:func:`problem_units`; rows for a trial).
+
+Each of them is multiplied, for a problem solved with ``options.outliers "exclude"``, by the solves
+exclusion may take (:func:`exclusion_solves`): its refits run the method again, up to 65 times. Unpriced,
+256 x 1,024 with los_intersection and exclusion took 28 s, and 2 x 1,008 took 25 s.
 """
 
 from __future__ import annotations
@@ -26,7 +34,7 @@ from __future__ import annotations
 import contextvars
 
 from service.problems import ApiError
-from service.wire import measurement_count, requested_method
+from service.wire import measurement_count, requested_method, requests_exclusion
 
 #: The ``max_fix_cost`` of the app serving this request (set per request by the middleware).
 fix_cost_limit: contextvars.ContextVar[int | None] = contextvars.ContextVar("fix_cost_limit", default=None)
@@ -37,22 +45,34 @@ def method_weight(method) -> int:
     return 1
 
 
+def problem_units(method, base: int, measurements: int) -> int:
+    """A problem's cost for ``method`` on one solve: ``base`` (its measurements, or stations x measurements
+    for a fix), and for los_intersection, which intersects every pair of lines of sight, at least
+    ``measurements^2 / 4``."""
+    return max(base, measurements * measurements // 4) if method == "los_intersection" else base
+
+
 def over_limit(name: str, cost: int, limit: int, loc: list, what: str) -> ApiError:
     detail = f"{what} costs {cost:,} units, over the limit {name} = {limit:,}; ask for less"
     return ApiError(422, "over_limit", detail, [{"loc": loc, "msg": detail, "type": "over_limit"}])
 
 
-def evaluation_cost(trials: int, methods, rows: int, exclude: bool = False, sources: int = 1) -> int:
-    """``trials x rows x method weights``, times the solves a trial may need with outlier exclusion: the
-    first, then per exclusion (at most ``MAX_EXCLUSIONS``, and one fewer than the ``sources`` request
-    measurements) a refit of each candidate left (at most ``EXCLUSION_CANDIDATES``): the worst case is
-    priced."""
+def exclusion_solves(exclude: bool, sources: int) -> int:
+    """How many times a problem of ``sources`` request measurements may be solved: once, and with outlier
+    exclusion (``exclude``) then per exclusion (at most ``MAX_EXCLUSIONS``, and one fewer than ``sources``) a
+    refit of each candidate left (at most ``EXCLUSION_CANDIDATES``): the worst case."""
     from core.estimators import EXCLUSION_CANDIDATES, MAX_EXCLUSIONS
 
-    solves = 1
-    if exclude:
-        solves += sum(min(EXCLUSION_CANDIDATES, sources - done) for done in range(min(MAX_EXCLUSIONS, sources - 1)))
-    return trials * rows * sum(method_weight(m) for m in methods) * solves
+    if not exclude:
+        return 1
+    return 1 + sum(min(EXCLUSION_CANDIDATES, sources - done) for done in range(min(MAX_EXCLUSIONS, sources - 1)))
+
+
+def evaluation_cost(trials: int, methods, rows: int, exclude: bool = False, sources: int = 1) -> int:
+    """``trials x rows x method weights`` (:func:`problem_units`), times the solves a trial may take
+    (:func:`exclusion_solves`)."""
+    per_trial = sum(problem_units(m, rows * method_weight(m), rows) for m in methods)
+    return trials * per_trial * exclusion_solves(exclude, sources)
 
 
 def check_evaluation(trials: int, methods, rows: int, limit: int, exclude: bool = False, sources: int = 1) -> None:
@@ -60,6 +80,8 @@ def check_evaluation(trials: int, methods, rows: int, limit: int, exclude: bool 
     if cost > limit:
         raise over_limit("max_evaluation_cost", cost, limit, ["trials"],
                          f"{trials} trials x {len(methods)} methods x {rows} measurement rows"
+                         + (" (los_intersection: rows^2 / 4, its pairs of lines of sight)"
+                            if "los_intersection" in methods else "")
                          + (" x (1 + the refits each trial's exclusions may take)" if exclude else ""))
 
 
@@ -71,11 +93,14 @@ def check_grid(cells: int, rows: int, limit: int) -> None:
 
 
 def batch_cost(problems: list) -> int:
-    """``sum of weight x measurements`` over parsed or decoded problems (anything malformed costs 1)."""
+    """``sum of weight x measurements x solves`` (:func:`exclusion_solves`) over parsed or decoded problems
+    (anything malformed costs 1)."""
     total = 0
     for body in problems:
         count = measurement_count(body)
-        total += 1 if count is None else count * method_weight(requested_method(body))
+        method = requested_method(body)
+        total += 1 if count is None else (problem_units(method, count * method_weight(method), count)
+                                          * exclusion_solves(requests_exclusion(body), count))
     return total
 
 
@@ -85,14 +110,25 @@ def check_batch(problems: list, limit: int) -> None:
         raise over_limit("max_batch_cost", cost, limit, ["problems"], f"a batch of {len(problems)} problems")
 
 
-def check_fix(stations: int, measurements: int) -> None:
+def fix_cost(stations: int, measurements: int, method: str = "auto", exclude: bool = False) -> int:
+    """``stations x measurements`` (:func:`problem_units`) ``x solves`` (:func:`exclusion_solves`)."""
+    return problem_units(method, stations * measurements, measurements) * exclusion_solves(exclude, measurements)
+
+
+def check_fix(stations: int, measurements: int, method: str = "auto", exclude: bool = False) -> None:
     """Raise ``ValueError`` (a validation error of the request) when a fix is over this app's ``max_fix_cost``."""
     limit = fix_cost_limit.get()
-    if limit is not None and stations * measurements > limit:
-        raise ValueError(f"{stations} stations x {measurements} measurements = {stations * measurements:,}, "
-                         f"over the limit max_fix_cost = {limit:,}")
+    cost = fix_cost(stations, measurements, method, exclude)
+    if limit is not None and cost > limit:
+        units = problem_units(method, stations * measurements, measurements)
+        solves = exclusion_solves(exclude, measurements)
+        raise ValueError(
+            (f"{stations} stations x {measurements} measurements" if units == stations * measurements else
+             f"{method} on {measurements} measurements (their pairs: {measurements}^2 / 4)")
+            + (f" x {solves} solves (outlier exclusion's refits at most)" if solves > 1 else "")
+            + f" = {cost:,}, over the limit max_fix_cost = {limit:,}")
 
 
-def fix_within_limit(stations: int, measurements: int) -> bool:
+def fix_within_limit(stations: int, measurements: int, method: str = "auto", exclude: bool = False) -> bool:
     limit = fix_cost_limit.get()
-    return limit is None or stations * measurements <= limit
+    return limit is None or fix_cost(stations, measurements, method, exclude) <= limit

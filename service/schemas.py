@@ -206,7 +206,8 @@ class FixRequest(Strict):
     stations: list[Station] = Field(min_length=1, max_length=256)
     measurements: list[Measurement] = Field(min_length=1, max_length=MAX_FIX_MEASUREMENTS, description=(
         "1..1024 (the largest fix, 256 stations x 1024 measurements, runs within 3 s and 300 MB); a service "
-        "may set a lower max_fix_cost = stations x measurements"))
+        "may set a lower max_fix_cost = stations x measurements (los_intersection: at least measurements^2 / 4), "
+        "times, with options.outliers exclude, the solves its refits may take (up to 65)"))
     method: Method = "auto"  # type: ignore[valid-type]
     constraints: Constraints | None = None
     options: Options = Field(default_factory=Options)
@@ -220,7 +221,7 @@ class FixRequest(Strict):
 
     @model_validator(mode="after")
     def _within_cost(self):
-        check_fix(len(self.stations), len(self.measurements))
+        check_fix(len(self.stations), len(self.measurements), self.method, self.options.outliers == "exclude")
         return self
 
     @model_validator(mode="after")

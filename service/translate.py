@@ -435,7 +435,8 @@ def _read(bodies: list):
                 ids[sid] = len(ids)
                 add_coordinates(coordinates_of(position, geodetic))
             measurements = body.measurements
-            if not 0 < len(measurements) <= _MEASUREMENTS_MAX or not fix_within_limit(len(ids), len(measurements)):
+            if not 0 < len(measurements) <= _MEASUREMENTS_MAX or \
+                    not fix_within_limit(len(ids), len(measurements), method, setting[3].outliers == "exclude"):
                 raise _Reject
             n_bearings = 0
             for i, m in enumerate(measurements):

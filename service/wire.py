@@ -149,6 +149,14 @@ def requested_method(body):
     return body.get("method", "auto") if type(body) is dict else None
 
 
+def requests_exclusion(body) -> bool:
+    """Whether a parsed or decoded body asks for ``options.outliers`` ``"exclude"``."""
+    if type(body) is FixBody:
+        return body.options is not UNSET and body.options.outliers == "exclude"
+    options = body.get("options") if type(body) is dict else None
+    return type(options) is dict and options.get("outliers") == "exclude"
+
+
 def measurement_count(body) -> int | None:
     """How many measurements a parsed or decoded body holds (None when it holds no list of them)."""
     if type(body) is FixBody:

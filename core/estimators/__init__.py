@@ -121,7 +121,8 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, b
         API method names (``auto`` allowed).
     options : SolveOptions or sequence of SolveOptions, length B, optional
     should_stop : callable returning bool, optional
-        Asked before each part is solved; True raises :class:`core.parallel.Stopped`.
+        Asked before each part is solved, and before each round of outlier exclusion; True raises
+        :class:`core.parallel.Stopped`.
     background : bool
         Start solving on the threads now, even a single part.
 
@@ -169,7 +170,7 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, b
         part = batch if chosen.size == size else batch.take(chosen)
         fixes = spec.solve_batch(part, opts)
         if opts.outliers == "exclude":
-            fixes = exclude_outliers(spec, part, opts, fixes)
+            fixes = exclude_outliers(spec, part, opts, fixes, should_stop)
         return fixes if opts.absolute_sigma else fixes.scaled_by_fit()
 
     parts = sum(len(item) == 3 for item in work)
@@ -199,7 +200,7 @@ MAX_EXCLUSIONS = 8
 EXCLUSION_CANDIDATES = 8
 
 
-def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: FixBatch) -> FixBatch:
+def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: FixBatch, should_stop=None) -> FixBatch:
     """Fault detection and exclusion (RAIM FDE) over a batch.
 
     While a fix fails the chi-square test (``p < EXCLUSION_P``), or ran off
@@ -215,7 +216,8 @@ def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: Fi
     studentized residual squared); the refit also unmasks a gross error that
     a nonlinear or robust fit absorbed, its own residual small. A problem no
     exclusion helps keeps the fix it has. The covariance and CRLB are those
-    of the measurements used; every excluded one is named in a warning.
+    of the measurements used; every excluded one is named in a warning. ``should_stop`` is asked before
+    each round (True raises :class:`core.parallel.Stopped`).
     """
     used = batch.valid.copy()
     excluded = np.zeros_like(used)
@@ -227,6 +229,8 @@ def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: Fi
         rows = np.flatnonzero(testing)
         if rows.size == 0:
             break
+        if should_stop is not None and should_stop():
+            raise Stopped()
         found, drops, refits = _best_exclusions(spec, batch, options, used, excluded, rows,
                                                 np.abs(fixes.studentized_residuals))
         settled[rows[~found]] = True

@@ -222,3 +222,43 @@ def test_a_batch_over_its_cost_is_422_naming_the_limit(make_client):
     eove = {**body, "method": "eove"}
     assert small.post("/v1/fixes/batch", json={"problems": [eove] * 25}).status_code == 200  # every method weighs 1
     assert_problem(small.post("/v1/fixes/batch", json={"problems": [eove] * 26}), 422, code="over_limit")
+
+
+def test_outlier_exclusion_is_priced_as_the_refits_it_may_take(make_client):
+    """Four bearings with exclusion may be solved 1 + 4 + 3 + 2 = 10 times: a fix costs 4 x 4 x 10 and a
+    batch problem 4 x 10 (256 x 1,024 with los_intersection took 28 s with exclusion, unpriced)."""
+    from service.limits import exclusion_solves
+
+    assert [exclusion_solves(False, 1024), exclusion_solves(True, 1), exclusion_solves(True, 4),
+            exclusion_solves(True, 1024)] == [1, 1, 10, 65]
+    body = _fix()
+    excluding = {**body, "options": {"outliers": "exclude"}}
+    fixes = make_client(max_fix_cost=159)
+    assert fixes.post("/v1/fixes", json=body).status_code == 200
+    problem = assert_problem(fixes.post("/v1/fixes", json=excluding), 422)
+    assert "x 10 solves" in problem["detail"] and "max_fix_cost" in problem["detail"]
+    slots = fixes.post("/v1/fixes/batch", json={"problems": [body, excluding]}).json()["results"]
+    assert [slot["ok"] for slot in slots] == [True, False]
+    assert make_client(max_fix_cost=160).post("/v1/fixes", json=excluding).status_code == 200
+    batches = make_client(max_batch_cost=80)
+    assert batches.post("/v1/fixes/batch", json={"problems": [excluding] * 2}).status_code == 200
+    assert_problem(batches.post("/v1/fixes/batch", json={"problems": [excluding] * 3}), 422, code="over_limit")
+    assert batches.post("/v1/fixes/batch", json={"problems": [body] * 20}).status_code == 200
+
+
+def test_los_intersection_is_priced_by_its_pairs_of_lines_of_sight(make_client):
+    """It intersects every pair: 2 stations x 1,008 bearings took 0.4 s alone and 25 s with exclusion while
+    costing 2 x 1,008. Here 2 stations x 12 bearings cost 24, and 12^2 / 4 = 36 for los_intersection."""
+    body = {"frame": "local", "stations": [{"id": s, "position": {"east_m": e, "north_m": 0.0}}
+                                           for s, e in (("a", 0.0), ("b", 10_000.0))],
+            "measurements": [{"type": "bearing", "station_id": s, "azimuth_deg": a + k * 0.01,
+                              "elevation_deg": 5.0, "sigma_azimuth_deg": 1.0, "sigma_elevation_deg": 1.0}
+                             for k in range(6) for s, a in (("a", 45.0), ("b", 315.0))]}
+    los = {**body, "method": "los_intersection"}
+    tight = make_client(max_fix_cost=35, max_batch_cost=35)
+    assert tight.post("/v1/fixes", json={**body, "method": "ml"}).status_code == 200
+    problem = assert_problem(tight.post("/v1/fixes", json=los), 422)
+    assert "12^2 / 4" in problem["detail"] and "max_fix_cost" in problem["detail"]
+    assert make_client(max_fix_cost=36).post("/v1/fixes", json=los).status_code == 200
+    assert tight.post("/v1/fixes/batch", json={"problems": [{**body, "method": "ml"}]}).status_code == 200
+    assert_problem(tight.post("/v1/fixes/batch", json={"problems": [los]}), 422, code="over_limit")

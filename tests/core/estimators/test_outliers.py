@@ -180,3 +180,24 @@ def test_a_robust_fit_is_not_left_in_the_basin_a_gross_bearing_pulled_its_start_
 
     higher = [cost(f) > cost(t) + 0.5 for f, t in zip(fixes, from_truth) if not isinstance(t, Exception)]
     assert np.mean(higher) <= 0.01
+
+
+def test_exclusion_asks_whether_to_stop_before_each_round():
+    """A deadline can end exclusion between its rounds of refits (each round re-runs the method on every
+    candidate), not only between parts of a batch."""
+    from core.estimators import iter_solutions
+    from core.parallel import Stopped
+    from core.problem_batch import ProblemBatch
+
+    batch = ProblemBatch.from_problems(_draws(_problem(), 7)[:20])
+    asked = []
+
+    def stop_at_the_first_round():
+        asked.append(True)
+        return len(asked) > 1  # the part itself may start; its first exclusion round may not
+
+    with pytest.raises(Stopped):
+        list(iter_solutions(batch, "ml", SolveOptions(outliers="exclude"), should_stop=stop_at_the_first_round))
+    assert len(asked) == 2
+    assert all(not isinstance(fixes, Exception) for _, fixes in
+               iter_solutions(batch, "ml", SolveOptions(outliers="exclude"), should_stop=lambda: False))
