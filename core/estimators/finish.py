@@ -121,8 +121,9 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     mismatch = positive & (p_value < SIGMA_MISMATCH_P)
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
     iterations = np.zeros(size, dtype=int) if estimates.iterations is None else np.asarray(estimates.iterations)
-    if batch.has_toa.any():
-        flags = flags | np.where(_coarse_toas(batch).any(axis=-1), COARSE_TOA, 0)
+    coarse_toas = _coarse_toas(batch) if batch.has_toa.any() else None
+    if coarse_toas is not None:
+        flags = flags | np.where(coarse_toas.any(axis=-1), COARSE_TOA, 0)
     flagged = (flags != 0) | mismatch | ~converged
     if source == "propagated":
         bound_trace = np.trace(crlb, axis1=-2, axis2=-1)
@@ -195,7 +196,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         if bits & UNUSED:
             found.append(_unused_warning(method, int(unused_kinds[b]), int(unused_counts[b])))
         if bits & COARSE_TOA:
-            found.append(_toa_resolution_warning(batch, b))
+            found.append(_toa_resolution_warning(batch, b, coarse_toas[b]))
         warnings[b] = tuple(found)
 
     coarse = estimates.coarse_position_enu_m
@@ -242,8 +243,8 @@ def _coarse_toas(batch: ProblemBatch) -> np.ndarray:
     return batch.valid & (batch.kinds == TOA) & (np.spacing(sent_s) > batch.sigmas)
 
 
-def _toa_resolution_warning(batch: ProblemBatch, b: int) -> FixWarning:
-    coarse = _coarse_toas(batch)[b]
+def _toa_resolution_warning(batch: ProblemBatch, b: int, coarse) -> FixWarning:
+    """The ``toa_resolution`` warning of problem ``b``, whose TOAs ``coarse`` ``(M,)`` (:func:`_coarse_toas`) are."""
     sent_s = np.abs(batch.values[b, coarse] + batch.toa_reference_s[b])
     spacing_s = float(np.spacing(sent_s).max())
     return FixWarning(
