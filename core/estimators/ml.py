@@ -96,6 +96,11 @@ class Solution:
     converged: np.ndarray
     cost: np.ndarray
 
+    def put(self, rows, other: "Solution", picks) -> None:
+        """Rows ``rows`` of this solution become rows ``picks`` of ``other`` (in place; int or ``(K,)`` each)."""
+        for name in self.__dataclass_fields__:
+            getattr(self, name)[rows] = getattr(other, name)[picks]
+
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _evaluate(position_enu_m, bias_m, stations, rotations, kinds, values, weights, loss_code, c2,
@@ -550,9 +555,7 @@ def _ambiguous(batch: ProblemBatch, b: int, other_enu_m, starts, names, failures
             "measurement that tells them apart")
         return ()
     if np.linalg.norm(other_enu_m - guess) < np.linalg.norm(fix - guess):
-        picked = iterate(batch.take([b]), other_enu_m[None], options)
-        for name in Solution.__dataclass_fields__:
-            getattr(solution, name)[b] = getattr(picked, name)[0]
+        solution.put(b, iterate(batch.take([b]), other_enu_m[None], options), 0)
         starts[b], names[b], other_enu_m = other_enu_m, "initial_guess", fix
     return (FixWarning("ambiguous_solution", f"another point fits the measurements as well, at "
                                              f"{_point(batch, b, other_enu_m)}; the initial guess picked this one"),)
@@ -625,8 +628,7 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
                 starts[b], names[b] = found[ok][j], "search"
                 failures.pop(b, None)
                 missing[b] = False
-                for name in Solution.__dataclass_fields__:
-                    getattr(solution, name)[b] = getattr(again, name)[j]
+                solution.put(b, again, j)
             if np.all(np.isfinite(rival[ok][j])):
                 warnings[b] = _ambiguous(batch, b, rival[ok][j], starts, names, failures, solution, options)
         p_value[rows] = chdtrc(np.maximum(dof[rows], 1), solution.cost[rows])
@@ -640,12 +642,14 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
         owners, found = owners[ok], found[ok]
         if owners.size:
             again = iterate(batch.take(owners), found, options)
-            for j in np.flatnonzero(again.converged).tolist():
-                b = int(owners[j])
-                if again.cost[j] < solution.cost[b] * (1.0 - 1e-9):
-                    starts[b], names[b] = found[j], "subset"
-                    for name in Solution.__dataclass_fields__:
-                        getattr(solution, name)[b] = getattr(again, name)[j]
+            cost = np.where(again.converged, again.cost, np.inf)
+            order = np.lexsort((cost, owners))  # per problem, its lowest converged cost first
+            lowest = order[np.flatnonzero(np.diff(owners[order], prepend=-1))]
+            better = lowest[cost[lowest] < solution.cost[owners[lowest]] * (1.0 - 1e-9)]
+            starts[owners[better]] = found[better]
+            for b in owners[better].tolist():
+                names[b] = "subset"
+            solution.put(owners[better], again, better)
             p_value[rows] = chdtrc(np.maximum(dof[rows], 1), solution.cost[rows])
     # A closed form's (or the search's) fix may have a mirror image that fits as well: try it.
     check = (mirror_applies(batch) & ~missing & (p_value >= IMPLAUSIBLE_P)).nonzero()[0]
@@ -671,6 +675,5 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
                 warnings[b] = _ambiguous(batch, b, position[j], starts, names, failures, solution, options)
                 continue
             starts[b], names[b] = mirrored[j], "mirror"
-            for name in Solution.__dataclass_fields__:
-                getattr(solution, name)[b] = getattr(image, name)[j]
+            solution.put(b, image, j)
     return estimate_from(batch, starts, options, names, failures, solution, warnings)
