@@ -213,9 +213,10 @@ class FixRequest(Strict):
     options: Options = Field(default_factory=Options)
     formats: list[Format] = Field(default_factory=list, max_length=2)
     observed_at: ObservedAt | None = Field(
-        None, strict=False, description="RFC 3339 time of the measurements (with an offset), from 0001-01-02 to "
-                                         "9999-12-23 UTC: the CoT event's time and start, the GeoJSON time; absent = "
-                                         "when the fix is made")
+        None, strict=False, description=(
+            f"RFC 3339 time of the measurements (with an offset), from {OBSERVED_AT_RANGE[0].date().isoformat()} to "
+            f"{OBSERVED_AT_RANGE[1].date().isoformat()} UTC: the CoT event's time and start, the GeoJSON time; "
+            "absent = when the fix is made"))
     cot: CotOptions | None = Field(None, description="CoT uid, type and stale time; a fix that carries them is "
                                                      "also sent to the TAK feed when one is configured")
 
