@@ -310,8 +310,25 @@ def gdop(covariance_enu_m2, sigma_ref_m):
     ndarray, shape (B,)
         The position (not time) dilution; NaN where ``sigma_ref_m`` is.
     """
-    trace = np.maximum(covariance_enu_m2.trace(axis1=-2, axis2=-1), 0.0)
-    return np.sqrt(trace) / sigma_ref_m
+    covariance = np.ascontiguousarray(covariance_enu_m2, dtype=float)
+    shape = covariance.shape[:-2]
+    sigma = np.ascontiguousarray(np.broadcast_to(sigma_ref_m, shape), dtype=float).reshape(-1)
+    return _gdop_many(covariance.reshape(-1, 3, 3), sigma).reshape(shape)[()]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def gdop_point(covariance_enu_m2, sigma_ref_m):
+    """One :func:`gdop`: ``covariance_enu_m2`` ``(3, 3)``, ``sigma_ref_m`` a float."""
+    trace = covariance_enu_m2[0, 0] + covariance_enu_m2[1, 1] + covariance_enu_m2[2, 2]
+    return math.sqrt(0.0 if trace < 0.0 else trace) / sigma_ref_m
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _gdop_many(covariance_enu_m2, sigma_ref_m):
+    out = np.empty(sigma_ref_m.size)
+    for b in range(out.size):
+        out[b] = gdop_point(covariance_enu_m2[b], sigma_ref_m[b])
+    return out
 
 
 def invert_information(information, axes, free) -> Information:

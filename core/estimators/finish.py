@@ -18,7 +18,7 @@ import numpy as np
 from scipy.special import chdtrc
 
 from core.angles import wrap_point
-from core.crlb import (OBSERVABILITY_THRESHOLD, gdop, invert_point, normal_point, parameters_point,
+from core.crlb import (OBSERVABILITY_THRESHOLD, gdop_point, invert_point, normal_point, parameters_point,
                        reference_sigma_point, sandwich_point)
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_code, loss_point
@@ -45,9 +45,10 @@ DOWNWEIGHTED_FACTOR = 0.1
 RUNAWAY_SIGMA_RATIO = 1e6
 
 # Bits of the verdicts a problem's measurements raise (:func:`_verdicts_kernel`, and COARSE_TOA:
-# :func:`_coarse_toas`); RUNAWAY makes the fix an error.
-(ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY,
- COARSE_TOA) = (1 << k for k in range(10))
+# :func:`_coarse_toas`); RUNAWAY makes the fix an error, and so does SINGULAR where the covariance is the
+# inverse information.
+(ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY, COARSE_TOA, SINGULAR,
+ NOT_CONVERGED) = (1 << k for k in range(12))
 
 
 def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None) -> FixBatch:
@@ -72,8 +73,8 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     failed = np.zeros(size, dtype=bool)
     if errors:
         failed[list(errors)] = True
-    finite = np.isfinite(position).all(axis=-1)
-    if not finite.all():
+    if not np.isfinite(position).all():
+        finite = np.isfinite(position).all(axis=-1)
         for b in np.flatnonzero(~failed & ~finite).tolist():
             errors[b] = LocalizationError(f"{method} produced no finite position for this geometry")
         failed |= ~finite
@@ -88,8 +89,9 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     loss = estimates.loss
     present, valid = batch.present, batch.valid
     excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
+    converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
     (raw, normalized, studentized, chi2, crlb, covariance, min_eigenvalue, robust_factor, sigma_ref, behind, zenith,
-     spread, dof, plain_scale, sigma_scale, worst, worst_value, flags) = _fix_kernel(
+     spread, dof, p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags) = _fix_kernel(
         position, np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
         bias is not None, np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
         np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.values, dtype=float),
@@ -97,34 +99,31 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         np.ascontiguousarray(valid), np.ascontiguousarray(excluded), np.asarray(batch.altitude_m, dtype=float),
         np.asarray(batch.has_toa, dtype=np.bool_), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
         origin_rotation, -1 if loss is None else loss_code(loss[0]), 1.0 if loss is None else float(loss[1]) ** 2,
-        is_line, elevation)
-    positive = dof > 0
-    p_value = np.where(positive, chdtrc(np.maximum(dof, 1), chi2), np.nan)
+        is_line, elevation, np.ascontiguousarray(converged, dtype=np.bool_))
+    p_value = chdtrc(p_dof, chi2)
     if loss is None:
         robust_factor = None
 
     source = estimates.covariance_source
-    ran_off = (flags & RUNAWAY) != 0
-    unobservable = ran_off | ~(min_eigenvalue > OBSERVABILITY_THRESHOLD) if source == "information" else ran_off
-    if unobservable.any():
-        for b in np.flatnonzero(unobservable & ~failed).tolist():
+    fatal = RUNAWAY | SINGULAR if source == "information" else RUNAWAY
+    if (flags & fatal).any():
+        ran_off = (flags & RUNAWAY) != 0
+        for b in np.flatnonzero((flags & fatal != 0) & ~failed).tolist():
             errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b], ran_off[b]))
     if robust_factor is not None:
         source = "robust"
     elif estimates.covariance_enu_m2 is None:
-        covariance = crlb
         source = "information" if source == "information" else "crlb"
     else:
         covariance = np.asarray(estimates.covariance_enu_m2, dtype=float).reshape(size, 3, 3)
-    covariance = 0.5 * (covariance + covariance.swapaxes(-1, -2))
+        covariance = 0.5 * (covariance + covariance.swapaxes(-1, -2))
 
-    mismatch = positive & (p_value < SIGMA_MISMATCH_P)
-    converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
+    mismatch = p_value < SIGMA_MISMATCH_P
     iterations = np.zeros(size, dtype=int) if estimates.iterations is None else np.asarray(estimates.iterations)
     coarse_toas = _coarse_toas(batch) if batch.has_toa.any() else None
     if coarse_toas is not None:
         flags = flags | np.where(coarse_toas.any(axis=-1), COARSE_TOA, 0)
-    flagged = (flags != 0) | mismatch | ~converged
+    flagged = (flags & ~SINGULAR != 0) | mismatch
     if source == "propagated":
         bound_trace = np.trace(crlb, axis1=-2, axis2=-1)
         own_trace = np.trace(covariance, axis1=-2, axis2=-1)
@@ -133,23 +132,23 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     else:
         inefficient = np.zeros(size, dtype=bool)
     own = estimates.warnings or [()] * size
-    if (flags & UNUSED).any():
-        unused = present & ~valid & ~excluded
-        unused_kinds = np.bitwise_or.reduce(np.where(unused, 1 << batch.kinds.astype(np.int64), 0), axis=-1)
-        unused_counts = np.count_nonzero(unused, axis=-1)
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
     rows = np.flatnonzero(flagged & ~failed)
     if rows.size:
+        if (flags & UNUSED).any():
+            unused = present & ~valid & ~excluded
+            unused_kinds = np.bitwise_or.reduce(np.where(unused, 1 << batch.kinds.astype(np.int64), 0), axis=-1)
+            unused_counts = np.count_nonzero(unused, axis=-1)
         # The flagged rows' figures as Python numbers: numpy scalars cost twice as much to index and to format.
-        (converged_of, iterations_of, bits_of, inefficient_of, mismatch_of, worst_of, worst_value_of, chi2_of,
-         dof_of, p_value_of, plain_scale_of) = (np.take(a, rows).tolist() for a in (
-            converged, iterations, flags, inefficient, mismatch, worst, worst_value, chi2, dof, p_value, plain_scale))
+        (iterations_of, bits_of, inefficient_of, mismatch_of, worst_of, worst_value_of, chi2_of, dof_of, p_value_of,
+         plain_scale_of) = (np.take(a, rows).tolist() for a in (
+            iterations, flags, inefficient, mismatch, worst, worst_value, chi2, dof, p_value, plain_scale))
     for j, b in enumerate(rows.tolist()):
         found = list(own[b])
-        if not converged_of[j] and not any(w.code == "not_converged" for w in found):
+        bits = bits_of[j]
+        if bits & NOT_CONVERGED and not any(w.code == "not_converged" for w in found):
             found.append(FixWarning("not_converged", f"{method} did not converge in {iterations_of[j]} iterations; "
                                                      "the last accepted iterate is returned"))
-        bits = bits_of[j]
         if bits & ILL:
             found.append(FixWarning("ill_conditioned", "information matrix nearly singular "
                                                        f"(min scaled eigenvalue {min_eigenvalue[b]:.1e})"))
@@ -223,7 +222,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         details=estimates.details or [{} for _ in range(size)],
         used=valid,
         excluded=excluded,
-        gdop=gdop(crlb, sigma_ref),
+        gdop=gdop,
     )
 
 
@@ -402,10 +401,11 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith,
-                     runaway, is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, robust):
+                     runaway, is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, robust, converged):
     """Per problem, from :func:`_finish_kernel`'s numbers: the degrees of freedom, the plain and the reported
     sigma scale (NaN without dof), the measurement with the largest ``|studentized|`` (numpy's ``argmax``:
-    the first NaN, else the first largest) and its value, and the verdict bits (``ILL`` ...)."""
+    the first NaN, else the first largest) and its value, and the verdict bits (``ILL`` ...; ``converged``
+    ``(B,)``: the estimator's)."""
     size, width = studentized.shape
     dof, worst = np.empty(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
     plain_scale, sigma_scale = np.full(size, np.nan), np.full(size, np.nan)
@@ -426,6 +426,8 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
         worst_value[b] = studentized[b, worst[b]] if width else 0.0
         bits = ILL if smallest[b] < ILL_CONDITIONED_EIGENVALUE else 0
         bits |= RUNAWAY if runaway[b] else 0
+        bits |= 0 if smallest[b] > OBSERVABILITY_THRESHOLD else SINGULAR
+        bits |= 0 if converged[b] else NOT_CONVERGED
         if dof[b] > 0 and abs(worst_value[b]) > OUTLIER_SIGMAS:
             bits |= OUTLIER
         lines = 0
@@ -446,17 +448,26 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
                 n_measurements, valid, excluded, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss,
-                c2, is_line, elevation_rad):
+                c2, is_line, elevation_rad, converged):
     """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call: the residuals, chi-square, CRLB,
-    covariance, smallest eigenvalue, loss factors, reference sigma and line-of-sight facts, then the degrees
-    of freedom, sigma scales, worst measurement and verdict bits (``excluded`` ``(B, M)``: measurements
-    outlier exclusion set aside)."""
+    covariance (made symmetric), smallest eigenvalue, loss factors, reference sigma and line-of-sight facts,
+    then the degrees of freedom (also as floats, NaN where there are none: the p-value's), sigma scales, worst
+    measurement, GDOP and verdict bits (``excluded`` ``(B, M)``: measurements outlier exclusion set aside;
+    ``converged`` ``(B,)``: the estimator's)."""
     (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
      sigma_ref, behind, zenith, spread, runaway) = _finish_kernel(
         positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas, n_measurements, valid,
         altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2, is_line, elevation_rad)
     dof, plain_scale, sigma_scale, worst, worst_value, flags = _verdicts_kernel(
         studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith, runaway,
-        is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0)
+        is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0, converged)
+    size = dof.size
+    p_dof, gdop = np.empty(size), np.empty(size)
+    for b in range(size):
+        p_dof[b] = dof[b] if dof[b] > 0 else np.nan
+        gdop[b] = gdop_point(crlb[b], sigma_ref[b])
+        for i in range(3):
+            for j in range(i):
+                covariance[b, i, j] = covariance[b, j, i] = 0.5 * (covariance[b, i, j] + covariance[b, j, i])
     return (raw, normalized, studentized, chi2, crlb, covariance, smallest, robust_factor, sigma_ref, behind, zenith,
-            spread, dof, plain_scale, sigma_scale, worst, worst_value, flags)
+            spread, dof, p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags)
