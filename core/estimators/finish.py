@@ -73,7 +73,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     failed = np.zeros(size, dtype=bool)
     if errors:
         failed[list(errors)] = True
-    if not np.isfinite(position).all():
+    if np.count_nonzero(np.isfinite(position)) < position.size:
         finite = np.isfinite(position).all(axis=-1)
         for b in np.flatnonzero(~failed & ~finite).tolist():
             errors[b] = LocalizationError(f"{method} produced no finite position for this geometry")
@@ -106,7 +106,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
 
     source = estimates.covariance_source
     fatal = RUNAWAY | SINGULAR if source == "information" else RUNAWAY
-    if (flags & fatal).any():
+    if np.count_nonzero(flags & fatal):
         ran_off = (flags & RUNAWAY) != 0
         for b in np.flatnonzero((flags & fatal != 0) & ~failed).tolist():
             errors[b] = UnobservableGeometry(_singular_reason(batch, b, position[b], min_eigenvalue[b], ran_off[b]))
@@ -120,7 +120,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
 
     mismatch = p_value < SIGMA_MISMATCH_P
     iterations = np.zeros(size, dtype=int) if estimates.iterations is None else np.asarray(estimates.iterations)
-    coarse_toas = _coarse_toas(batch) if batch.has_toa.any() else None
+    coarse_toas = _coarse_toas(batch) if np.count_nonzero(batch.has_toa) else None
     if coarse_toas is not None:
         flags = flags | np.where(coarse_toas.any(axis=-1), COARSE_TOA, 0)
     flagged = (flags & ~SINGULAR != 0) | mismatch

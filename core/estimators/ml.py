@@ -610,12 +610,12 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     p_value = chdtrc(np.maximum(dof, 1), solution.cost)
     implausible = p_value < IMPLAUSIBLE_P
     retry = missing | ~solution.converged
-    if implausible.any():
+    if np.count_nonzero(implausible):
         if options.loss not in REDESCENDING:
             implausible &= ~one_basin(batch, solution.position_enu_m)
         retry |= implausible
     warnings: list[tuple] = [()] * batch.size
-    if retry.any():
+    if np.count_nonzero(retry):
         rows = np.flatnonzero(retry)
         earlier = np.where(missing[rows, None], np.nan, solution.position_enu_m[rows])
         found, rival = searched_starts(batch.take(rows), options, earlier)

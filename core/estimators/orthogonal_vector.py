@@ -367,7 +367,7 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
         np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef, origin_rotation, weighted, int(passes))
     errors: dict[int, LocalizationError] = {}
     failed = status != SOLVED
-    if failed.any():
+    if np.count_nonzero(failed):
         for b in np.flatnonzero(status == NO_ROWS).tolist():
             errors[b] = TooFewMeasurements(f"{name} needs bearings")
         why = f"{name}: the lines of sight do not determine a point (parallel or too few independent lines)"

@@ -232,7 +232,7 @@ def initial_positions(batch: ProblemBatch):
     """
     found = _Starts(batch)
     for stage in (found.weighted_eove, found.polar, found.bancroft, found.trilateration):
-        if not found.pending.any():
+        if not np.count_nonzero(found.pending):
             break
         stage()
     for b in found.pending.nonzero()[0].tolist():
@@ -254,11 +254,14 @@ class _Starts:
         self.eove_failures: dict[int, LocalizationError] = {}
 
     def settle(self, k, found, name, start):
-        chosen = k[found]
-        self.positions[chosen] = start[found]
-        for b in chosen.tolist():
+        """Problems ``k`` take their ``start`` ``(len(k), 3)`` from stage ``name`` where ``found`` (a mask over
+        ``k``; None: all of them)."""
+        if found is not None:
+            k, start = k[found], start[found]
+        self.positions[k] = start
+        for b in k.tolist():
             self.names[b] = name
-        self.pending[chosen] = False
+        self.pending[k] = False
 
     def sub(self, k):
         return self.batch if k.size == self.batch.size else self.batch.take(k)
@@ -272,10 +275,12 @@ class _Starts:
         if k.size:
             estimates = solve_orthogonal_batch(self.sub(k), normals=Normals.BOTH, weighting=Weighting.FIRST_ORDER,
                                                name="weighted_eove", with_covariance=False, passes=START_PASSES)
-            solved = np.ones(k.size, dtype=bool)
-            for j, error in estimates.errors.items():
-                solved[j] = False
-                self.eove_failures[int(k[j])] = error
+            solved = None
+            if estimates.errors:
+                solved = np.ones(k.size, dtype=bool)
+                for j, error in estimates.errors.items():
+                    solved[j] = False
+                    self.eove_failures[int(k[j])] = error
             self.settle(k, solved, "weighted_eove", estimates.position_enu_m)
 
     def polar(self):
