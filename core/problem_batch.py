@@ -141,7 +141,7 @@ class _Geometry(NamedTuple):
 
 def _frozen(array: np.ndarray) -> np.ndarray:
     """``array``, read-only: a batch computes its masks once and hands the same array to every caller."""
-    array.flags.writeable = False
+    array.setflags(write=False)
     return array
 
 

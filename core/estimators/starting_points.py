@@ -248,8 +248,7 @@ class _Starts:
     def __init__(self, batch: ProblemBatch):
         self.batch = batch
         self.pending = np.isnan(batch.initial_guess_enu_m[:, 0])
-        self.positions = np.array(batch.initial_guess_enu_m, dtype=float)
-        self.positions[self.pending] = np.nan
+        self.positions = np.array(batch.initial_guess_enu_m, dtype=float)  # NaN rows where none was given
         self.names: list[str | None] = [None if p else "initial_guess" for p in self.pending.tolist()]
         self.failures: dict[int, LocalizationError] = {}
         self.eove_failures: dict[int, LocalizationError] = {}
