@@ -578,14 +578,14 @@ def _pad(flat, scatter, fill):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _place(coordinates, counts, geodetic_stations, origin_given):
-    """Each problem's common frame and its stations in it, padded (compiled).
+def _place(coordinates, counts, geodetic_stations, origin_given, guess_given, geodetic_guess):
+    """Each problem's common frame, its stations in it (padded) and its initial guess in it (compiled).
 
     A geodetic problem without an origin takes its stations' ECEF centroid on
     the ellipsoid (the first station where the centroid is at the earth's
     centre); a geodetic station ``(lat_rad, lon_rad, alt_m)`` is placed by
     exact geodesy, a local one ``(east_m, north_m, up_m)`` as given, with
-    the local axes at it.
+    the local axes at it. So is a guess ``(B, 3)`` (where ``geodetic_guess`` ``(B,)``; NaN rows: none).
 
     Returns
     -------
@@ -596,12 +596,14 @@ def _place(coordinates, counts, geodetic_stations, origin_given):
         As :func:`core.problem.frame_placements` of ``origin``.
     stations_enu_m, rotations : ndarray, shape (B, N, 3) and (B, N, 3, 3)
         Zero and identity on padding.
+    guess_enu_m : ndarray, shape (B, 3)
     """
     size = counts.size
     width = max(1, counts.max()) if size else 1
     origin, geodetic = np.zeros((size, 3)), np.zeros(size, dtype=np.bool_)
     origin_ecef, origin_rotation = np.empty((size, 3)), np.empty((size, 3, 3))
     enu, rotations = np.zeros((size, width, 3)), np.zeros((size, width, 3, 3))
+    guess = guess_given.copy()
     first = 0
     for b in range(size):
         count = counts[b]
@@ -616,6 +618,10 @@ def _place(coordinates, counts, geodetic_stations, origin_given):
         o = origin[b]
         origin_ecef[b, 0], origin_ecef[b, 1], origin_ecef[b, 2] = geodesy.geodetic_to_ecef_point(o[0], o[1], o[2])
         geodesy.ecef_to_enu_rotation_point(o[0], o[1], origin_rotation[b])
+        if geodetic_guess[b] and not math.isnan(guess[b, 0]):
+            x, y, z = geodesy.geodetic_to_ecef_point(guess[b, 0], guess[b, 1], guess[b, 2])
+            guess[b, 0], guess[b, 1], guess[b, 2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef[b],
+                                                                              origin_rotation[b])
         for i in range(count):
             c = stations[i]
             if geodetic_stations[b]:
@@ -630,7 +636,7 @@ def _place(coordinates, counts, geodetic_stations, origin_given):
             for r in range(3):
                 rotations[b, i, r, r] = 1.0
         first += count
-    return origin, geodetic, origin_ecef, origin_rotation, enu, rotations
+    return origin, geodetic, origin_ecef, origin_rotation, enu, rotations, guess
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -738,19 +744,13 @@ def build_problem_batch(
     measurement_counts = np.asarray(measurement_counts, dtype=np.intp)
     coords = np.asarray(station_coordinates, dtype=float).reshape(-1, 3)
     geodetic_stations = np.asarray(geodetic_stations, dtype=bool)
-    origin, geodetic, origin_ecef, origin_rotation, stations_enu, rotations = _place(
-        coords, station_counts, geodetic_stations, np.ascontiguousarray(origin, dtype=float).reshape(-1, 3))
+    origin, geodetic, origin_ecef, origin_rotation, stations_enu, rotations, guess = _place(
+        coords, station_counts, geodetic_stations, np.ascontiguousarray(origin, dtype=float).reshape(-1, 3),
+        np.ascontiguousarray(initial_guess, dtype=float).reshape(-1, 3), np.asarray(geodetic_guess, dtype=bool))
     kinds, station_index, values, sigmas, bearing_index, source_index, reference = _pad_measurements(
         measurement_counts, np.asarray(kinds, dtype=np.int8), np.asarray(station_index, dtype=np.intp),
         np.asarray(values, dtype=float), np.asarray(sigmas, dtype=float), np.asarray(bearing_index, dtype=np.intp),
         np.asarray(source_index, dtype=np.intp))
-
-    guess = np.array(initial_guess, dtype=float).reshape(-1, 3)
-    geodetic_guess = np.asarray(geodetic_guess, dtype=bool) & ~np.isnan(guess[:, 0])
-    if geodetic_guess.any():
-        k = np.flatnonzero(geodetic_guess)
-        guess[k] = geodesy.geodetic_to_enu(guess[k, 0], guess[k, 1], guess[k, 2],
-                                           origin[k, 0], origin[k, 1], origin[k, 2])
 
     built = ProblemBatch(
         station_ids=tuple(station_ids),
@@ -767,7 +767,7 @@ def build_problem_batch(
         bearing_index=bearing_index,
         source_index=source_index,
         toa_reference_s=reference,
-        altitude_m=np.asarray(altitude_m, dtype=float).reshape(-1),
+        altitude_m=np.ascontiguousarray(altitude_m, dtype=float).reshape(-1),
         initial_guess_enu_m=guess,
     )
     built.__dict__["_frame_placements"] = origin_ecef, origin_rotation  # the cache of frame_placements()

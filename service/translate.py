@@ -340,8 +340,10 @@ _PLAIN = Renderings()
 
 
 def _problem_settings(body: wire.FixBody, frame: str, method: str) -> tuple:
-    """Frame, origin, method, options, guess, altitude and renderings of a body with more than stations and
-    measurements (``_Reject`` if unusual)."""
+    """The frame row, method, options and renderings of a body with more than stations and measurements
+    (``_Reject`` if unusual). The frame row is nine numbers: geodetic (1 or 0), origin ``(lat_rad, lon_rad,
+    alt_m)``, known altitude_m, initial guess (core coordinates) and whether that guess is geodetic (1 or 0);
+    NaN where not given."""
     geodetic = frame == "wgs84"
     origin = _NAN3 if body.origin is None else _position(body.origin, True)
     options = body.options
@@ -373,11 +375,13 @@ def _problem_settings(body: wire.FixBody, frame: str, method: str) -> tuple:
     formats = body.formats
     if formats is not UNSET and (len(formats) > 2 or any(f not in _FORMATS for f in formats)):
         raise _Reject
-    return geodetic, origin, method, solve, guess, guess_geodetic, altitude, Renderings(formats) if formats else _PLAIN
+    return ((float(geodetic), *origin, altitude, *guess, float(guess_geodetic)), method, solve,
+            Renderings(formats) if formats else _PLAIN)
 
 
 #: The settings of a body with only frame, method, stations and measurements (see :func:`_problem_settings`).
-_PLAIN_SETTINGS = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, math.nan, _PLAIN)
+_PLAIN_SETTINGS = {(frame, method): ((float(frame == "wgs84"), *_NAN3, math.nan, *_NAN3, 0.0), method, _DEFAULT_SOLVE,
+                                     _PLAIN)
                    for frame in ("wgs84", "local") for method in _METHODS}
 
 
@@ -388,7 +392,8 @@ def _read(bodies: list):
     Returns
     -------
     accepted : list of int
-    settings : list of tuple (see :func:`_problem_settings`)
+    settings : list of tuple
+        Per problem: frame row, method, options and renderings (see :func:`_problem_settings`).
     station_counts, measurement_counts : list of int
     station_ids : list of tuple of str
     coordinates : list of float
@@ -399,10 +404,12 @@ def _read(bodies: list):
     readings : list of float
         Their values, API units, two per measurement (value, sigma), flattened; a missing azimuth
         sigma is NaN.
+    frames : list of float
+        The frame rows of the settings, nine per problem, flattened.
     rest : list of int
     """
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
-    coordinates, scalars, readings, rest = [], [], [], []
+    coordinates, scalars, readings, frames, rest = [], [], [], [], []
     add_coordinates, add_scalar, add_reading = coordinates.extend, scalars.extend, readings.extend
     id_max, unset, nan, plain, coordinates_of = _STATION_ID_MAX, UNSET, math.nan, _PLAIN_SETTINGS, _coordinates
     Bearing, Range = wire.Bearing, wire.Range
@@ -423,7 +430,7 @@ def _read(bodies: list):
                 setting = _problem_settings(body, frame, method)
             else:
                 raise _Reject
-            geodetic = setting[0]
+            geodetic = frame == "wgs84"
             stations = body.stations
             if not 0 < len(stations) <= 256:
                 raise _Reject
@@ -436,7 +443,7 @@ def _read(bodies: list):
                 add_coordinates(coordinates_of(position, geodetic))
             measurements = body.measurements
             if not 0 < len(measurements) <= _MEASUREMENTS_MAX or \
-                    not fix_within_limit(len(ids), len(measurements), method, setting[3].outliers == "exclude"):
+                    not fix_within_limit(len(ids), len(measurements), method, setting[2].outliers == "exclude"):
                 raise _Reject
             n_bearings = 0
             for i, m in enumerate(measurements):
@@ -474,54 +481,61 @@ def _read(bodies: list):
             continue
         accepted.append(slot)
         settings.append(setting)
+        frames.extend(setting[0])
         station_counts.append(len(ids))
         station_ids.append(tuple(ids))
         measurement_counts.append((len(scalars) - n_scalars) // 4)
-    return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest
+    return (accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings,
+            frames, rest)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _checked_core_units(coordinates, on_earth, kinds, values, sigmas, coordinate_bounds, value_bounds, sigma_bounds):
-    """The lean reader's bulk checks and conversion to core units, in one pass.
+def _checked_core_units(coordinates, station_counts, geodetic, scalars, readings, measurement_counts,
+                        coordinate_bounds, value_bounds, sigma_bounds):
+    """The lean reader's bulk checks, and its conversion to core units in place, in one pass.
 
     Parameters
     ----------
     coordinates : ndarray, shape (S, 3)
-        Station coordinates as sent: ``(lat_deg, lon_deg, alt_m)`` where ``on_earth`` ``(S,)``, else
-        ``(east_m, north_m, up_m)``.
-    kinds : ndarray of int8, shape (T,)
-    values, sigmas : ndarray, shape (T,)
-        As sent (angles in degrees; an azimuth's sigma may be NaN: not given).
+        Station coordinates as sent, ``station_counts`` ``(B,)`` consecutive rows per problem:
+        ``(lat_deg, lon_deg, alt_m)`` where ``geodetic`` ``(B,)``, else ``(east_m, north_m, up_m)``. Set to
+        core units: latitude and longitude in radians.
+    scalars : ndarray of int, shape (T, 4)
+        The scalar measurements' structure (kind code first), ``measurement_counts`` ``(B,)`` consecutive rows
+        per problem.
+    readings : ndarray, shape (T, 2)
+        Value and sigma as sent (angles in degrees; an azimuth's sigma may be NaN: not given). Set to core
+        units: angles in radians.
     coordinate_bounds : ndarray, shape (2, 3, 2)
         Closed bounds per frame (local, geodetic) and coordinate; ``value_bounds``, ``sigma_bounds`` ``(4, 2)``
         per kind code.
 
     Returns
     -------
-    coordinates_ok : ndarray of bool, shape (S,)
-    scalars_ok : ndarray of bool, shape (T,)
-    coordinates : ndarray, shape (S, 3)
-        Latitude and longitude in radians.
-    values, sigmas : ndarray, shape (T,)
-        Angles in radians.
+    ndarray of int, shape (R,)
+        The problems with a number out of its bounds (their numbers are not all converted).
     """
-    coordinates_ok, scalars_ok = np.ones(coordinates.shape[0], dtype=np.bool_), np.ones(kinds.size, dtype=np.bool_)
-    core_coordinates, core_values, core_sigmas = coordinates.copy(), values.copy(), sigmas.copy()
-    for i in range(coordinates.shape[0]):
-        frame = 1 if on_earth[i] else 0
-        for j in range(3):
-            c = coordinates[i, j]
-            coordinates_ok[i] &= coordinate_bounds[frame, j, 0] <= c <= coordinate_bounds[frame, j, 1]
-        if on_earth[i]:
-            core_coordinates[i, 0] = math.radians(coordinates[i, 0])
-            core_coordinates[i, 1] = math.radians(coordinates[i, 1])
-    for t in range(kinds.size):
-        k, value, sigma = kinds[t], values[t], sigmas[t]
-        scalars_ok[t] = value_bounds[k, 0] <= value <= value_bounds[k, 1] and (
-            sigma_bounds[k, 0] <= sigma <= sigma_bounds[k, 1] or (k == _AZ and math.isnan(sigma)))
-        if k == _AZ or k == _EL:
-            core_values[t], core_sigmas[t] = math.radians(value), math.radians(sigma)
-    return coordinates_ok, scalars_ok, core_coordinates, core_values, core_sigmas
+    bad = np.zeros(station_counts.size, dtype=np.bool_)
+    station, scalar = 0, 0
+    for b in range(station_counts.size):
+        frame = 1 if geodetic[b] else 0
+        for _ in range(station_counts[b]):
+            c = coordinates[station]
+            for j in range(3):
+                if not coordinate_bounds[frame, j, 0] <= c[j] <= coordinate_bounds[frame, j, 1]:
+                    bad[b] = True
+            if frame:
+                c[0], c[1] = math.radians(c[0]), math.radians(c[1])
+            station += 1
+        for _ in range(measurement_counts[b]):
+            k, value, sigma = scalars[scalar, 0], readings[scalar, 0], readings[scalar, 1]
+            if not (value_bounds[k, 0] <= value <= value_bounds[k, 1] and (
+                    sigma_bounds[k, 0] <= sigma <= sigma_bounds[k, 1] or (k == _AZ and math.isnan(sigma)))):
+                bad[b] = True
+            if k == _AZ or k == _EL:
+                readings[scalar, 0], readings[scalar, 1] = math.radians(value), math.radians(sigma)
+            scalar += 1
+    return np.flatnonzero(bad)
 
 
 @dataclass(frozen=True)
@@ -561,58 +575,54 @@ def read_fix_requests(bodies: list) -> FixRequests:
     Any other body is validated by the schema and built by :func:`to_problem`,
     which decide and word its error, and joins the same batch.
     """
-    accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest = \
-        _read(bodies)
+    (accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, frames,
+     rest) = _read(bodies)
     errors: dict[int, dict] = {}
     lean = None
     if accepted:
-        station_counts = np.array(station_counts)
-        measurement_counts = np.array(measurement_counts)
-        station_owner = np.arange(len(accepted)).repeat(station_counts)
-        scalar_owner = np.arange(len(accepted)).repeat(measurement_counts)
-        geodetic = np.array([s[0] for s in settings], dtype=bool)
+        station_counts = np.array(station_counts, dtype=np.intp)
+        measurement_counts = np.array(measurement_counts, dtype=np.intp)
+        frames = np.array(frames, dtype=float).reshape(-1, 9)
+        geodetic = frames[:, 0] == 1.0
         coords = np.array(coordinates, dtype=float).reshape(-1, 3)
         table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
         reading = np.array(readings, dtype=float).reshape(-1, 2)
-        kinds = table[:, 0].astype(np.int8)
-        coords_ok, scalars_ok, coords, values, sigmas = _checked_core_units(
-            coords, geodetic[station_owner], kinds, np.ascontiguousarray(reading[:, 0]),
-            np.ascontiguousarray(reading[:, 1]), _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS)
-        bad = np.zeros(len(accepted), dtype=bool)
-        bad[station_owner[~coords_ok]] = True
-        bad[scalar_owner[~scalars_ok]] = True
-        if bad.any():
-            rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
+        rejected = _checked_core_units(coords, station_counts, geodetic, table, reading, measurement_counts,
+                                       _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS)
+        if rejected.size:
+            bad = np.zeros(len(accepted), dtype=bool)
+            bad[rejected] = True
+            rest = sorted(rest + [accepted[i] for i in rejected.tolist()])
             keep = np.flatnonzero(~bad)
-            station_keep, scalar_keep = ~bad[station_owner], ~bad[scalar_owner]
+            station_keep, scalar_keep = ~bad.repeat(station_counts), ~bad.repeat(measurement_counts)
             accepted = [accepted[i] for i in keep]
             settings = [settings[i] for i in keep]
             station_ids = [station_ids[i] for i in keep]
-            station_counts, measurement_counts, geodetic = station_counts[keep], measurement_counts[keep], geodetic[keep]
-            coords, table, kinds = coords[station_keep], table[scalar_keep], kinds[scalar_keep]
-            values, sigmas = values[scalar_keep], sigmas[scalar_keep]
+            station_counts, measurement_counts = station_counts[keep], measurement_counts[keep]
+            frames, geodetic = frames[keep], geodetic[keep]
+            coords, table, reading = coords[station_keep], table[scalar_keep], reading[scalar_keep]
         if accepted:
             lean = build_problem_batch(
                 station_counts=station_counts,
                 station_ids=station_ids,
                 station_coordinates=coords,
                 geodetic_stations=geodetic,
-                origin=np.array([s[1] for s in settings], dtype=float),
+                origin=frames[:, 1:4],
                 measurement_counts=measurement_counts,
-                kinds=kinds,
+                kinds=table[:, 0],
                 station_index=table[:, 1],
-                values=values,
-                sigmas=sigmas,
+                values=reading[:, 0],
+                sigmas=reading[:, 1],
                 bearing_index=table[:, 2],
                 source_index=table[:, 3],
-                altitude_m=np.array([s[6] for s in settings], dtype=float),
-                initial_guess=np.array([s[4] for s in settings], dtype=float),
-                geodetic_guess=np.array([s[5] for s in settings], dtype=bool),
+                altitude_m=frames[:, 4],
+                initial_guess=frames[:, 5:8],
+                geodetic_guess=frames[:, 8] == 1.0,
             )
     slots = list(accepted)
-    methods = [s[2] for s in settings]
-    options = [s[3] for s in settings]
-    formats = [s[7] for s in settings]
+    methods = [s[1] for s in settings]
+    options = [s[2] for s in settings]
+    formats = [s[3] for s in settings]
     built: list[Problem] = []
     for slot in rest:
         try:
