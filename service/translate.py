@@ -682,8 +682,7 @@ class _Template:
     columns: np.ndarray
 
 
-def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: int, converged: bool,
-                  iterations: int, geodetic: bool, coarse: bool, bearing_errors: bool) -> _Template:
+def _fix_template(structure: bytes, station_ids: tuple, method: str, source: str) -> _Template:
     """The template of the fix bodies of one structure.
 
     The body is the FixResponse dict with the structure's own values in place and a marker for each
@@ -692,16 +691,19 @@ def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: i
 
     Parameters
     ----------
-    width : int
-        Residual columns among a fix's values (the batch's widest problem).
+    structure : bytes
+        A row of :func:`_fix_structures`; its width sets the residual columns among a fix's values (the
+        batch's widest problem).
+    station_ids : tuple of str
     method, source : str
         The ``method`` and ``covariance_source`` of the fixes.
-    residuals : tuple of (str, int, str, bool, bool)
-        Per residual: station id, measurement index, component, used, excluded.
-    dof, iterations : int
-    converged, geodetic, coarse, bearing_errors : bool
-        The fix converged; it has a geodetic position, a coarse stage, estimated bearing errors.
     """
+    row = np.frombuffer(structure, dtype=np.int64)
+    width = (row.size - 7) // 5
+    n, dof, converged, iterations, geodetic, coarse, bearing_errors = row[:7].tolist()
+    stations, sources, kinds, used, excluded = row[7:].reshape(5, width)[:, :n].tolist()
+    residuals = zip([station_ids[s] for s in stations], sources, [KIND_NAMES[k] for k in kinds], map(bool, used),
+                    map(bool, excluded))
     names: list[tuple[str, int]] = []
 
     def slot(block: str, column: int = 0) -> orjson.Fragment:
@@ -733,7 +735,7 @@ def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: i
             for m, (station, index, component, used, excluded) in enumerate(residuals)
         ],
         "fit": {"chi2": slot("fit", 0), "dof": dof, "p_value": slot("fit", 1), "sigma_scale": slot("fit", 2)},
-        "converged": converged,
+        "converged": bool(converged),
         "iterations": iterations,
         "warnings": slot("warnings"),
     }
@@ -762,30 +764,84 @@ _KEPT_RESIDUALS = 64
 _kept_template = functools.lru_cache(maxsize=1024)(_fix_template)
 
 
-def _template(width: int, method: str, source: str, residuals: tuple, *structure) -> _Template:
-    """:func:`_fix_template`, from the cache when the structure is small enough to keep."""
-    build = _kept_template if len(residuals) <= _KEPT_RESIDUALS else _fix_template
-    return build(width, method, source, residuals, *structure)
+def _template(structure: bytes, station_ids: tuple, method: str, source: str, residuals: int) -> _Template:
+    """:func:`_fix_template`, from the cache when its ``residuals`` (the fix's measurement rows) are few enough to
+    keep."""
+    build = _kept_template if residuals <= _KEPT_RESIDUALS else _fix_template
+    return build(structure, station_ids, method, source)
 
 
 @numba.njit(cache=True, nogil=True)
-def _number_spans(text, starts, lengths):
-    """Where each number of orjson's text of a flat array of ``N > 0`` numbers (``[a,b,...]``) is.
+def _value_spans(values, text_lengths, starts, lengths):
+    """Where each value of each fix is in the values' text, and the bytes they take in all.
 
     Parameters
     ----------
-    text : ndarray of uint8
-    starts, lengths : ndarray of int, shape ``(N,)``
-        Filled with each number's first byte in ``text`` and its length.
+    values : ndarray of uint8
+        orjson's text of the B fixes' numbers, ``K`` each, as one flat array (``[a,b,...]``), then ``2 B``
+        texts: each fix's warnings, then each fix's bearing errors.
+    text_lengths : ndarray of int, shape (2 B,)
+        The texts' lengths.
+    starts, lengths : ndarray of int, shape ``(B, K + 2)``
+        Filled with each value's first byte in ``values`` and its length: a fix's numbers, its warnings and its
+        bearing errors.
+
+    Returns
+    -------
+    int
     """
-    k = 0
-    start = 1
-    for i in range(1, text.size):
-        if text[i] == 44 or text[i] == 93:  # the comma after a number, or the closing bracket
-            starts[k] = start
-            lengths[k] = i - start
-            k += 1
-            start = i + 1
+    size, columns = starts.shape
+    total = 0
+    at = 1
+    for b in range(size):
+        for j in range(columns - 2):
+            end = at
+            while values[end] != 44 and values[end] != 93:  # the comma after a number, or the closing bracket
+                end += 1
+            starts[b, j], lengths[b, j] = at, end - at
+            total += end - at
+            at = end + 1
+    for j in range(2):
+        for b in range(size):
+            starts[b, columns - 2 + j], lengths[b, columns - 2 + j] = at, text_lengths[j * size + b]
+            total += text_lengths[j * size + b]
+            at += text_lengths[j * size + b]
+    return total
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fix_structures(n_measurements, dof, converged, iterations, geodetic, coarse_enu_m, bearing_error_lengths,
+                    station_index, source_index, kinds, used, excluded):
+    """Each fix body's structure, what its template (:func:`_fix_template`) is made of, as a row of integers.
+
+    Parameters
+    ----------
+    n_measurements, dof, iterations : ndarray of int64, shape (B,)
+    converged, geodetic : ndarray of bool, shape (B,)
+    coarse_enu_m : ndarray, shape (B, 3)
+        NaN where no coarse stage ran.
+    bearing_error_lengths : ndarray of int64, shape (B,)
+        The length of each fix's estimated bearing errors text (0: none).
+    station_index, source_index : ndarray of int64, shape (B, M)
+    kinds : ndarray of int8, shape (B, M)
+    used, excluded : ndarray of bool, shape (B, M)
+
+    Returns
+    -------
+    ndarray of int64, shape (B, 7 + 5 M)
+        Per fix: measurement rows, dof, converged, iterations, geodetic, a coarse stage, bearing errors, then
+        ``M`` each of station indices, source indices, kind codes, used and excluded flags (padding included).
+    """
+    size, width = kinds.shape
+    out = np.empty((size, 7 + 5 * width), dtype=np.int64)
+    for b in range(size):
+        row = out[b]
+        row[0], row[1], row[2], row[3] = n_measurements[b], dof[b], converged[b], iterations[b]
+        row[4], row[5], row[6] = geodetic[b], not math.isnan(coarse_enu_m[b, 0]), bearing_error_lengths[b] > 0
+        for m in range(width):
+            row[7 + m], row[7 + width + m], row[7 + 2 * width + m] = station_index[b, m], source_index[b, m], kinds[b, m]
+            row[7 + 3 * width + m], row[7 + 4 * width + m] = used[b, m], excluded[b, m]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -935,7 +991,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     size = batch.size
     ok = fixes.ok
     coarse = fixes.coarse_position_enu_m
-    bearing_errors = [None if e is None else orjson.dumps(np.degrees(e).tolist())
+    bearing_errors = [b"" if e is None else orjson.dumps(np.degrees(e).tolist())
                       for e in fixes.estimated_bearing_errors_rad]
 
     # The text of every value and where it is, columns by block in _BLOCKS' order: the numbers, then the
@@ -945,57 +1001,45 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         fixes.normalized_residuals)), np.ascontiguousarray(batch.kinds, dtype=np.int8),
         *(np.ascontiguousarray(a, dtype=float) for a in (fixes.chi2, fixes.p_value, fixes.sigma_scale, coarse)),
         *batch.frame_placements(), *radius50_tables())
-    width = batch.kinds.shape[1]
-    number_text = orjson.dumps(numbers.ravel(), option=_NUMPY)
-    text, text_starts, text_lengths = _text_spans(_warning_texts(fixes.warnings) + [e or b"" for e in bearing_errors])
-    number_starts, number_lengths = np.empty(numbers.size, dtype=np.int64), np.empty(numbers.size, dtype=np.int64)
-    if numbers.size:
-        _number_spans(np.frombuffer(number_text, dtype=np.uint8), number_starts, number_lengths)
-    value_starts = np.concatenate([number_starts.reshape(size, -1),
-                                   (text_starts + len(number_text)).reshape(2, size).T], axis=-1)
-    value_lengths = np.concatenate([number_lengths.reshape(size, -1), text_lengths.reshape(2, size).T], axis=-1)
+    value_texts = _warning_texts(fixes.warnings) + bearing_errors
+    values = np.frombuffer(orjson.dumps(numbers.ravel(), option=_NUMPY) + b"".join(value_texts), dtype=np.uint8)
+    text_lengths = np.fromiter(map(len, value_texts), dtype=np.int64, count=len(value_texts))
+    value_starts = np.empty((size, numbers.shape[1] + 2), dtype=np.int64)
+    value_lengths = np.empty_like(value_starts)
+    value_bytes = _value_spans(values, text_lengths, value_starts, value_lengths)
 
     # Fixes of one structure share a template. The structure as a row of integers groups them (padding
     # columns included: rows that differ only there make two groups of one template).
-    staged = ~np.isnan(coarse[:, 0])
-    has_bearing_errors = np.array([e is not None for e in bearing_errors], dtype=bool)
-    structure = np.concatenate([
-        batch.n_measurements[:, None], fixes.dof[:, None], fixes.converged[:, None], fixes.iterations[:, None],
-        batch.geodetic[:, None], staged[:, None], has_bearing_errors[:, None], batch.station_index,
-        batch.source_index, batch.kinds, fixes.used, fixes.excluded], axis=-1, dtype=np.int64)
-    rows = ok.nonzero()[0]
-    keys = structure[rows].view(f"V{structure.shape[1] * 8}").ravel()
+    c = np.ascontiguousarray
+    structures = _fix_structures(
+        c(batch.n_measurements, dtype=np.int64), c(fixes.dof, dtype=np.int64), c(fixes.converged, dtype=bool),
+        c(fixes.iterations, dtype=np.int64), c(batch.geodetic, dtype=bool), c(coarse, dtype=float),
+        text_lengths[size:], c(batch.station_index, dtype=np.int64), c(batch.source_index, dtype=np.int64),
+        c(batch.kinds, dtype=np.int8), c(fixes.used, dtype=bool), c(fixes.excluded, dtype=bool))
+    blob, step = structures.tobytes(), structures.shape[1] * 8
     groups: dict[tuple, list[int]] = {}
-    for b, key in zip(rows.tolist(), keys.tolist()):
-        groups.setdefault((key, batch.station_ids[b]), []).append(b)
+    for b in ok.nonzero()[0].tolist():
+        groups.setdefault((blob[b * step:(b + 1) * step], batch.station_ids[b]), []).append(b)
 
     # Each body: its template's pieces and its values in turn, all written into one buffer.
-    work = []
-    for members in groups.values():
-        r = members[0]
-        n, ids = int(batch.n_measurements[r]), batch.station_ids[r]
-        residuals = tuple(zip([ids[s] for s in batch.station_index[r, :n].tolist()], batch.source_index[r, :n].tolist(),
-                              [KIND_NAMES[k] for k in batch.kinds[r, :n].tolist()], fixes.used[r, :n].tolist(),
-                              fixes.excluded[r, :n].tolist()))
-        template = _template(width, fixes.method, fixes.covariance_source, residuals, int(fixes.dof[r]),
-                                 bool(fixes.converged[r]), int(fixes.iterations[r]), bool(batch.geodetic[r]),
-                                 bool(staged[r]), bool(has_bearing_errors[r]))
-        work.append((template, np.array(members)))
+    work = [(_template(structure, ids, fixes.method, fixes.covariance_source, int(batch.n_measurements[members[0]])),
+             members) for (structure, ids), members in groups.items()]
     texts: list[bytes | None] = [None] * size
     if work:
-        values = np.frombuffer(number_text + text, dtype=np.uint8)
-        written = np.empty(sum(len(members) * template.pieces.size for template, members in work)
-                           + int(value_lengths.sum()), dtype=np.uint8)
+        written = np.empty(sum(len(members) * template.pieces.size for template, members in work) + value_bytes,
+                           dtype=np.uint8)
         ends = np.empty(size, dtype=np.int64)
         end = 0
         for template, members in work:
             end = _write_bodies(template.pieces, template.piece_starts, template.piece_lengths, template.columns,
-                                members, values, value_starts, value_lengths, written, end, ends)
-        order = np.concatenate([members for _, members in work]).tolist()
-        body_ends = ends[order].tolist()
+                                np.array(members), values, value_starts, value_lengths, written, end, ends)
+        ends = ends.tolist()
         view = memoryview(written)  # each body copied out once (no whole-buffer bytes to slice again)
-        for b, start, stop in zip(order, [0] + body_ends[:-1], body_ends):
-            texts[b] = bytes(view[start:stop])
+        start = 0
+        for _, members in work:
+            for b in members:
+                texts[b] = bytes(view[start:ends[b]])
+                start = ends[b]
 
     known = {"method": fixes.method}
     out: list[dict] = []
