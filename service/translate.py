@@ -491,7 +491,7 @@ def _read(bodies: list):
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _checked_core_units(coordinates, station_counts, geodetic, scalars, readings, measurement_counts,
-                        coordinate_bounds, value_bounds, sigma_bounds):
+                        coordinate_bounds, value_bounds, sigma_bounds, bad):
     """The lean reader's bulk checks, and its conversion to core units in place, in one pass.
 
     Parameters
@@ -509,13 +509,15 @@ def _checked_core_units(coordinates, station_counts, geodetic, scalars, readings
     coordinate_bounds : ndarray, shape (2, 3, 2)
         Closed bounds per frame (local, geodetic) and coordinate; ``value_bounds``, ``sigma_bounds`` ``(4, 2)``
         per kind code.
+    bad : ndarray of bool, shape (B,)
+        Set where a problem has a number out of its bounds (its numbers are not all converted).
 
     Returns
     -------
-    ndarray of int, shape (R,)
-        The problems with a number out of its bounds (their numbers are not all converted).
+    int
+        How many problems are bad.
     """
-    bad = np.zeros(station_counts.size, dtype=np.bool_)
+    bad[:] = False
     station, scalar = 0, 0
     for b in range(station_counts.size):
         frame = 1 if geodetic[b] else 0
@@ -535,12 +537,12 @@ def _checked_core_units(coordinates, station_counts, geodetic, scalars, readings
             if k == _AZ or k == _EL:
                 readings[scalar, 0], readings[scalar, 1] = math.radians(value), math.radians(sigma)
             scalar += 1
-    return np.flatnonzero(bad)
+    return np.count_nonzero(bad)
 
 
-@dataclass(frozen=True)
-class FixRequests:
-    """Fix requests read into one core batch.
+class FixRequests(typing.NamedTuple):
+    """Fix requests read into one core batch (a named tuple: made for every request, and cheaper to make than a
+    dataclass).
 
     Attributes
     ----------
@@ -587,12 +589,10 @@ def read_fix_requests(bodies: list) -> FixRequests:
         coords = np.array(coordinates, dtype=float).reshape(-1, 3)
         table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
         reading = np.array(readings, dtype=float).reshape(-1, 2)
-        rejected = _checked_core_units(coords, station_counts, geodetic, table, reading, measurement_counts,
-                                       _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS)
-        if rejected.size:
-            bad = np.zeros(len(accepted), dtype=bool)
-            bad[rejected] = True
-            rest = sorted(rest + [accepted[i] for i in rejected.tolist()])
+        bad = np.empty(len(accepted), dtype=bool)
+        if _checked_core_units(coords, station_counts, geodetic, table, reading, measurement_counts,
+                               _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS, bad):
+            rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
             keep = np.flatnonzero(~bad)
             station_keep, scalar_keep = ~bad.repeat(station_counts), ~bad.repeat(measurement_counts)
             accepted = [accepted[i] for i in keep]
@@ -639,8 +639,10 @@ def read_fix_requests(bodies: list) -> FixRequests:
         methods.append(request.method)
         options.append(to_options(request))
         formats.append(of_request(request))
-    parts = [p for p in (lean, ProblemBatch.from_problems(built) if built else None) if p is not None]
-    batch = ProblemBatch.concatenate(parts) if parts else None
+    batch = lean
+    if built:
+        through_schema = ProblemBatch.from_problems(built)
+        batch = through_schema if lean is None else ProblemBatch.concatenate([lean, through_schema])
     return FixRequests(batch, slots, methods, options, formats, errors)
 
 
