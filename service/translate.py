@@ -837,12 +837,12 @@ def _fix_structures(n_measurements, dof, converged, iterations, geodetic, coarse
     size, width = kinds.shape
     out = np.empty((size, 7 + 5 * width), dtype=np.int64)
     for b in range(size):
-        row = out[b]
+        row, columns = out[b, :7], out[b, 7:].reshape(5, width)
         row[0], row[1], row[2], row[3] = n_measurements[b], dof[b], converged[b], iterations[b]
         row[4], row[5], row[6] = geodetic[b], not math.isnan(coarse_enu_m[b, 0]), bearing_error_lengths[b] > 0
         for m in range(width):
-            row[7 + m], row[7 + width + m], row[7 + 2 * width + m] = station_index[b, m], source_index[b, m], kinds[b, m]
-            row[7 + 3 * width + m], row[7 + 4 * width + m] = used[b, m], excluded[b, m]
+            columns[0, m], columns[1, m], columns[2, m] = station_index[b, m], source_index[b, m], kinds[b, m]
+            columns[3, m], columns[4, m] = used[b, m], excluded[b, m]
     return out
 
 
