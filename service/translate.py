@@ -490,7 +490,7 @@ def _read(bodies: list):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _checked_core_units(coordinates, station_counts, geodetic, scalars, readings, measurement_counts,
+def _checked_core_units(coordinates, station_counts, frames, scalars, readings, measurement_counts,
                         coordinate_bounds, value_bounds, sigma_bounds, bad):
     """The lean reader's bulk checks, and its conversion to core units in place, in one pass.
 
@@ -498,8 +498,10 @@ def _checked_core_units(coordinates, station_counts, geodetic, scalars, readings
     ----------
     coordinates : ndarray, shape (S, 3)
         Station coordinates as sent, ``station_counts`` ``(B,)`` consecutive rows per problem:
-        ``(lat_deg, lon_deg, alt_m)`` where ``geodetic`` ``(B,)``, else ``(east_m, north_m, up_m)``. Set to
-        core units: latitude and longitude in radians.
+        ``(lat_deg, lon_deg, alt_m)`` where the frame is geodetic, else ``(east_m, north_m, up_m)``. Set to core
+        units: latitude and longitude in radians.
+    frames : ndarray, shape (B, 9)
+        The problems' frame rows (see :func:`_problem_settings`): the first number is 1 for a geodetic frame.
     scalars : ndarray of int, shape (T, 4)
         The scalar measurements' structure (kind code first), ``measurement_counts`` ``(B,)`` consecutive rows
         per problem.
@@ -520,7 +522,7 @@ def _checked_core_units(coordinates, station_counts, geodetic, scalars, readings
     bad[:] = False
     station, scalar = 0, 0
     for b in range(station_counts.size):
-        frame = 1 if geodetic[b] else 0
+        frame = 1 if frames[b, 0] else 0
         for _ in range(station_counts[b]):
             c = coordinates[station]
             for j in range(3):
@@ -585,12 +587,11 @@ def read_fix_requests(bodies: list) -> FixRequests:
         station_counts = np.array(station_counts, dtype=np.intp)
         measurement_counts = np.array(measurement_counts, dtype=np.intp)
         frames = np.array(frames, dtype=float).reshape(-1, 9)
-        geodetic = frames[:, 0] == 1.0
         coords = np.array(coordinates, dtype=float).reshape(-1, 3)
         table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
         reading = np.array(readings, dtype=float).reshape(-1, 2)
         bad = np.empty(len(accepted), dtype=bool)
-        if _checked_core_units(coords, station_counts, geodetic, table, reading, measurement_counts,
+        if _checked_core_units(coords, station_counts, frames, table, reading, measurement_counts,
                                _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS, bad):
             rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
             keep = np.flatnonzero(~bad)
@@ -599,14 +600,14 @@ def read_fix_requests(bodies: list) -> FixRequests:
             settings = [settings[i] for i in keep]
             station_ids = [station_ids[i] for i in keep]
             station_counts, measurement_counts = station_counts[keep], measurement_counts[keep]
-            frames, geodetic = frames[keep], geodetic[keep]
+            frames = frames[keep]
             coords, table, reading = coords[station_keep], table[scalar_keep], reading[scalar_keep]
         if accepted:
             lean = build_problem_batch(
                 station_counts=station_counts,
                 station_ids=station_ids,
                 station_coordinates=coords,
-                geodetic_stations=geodetic,
+                geodetic_stations=frames[:, 0],
                 origin=frames[:, 1:4],
                 measurement_counts=measurement_counts,
                 kinds=table[:, 0],
@@ -617,7 +618,7 @@ def read_fix_requests(bodies: list) -> FixRequests:
                 source_index=table[:, 3],
                 altitude_m=frames[:, 4],
                 initial_guess=frames[:, 5:8],
-                geodetic_guess=frames[:, 8] == 1.0,
+                geodetic_guess=frames[:, 8],
             )
     slots = list(accepted)
     methods = [s[1] for s in settings]
