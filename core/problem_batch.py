@@ -578,32 +578,29 @@ def _pad(flat, scatter, fill):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _place(coordinates, counts, geodetic_stations, origin_given):
-    """Each problem's common frame and its stations in it, padded (compiled).
+def _place(coordinates, counts, geodetic_stations, origin_given, guess_given, geodetic_guess, origin, geodetic,
+           origin_ecef, origin_rotation, enu, rotations, guess):
+    """Each problem's common frame, its stations in it (padded) and its initial guess in it (compiled).
 
     A geodetic problem without an origin takes its stations' ECEF centroid on
     the ellipsoid (the first station where the centroid is at the earth's
     centre); a geodetic station ``(lat_rad, lon_rad, alt_m)`` is placed by
     exact geodesy, a local one ``(east_m, north_m, up_m)`` as given, with
-    the local axes at it.
+    the local axes at it. So is a guess ``guess_given`` ``(B, 3)`` (where ``geodetic_guess`` ``(B,)``; NaN
+    rows: none).
 
-    Returns
-    -------
-    origin : ndarray, shape (B, 3)
-        Zeros for a flat plane.
-    geodetic : ndarray of bool, shape (B,)
-    origin_ecef_m, origin_rotation : ndarray, shape (B, 3) and (B, 3, 3)
-        As :func:`core.problem.frame_placements` of ``origin``.
-    stations_enu_m, rotations : ndarray, shape (B, N, 3) and (B, N, 3, 3)
-        Zero and identity on padding.
+    Parameters
+    ----------
+    origin, geodetic, origin_ecef, origin_rotation, enu, rotations, guess : ndarray
+        The outputs, filled here (a compiled call costs more for each array it returns than for each it is
+        given): each frame's origin ``(B, 3)`` (zeros for a flat plane), whether it is geodetic ``(B,)``, its
+        placement ``(B, 3)`` and ``(B, 3, 3)`` (:func:`core.problem.frame_placements` of the origin), the
+        stations ``(B, N, 3)`` and their rotations ``(B, N, 3, 3)`` (zero and identity on padding) and the
+        guesses in the frame ``(B, 3)``.
     """
-    size = counts.size
-    width = max(1, counts.max()) if size else 1
-    origin, geodetic = np.zeros((size, 3)), np.zeros(size, dtype=np.bool_)
-    origin_ecef, origin_rotation = np.empty((size, 3)), np.empty((size, 3, 3))
-    enu, rotations = np.zeros((size, width, 3)), np.zeros((size, width, 3, 3))
+    origin[:], geodetic[:], enu[:], rotations[:], guess[:] = 0.0, False, 0.0, 0.0, guess_given
     first = 0
-    for b in range(size):
+    for b in range(counts.size):
         count = counts[b]
         stations = coordinates[first:first + count]
         if geodetic_stations[b] and math.isnan(origin_given[b, 0]):
@@ -616,6 +613,10 @@ def _place(coordinates, counts, geodetic_stations, origin_given):
         o = origin[b]
         origin_ecef[b, 0], origin_ecef[b, 1], origin_ecef[b, 2] = geodesy.geodetic_to_ecef_point(o[0], o[1], o[2])
         geodesy.ecef_to_enu_rotation_point(o[0], o[1], origin_rotation[b])
+        if geodetic_guess[b] and not math.isnan(guess[b, 0]):
+            x, y, z = geodesy.geodetic_to_ecef_point(guess[b, 0], guess[b, 1], guess[b, 2])
+            guess[b, 0], guess[b, 1], guess[b, 2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef[b],
+                                                                              origin_rotation[b])
         for i in range(count):
             c = stations[i]
             if geodetic_stations[b]:
@@ -626,27 +627,22 @@ def _place(coordinates, counts, geodetic_stations, origin_given):
             else:
                 enu[b, i, 0], enu[b, i, 1], enu[b, i, 2] = c[0], c[1], c[2]
                 local_axes_point(enu[b, i], geodetic[b], origin_ecef[b], origin_rotation[b], rotations[b, i])
-        for i in range(count, width):
+        for i in range(count, enu.shape[1]):
             for r in range(3):
                 rotations[b, i, r, r] = 1.0
         first += count
-    return origin, geodetic, origin_ecef, origin_rotation, enu, rotations
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pad_measurements(counts, kinds, station_index, values, sigmas, bearing_index, source_index):
-    """The flat measurements of B problems padded to ``(B, M)`` (padding: kind ``PAD_KIND``, station 0, value
-    0, sigma NaN, indices -1), TOA values less each problem's earliest, and that reference ``(B,)`` (0
-    without TOA; compiled)."""
-    size = counts.size
-    width = max(1, counts.max()) if size else 1
-    kinds_out = np.full((size, width), _PAD_KIND_CODE, dtype=np.int8)
-    station_out = np.zeros((size, width), dtype=np.intp)
-    values_out, sigmas_out = np.zeros((size, width)), np.full((size, width), np.nan)
-    bearing_out, source_out = np.full((size, width), -1, dtype=np.intp), np.full((size, width), -1, dtype=np.intp)
-    reference = np.zeros(size)
+def _pad_measurements(counts, kinds, station_index, values, sigmas, bearing_index, source_index, kinds_out,
+                      station_out, values_out, sigmas_out, bearing_out, source_out, reference):
+    """The flat measurements of B problems padded into the ``(B, M)`` outputs (padding: kind ``PAD_KIND``,
+    station 0, value 0, sigma NaN, indices -1), TOA values less each problem's earliest, and that reference
+    into ``reference`` ``(B,)`` (0 without TOA; compiled)."""
+    kinds_out[:], station_out[:], values_out[:], sigmas_out[:] = _PAD_KIND_CODE, 0, 0.0, np.nan
+    bearing_out[:], source_out[:], reference[:] = -1, -1, 0.0
     first = 0
-    for b in range(size):
+    for b in range(counts.size):
         earliest = np.inf
         for m in range(counts[b]):
             j = first + m
@@ -661,7 +657,6 @@ def _pad_measurements(counts, kinds, station_index, values, sigmas, bearing_inde
                 if kinds_out[b, m] == TOA:
                     values_out[b, m] -= earliest
         first += counts[b]
-    return kinds_out, station_out, values_out, sigmas_out, bearing_out, source_out, reference
 
 
 def size_groups(n_measurements, n_stations=None) -> list[np.ndarray]:
@@ -736,21 +731,22 @@ def build_problem_batch(
     """
     station_counts = np.asarray(station_counts, dtype=np.intp)
     measurement_counts = np.asarray(measurement_counts, dtype=np.intp)
-    coords = np.asarray(station_coordinates, dtype=float).reshape(-1, 3)
-    geodetic_stations = np.asarray(geodetic_stations, dtype=bool)
-    origin, geodetic, origin_ecef, origin_rotation, stations_enu, rotations = _place(
-        coords, station_counts, geodetic_stations, np.ascontiguousarray(origin, dtype=float).reshape(-1, 3))
-    kinds, station_index, values, sigmas, bearing_index, source_index, reference = _pad_measurements(
-        measurement_counts, np.asarray(kinds, dtype=np.int8), np.asarray(station_index, dtype=np.intp),
-        np.asarray(values, dtype=float), np.asarray(sigmas, dtype=float), np.asarray(bearing_index, dtype=np.intp),
-        np.asarray(source_index, dtype=np.intp))
-
-    guess = np.array(initial_guess, dtype=float).reshape(-1, 3)
-    geodetic_guess = np.asarray(geodetic_guess, dtype=bool) & ~np.isnan(guess[:, 0])
-    if geodetic_guess.any():
-        k = np.flatnonzero(geodetic_guess)
-        guess[k] = geodesy.geodetic_to_enu(guess[k, 0], guess[k, 1], guess[k, 2],
-                                           origin[k, 0], origin[k, 1], origin[k, 2])
+    size = station_counts.size
+    n, m = max([1, *station_counts.tolist()]), max([1, *measurement_counts.tolist()])
+    placed = (np.empty((size, 3)), np.empty(size, dtype=bool), np.empty((size, 3)), np.empty((size, 3, 3)),
+              np.empty((size, n, 3)), np.empty((size, n, 3, 3)), np.empty((size, 3)))
+    _place(np.asarray(station_coordinates, dtype=float).reshape(-1, 3), station_counts,
+           np.asarray(geodetic_stations, dtype=bool), np.ascontiguousarray(origin, dtype=float).reshape(-1, 3),
+           np.ascontiguousarray(initial_guess, dtype=float).reshape(-1, 3), np.asarray(geodetic_guess, dtype=bool),
+           *placed)
+    origin, geodetic, origin_ecef, origin_rotation, stations_enu, rotations, guess = placed
+    padded = (np.empty((size, m), dtype=np.int8), np.empty((size, m), dtype=np.intp), np.empty((size, m)),
+              np.empty((size, m)), np.empty((size, m), dtype=np.intp), np.empty((size, m), dtype=np.intp),
+              np.empty(size))
+    _pad_measurements(measurement_counts, np.asarray(kinds, dtype=np.int8), np.asarray(station_index, dtype=np.intp),
+                      np.asarray(values, dtype=float), np.asarray(sigmas, dtype=float),
+                      np.asarray(bearing_index, dtype=np.intp), np.asarray(source_index, dtype=np.intp), *padded)
+    kinds, station_index, values, sigmas, bearing_index, source_index, reference = padded
 
     built = ProblemBatch(
         station_ids=tuple(station_ids),
@@ -767,7 +763,7 @@ def build_problem_batch(
         bearing_index=bearing_index,
         source_index=source_index,
         toa_reference_s=reference,
-        altitude_m=np.asarray(altitude_m, dtype=float).reshape(-1),
+        altitude_m=np.ascontiguousarray(altitude_m, dtype=float).reshape(-1),
         initial_guess_enu_m=guess,
     )
     built.__dict__["_frame_placements"] = origin_ecef, origin_rotation  # the cache of frame_placements()

@@ -340,8 +340,10 @@ _PLAIN = Renderings()
 
 
 def _problem_settings(body: wire.FixBody, frame: str, method: str) -> tuple:
-    """Frame, origin, method, options, guess, altitude and renderings of a body with more than stations and
-    measurements (``_Reject`` if unusual)."""
+    """The frame row, method, options and renderings of a body with more than stations and measurements
+    (``_Reject`` if unusual). The frame row is nine numbers: geodetic (1 or 0), origin ``(lat_rad, lon_rad,
+    alt_m)``, known altitude_m, initial guess (core coordinates) and whether that guess is geodetic (1 or 0);
+    NaN where not given."""
     geodetic = frame == "wgs84"
     origin = _NAN3 if body.origin is None else _position(body.origin, True)
     options = body.options
@@ -373,11 +375,13 @@ def _problem_settings(body: wire.FixBody, frame: str, method: str) -> tuple:
     formats = body.formats
     if formats is not UNSET and (len(formats) > 2 or any(f not in _FORMATS for f in formats)):
         raise _Reject
-    return geodetic, origin, method, solve, guess, guess_geodetic, altitude, Renderings(formats) if formats else _PLAIN
+    return ((float(geodetic), *origin, altitude, *guess, float(guess_geodetic)), method, solve,
+            Renderings(formats) if formats else _PLAIN)
 
 
 #: The settings of a body with only frame, method, stations and measurements (see :func:`_problem_settings`).
-_PLAIN_SETTINGS = {(frame, method): (frame == "wgs84", _NAN3, method, _DEFAULT_SOLVE, _NAN3, False, math.nan, _PLAIN)
+_PLAIN_SETTINGS = {(frame, method): ((float(frame == "wgs84"), *_NAN3, math.nan, *_NAN3, 0.0), method, _DEFAULT_SOLVE,
+                                     _PLAIN)
                    for frame in ("wgs84", "local") for method in _METHODS}
 
 
@@ -388,7 +392,8 @@ def _read(bodies: list):
     Returns
     -------
     accepted : list of int
-    settings : list of tuple (see :func:`_problem_settings`)
+    settings : list of tuple
+        Per problem: frame row, method, options and renderings (see :func:`_problem_settings`).
     station_counts, measurement_counts : list of int
     station_ids : list of tuple of str
     coordinates : list of float
@@ -399,10 +404,12 @@ def _read(bodies: list):
     readings : list of float
         Their values, API units, two per measurement (value, sigma), flattened; a missing azimuth
         sigma is NaN.
+    frames : list of float
+        The frame rows of the settings, nine per problem, flattened.
     rest : list of int
     """
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
-    coordinates, scalars, readings, rest = [], [], [], []
+    coordinates, scalars, readings, frames, rest = [], [], [], [], []
     add_coordinates, add_scalar, add_reading = coordinates.extend, scalars.extend, readings.extend
     id_max, unset, nan, plain, coordinates_of = _STATION_ID_MAX, UNSET, math.nan, _PLAIN_SETTINGS, _coordinates
     Bearing, Range = wire.Bearing, wire.Range
@@ -423,7 +430,7 @@ def _read(bodies: list):
                 setting = _problem_settings(body, frame, method)
             else:
                 raise _Reject
-            geodetic = setting[0]
+            geodetic = frame == "wgs84"
             stations = body.stations
             if not 0 < len(stations) <= 256:
                 raise _Reject
@@ -436,7 +443,7 @@ def _read(bodies: list):
                 add_coordinates(coordinates_of(position, geodetic))
             measurements = body.measurements
             if not 0 < len(measurements) <= _MEASUREMENTS_MAX or \
-                    not fix_within_limit(len(ids), len(measurements), method, setting[3].outliers == "exclude"):
+                    not fix_within_limit(len(ids), len(measurements), method, setting[2].outliers == "exclude"):
                 raise _Reject
             n_bearings = 0
             for i, m in enumerate(measurements):
@@ -474,59 +481,70 @@ def _read(bodies: list):
             continue
         accepted.append(slot)
         settings.append(setting)
+        frames.extend(setting[0])
         station_counts.append(len(ids))
         station_ids.append(tuple(ids))
         measurement_counts.append((len(scalars) - n_scalars) // 4)
-    return accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest
+    return (accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings,
+            frames, rest)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _checked_core_units(coordinates, on_earth, kinds, values, sigmas, coordinate_bounds, value_bounds, sigma_bounds):
-    """The lean reader's bulk checks and conversion to core units, in one pass.
+def _checked_core_units(coordinates, station_counts, frames, scalars, readings, measurement_counts,
+                        coordinate_bounds, value_bounds, sigma_bounds, bad):
+    """The lean reader's bulk checks, and its conversion to core units in place, in one pass.
 
     Parameters
     ----------
     coordinates : ndarray, shape (S, 3)
-        Station coordinates as sent: ``(lat_deg, lon_deg, alt_m)`` where ``on_earth`` ``(S,)``, else
-        ``(east_m, north_m, up_m)``.
-    kinds : ndarray of int8, shape (T,)
-    values, sigmas : ndarray, shape (T,)
-        As sent (angles in degrees; an azimuth's sigma may be NaN: not given).
+        Station coordinates as sent, ``station_counts`` ``(B,)`` consecutive rows per problem:
+        ``(lat_deg, lon_deg, alt_m)`` where the frame is geodetic, else ``(east_m, north_m, up_m)``. Set to core
+        units: latitude and longitude in radians.
+    frames : ndarray, shape (B, 9)
+        The problems' frame rows (see :func:`_problem_settings`): the first number is 1 for a geodetic frame.
+    scalars : ndarray of int, shape (T, 4)
+        The scalar measurements' structure (kind code first), ``measurement_counts`` ``(B,)`` consecutive rows
+        per problem.
+    readings : ndarray, shape (T, 2)
+        Value and sigma as sent (angles in degrees; an azimuth's sigma may be NaN: not given). Set to core
+        units: angles in radians.
     coordinate_bounds : ndarray, shape (2, 3, 2)
         Closed bounds per frame (local, geodetic) and coordinate; ``value_bounds``, ``sigma_bounds`` ``(4, 2)``
         per kind code.
+    bad : ndarray of bool, shape (B,)
+        Set where a problem has a number out of its bounds (its numbers are not all converted).
 
     Returns
     -------
-    coordinates_ok : ndarray of bool, shape (S,)
-    scalars_ok : ndarray of bool, shape (T,)
-    coordinates : ndarray, shape (S, 3)
-        Latitude and longitude in radians.
-    values, sigmas : ndarray, shape (T,)
-        Angles in radians.
+    int
+        How many problems are bad.
     """
-    coordinates_ok, scalars_ok = np.ones(coordinates.shape[0], dtype=np.bool_), np.ones(kinds.size, dtype=np.bool_)
-    core_coordinates, core_values, core_sigmas = coordinates.copy(), values.copy(), sigmas.copy()
-    for i in range(coordinates.shape[0]):
-        frame = 1 if on_earth[i] else 0
-        for j in range(3):
-            c = coordinates[i, j]
-            coordinates_ok[i] &= coordinate_bounds[frame, j, 0] <= c <= coordinate_bounds[frame, j, 1]
-        if on_earth[i]:
-            core_coordinates[i, 0] = math.radians(coordinates[i, 0])
-            core_coordinates[i, 1] = math.radians(coordinates[i, 1])
-    for t in range(kinds.size):
-        k, value, sigma = kinds[t], values[t], sigmas[t]
-        scalars_ok[t] = value_bounds[k, 0] <= value <= value_bounds[k, 1] and (
-            sigma_bounds[k, 0] <= sigma <= sigma_bounds[k, 1] or (k == _AZ and math.isnan(sigma)))
-        if k == _AZ or k == _EL:
-            core_values[t], core_sigmas[t] = math.radians(value), math.radians(sigma)
-    return coordinates_ok, scalars_ok, core_coordinates, core_values, core_sigmas
+    bad[:] = False
+    station, scalar = 0, 0
+    for b in range(station_counts.size):
+        frame = 1 if frames[b, 0] else 0
+        for _ in range(station_counts[b]):
+            c = coordinates[station]
+            for j in range(3):
+                if not coordinate_bounds[frame, j, 0] <= c[j] <= coordinate_bounds[frame, j, 1]:
+                    bad[b] = True
+            if frame:
+                c[0], c[1] = math.radians(c[0]), math.radians(c[1])
+            station += 1
+        for _ in range(measurement_counts[b]):
+            k, value, sigma = scalars[scalar, 0], readings[scalar, 0], readings[scalar, 1]
+            if not (value_bounds[k, 0] <= value <= value_bounds[k, 1] and (
+                    sigma_bounds[k, 0] <= sigma <= sigma_bounds[k, 1] or (k == _AZ and math.isnan(sigma)))):
+                bad[b] = True
+            if k == _AZ or k == _EL:
+                readings[scalar, 0], readings[scalar, 1] = math.radians(value), math.radians(sigma)
+            scalar += 1
+    return np.count_nonzero(bad)
 
 
-@dataclass(frozen=True)
-class FixRequests:
-    """Fix requests read into one core batch.
+class FixRequests(typing.NamedTuple):
+    """Fix requests read into one core batch (a named tuple: made for every request, and cheaper to make than a
+    dataclass).
 
     Attributes
     ----------
@@ -561,58 +579,51 @@ def read_fix_requests(bodies: list) -> FixRequests:
     Any other body is validated by the schema and built by :func:`to_problem`,
     which decide and word its error, and joins the same batch.
     """
-    accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, rest = \
-        _read(bodies)
+    (accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, frames,
+     rest) = _read(bodies)
     errors: dict[int, dict] = {}
     lean = None
     if accepted:
-        station_counts = np.array(station_counts)
-        measurement_counts = np.array(measurement_counts)
-        station_owner = np.arange(len(accepted)).repeat(station_counts)
-        scalar_owner = np.arange(len(accepted)).repeat(measurement_counts)
-        geodetic = np.array([s[0] for s in settings], dtype=bool)
+        station_counts = np.array(station_counts, dtype=np.intp)
+        measurement_counts = np.array(measurement_counts, dtype=np.intp)
+        frames = np.array(frames, dtype=float).reshape(-1, 9)
         coords = np.array(coordinates, dtype=float).reshape(-1, 3)
         table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
         reading = np.array(readings, dtype=float).reshape(-1, 2)
-        kinds = table[:, 0].astype(np.int8)
-        coords_ok, scalars_ok, coords, values, sigmas = _checked_core_units(
-            coords, geodetic[station_owner], kinds, np.ascontiguousarray(reading[:, 0]),
-            np.ascontiguousarray(reading[:, 1]), _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS)
-        bad = np.zeros(len(accepted), dtype=bool)
-        bad[station_owner[~coords_ok]] = True
-        bad[scalar_owner[~scalars_ok]] = True
-        if bad.any():
+        bad = np.empty(len(accepted), dtype=bool)
+        if _checked_core_units(coords, station_counts, frames, table, reading, measurement_counts,
+                               _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS, bad):
             rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
             keep = np.flatnonzero(~bad)
-            station_keep, scalar_keep = ~bad[station_owner], ~bad[scalar_owner]
+            station_keep, scalar_keep = ~bad.repeat(station_counts), ~bad.repeat(measurement_counts)
             accepted = [accepted[i] for i in keep]
             settings = [settings[i] for i in keep]
             station_ids = [station_ids[i] for i in keep]
-            station_counts, measurement_counts, geodetic = station_counts[keep], measurement_counts[keep], geodetic[keep]
-            coords, table, kinds = coords[station_keep], table[scalar_keep], kinds[scalar_keep]
-            values, sigmas = values[scalar_keep], sigmas[scalar_keep]
+            station_counts, measurement_counts = station_counts[keep], measurement_counts[keep]
+            frames = frames[keep]
+            coords, table, reading = coords[station_keep], table[scalar_keep], reading[scalar_keep]
         if accepted:
             lean = build_problem_batch(
                 station_counts=station_counts,
                 station_ids=station_ids,
                 station_coordinates=coords,
-                geodetic_stations=geodetic,
-                origin=np.array([s[1] for s in settings], dtype=float),
+                geodetic_stations=frames[:, 0],
+                origin=frames[:, 1:4],
                 measurement_counts=measurement_counts,
-                kinds=kinds,
+                kinds=table[:, 0],
                 station_index=table[:, 1],
-                values=values,
-                sigmas=sigmas,
+                values=reading[:, 0],
+                sigmas=reading[:, 1],
                 bearing_index=table[:, 2],
                 source_index=table[:, 3],
-                altitude_m=np.array([s[6] for s in settings], dtype=float),
-                initial_guess=np.array([s[4] for s in settings], dtype=float),
-                geodetic_guess=np.array([s[5] for s in settings], dtype=bool),
+                altitude_m=frames[:, 4],
+                initial_guess=frames[:, 5:8],
+                geodetic_guess=frames[:, 8],
             )
     slots = list(accepted)
-    methods = [s[2] for s in settings]
-    options = [s[3] for s in settings]
-    formats = [s[7] for s in settings]
+    methods = [s[1] for s in settings]
+    options = [s[2] for s in settings]
+    formats = [s[3] for s in settings]
     built: list[Problem] = []
     for slot in rest:
         try:
@@ -629,8 +640,10 @@ def read_fix_requests(bodies: list) -> FixRequests:
         methods.append(request.method)
         options.append(to_options(request))
         formats.append(of_request(request))
-    parts = [p for p in (lean, ProblemBatch.from_problems(built) if built else None) if p is not None]
-    batch = ProblemBatch.concatenate(parts) if parts else None
+    batch = lean
+    if built:
+        through_schema = ProblemBatch.from_problems(built)
+        batch = through_schema if lean is None else ProblemBatch.concatenate([lean, through_schema])
     return FixRequests(batch, slots, methods, options, formats, errors)
 
 
@@ -672,8 +685,7 @@ class _Template:
     columns: np.ndarray
 
 
-def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: int, converged: bool,
-                  iterations: int, geodetic: bool, coarse: bool, bearing_errors: bool) -> _Template:
+def _fix_template(structure: bytes, station_ids: tuple, method: str, source: str) -> _Template:
     """The template of the fix bodies of one structure.
 
     The body is the FixResponse dict with the structure's own values in place and a marker for each
@@ -682,16 +694,19 @@ def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: i
 
     Parameters
     ----------
-    width : int
-        Residual columns among a fix's values (the batch's widest problem).
+    structure : bytes
+        A row of :func:`_fix_structures`; its width sets the residual columns among a fix's values (the
+        batch's widest problem).
+    station_ids : tuple of str
     method, source : str
         The ``method`` and ``covariance_source`` of the fixes.
-    residuals : tuple of (str, int, str, bool, bool)
-        Per residual: station id, measurement index, component, used, excluded.
-    dof, iterations : int
-    converged, geodetic, coarse, bearing_errors : bool
-        The fix converged; it has a geodetic position, a coarse stage, estimated bearing errors.
     """
+    row = np.frombuffer(structure, dtype=np.int64)
+    width = (row.size - 7) // 5
+    n, dof, converged, iterations, geodetic, coarse, bearing_errors = row[:7].tolist()
+    stations, sources, kinds, used, excluded = row[7:].reshape(5, width)[:, :n].tolist()
+    residuals = zip([station_ids[s] for s in stations], sources, [KIND_NAMES[k] for k in kinds], map(bool, used),
+                    map(bool, excluded))
     names: list[tuple[str, int]] = []
 
     def slot(block: str, column: int = 0) -> orjson.Fragment:
@@ -723,7 +738,7 @@ def _fix_template(width: int, method: str, source: str, residuals: tuple, dof: i
             for m, (station, index, component, used, excluded) in enumerate(residuals)
         ],
         "fit": {"chi2": slot("fit", 0), "dof": dof, "p_value": slot("fit", 1), "sigma_scale": slot("fit", 2)},
-        "converged": converged,
+        "converged": bool(converged),
         "iterations": iterations,
         "warnings": slot("warnings"),
     }
@@ -752,30 +767,84 @@ _KEPT_RESIDUALS = 64
 _kept_template = functools.lru_cache(maxsize=1024)(_fix_template)
 
 
-def _template(width: int, method: str, source: str, residuals: tuple, *structure) -> _Template:
-    """:func:`_fix_template`, from the cache when the structure is small enough to keep."""
-    build = _kept_template if len(residuals) <= _KEPT_RESIDUALS else _fix_template
-    return build(width, method, source, residuals, *structure)
+def _template(structure: bytes, station_ids: tuple, method: str, source: str, residuals: int) -> _Template:
+    """:func:`_fix_template`, from the cache when its ``residuals`` (the fix's measurement rows) are few enough to
+    keep."""
+    build = _kept_template if residuals <= _KEPT_RESIDUALS else _fix_template
+    return build(structure, station_ids, method, source)
 
 
 @numba.njit(cache=True, nogil=True)
-def _number_spans(text, starts, lengths):
-    """Where each number of orjson's text of a flat array of ``N > 0`` numbers (``[a,b,...]``) is.
+def _value_spans(values, text_lengths, starts, lengths):
+    """Where each value of each fix is in the values' text, and the bytes they take in all.
 
     Parameters
     ----------
-    text : ndarray of uint8
-    starts, lengths : ndarray of int, shape ``(N,)``
-        Filled with each number's first byte in ``text`` and its length.
+    values : ndarray of uint8
+        orjson's text of the B fixes' numbers, ``K`` each, as one flat array (``[a,b,...]``), then ``2 B``
+        texts: each fix's warnings, then each fix's bearing errors.
+    text_lengths : ndarray of int, shape (2 B,)
+        The texts' lengths.
+    starts, lengths : ndarray of int, shape ``(B, K + 2)``
+        Filled with each value's first byte in ``values`` and its length: a fix's numbers, its warnings and its
+        bearing errors.
+
+    Returns
+    -------
+    int
     """
-    k = 0
-    start = 1
-    for i in range(1, text.size):
-        if text[i] == 44 or text[i] == 93:  # the comma after a number, or the closing bracket
-            starts[k] = start
-            lengths[k] = i - start
-            k += 1
-            start = i + 1
+    size, columns = starts.shape
+    total = 0
+    at = 1
+    for b in range(size):
+        for j in range(columns - 2):
+            end = at
+            while values[end] != 44 and values[end] != 93:  # the comma after a number, or the closing bracket
+                end += 1
+            starts[b, j], lengths[b, j] = at, end - at
+            total += end - at
+            at = end + 1
+    for j in range(2):
+        for b in range(size):
+            starts[b, columns - 2 + j], lengths[b, columns - 2 + j] = at, text_lengths[j * size + b]
+            total += text_lengths[j * size + b]
+            at += text_lengths[j * size + b]
+    return total
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fix_structures(n_measurements, dof, converged, iterations, geodetic, coarse_enu_m, bearing_error_lengths,
+                    station_index, source_index, kinds, used, excluded):
+    """Each fix body's structure, what its template (:func:`_fix_template`) is made of, as a row of integers.
+
+    Parameters
+    ----------
+    n_measurements, dof, iterations : ndarray of int64, shape (B,)
+    converged, geodetic : ndarray of bool, shape (B,)
+    coarse_enu_m : ndarray, shape (B, 3)
+        NaN where no coarse stage ran.
+    bearing_error_lengths : ndarray of int64, shape (B,)
+        The length of each fix's estimated bearing errors text (0: none).
+    station_index, source_index : ndarray of int64, shape (B, M)
+    kinds : ndarray of int8, shape (B, M)
+    used, excluded : ndarray of bool, shape (B, M)
+
+    Returns
+    -------
+    ndarray of int64, shape (B, 7 + 5 M)
+        Per fix: measurement rows, dof, converged, iterations, geodetic, a coarse stage, bearing errors, then
+        ``M`` each of station indices, source indices, kind codes, used and excluded flags (padding included).
+    """
+    size, width = kinds.shape
+    out = np.empty((size, 7 + 5 * width), dtype=np.int64)
+    for b in range(size):
+        row, columns = out[b, :7], out[b, 7:].reshape(5, width)
+        row[0], row[1], row[2], row[3] = n_measurements[b], dof[b], converged[b], iterations[b]
+        row[4], row[5], row[6] = geodetic[b], not math.isnan(coarse_enu_m[b, 0]), bearing_error_lengths[b] > 0
+        for m in range(width):
+            columns[0, m], columns[1, m], columns[2, m] = station_index[b, m], source_index[b, m], kinds[b, m]
+            columns[3, m], columns[4, m] = used[b, m], excluded[b, m]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -925,7 +994,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     size = batch.size
     ok = fixes.ok
     coarse = fixes.coarse_position_enu_m
-    bearing_errors = [None if e is None else orjson.dumps(np.degrees(e).tolist())
+    bearing_errors = [b"" if e is None else orjson.dumps(np.degrees(e).tolist())
                       for e in fixes.estimated_bearing_errors_rad]
 
     # The text of every value and where it is, columns by block in _BLOCKS' order: the numbers, then the
@@ -935,57 +1004,45 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         fixes.normalized_residuals)), np.ascontiguousarray(batch.kinds, dtype=np.int8),
         *(np.ascontiguousarray(a, dtype=float) for a in (fixes.chi2, fixes.p_value, fixes.sigma_scale, coarse)),
         *batch.frame_placements(), *radius50_tables())
-    width = batch.kinds.shape[1]
-    number_text = orjson.dumps(numbers.ravel(), option=_NUMPY)
-    text, text_starts, text_lengths = _text_spans(_warning_texts(fixes.warnings) + [e or b"" for e in bearing_errors])
-    number_starts, number_lengths = np.empty(numbers.size, dtype=np.int64), np.empty(numbers.size, dtype=np.int64)
-    if numbers.size:
-        _number_spans(np.frombuffer(number_text, dtype=np.uint8), number_starts, number_lengths)
-    value_starts = np.concatenate([number_starts.reshape(size, -1),
-                                   (text_starts + len(number_text)).reshape(2, size).T], axis=-1)
-    value_lengths = np.concatenate([number_lengths.reshape(size, -1), text_lengths.reshape(2, size).T], axis=-1)
+    value_texts = _warning_texts(fixes.warnings) + bearing_errors
+    values = np.frombuffer(orjson.dumps(numbers.ravel(), option=_NUMPY) + b"".join(value_texts), dtype=np.uint8)
+    text_lengths = np.fromiter(map(len, value_texts), dtype=np.int64, count=len(value_texts))
+    value_starts = np.empty((size, numbers.shape[1] + 2), dtype=np.int64)
+    value_lengths = np.empty_like(value_starts)
+    value_bytes = _value_spans(values, text_lengths, value_starts, value_lengths)
 
     # Fixes of one structure share a template. The structure as a row of integers groups them (padding
     # columns included: rows that differ only there make two groups of one template).
-    staged = ~np.isnan(coarse[:, 0])
-    has_bearing_errors = np.array([e is not None for e in bearing_errors], dtype=bool)
-    structure = np.concatenate([
-        batch.n_measurements[:, None], fixes.dof[:, None], fixes.converged[:, None], fixes.iterations[:, None],
-        batch.geodetic[:, None], staged[:, None], has_bearing_errors[:, None], batch.station_index,
-        batch.source_index, batch.kinds, fixes.used, fixes.excluded], axis=-1, dtype=np.int64)
-    rows = ok.nonzero()[0]
-    keys = structure[rows].view(f"V{structure.shape[1] * 8}").ravel()
+    c = np.ascontiguousarray
+    structures = _fix_structures(
+        c(batch.n_measurements, dtype=np.int64), c(fixes.dof, dtype=np.int64), c(fixes.converged, dtype=bool),
+        c(fixes.iterations, dtype=np.int64), c(batch.geodetic, dtype=bool), c(coarse, dtype=float),
+        text_lengths[size:], c(batch.station_index, dtype=np.int64), c(batch.source_index, dtype=np.int64),
+        c(batch.kinds, dtype=np.int8), c(fixes.used, dtype=bool), c(fixes.excluded, dtype=bool))
+    blob, step = structures.tobytes(), structures.shape[1] * 8
     groups: dict[tuple, list[int]] = {}
-    for b, key in zip(rows.tolist(), keys.tolist()):
-        groups.setdefault((key, batch.station_ids[b]), []).append(b)
+    for b in ok.nonzero()[0].tolist():
+        groups.setdefault((blob[b * step:(b + 1) * step], batch.station_ids[b]), []).append(b)
 
     # Each body: its template's pieces and its values in turn, all written into one buffer.
-    work = []
-    for members in groups.values():
-        r = members[0]
-        n, ids = int(batch.n_measurements[r]), batch.station_ids[r]
-        residuals = tuple(zip([ids[s] for s in batch.station_index[r, :n].tolist()], batch.source_index[r, :n].tolist(),
-                              [KIND_NAMES[k] for k in batch.kinds[r, :n].tolist()], fixes.used[r, :n].tolist(),
-                              fixes.excluded[r, :n].tolist()))
-        template = _template(width, fixes.method, fixes.covariance_source, residuals, int(fixes.dof[r]),
-                                 bool(fixes.converged[r]), int(fixes.iterations[r]), bool(batch.geodetic[r]),
-                                 bool(staged[r]), bool(has_bearing_errors[r]))
-        work.append((template, np.array(members)))
+    work = [(_template(structure, ids, fixes.method, fixes.covariance_source, int(batch.n_measurements[members[0]])),
+             members) for (structure, ids), members in groups.items()]
     texts: list[bytes | None] = [None] * size
     if work:
-        values = np.frombuffer(number_text + text, dtype=np.uint8)
-        written = np.empty(sum(len(members) * template.pieces.size for template, members in work)
-                           + int(value_lengths.sum()), dtype=np.uint8)
+        written = np.empty(sum(len(members) * template.pieces.size for template, members in work) + value_bytes,
+                           dtype=np.uint8)
         ends = np.empty(size, dtype=np.int64)
         end = 0
         for template, members in work:
             end = _write_bodies(template.pieces, template.piece_starts, template.piece_lengths, template.columns,
-                                members, values, value_starts, value_lengths, written, end, ends)
-        order = np.concatenate([members for _, members in work]).tolist()
-        body_ends = ends[order].tolist()
+                                np.array(members), values, value_starts, value_lengths, written, end, ends)
+        ends = ends.tolist()
         view = memoryview(written)  # each body copied out once (no whole-buffer bytes to slice again)
-        for b, start, stop in zip(order, [0] + body_ends[:-1], body_ends):
-            texts[b] = bytes(view[start:stop])
+        start = 0
+        for _, members in work:
+            for b in members:
+                texts[b] = bytes(view[start:ends[b]])
+                start = ends[b]
 
     known = {"method": fixes.method}
     out: list[dict] = []
