@@ -21,6 +21,7 @@ import numpy as np
 def compile_kernels() -> None:
     """Compile (or load from the cache) every kernel: called at install and image build time (which fill the
     cache) and in the service's lifespan."""
+    from core.crlb import gdop
     from core.error_summary import error_summary
     from core.errors import LocalizationError
     from core.estimators import REGISTRY, SolveOptions, solve
@@ -49,4 +50,5 @@ def compile_kernels() -> None:
     solve(problems[0], "ml", SolveOptions(loss="huber"))
     error_summary(np.eye(3))
     error_summary(np.eye(3), exact=True)
+    gdop(np.eye(3)[None], np.ones(1))  # the planning routes' (a fix's GDOP comes from the finisher's kernel)
     unscented.compile_kernels()
