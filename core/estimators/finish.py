@@ -24,7 +24,7 @@ from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.loss import loss_code, loss_point
 from core.estimators.result import Estimates, FixBatch, FixWarning
 from core.measurements import (AZIMUTH, ELEVATION, KIND_NAMES, RANGE, SPEED_OF_LIGHT_MPS, TOA, ahead_point,
-                               measure_point, toa_offset_point)
+                               measure_point, toa_offset_point, toa_spacing_s)
 from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
@@ -238,14 +238,14 @@ def _unused_warning(method: str, kind_bits: int, count: int) -> FixWarning:
 def _coarse_toas(batch: ProblemBatch) -> np.ndarray:
     """``(B, M)``: the used TOAs whose value as sent (seconds since the client's epoch) float64 carries more
     coarsely than their sigma: its spacing there exceeds the sigma (at 1.7e9 s, 2.4e-7 s or 71 m)."""
-    sent_s = np.abs(batch.values + batch.toa_reference_s[:, None])
-    return batch.valid & (batch.kinds == TOA) & (np.spacing(sent_s) > batch.sigmas)
+    return batch.valid & (batch.kinds == TOA) & (toa_spacing_s(batch.values + batch.toa_reference_s[:, None])
+                                                  > batch.sigmas)
 
 
 def _toa_resolution_warning(batch: ProblemBatch, b: int, coarse) -> FixWarning:
     """The ``toa_resolution`` warning of problem ``b``, whose TOAs ``coarse`` ``(M,)`` (:func:`_coarse_toas`) are."""
     sent_s = np.abs(batch.values[b, coarse] + batch.toa_reference_s[b])
-    spacing_s = float(np.spacing(sent_s).max())
+    spacing_s = float(toa_spacing_s(sent_s).max())
     return FixWarning(
         "toa_resolution",
         f"{int(coarse.sum())} TOA(s) sent as about {float(sent_s.max()):.3g} s since an epoch: float64 carries them to "

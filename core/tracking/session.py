@@ -7,11 +7,11 @@ continue, with bit-identical results.
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from typing import Iterable
 
 from core.errors import InvalidInput
+from core.measurements import toa_spacing_s
 from core.tracking import joint_ukf, velocity_kinematic
 from core.tracking.config import Epoch, TimeNotIncreasing, TrackerConfig, validate_epoch
 from core.tracking.kinematic import C, kinematic_prior
@@ -75,7 +75,7 @@ def step(state: TrackState, epoch: Epoch, config: TrackerConfig) -> TrackState:
         raise TimeNotIncreasing(f"epoch time_s {values[0]!r} is not after the last applied {state.time_s!r}",
                                 ("time_s",))
     advanced = _ADVANCE[config.model](state, values, config)
-    spacing_s = math.ulp(values[4])
+    spacing_s = float(toa_spacing_s(values[4]))
     if spacing_s > config.sigma_toa_s:
         advanced = replace(advanced, warnings=advanced.warnings + ((
             "toa_resolution",
