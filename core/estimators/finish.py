@@ -90,8 +90,8 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     present, valid = batch.present, batch.valid
     excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
-    (raw, normalized, studentized, chi2, crlb, covariance, min_eigenvalue, robust_factor, sigma_ref, behind, zenith,
-     spread, dof, p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags) = _fix_kernel(
+    (raw, normalized, studentized, chi2, crlb, covariance, min_eigenvalue, robust_factor, behind, zenith, spread, dof,
+     p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags) = _fix_kernel(
         position, np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
         bias is not None, np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
         np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.values, dtype=float),
@@ -450,7 +450,7 @@ def _fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations,
                 n_measurements, valid, excluded, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss,
                 c2, is_line, elevation_rad, converged):
     """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call: the residuals, chi-square, CRLB,
-    covariance (made symmetric), smallest eigenvalue, loss factors, reference sigma and line-of-sight facts,
+    covariance (made symmetric), smallest eigenvalue, loss factors and line-of-sight facts,
     then the degrees of freedom (also as floats, NaN where there are none: the p-value's), sigma scales, worst
     measurement, GDOP and verdict bits (``excluded`` ``(B, M)``: measurements outlier exclusion set aside;
     ``converged`` ``(B,)``: the estimator's)."""
@@ -469,5 +469,5 @@ def _fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations,
         for i in range(3):
             for j in range(i):
                 covariance[b, i, j] = covariance[b, j, i] = 0.5 * (covariance[b, i, j] + covariance[b, j, i])
-    return (raw, normalized, studentized, chi2, crlb, covariance, smallest, robust_factor, sigma_ref, behind, zenith,
-            spread, dof, p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags)
+    return (raw, normalized, studentized, chi2, crlb, covariance, smallest, robust_factor, behind, zenith, spread, dof,
+            p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags)

@@ -652,11 +652,8 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
             solution.put(owners[better], again, better)
             p_value[rows] = chdtrc(np.maximum(dof[rows], 1), solution.cost[rows])
     # A closed form's (or the search's) fix may have a mirror image that fits as well: try it.
-    check = np.empty(0, dtype=np.intp)
-    applies = mirror_applies(batch)
-    if np.count_nonzero(applies):
-        check = (applies & ~missing & (p_value >= IMPLAUSIBLE_P)).nonzero()[0]
-        check = np.array([b for b in check.tolist() if not warnings[b] and b not in failures], dtype=np.intp)
+    check = (mirror_applies(batch) & ~missing & (p_value >= IMPLAUSIBLE_P)).nonzero()[0]
+    check = np.array([b for b in check.tolist() if not warnings[b] and b not in failures], dtype=np.intp)
     if check.size:
         mirrored = mirror_points(batch, solution.position_enu_m)[check]
         finite = np.all(np.isfinite(mirrored), axis=-1)
