@@ -255,10 +255,10 @@ class ErrorSummary(BaseModel):
     sep50_m: float
     vertical_sigma_m: float
     gdop: float | None = Field(description=GDOP_DESCRIPTION + "; null where undefined. Of the bound (a fix's crlb_enu_m2), so it describes the "
-                                                       "geometry, not the method. Until issue 14 this field held "
-                                                       "sqrt(trace(covariance)) in metres: that is sqrt_trace_m")
-    sqrt_trace_m: float = Field(description="sqrt(trace(covariance)) in metres, east, north and up (what gdop "
-                                            "held before it became dimensionless)")
+                                                       "geometry, not the method (the metres of "
+                                                       "sqrt(trace(covariance)) are sqrt_trace_m)")
+    sqrt_trace_m: float = Field(description="sqrt(trace(covariance)) in metres, east, north and up (gdop is "
+                                            "its dimensionless counterpart, of the bound)")
     ellipse95: Ellipse
 
 
