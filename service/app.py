@@ -65,7 +65,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         store.on_failure = lambda operation: metrics.store_errors.labels(operation).inc()
         app.state.store = store
         app.state.stopping = threading.Event()
-        app.state.fix_coalescer = Coalescer(app.state.stopping)
+        app.state.fix_coalescer = Coalescer(app.state.stopping, metrics)
         app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
         await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, translate.compile_kernels)
         try:

@@ -23,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import contextvars
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
@@ -47,10 +48,18 @@ class Coalescer:
     ----------
     drains, solved : int
         How many shared solves ran and how many problems they took (for tests and metrics).
+
+    Parameters
+    ----------
+    stopping : threading.Event, optional
+        Set when the server stops: a drain stops between parts.
+    metrics : service.metrics.Metrics, optional
+        Told each drain's results, under the method each ran with, and each fix's time from submission.
     """
 
-    def __init__(self, stopping: threading.Event | None = None) -> None:
-        self._pending: list[tuple[object, str | None, Callable[[], bool], asyncio.Future]] = []
+    def __init__(self, stopping: threading.Event | None = None, metrics=None) -> None:
+        self._pending: list[tuple[object, str | None, Callable[[], bool], asyncio.Future, float]] = []
+        self._metrics = metrics
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stopping = stopping or threading.Event()
         self._worker = ThreadPoolExecutor(1, thread_name_prefix="fixes")
@@ -67,11 +76,12 @@ class Coalescer:
         """
         loop = asyncio.get_running_loop()
         future = loop.create_future()
+        item = (body, request_id, should_stop or _never, future, time.perf_counter())
         if self._loop is not None and self._loop is not loop:
             # A drain runs on another event loop (an odd test setup): this one is solved alone.
-            self._run(loop, [(body, request_id, should_stop or _never, future)])
+            self._run(loop, [item])
             return future
-        self._pending.append((body, request_id, should_stop or _never, future))
+        self._pending.append(item)
         if self._loop is None:
             self._loop = loop
             loop.call_soon(self._drain)
@@ -100,9 +110,11 @@ class Coalescer:
         def should_stop() -> bool:
             return self._stopping.is_set() or all(stop() for stop in stops)
 
+        methods_run: list = []
         try:
             work = loop.run_in_executor(self._worker, contextvars.copy_context().run, fix_results,
-                                        [item[0] for item in taken], [item[1] for item in taken], should_stop)
+                                        [item[0] for item in taken], [item[1] for item in taken], should_stop,
+                                        methods_run)
         except RuntimeError:  # the worker is shut down: the app is stopping
             work = loop.create_future()
             work.set_exception(Stopped())
@@ -114,7 +126,11 @@ class Coalescer:
                 results = [error] * len(taken)
             except BaseException as error:  # cancelled with the loop or the worker: nobody may wait forever
                 results = [RuntimeError(f"the shared solve was cancelled ({error!r})")] * len(taken)
-            for (*_, future), result in zip(taken, results):
+            else:
+                if self._metrics is not None:
+                    now = time.perf_counter()
+                    self._metrics.fixes_done(methods_run, results, [now - item[4] for item in taken])
+            for (*_, future, _), result in zip(taken, results):
                 if future.done():  # a request whose client went away was cancelled
                     continue
                 if isinstance(result, BaseException):

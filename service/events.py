@@ -31,7 +31,8 @@ HEARTBEAT_S = 15.0
 class LocalBus:
     """Publish to subscribers in this process (thread-safe: posts run on worker threads)."""
 
-    def __init__(self):
+    def __init__(self, metrics=None):
+        self.metrics = metrics
         self._lock = threading.Lock()
         self._subscribers: dict[str, set[tuple[asyncio.AbstractEventLoop, asyncio.Queue]]] = {}
 
@@ -58,7 +59,7 @@ class LocalBus:
                     if not found:
                         del self._subscribers[session_id]
 
-        return Subscription(queue, close, poll_s=POLL_S)
+        return Subscription(queue, close, poll_s=POLL_S, metrics=self.metrics)
 
     def close(self) -> None:
         pass
@@ -79,8 +80,11 @@ class Subscription:
     """
 
     def __init__(self, queue: asyncio.Queue, close, poll_s: float | None = None, task: asyncio.Task | None = None,
-                 ready: asyncio.Event | None = None):
+                 ready: asyncio.Event | None = None, metrics=None):
         self.queue, self._close, self.poll_s, self._task = queue, close, poll_s, task
+        self._open_streams = None if metrics is None else metrics.event_streams
+        if self._open_streams is not None:
+            self._open_streams.inc()
         if ready is None:
             ready = asyncio.Event()
             ready.set()
@@ -93,6 +97,9 @@ class Subscription:
             return None
 
     async def aclose(self) -> None:
+        if self._open_streams is not None:
+            self._open_streams.dec()
+            self._open_streams = None
         if self._task is not None:
             self._task.cancel()
             try:
@@ -146,7 +153,7 @@ class RedisBus:
                     _offer(queue, int(orjson.loads(message["data"])["version"]))
 
         task = asyncio.get_running_loop().create_task(listen())
-        return Subscription(queue, pubsub.aclose, poll_s=None, task=task, ready=ready)
+        return Subscription(queue, pubsub.aclose, poll_s=None, task=task, ready=ready, metrics=self.metrics)
 
     def close(self) -> None:
         pass
@@ -157,7 +164,8 @@ def bus(app):
     found = getattr(app.state, "event_bus", None)
     if found is None:
         store = app.state.store
-        found = RedisBus(store, app.state.settings.store, app.state.metrics) if store.kind == "redis" else LocalBus()
+        found = RedisBus(store, app.state.settings.store, app.state.metrics) if store.kind == "redis" else \
+            LocalBus(app.state.metrics)
         app.state.event_bus = found
     return found
 

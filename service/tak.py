@@ -72,6 +72,7 @@ class TakFeed:
                     self._thread.start()
         try:
             self.queue.put_nowait(event.encode())
+            self.metrics.tak_queued.set(self.queue.qsize())
             return True
         except queue.Full:
             self.metrics.tak_dropped.inc()
@@ -103,6 +104,7 @@ class TakFeed:
         sock, backoff_s, pending = None, 0.5, None
         while not self._stopping.is_set():
             event = pending if pending is not None else self.queue.get()
+            self.metrics.tak_queued.set(self.queue.qsize())
             if event is None:
                 break
             pending = event
@@ -110,6 +112,7 @@ class TakFeed:
                 if sock is None:
                     sock = self._connect()
                     backoff_s = 0.5
+                    self.metrics.tak_connected.set(1)
                 if self.scheme == "udp":
                     sock.send(event)
                 else:
@@ -123,10 +126,12 @@ class TakFeed:
                 if sock is not None:
                     sock.close()
                     sock = None
+                self.metrics.tak_connected.set(0)
                 self._stopping.wait(backoff_s)
                 backoff_s = min(backoff_s * 2.0, 30.0)
         if sock is not None:
             sock.close()
+        self.metrics.tak_connected.set(0)
 
 
 def feed(app) -> TakFeed | None:

@@ -31,7 +31,7 @@ from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
 from core.error_summary import error_summary, radius50_tables, summaries_kernel
 from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
-from core.estimators import PART_PROBLEMS, FixBatch, SolveOptions, iter_solutions
+from core.estimators import PART_PROBLEMS, FixBatch, SolveOptions, iter_solutions, resolve_methods
 from core.measurements import KIND_NAMES, Kind
 from core.parallel import Stopped
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
@@ -1093,7 +1093,7 @@ def compile_kernels() -> None:
     fix_results(_WARM_BODIES)
 
 
-def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
+def fix_results(bodies: list, request_ids=None, should_stop=None, methods_run: list | None = None) -> list[dict]:
     """Results of FixRequest bodies (see :func:`read_fix_requests`): read, solved and written as one batch.
 
     A failure that is no problem's own error (a bug) fails only the bodies
@@ -1110,6 +1110,9 @@ def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
     should_stop : callable returning bool, optional
         Asked before each part is solved (:func:`core.estimators.iter_solutions`: deadline, disconnect,
         shutdown).
+    methods_run : list, optional
+        Replaced by the method of each body, in order, whatever its outcome: the estimator that ran (``auto``
+        resolved), or the requested method of a body refused before solving (what metrics count a fix under).
 
     Returns
     -------
@@ -1123,21 +1126,28 @@ def fix_results(bodies: list, request_ids=None, should_stop=None) -> list[dict]:
     """
     if request_ids is None or isinstance(request_ids, str):
         request_ids = [request_ids] * len(bodies)
+    ran: list = [None] * len(bodies)
+    results = None
     if len(bodies) > 1:
         try:
-            return _shared_results(bodies, request_ids, should_stop)
+            results = _shared_results(bodies, request_ids, should_stop, ran)
         except Stopped:
             raise
         except Exception:
             logger.exception("shared solve of %d fixes failed; solving each alone", len(bodies))
-    return [{**_alone(body, request_id, should_stop), "index": slot}
-            for slot, (body, request_id) in enumerate(zip(bodies, request_ids))]
+    if results is None:
+        results = [{**_alone(body, request_id, should_stop, ran, slot), "index": slot}
+                   for slot, (body, request_id) in enumerate(zip(bodies, request_ids))]
+    if methods_run is not None:
+        methods_run[:] = ran
+    return results
 
 
-def _alone(body, request_id: str | None, should_stop) -> dict:
-    """One body's result, solved alone; a bug is its slot's 500 ``internal_error``."""
+def _alone(body, request_id: str | None, should_stop, ran: list, slot: int) -> dict:
+    """One body's result, solved alone (its method set in ``ran[slot]``); a bug is its slot's 500 ``internal_error``."""
+    one = [None]
     try:
-        return _shared_results([body], [request_id], should_stop)[0]
+        return _shared_results([body], [request_id], should_stop, one)[0]
     except Stopped:
         raise
     except Exception:
@@ -1145,16 +1155,22 @@ def _alone(body, request_id: str | None, should_stop) -> dict:
         return {"ok": False, "error": problem_body(500, "internal_error",
                                                    f"internal error; quote request id {request_id}",
                                                    request_id=request_id)}
+    finally:
+        ran[slot] = one[0] if one[0] is not None else wire.requested_method(body)
 
 
-def _shared_results(bodies: list, request_ids: list, should_stop) -> list[dict]:
-    """:func:`fix_results` as one shared read, solve and write (chunk by chunk), which any exception fails whole."""
+def _shared_results(bodies: list, request_ids: list, should_stop, ran: list) -> list[dict]:
+    """:func:`fix_results` as one shared read, solve and write (chunk by chunk), which any exception fails whole.
+
+    ``ran[slot]`` is set to the method each body ran with (the requested one when it was refused before solving).
+    """
     results: list[dict | None] = [None] * len(bodies)
 
-    def put(slot: int, result: dict) -> None:
+    def put(slot: int, result: dict, method) -> None:
         if not result["ok"]:
             for_request(result["error"], request_ids[slot])
         results[slot] = {"index": slot, **result}
+        ran[slot] = method
 
     # Read in chunks of a solve part, each set solving on the solver threads while the next one is read
     # (reading holds the GIL, the compiled solves do not), then write every chunk's fixes in turn.
@@ -1165,18 +1181,19 @@ def _shared_results(bodies: list, request_ids: list, should_stop) -> list[dict]:
         for chunk in chunks:
             read = read_fix_requests([bodies[slot] for slot in chunk])
             for j, error in read.errors.items():
-                put(chunk[j], {"ok": False, "error": error})
+                put(chunk[j], {"ok": False, "error": error}, wire.requested_method(bodies[chunk[j]]))
             if read.batch is not None:
                 started.append((chunk, read, iter_solutions(read.batch, read.methods, read.options, should_stop,
                                                             background=len(chunks) > 1)))
         for chunk, read, solutions in started:
             for rows, fixes in solutions:
                 if isinstance(fixes, LocalizationError):
+                    resolved = resolve_methods(read.batch, read.methods)
                     for r in rows.tolist():
-                        put(chunk[read.slots[r]], {"ok": False, "error": localization_problem(fixes)})
+                        put(chunk[read.slots[r]], {"ok": False, "error": localization_problem(fixes)}, resolved[r])
                     continue
                 for r, result in zip(rows.tolist(), fix_bodies(fixes, [read.formats[r] for r in rows])):
-                    put(chunk[read.slots[r]], result)
+                    put(chunk[read.slots[r]], result, fixes.method)
     finally:
         for *_, solutions in started:
             solutions.close()

@@ -115,9 +115,10 @@ async def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonR
         with gc_paused():
             problems, formats = _problems(raw)
             check_batch(problems, request.app.state.settings.max_batch_cost)
-            results = fix_results(problems, request_id(request), should_stop)
+            methods_run: list = []
+            results = fix_results(problems, request_id(request), should_stop, methods_run)
             request.app.state.metrics.count("batch_problems_total", len(problems))
-            request.app.state.metrics.batch_fixes(problems, results)
+            request.app.state.metrics.fixes_done(methods_run, results)
             tak.push_batch(request.app, problems, results)
             response = JsonResponse({"results": results,
                                      **({"geojson": batch_geojson(results, problems)} if formats else {})})

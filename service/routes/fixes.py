@@ -22,7 +22,7 @@ from service.renderings import problem_renderings
 from service.responses import JsonResponse
 from service.translate import crlb_response
 from service.watch import watched
-from service.wire import decode_fix, requested_method
+from service.wire import decode_fix
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
@@ -45,13 +45,10 @@ async def create_fix(http: Request) -> Response:
     result = await watched(http, lambda should_stop: coalescer.submit(body, request_id(http), should_stop), _HINT)
     if result["ok"]:
         fix = result["fix"]
-        http.app.state.metrics.fix(fix["method"], "ok")
         if type(body) is dict and body.get("cot") is not None:
             tak.push_fix(http.app, fix, problem_renderings(body))
         return JsonResponse(fix)
     error = result["error"]
-    method = requested_method(body)
-    http.app.state.metrics.fix(method if type(method) is str and method in schemas.METHODS else "invalid", error["code"])
     return Response(orjson.dumps(error), status_code=error["status"], media_type=MEDIA_TYPE)
 
 

@@ -30,4 +30,5 @@ async def readyz(request: Request) -> dict:
 @router.get("/metrics", operation_id="operations-metrics", summary="Prometheus metrics",
             response_class=PlainTextResponse)
 async def metrics(request: Request) -> PlainTextResponse:
+    request.app.state.metrics.refresh_live_sessions(request.app.state.store)
     return PlainTextResponse(request.app.state.metrics.render(), media_type="text/plain; version=0.0.4")

@@ -186,6 +186,10 @@ class SessionStore(ABC):
         self.ping()
 
     @abstractmethod
+    def count_live(self) -> int:
+        """How many unexpired sessions the store holds, of every owner (a gauge of the metrics)."""
+
+    @abstractmethod
     def close(self) -> None:
         """Release connections."""
 

@@ -165,6 +165,10 @@ class SqliteStore(SessionStore):
         with self._db() as db:
             db.execute("SELECT 1").fetchone()
 
+    def count_live(self) -> int:
+        with self._db() as db:
+            return db.execute("SELECT count(*) FROM sessions WHERE expires_at > ?", (self.now(),)).fetchone()[0]
+
     def check(self) -> None:
         """A committed write (a full disk or read-only file fails it), and ``PRAGMA quick_check`` at most
         every ``integrity_interval_s`` (a corrupt page fails it).
