@@ -3,9 +3,10 @@
 # (scripts/container_smoke.sh says how to make one without registry access).
 # podman/buildah: build with `--format docker`; the OCI default format drops HEALTHCHECK.
 FROM python:3.11-slim AS build
-# numba keeps its compiled kernels here (the venv is not writable at run time); filled below, so a
-# container starts warm when it runs on the build's CPU model and compiles once at start otherwise.
-ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1 NUMBA_CACHE_DIR=/tmp/numba-cache
+# numba keeps its compiled kernels here; filled below, so a container starts warm when it runs on the
+# build's CPU model (and compiles at start otherwise, saying so in its log). Not under /tmp or any other
+# path a deployment mounts a volume on: a volume there would hide the cache and every start would compile.
+ENV PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_CACHE_DIR=1 NUMBA_CACHE_DIR=/opt/numba-cache
 WORKDIR /src
 RUN python -m venv /opt/venv
 # Dependencies first, read from pyproject.toml itself (no second list to drift from it) and pinned to the
@@ -23,7 +24,7 @@ COPY core ./core
 COPY service ./service
 # The kernels are compiled from the installed package, not from /src: numba keys its cache by the source
 # file's path, so a cache filled from /src/core is never read by the runtime (which imports site-packages)
-# and every container start compiled them all again (~45 s).
+# and every container start would compile them all again.
 # The runtime needs no installer: pip and setuptools leave the venv once it is complete and checked; nor
 # numpy's and scipy's own test suites (about 50 MB).
 RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check \
@@ -45,11 +46,15 @@ RUN groupadd --system --gid 10001 locator \
     && useradd --system --uid 10001 --gid 10001 --home-dir /app --no-create-home --shell /usr/sbin/nologin locator \
     && mkdir -p /app/var && chown 10001:10001 /app/var
 COPY --from=build /opt/venv /opt/venv
-COPY --from=build --chown=10001:10001 /tmp/numba-cache /tmp/numba-cache
+# Writable by the service's user, so a plain `run` adds to it; under a read-only root filesystem (the
+# manifests in deploy/) `passive-locator serve` copies it to a fresh temporary directory first, since numba
+# ignores a cache directory it cannot write (service/kernel_cache.py).
+COPY --from=build --chown=10001:10001 /opt/numba-cache /opt/numba-cache
 WORKDIR /app
 USER 10001:10001
-ENV PATH=/opt/venv/bin:$PATH PASSIVE_LOCATOR_STORE=sqlite:////app/var/sessions.db NUMBA_CACHE_DIR=/tmp/numba-cache
+ENV PATH=/opt/venv/bin:$PATH PASSIVE_LOCATOR_STORE=sqlite:////app/var/sessions.db NUMBA_CACHE_DIR=/opt/numba-cache
 VOLUME ["/app/var"]
 EXPOSE 8080
-HEALTHCHECK --interval=30s --timeout=3s --start-period=10s CMD python -c "import urllib.request,sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8080/healthz').status == 200 else 1)"
+# The start period covers a start that compiles the kernels (a CPU model other than the build's): README.
+HEALTHCHECK --interval=30s --timeout=3s --start-period=300s CMD python -c "import urllib.request,sys; sys.exit(0 if urllib.request.urlopen('http://127.0.0.1:8080/healthz').status == 200 else 1)"
 CMD ["passive-locator", "serve", "--host", "0.0.0.0", "--port", "8080"]

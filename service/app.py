@@ -17,6 +17,7 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from service import logs, openapi, problems, tak, translate, web
+from service import kernel_cache
 from service.coalesce import Coalescer
 from service.metrics import InFlight, Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
@@ -67,7 +68,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.stopping = threading.Event()
         app.state.fix_coalescer = Coalescer(app.state.stopping, metrics)
         app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
-        await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, translate.compile_kernels)
+        await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, kernel_cache.load_kernels,
+                                                         translate.compile_kernels)
         try:
             await store.run(lambda backend: None)  # open now when we can; a store that is down opens later
         except problems.ApiError as error:

@@ -163,3 +163,72 @@ def test_dask_scheduler_and_workers_agree_with_each_other_and_the_package(k8s, c
         assert pod["securityContext"]["runAsNonRoot"] is True
         assert pod["containers"][0]["image"] == dask_image
         assert pod["containers"][0]["securityContext"]["readOnlyRootFilesystem"] is True
+
+
+def _numba_cache_dir() -> str:
+    """The image's numba cache: where the build fills it, the runtime stage copies it and the runtime reads it."""
+    text = (ROOT / "Dockerfile").read_text()
+    build, runtime = text.split("\nFROM ")[-2:]
+    built = re.search(r"NUMBA_CACHE_DIR=(\S+)", build).group(1)
+    used = re.search(r"^ENV .*NUMBA_CACHE_DIR=(\S+)", runtime, re.M).group(1)
+    assert built == used, (built, used)
+    assert re.search(rf"^COPY --from=build (--chown=\S+ )?{re.escape(built)} {re.escape(used)}$", runtime, re.M)
+    return used
+
+
+def _hides(mount_path: str, directory: str) -> bool:
+    mount = mount_path.rstrip("/") or "/"
+    return directory == mount or directory.startswith(mount.rstrip("/") + "/")
+
+
+def _image_pods(k8s) -> list[dict]:
+    image = IMAGE.split(":")[0]
+    return [d["spec"]["template"]["spec"] for (kind, _), d in k8s.items() if kind in ("Deployment", "StatefulSet")
+            and any(c["image"].split(":")[0] in (image, image + "-dask") for c in d["spec"]["template"]["spec"]
+                    ["containers"])]
+
+
+def test_no_volume_hides_the_images_kernel_cache(k8s, compose):
+    """A volume over the image's numba cache (a fresh /tmp once hid it) makes every start compile its kernels."""
+    cache = _numba_cache_dir()
+    assert not _hides("/tmp", cache), "the cache is under /tmp, which every manifest mounts a volume over"
+    pods = _image_pods(k8s)
+    assert len(pods) == 3  # the API, the Dask scheduler and its workers
+    for pod in pods:
+        for container in pod["containers"]:
+            for mount in container.get("volumeMounts", []):
+                assert not _hides(mount["mountPath"], cache), (container["name"], mount)
+            assert "NUMBA_CACHE_DIR" not in {e["name"] for e in container.get("env", [])}
+    for name, service in compose["services"].items():
+        if not service["image"].startswith(IMAGE.split(":")[0]):
+            continue
+        paths = [t.split(":")[0] for t in service.get("tmpfs", [])]
+        paths += [v.split(":")[1] if isinstance(v, str) else v["target"] for v in service.get("volumes", [])]
+        assert not any(_hides(p, cache) for p in paths), (name, paths)
+        assert "NUMBA_CACHE_DIR" not in service.get("environment", {})
+
+
+def test_kernel_cache_hider_is_caught():
+    """The check above fails a mount over the cache or over a directory above it."""
+    cache = _numba_cache_dir()
+    assert _hides(cache, cache) and _hides("/opt", cache) and _hides("/", cache)
+    assert not _hides("/tmp", cache) and not _hides(cache + "-other", cache)
+
+
+def test_start_budgets_cover_a_start_that_compiles(k8s, compose):
+    """Every probe and healthcheck allows a start that compiles the kernels (the README's measured figure)."""
+    from service.kernel_cache import COLD_START_S
+
+    worst = COLD_START_S[1]
+    probe = _container(k8s)["startupProbe"]
+    assert probe["periodSeconds"] * probe["failureThreshold"] >= 2 * worst
+    start_period = compose["services"]["api"]["healthcheck"]["start_period"]
+    assert int(start_period.removesuffix("s")) >= 2 * worst
+    docker = re.search(r"^HEALTHCHECK .*--start-period=(\d+)s", (ROOT / "Dockerfile").read_text(), re.M)
+    assert int(docker.group(1)) >= 2 * worst
+
+
+def test_dask_workers_load_the_images_kernels(k8s, compose):
+    worker = k8s[("Deployment", "passive-locator-dask-worker")]["spec"]["template"]["spec"]["containers"][0]
+    for args in (worker["args"], compose["services"]["dask-worker"]["command"]):
+        assert args[args.index("--preload") + 1] == "service.kernel_cache"
