@@ -32,6 +32,8 @@ store_errors_total                   counter    session-store failures by operat
 events_published_total               counter    session update events published to subscribers
 tak_events_total                     counter    CoT events handed to the TAK feed, by outcome
 tak_queue_dropped_total              counter    CoT events dropped because the TAK queue was full
+evaluation_chunks_total              counter    chunks of evaluation trials run
+evaluations_running                  gauge      evaluations holding a CPU-pool worker now
 tak_connected                        gauge      1 while the TAK feed holds a connection (or UDP socket)
 tak_queue_events                     gauge      CoT events waiting to be sent
 build_info                           gauge      1, labelled with the version and Python
@@ -128,6 +130,11 @@ class Metrics:
                                                              "(in the background, at most every "
                                                              f"{LIVE_SESSIONS_EVERY_S:g} s, started by a scrape)",
                                    registry=r, multiprocess_mode="mostrecent")
+        self.evaluation_chunks = counter("evaluation_chunks", "Chunks of evaluation trials run (an evaluation "
+                                                              "checks between chunks whether to stop)")
+        self.evaluations_running = Gauge(PREFIX + "evaluations_running", "Evaluations holding a CPU-pool worker "
+                                                                         "now", registry=r,
+                                         multiprocess_mode="livesum")
         self._counting: asyncio.Task | None = None
         self._counted_at = -float("inf")
         for method in sorted(_METHOD_LABELS | {"invalid"}):

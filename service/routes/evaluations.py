@@ -43,8 +43,15 @@ async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep,
                      len(set(problem.source_index.tolist())))
     chunk = max(1, CHUNK_UNITS // (rows * max(method_weight(m) for m in methods) * (2 if exclude else 1)))
 
+    metrics = http.app.state.metrics
+
+    def chunk_done(done: int, total: int) -> None:
+        metrics.evaluation_chunks.inc()
+
     def run(should_stop):
-        return evaluation_body(request, problem, target, methods, should_stop, chunk, settings.dask_scheduler or None)
+        with metrics.evaluations_running.track_inprogress():
+            return evaluation_body(request, problem, target, methods, should_stop, chunk,
+                                   settings.dask_scheduler or None, progress=chunk_done)
 
     body = await watched(http, in_pool(http.app.state.cpu_pool, run), "ask for fewer trials or methods")
     return JsonResponse(body)
