@@ -100,9 +100,14 @@ def main(argv: list[str] | None = None) -> None:
                  "PASSIVE_LOCATOR_API_KEY_HASHES (or PASSIVE_LOCATOR_API_KEY_HASHES_FILE), or "
                  "PASSIVE_LOCATOR_ALLOW_ANONYMOUS=true to serve anyone who can reach it")
     level = args.log_level or settings.log_level
+    os.environ["PASSIVE_LOCATOR_LOG_LEVEL"] = level  # the app's own logger too, in every worker process
 
     import uvicorn
 
+    from service import kernel_cache, logs
+
+    logs.configure(level, settings.log_format)
+    kernel_cache.usable_cache_dir()  # before uvicorn imports the app (and numba its kernels)
     _metrics_for_workers(args.workers)
     uvicorn.run("service.main:app", factory=False, host=args.host, port=args.port, workers=args.workers,
                 log_level=level, log_config=uvicorn_log_config(level, settings.log_format), access_log=False,

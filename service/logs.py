@@ -1,4 +1,8 @@
-"""Log lines as JSON objects: timestamp, level, logger, message, the request id, and any exception.
+"""Log lines as JSON objects (timestamp, level, logger, message, the request id, any exception), or as text.
+
+The format ``auto`` (the default) is text when stderr is a terminal (a person
+reads it) and JSON otherwise (a log collector reads it); ``json`` or ``text``
+chooses one whatever stderr is.
 
 The request id is a context variable the middleware sets, so every line logged
 while a request is served names it (also from threads the request's work runs
@@ -10,6 +14,7 @@ from __future__ import annotations
 
 import contextvars
 import logging
+import sys
 import time
 
 import orjson
@@ -49,10 +54,21 @@ class _RequestIdFilter(logging.Filter):
         return True
 
 
-def configure(level: str = "info", fmt: str = "json") -> None:
+def resolved_format(fmt: str, stream=None) -> str:
+    """``json`` or ``text``: ``fmt`` itself, or for ``auto`` text when ``stream`` (default stderr) is a terminal."""
+    if fmt != "auto":
+        return fmt
+    stream = sys.stderr if stream is None else stream
+    try:
+        return "text" if stream.isatty() else "json"
+    except (AttributeError, ValueError):  # no stream, or a closed one
+        return "json"
+
+
+def configure(level: str = "info", fmt: str = "auto") -> None:
     """Give the service's logger one stderr handler in the chosen format (replacing the one it had)."""
     handler = logging.StreamHandler()
-    if fmt == "json":
+    if resolved_format(fmt, handler.stream) == "json":
         handler.setFormatter(JsonFormatter())
     else:
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s [%(request_id)s] %(message)s"))
@@ -66,7 +82,7 @@ def configure(level: str = "info", fmt: str = "json") -> None:
 
 def uvicorn_log_config(level: str, fmt: str) -> dict:
     """A ``log_config`` for uvicorn with its loggers in the service's format."""
-    formatter = {"()": "service.logs.JsonFormatter"} if fmt == "json" else \
+    formatter = {"()": "service.logs.JsonFormatter"} if resolved_format(fmt) == "json" else \
         {"format": "%(asctime)s %(levelname)s %(name)s %(message)s"}
     return {
         "version": 1,
