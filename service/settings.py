@@ -61,16 +61,16 @@ class Settings(BaseSettings):
     max_grid_cost : int
         Largest ``cells x measurement rows`` of one coverage map (``POST /v1/crlb/grid``; 422 ``over_limit``).
     dask_scheduler : str or None
-        Address of a Dask distributed scheduler (``tcp://host:8786``) that runs coverage maps in chunks;
-        None (the default) runs the same chunks in this process, on the CPU pool.
+        Address of a Dask distributed scheduler (``tcp://host:8786``; needs the ``distributed`` extra) that runs
+        the chunks of evaluations and coverage maps (also the default of the ``evaluate``, ``reproduce`` and
+        ``map`` commands); None (the default) runs the same chunks in this process, on the CPU pool. The result
+        for a seed is the same either way.
     cpu_workers : int
         Threads for the CPU-bound evaluations, apart from everything else.
     graceful_timeout_s : float
         On SIGTERM, in-flight requests get this long before they are cancelled.
-    log_format : {"json", "text"}
-    dask_scheduler : str
-        A Dask distributed scheduler (``tcp://host:8786``) that runs the chunks of evaluations; empty (the
-        default) runs them in the service's CPU pool. The result for a seed is the same either way.
+    log_format : {"auto", "json", "text"}
+        Log lines as JSON objects or as text; ``auto``: text when stderr is a terminal, JSON otherwise.
     """
 
     model_config = SettingsConfigDict(env_prefix="PASSIVE_LOCATOR_", extra="ignore")
@@ -99,8 +99,7 @@ class Settings(BaseSettings):
     graceful_timeout_s: float = Field(10.0, gt=0.0)
     log_level: str = "info"
     cors_allow_origins: list[str] = Field(default_factory=list)
-    log_format: Literal["json", "text"] = "json"
-    dask_scheduler: str | None = None
+    log_format: Literal["auto", "json", "text"] = "auto"
 
     api_keys: str | None = Field(None, description="gone: plain keys in configuration are refused")
 
