@@ -353,8 +353,10 @@ def test_a_post_past_the_request_deadline_is_503_and_applies_nothing(store_url, 
     from service import sessions
 
     real = sessions.tracker_epoch
+    stepped = []
 
     def slow_epoch(epoch):
+        stepped.append(epoch)
         time.sleep(0.02)
         return real(epoch)
 
@@ -363,10 +365,9 @@ def test_a_post_past_the_request_deadline_is_503_and_applies_nothing(store_url, 
     with TestClient(create_app(Settings(store=store_url, request_deadline_s=0.2))) as c:
         c.app.state.store.clock = clock
         session = create(c)
-        started = time.monotonic()
         response = post(c, session["id"], epochs)
         assert response.status_code == 503 and response.json()["code"] == "deadline_exceeded", response.text
-        assert time.monotonic() - started < 0.2 + 1.5  # the steps stopped at a check, well before all 60 ran
+        assert len(stepped) < len(epochs), len(stepped)  # the steps stopped at a check, before all of them ran
         time.sleep(0.2)
         state = c.get(f"/v1/sessions/{session['id']}").json()
         assert (state["version"], state["updates"]) == (1, 0)
