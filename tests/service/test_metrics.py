@@ -89,7 +89,8 @@ def test_a_failed_auto_fix_counts_under_the_method_that_ran(client):
     assert answer.status_code == 422
     code = answer.json()["code"]
     assert client.post("/v1/fixes", json=bearing_request(STATIONS_300KM, TARGET)).status_code == 200
-    batch = {"problems": [_parallel_bearings(), _parallel_bearings(method="ml"), bearing_request(STATIONS_300KM, TARGET)]}
+    batch = {"problems": [_parallel_bearings(), _parallel_bearings(method="ml"),
+                          bearing_request(STATIONS_300KM, TARGET)]}
     assert [r["ok"] for r in client.post("/v1/fixes/batch", json=batch).json()["results"]] == [False, False, True]
     text = client.get("/metrics").text
     fixes = {(s.labels["method"], s.labels["outcome"]): s.value

@@ -152,3 +152,15 @@ def test_the_cold_start_figure_is_the_one_the_service_and_the_manifests_use():
         in text
     assert "NUMBA_CACHE_DIR=/opt/numba-cache" in text and "NUMBA_CACHE_DIR=/opt/numba-cache" in \
         (ROOT / "Dockerfile").read_text()
+
+
+def test_the_metrics_the_readme_names_are_served(client):
+    from prometheus_client.parser import text_string_to_metric_families
+
+    text = (ROOT / "README.md").read_text()
+    named = set(re.findall(r"`((?:passive_locator|process)_[a-z0-9_]+)`", text))
+    assert len(named) >= 6
+    client.get("/healthz")  # the request histogram has a series once a request was answered
+    families = list(text_string_to_metric_families(client.get("/metrics").text))
+    served = {f.name for f in families} | {s.name for f in families for s in f.samples}
+    assert named <= served, named - served
