@@ -43,7 +43,7 @@ class App:
                  "--log-level", "warning", "--no-access-log", "--timeout-graceful-shutdown", "2"],
                 cwd=REPO, env=environment, stdout=log, stderr=subprocess.STDOUT)
         self.url = f"http://127.0.0.1:{self.port}"
-        deadline = time.monotonic() + 30
+        deadline = time.monotonic() + 180  # a bound on a hang, not a speed
         while time.monotonic() < deadline:
             assert self.process.poll() is None, self.log.read_text()[-3000:]
             try:

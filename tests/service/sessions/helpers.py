@@ -113,7 +113,7 @@ class Server:
     def url(self) -> str:
         return f"http://127.0.0.1:{self.port}"
 
-    def start(self, timeout_s: float = 30.0) -> "Server":
+    def start(self, timeout_s: float = 180.0) -> "Server":
         env = {**os.environ, "PASSIVE_LOCATOR_STORE": self.store_url, "PASSIVE_LOCATOR_LOG_LEVEL": "warning",
                **self.extra_env}
         env.pop("PASSIVE_LOCATOR_API_KEYS", None)
