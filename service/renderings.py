@@ -2,9 +2,9 @@
 
 Both are built from the response bodies (the dicts of :mod:`service.translate`
 and :func:`service.sessions.state_body`), so a rendering says exactly what the
-JSON says. Errors are re-expressed in the east/north/up plane at the rendered
-point itself (the body's ``covariance_enu_m2`` is in the request's common
-frame, whose axes differ from the point's by the meridian convergence):
+JSON says. Errors are in the east/north/up axes at the rendered point itself
+(a fix body's ``covariance_enu_m2`` already is; a session's ``covariance_enu``
+is turned from the observer's axes to the emitter's):
 
 - CoT ``ce`` is the one-sigma circular error ``sqrt((l1 + l2) / 2)`` of the
   horizontal covariance's eigenvalues ``l1, l2`` (the RMS of the two axes'
@@ -62,16 +62,6 @@ def of_request(request) -> Renderings:
 
 
 # -- shared geometry ----------------------------------------------------------------------------------------------
-
-def _rotation_at(lat_deg: float, lon_deg: float) -> np.ndarray:
-    return geodesy.ecef_to_enu_rotation(math.radians(lat_deg), math.radians(lon_deg))
-
-
-def covariance_at_point(position: dict, covariance_ecef_m2) -> np.ndarray:
-    """A 3x3 ECEF covariance in the east/north/up axes at a geodetic position (degrees)."""
-    rotation = _rotation_at(position["lat_deg"], position["lon_deg"])
-    return rotation @ np.asarray(covariance_ecef_m2, dtype=float) @ rotation.T
-
 
 def one_sigma_errors(covariance_enu_m2) -> tuple[float, float]:
     """``(ce, le)``: one-sigma circular and vertical errors (m) of an ENU covariance at the point."""
@@ -145,9 +135,7 @@ def _decimal(value: float, places: int) -> str:
 # -- fixes --------------------------------------------------------------------------------------------------------
 
 def _fix_errors(body: dict) -> np.ndarray:
-    """The fix's covariance in the ENU axes at the fix."""
-    if "covariance_ecef_m2" in body:
-        return covariance_at_point(body["position"], body["covariance_ecef_m2"])
+    """The fix's covariance in the ENU axes at the fix (as the body gives it)."""
     return np.asarray(body["covariance_enu_m2"], dtype=float)
 
 
