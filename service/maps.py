@@ -6,8 +6,10 @@ Both take what :mod:`core.coverage` gives (the planning problem, its
 - GeoJSON (RFC 7946): one Polygon feature per cell, the square of side
   ``step_m`` around the cell centre in the common frame converted to WGS84
   corner by corner (null geometry in a flat local frame), then one Point per
-  station. A grid across the antimeridian or around a pole is not split (its
-  edge cells' rings are then wrong in longitude).
+  station. Longitudes are within [-180, 180]: a cell across the antimeridian
+  is cut there into a MultiPolygon, and the cell around a pole, which no ring
+  of longitudes and latitudes can draw, has a null geometry
+  (:func:`service.renderings.polygon_geometries`, as for the fixes' ellipses).
 - PNG: ``log10(CEP50)`` in the viridis colour map, small (good) bright, over
   at most :data:`DECADES` decades above the best cell (worse cells saturate),
   unobservable cells grey; the square grid keeps its aspect ratio in the
@@ -28,6 +30,7 @@ import numpy as np
 
 from core.coverage import Coverage, Grid
 from core.problem import Problem
+from service.renderings import polygon_geometries
 
 #: The PNG's colour scale spans at most this many decades of CEP50 above the best cell.
 DECADES = 3.0
@@ -62,15 +65,13 @@ def coverage_geojson(problem: Problem, grid: Grid, coverage: Coverage) -> dict:
     rows, columns = grid.shape
     index = np.arange(cells.shape[0])
     frame = problem.frame
-    rings: list | None = None
+    geometries: list = [None] * cells.shape[0]
     if frame.is_geodetic:
         half = 0.5 * grid.step_m
-        square = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0],
-                           [-half, -half, 0.0]])
+        square = np.array([[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]])
         lat, lon, _ = frame.to_geodetic(cells[:, None, :] + square)
-        lon_deg, lat_deg = np.degrees(lon), np.degrees(lat)
-        lon_deg = lon_deg[:, :1] + (lon_deg - lon_deg[:, :1] + 180.0) % 360.0 - 180.0
-        rings = np.stack([lon_deg, lat_deg], axis=-1).tolist()
+        _, centre_lon, _ = frame.to_geodetic(cells)
+        geometries = polygon_geometries(np.degrees(lon), np.degrees(lat), np.degrees(centre_lon))
     east, north, up = cells[:, 0].tolist(), cells[:, 1].tolist(), cells[:, 2].tolist()
     row_l, column_l = (index // columns).tolist(), (index % columns).tolist()
     cep, trace = _float_or_none(coverage.cep50_m), _float_or_none(coverage.sqrt_trace_crlb_m)
@@ -79,7 +80,7 @@ def coverage_geojson(problem: Problem, grid: Grid, coverage: Coverage) -> dict:
     unobservable = (~coverage.observable).tolist()
     features = [
         {"type": "Feature",
-         "geometry": None if rings is None else {"type": "Polygon", "coordinates": [rings[k]]},
+         "geometry": geometries[k],
          "properties": {"kind": "cell", "row": row_l[k], "column": column_l[k], "east_m": east[k],
                         "north_m": north[k], "up_m": up[k], "unobservable": unobservable[k], "cep50_m": cep[k],
                         "sqrt_trace_crlb_m": trace[k], "gdop": gdop[k], "sigma_ref_m": sigma_ref[k]}}

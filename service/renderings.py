@@ -99,26 +99,56 @@ def _clip(ring: list, boundary: float, keep_below: bool) -> list:
     return out
 
 
+def polygon_geometries(lon_deg, lat_deg, centre_lon_deg) -> list[dict | None]:
+    """GeoJSON (RFC 7946) geometries of convex rings given by their vertices in longitude and latitude.
+
+    Each ring's longitudes are unwrapped around its centre's (so a ring near the antimeridian is one
+    piece), then written within [-180, 180]: as a Polygon when it fits, else cut at the antimeridian
+    into a MultiPolygon of its two sides. A ring around a pole (its unwrapped longitudes spanning 180
+    degrees or more) has no such representation: its geometry is None.
+
+    Parameters
+    ----------
+    lon_deg, lat_deg : ndarray, shape (N, K)
+        The vertices of each ring, counter-clockwise, the first not repeated.
+    centre_lon_deg : ndarray, shape (N,)
+        A longitude inside each ring.
+
+    Returns
+    -------
+    list of dict or None, length N
+    """
+    lon = np.asarray(lon_deg, dtype=float)
+    lat = np.asarray(lat_deg, dtype=float)
+    centre = np.asarray(centre_lon_deg, dtype=float).reshape(-1, 1)
+    unwrapped = centre + (lon - centre + 180.0) % 360.0 - 180.0
+    high, low = unwrapped.max(axis=1), unwrapped.min(axis=1)
+    shift = np.where(low > 180.0, -360.0, np.where(high < -180.0, 360.0, 0.0))  # wholly across: move it back
+    unwrapped += shift[:, None]
+    high, low = high + shift, low + shift
+    closed = np.stack([np.concatenate([unwrapped, unwrapped[:, :1]], axis=1),
+                       np.concatenate([lat, lat[:, :1]], axis=1)], axis=-1)
+    out: list[dict | None] = []
+    for ring, top, bottom in zip(closed.tolist(), high.tolist(), low.tolist()):
+        if top - bottom >= 180.0:
+            out.append(None)
+        elif top <= 180.0 and bottom >= -180.0:
+            out.append({"type": "Polygon", "coordinates": [ring]})
+        else:
+            boundary = 180.0 if top > 180.0 else -180.0
+            turn = -360.0 if boundary > 0 else 360.0
+            near = _clip(ring, boundary, keep_below=boundary > 0)
+            far = [[x + turn, y] for x, y in _clip(ring, boundary, keep_below=boundary < 0)]
+            out.append({"type": "MultiPolygon", "coordinates": [[near], [far]]})
+    return out
+
+
 def _ellipse_geometry(position: dict, covariance_enu_m2) -> tuple[dict | None, dict]:
     """The 95 % ellipse as a GeoJSON Polygon (or MultiPolygon across the antimeridian), and its axes."""
     vertices, axes = _ellipse_enu(covariance_enu_m2)
     lat, lon, _ = geodesy.enu_to_geodetic(vertices, math.radians(position["lat_deg"]),
                                           math.radians(position["lon_deg"]), position["alt_m"])
-    lat_deg, lon_deg = np.degrees(lat), np.degrees(lon)
-    centre = position["lon_deg"]
-    unwrapped = centre + (lon_deg - centre + 180.0) % 360.0 - 180.0
-    if np.ptp(unwrapped) >= 180.0:  # around a pole
-        return None, axes
-    ring = [[float(x), float(y)] for x, y in zip(unwrapped, lat_deg)]
-    ring.append(list(ring[0]))
-    high, low = max(p[0] for p in ring), min(p[0] for p in ring)
-    if high <= 180.0 and low >= -180.0:
-        return {"type": "Polygon", "coordinates": [ring]}, axes
-    boundary = 180.0 if high > 180.0 else -180.0
-    shift = -360.0 if boundary > 0 else 360.0
-    near = _clip(ring, boundary, keep_below=boundary > 0)
-    far = [[x + shift, y] for x, y in _clip(ring, boundary, keep_below=boundary < 0)]
-    return {"type": "MultiPolygon", "coordinates": [[near], [far]]}, axes
+    return polygon_geometries(np.degrees(lon)[None], np.degrees(lat)[None], [position["lon_deg"]])[0], axes
 
 
 def utc_timestamp(moment: datetime) -> str:

@@ -310,7 +310,9 @@ class PolygonGeometry(BaseModel):
 
 class MultiPolygonGeometry(BaseModel):
     type: Literal["MultiPolygon"]
-    coordinates: list[list[list[list[float]]]] = Field(description="the ellipse cut at the antimeridian")
+    coordinates: list[list[list[list[float]]]] = Field(description="a ring cut at the antimeridian: its two "
+                                                                   "sides, each one closed ring of "
+                                                                   "[longitude_deg, latitude_deg]")
 
 
 Geometry = Annotated[Union[PointGeometry, PolygonGeometry, MultiPolygonGeometry], Field(discriminator="type")]
@@ -456,9 +458,10 @@ class StationProperties(BaseModel):
 
 class CoverageFeature(BaseModel):
     type: Literal["Feature"]
-    geometry: PolygonGeometry | PointGeometry | None = Field(
+    geometry: Geometry | None = Field(
         description="cell: its square (corners step_m / 2 from the centre in the common frame) as "
-                    "[longitude_deg, latitude_deg]; station: a Point; null in a flat local frame")
+                    "[longitude_deg, latitude_deg] within [-180, 180], a MultiPolygon when cut at the "
+                    "antimeridian, null around a pole; station: a Point; null in a flat local frame")
     properties: CellProperties | StationProperties
 
 
