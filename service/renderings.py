@@ -178,7 +178,7 @@ def fix_cot(body: dict, options=()) -> str | None:
         A fix response body.
     options : Renderings or tuple
         ``observed_at`` sets ``time`` and ``start`` (else now); ``cot`` sets ``uid`` (else unique per
-        call), ``type`` and ``stale_s``.
+        call), ``type``, ``stale_s`` and ``callsign`` (else the uid).
     """
     if "position" not in body:
         return None
@@ -194,10 +194,13 @@ def fix_cot(body: dict, options=()) -> str | None:
               f'covariance_source={quoteattr(body.get("covariance_source", ""))} '
               f'cep50_m="{_decimal(body["error"]["cep50_m"], 2)}" '
               f'sep50_m="{_decimal(body["error"]["sep50_m"], 2)}"/>')
-    return _event(uid, kind, HOW_FIX, start, stale_s, body["position"], covariance, axes, detail)
+    return _event(uid, kind, HOW_FIX, start, stale_s, body["position"], covariance, axes, detail,
+                  getattr(cot, "callsign", None))
 
 
-def _event(uid, kind, how, start, stale_s, position, covariance, axes, detail="") -> str:
+def _event(uid, kind, how, start, stale_s, position, covariance, axes, detail="", callsign=None) -> str:
+    """The one CoT event writer: every event carries ``<contact callsign>`` (the uid unless one is given),
+    the label TAK shows on its marker."""
     ce, le = one_sigma_errors(covariance)
     stamp = utc_timestamp(start)
     return (
@@ -205,7 +208,7 @@ def _event(uid, kind, how, start, stale_s, position, covariance, axes, detail=""
         f'start="{stamp}" stale="{utc_timestamp(start + timedelta(seconds=stale_s))}">'
         f'<point lat="{_decimal(position["lat_deg"], 8)}" lon="{_decimal(_lon180(position["lon_deg"]), 8)}" '
         f'hae="{_decimal(position["alt_m"], 2)}" ce="{_decimal(ce, 2)}" le="{_decimal(le, 2)}"/>'
-        f'<detail>{detail}'
+        f'<detail><contact callsign={quoteattr(callsign or uid)}/>{detail}'
         f'<shape><ellipse major="{_decimal(axes["semi_major_m"], 2)}" minor="{_decimal(axes["semi_minor_m"], 2)}" '
         f'angle="{_decimal(axes["orientation_deg"], 2)}"/></shape>'
         f'<remarks>95 % error ellipse: semi-axes (m), major axis clockwise from true north (deg); '
@@ -314,7 +317,8 @@ def session_cot(state: dict, cot=None) -> str | None:
               f'<passive_locator model={quoteattr(state["model"])} version="{state["version"]}" '
               f'updates="{state["updates"]}"/>')
     return _event(session_uid(state, cot), cot.type if cot is not None else DEFAULT_TYPE, HOW_TRACK, start,
-                  cot.stale_s if cot is not None else DEFAULT_STALE_S, state["position"], covariance, axes, detail)
+                  cot.stale_s if cot is not None else DEFAULT_STALE_S, state["position"], covariance, axes, detail,
+                  getattr(cot, "callsign", None))
 
 
 def session_geojson(state: dict, cot=None) -> dict:

@@ -198,6 +198,10 @@ class CotOptions(Strict):
     type: str = Field("a-u-G", max_length=64, pattern=r"^[A-Za-z0-9_]+(-[A-Za-z0-9_]+)*$",
                       description="CoT type; default a-u-G, an unknown-affiliation ground track")
     stale_s: float = Field(300.0, gt=0.0, le=MAX_STALE_S, description="stale = start + stale_s")
+    callsign: str | None = Field(
+        None, min_length=1, max_length=64, pattern=r"^[^\x00-\x1f\x7f-\x9f\ufffe\uffff]+$",
+        description="the label a TAK client shows on the marker (detail/contact callsign; characters XML 1.0 "
+                    "allows, no control characters); absent = the uid")
 
 
 class FixRequest(Strict):

@@ -80,7 +80,8 @@ class SessionCreate(Strict):
                          description="idle lifetime: the session is deleted ttl_s after its last write "
                                      "(creation or a post that applied measurements)")
     cot: CotOptions | None = Field(None, description="CoT uid (default passive-locator-session-<id>: one uid per "
-                                                     "session), type and stale time of the session's track events")
+                                                     "session), callsign (default the uid), type and stale time "
+                                                     "of the session's track events")
 
     @model_validator(mode="after")
     def _observer_matches_frame(self):
