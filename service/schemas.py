@@ -146,7 +146,8 @@ class EvaluationOptions(Strict):
 
     max_iterations: int = Field(50, ge=1, le=1000)
     tolerance_m: float = Field(1e-3, ge=1e-9, le=1e6)
-    variant: Variant | None = Field(None, description="method variant: ctls newton (default) | projected")
+    variant: Annotated[Variant, Field(title="MethodSolver")] | None = Field(
+        None, description="method variant: ctls newton (default) | projected")
     outliers: Literal["report", "exclude"] = Field(
         "report", description="exclude: fault detection and exclusion (chi-square test, then the measurement with "
                               "the largest studentized residual, repeated while the test fails and dof remain); "
