@@ -461,15 +461,16 @@ class GridSpec(Strict):
 
 
 class ImageSpec(Strict):
-    """Size of the PNG heat map (with Accept: image/png)."""
+    """Size of the pictures: the PNG heat map exactly; the KMZ and GeoTIFF rasters take the larger of the two
+    along their longer side."""
 
-    width_px: int = Field(640, ge=16, le=4096)
-    height_px: int = Field(480, ge=16, le=4096)
+    width_px: int = Field(640, ge=16, le=4096, description="PNG width, pixels")
+    height_px: int = Field(480, ge=16, le=4096, description="PNG height, pixels")
 
 
 class CrlbGridRequest(PlanningGeometry):
     grid: GridSpec
-    image: ImageSpec = Field(default_factory=ImageSpec, description="used only for the PNG (Accept: image/png)")
+    image: ImageSpec = Field(default_factory=ImageSpec, description="the pictures' size (PNG, KMZ, GeoTIFF)")
 
 
 class CellProperties(BaseModel):

@@ -39,7 +39,7 @@ from core.problem_batch import ProblemBatch, build_problem_batch, size_groups
 from core.simulation.measurements import evaluate
 from service import schemas, wire
 from service.limits import check_grid, fix_within_limit
-from service.maps import coverage_geojson, coverage_png
+from service.maps import coverage_geojson, coverage_geotiff, coverage_kmz, coverage_png
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
 from service.responses import JsonObject
@@ -166,7 +166,9 @@ def grid_of_request(request: schemas.CrlbGridRequest, max_grid_cost: int | None 
 
 def coverage_renderings(request: schemas.CrlbGridRequest, problem: Problem, grid_cells: Grid, formats, *,
                         scheduler=None, should_stop=None, progress=None) -> dict:
-    """A coverage map computed once and rendered as asked: ``{"geojson": dict, "png": bytes}`` for ``formats``.
+    """A coverage map computed once and rendered as asked: ``{"geojson": dict, "png": bytes, "kmz": bytes,
+    "tiff": bytes}`` for ``formats`` (a KMZ or GeoTIFF raises :class:`service.maps.NotOnTheEarth` in a flat
+    frame).
 
     Raises core.parallel.Stopped when ``should_stop`` says so; ``scheduler`` as for :func:`core.parallel.run_chunks`.
     """
@@ -177,6 +179,11 @@ def coverage_renderings(request: schemas.CrlbGridRequest, problem: Problem, grid
         out["geojson"] = coverage_geojson(problem, grid_cells, coverage)
     if "png" in formats:
         out["png"] = coverage_png(problem, grid_cells, coverage, request.image.width_px, request.image.height_px)
+    longer_side_px = max(request.image.width_px, request.image.height_px)
+    if "kmz" in formats:
+        out["kmz"] = coverage_kmz(problem, grid_cells, coverage, longer_side_px)
+    if "tiff" in formats:
+        out["tiff"] = coverage_geotiff(problem, grid_cells, coverage, longer_side_px)
     return out
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from service import schemas
-from service.routes.coverage import wants_png
+from service.routes.coverage import negotiate
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -163,17 +163,28 @@ def test_geodetic_centre_needs_a_geodetic_frame(client):
 
 
 def test_accept_negotiation():
-    assert not wants_png(None) and not wants_png("*/*") and not wants_png("application/json")
-    assert wants_png("image/png") and wants_png("image/png, application/json")
-    assert not wants_png("application/json, image/png")
-    assert wants_png("application/json;q=0.5, image/png") and not wants_png("image/png;q=0")
+    json_, png, kmz, tiff = "application/json", "image/png", "application/vnd.google-earth.kmz", "image/tiff"
+    assert negotiate(None) == negotiate("") == negotiate("*/*") == negotiate("application/json") == json_
+    assert negotiate("application/geo+json") == json_
+    assert negotiate("image/png") == negotiate("image/png, application/json") == png
+    assert negotiate("application/json, image/png") == json_
+    assert negotiate("application/json;q=0.5, image/png") == png and negotiate("image/png;q=0") is None
+    assert negotiate("application/vnd.google-earth.kmz") == kmz and negotiate("image/tiff;q=0.9, */*;q=0.1") == tiff
+    assert negotiate("image/*") == png and negotiate("image/*, image/png;q=0") == tiff
+    assert negotiate("text/html, */*;q=0.8") == json_  # a browser
+    assert negotiate("application/vnd.google-earth.kml+xml") is None and negotiate("text/html") is None
 
 
-def test_openapi_declares_the_png(client):
+def test_openapi_declares_the_renderings(client):
     spec = client.get("/openapi.json").json()
     content = spec["paths"]["/v1/crlb/grid"]["post"]["responses"]["200"]["content"]
-    assert content["image/png"]["schema"] == {"type": "string", "format": "binary"}
-    assert "application/json" in content
+    for media_type in ("image/png", "application/vnd.google-earth.kmz", "image/tiff"):
+        assert content[media_type]["schema"] == {"type": "string", "format": "binary"}
+    assert next(iter(sorted(content))) == "application/json"  # what a generated client parses
+    download = spec["paths"]["/v1/crlb/grid/map"]["post"]
+    assert download["responses"]["200"]["content"] == {
+        "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}
+    assert download["parameters"][0]["schema"]["enum"] == ["png", "kmz", "tiff"]
 
 
 def test_fix_and_crlb_gdop_is_dimensionless_and_sqrt_trace_keeps_the_metres(client):
