@@ -137,7 +137,7 @@ async def crlb_grid(request: schemas.CrlbGridRequest, owner: OwnerDep, http: Req
     return JsonResponse(body) if kind == "geojson" else Response(body, media_type=media_type)
 
 
-MapFormat = Annotated[Literal["png", "kmz", "tiff"], Field(title="MapFormat")]
+MapFormat = Annotated[Literal["png", "kmz", "tiff"], Field(title="Format")]
 
 
 @router.post("/crlb/grid/map", operation_id="fixes-crlb-grid-map",
