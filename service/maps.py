@@ -195,12 +195,15 @@ def _draw_colour_bar(image, draw, font, scale: ColourScale, left: int, top: int,
     if not labelled:
         return
     span = max(scale.worst - scale.best, 1e-9)
+    lowest = top
     for value in scale.ticks_m():
         y = top + round((math.log10(value) - scale.best) / span * (height - 1))
         draw.line([(left + width, y), (left + width + 3, y)], fill=_AXES)
-        last = value >= 10.0 ** scale.worst * (1 - 1e-9) and scale.saturated
-        draw.text((left + width + 5, y), (">= " if last else "") + _metres(value), fill=_TEXT, font=font,
-                  anchor="lm")
+        draw.text((left + width + 5, y), _metres(value), fill=_TEXT, font=font, anchor="lm")
+        lowest = max(lowest, y)
+    if scale.saturated and top + height - 1 - lowest >= 12:  # worse cells take the bar's last colour
+        draw.text((left + width + 5, top + height - 1), ">= " + _metres(10.0 ** scale.worst), fill=_TEXT,
+                  font=font, anchor="lm")
     draw.text((left, top - 3), "CEP50", fill=_TEXT, font=font, anchor="ld")
 
 

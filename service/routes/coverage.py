@@ -40,8 +40,6 @@ KMZ = "application/vnd.google-earth.kmz"
 TIFF = "image/tiff"
 #: The renderings by media type, in the order a tie in Accept is settled (JSON first, the default).
 MEDIA_TYPES = {JSON: "geojson", PNG: "png", KMZ: "kmz", TIFF: "tiff"}
-#: Ranges that name JSON too: GeoJSON's own type, and the wildcards (which ask for the default).
-_JSON_ALIASES = ("application/geo+json", "*/*", "application/*")
 #: Renderings placed by latitude and longitude: a flat local frame without an origin has none.
 GEOREFERENCED = ("kmz", "tiff")
 _SUFFIX = {"png": "png", "kmz": "kmz", "tiff": "tif"}
