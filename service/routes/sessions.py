@@ -38,16 +38,23 @@ _UNAVAILABLE = {503: {"model": Problem, "description": "the session store is una
                                                        "within the request deadline (deadline_exceeded); retry "
                                                        "after Retry-After",
                       "headers": {"Retry-After": {"description": "seconds", "schema": {"type": "string"}}}}}
-#: One server-sent event, as parsed from the stream (OpenAPI 3.1 has ``schema`` describe each event of a
-#: ``text/event-stream``; 3.2 names it ``itemSchema``). ``data`` is one line of JSON: a SessionState for
-#: ``state``, ``{"id"}`` for ``deleted``.
-_EVENT = {"type": "object", "required": ["event", "data"], "properties": {
-    "event": {"type": "string", "enum": ["state", "deleted"]},
-    "id": {"type": "string", "pattern": "^[0-9]+$", "description": "the session's version (state events)"},
-    "data": {"type": "string", "contentMediaType": "application/json", "contentSchema": {"anyOf": [
-        {"$ref": "#/components/schemas/SessionState"},
-        {"type": "object", "required": ["id"], "properties": {"id": {"type": "string"}}}]}},
-}}
+#: The stream declared for generated clients as text (read as it comes: a client that parses the body as one
+#: document never returns, as the stream lasts while the session lives), and each event as the stream's
+#: ``itemSchema`` (OpenAPI 3.2's field for one event of a sequential media type; named SessionEvent).
+_EVENT_STREAM = {"type": "string", "description": (
+    "server-sent events (text/event-stream): `event: state` events, then `event: deleted`, the last (each a "
+    "SessionEvent); lines starting with `:` are keep-alive comments")}
+_EVENT = {"title": "SessionEvent", "description": "One server-sent event of a session's stream, as parsed.",
+          "type": "object", "required": ["event", "data"], "properties": {
+              "event": {"title": "Kind", "type": "string", "enum": ["state", "deleted"],
+                        "description": "state: the session's state after an update; deleted: the session ended"},
+              "id": {"type": "string", "pattern": "^[0-9]+$", "description": "the session's version (state events)"},
+              "data": {"type": "string", "contentMediaType": "application/json",
+                       "description": "one line of JSON: the SessionState (state), {\"id\"} (deleted)",
+                       "contentSchema": {"anyOf": [
+                           {"$ref": "#/components/schemas/SessionState"},
+                           {"type": "object", "required": ["id"],
+                            "properties": {"id": {"type": "string", "description": "the session's id"}}}]}}}}
 _FORMATS = Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$", description="comma-separated renderings: cot, geojson")
 
 
@@ -137,7 +144,7 @@ async def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, requ
                         "latest state, not every version in between. A `deleted` event ends the stream when "
                         "the session is deleted or expires; comments keep an idle connection open.",
             responses={200: {"description": "the event stream", "content": {"text/event-stream": {
-                "schema": _EVENT}}}, **_NOT_FOUND, **_UNAVAILABLE})
+                "schema": _EVENT_STREAM, "itemSchema": _EVENT}}}, **_NOT_FOUND, **_UNAVAILABLE})
 async def session_events(session_id: str, owner: OwnerDep, store: StoreDep, request: Request,
                          formats: Annotated[str | None, _FORMATS] = None,
                          last_event_id: Annotated[str | None, Header(description="the id (version) of the last "
