@@ -14,6 +14,7 @@ same report).
 from __future__ import annotations
 
 import datetime
+import functools
 import math
 import time
 
@@ -40,6 +41,43 @@ def _stonesoup():
     return locals()
 
 
+@functools.cache
+def _report_model_class():
+    """Stone Soup's measurement model of one report, its ``h`` core's (built once: Stone Soup's classes declare
+    their fields as ``Property``)."""
+    ss = _stonesoup()
+    from stonesoup.base import Property
+
+    class ReportModel(ss["_AngleNonLinearGaussianMeasurement"]):
+        report: Report = Property(doc="The report (stations, rotations, kinds)")
+        used: np.ndarray = Property(doc="Its measurements in row order")
+        reference: int = Property(doc="Its reference TOA (-1: none)")
+        typed: list = Property(doc="Each row's Stone Soup type (Bearing, Elevation or float)")
+
+        @property
+        def ndim_meas(self):
+            return len(self.used)
+
+        def _typed_vector(self):
+            return ss["StateVector"](self.typed)
+
+        def _function(self, state, noise=False, **kwargs):
+            positions = np.asarray(state.state_vector, dtype=float)[(0, 2, 4), :].T
+            report = self.report
+            values, _ = predict(positions, np.zeros(len(positions)), report.stations_enu_m, report.rotations,
+                                report.kinds)
+            out = values[:, self.used]
+            if self.reference >= 0:
+                out = np.where(report.kinds[self.used] == TOA, out - values[:, [self.reference]], out)
+            if isinstance(noise, bool) and noise:
+                noise = self.rvs(num_samples=len(positions), **kwargs)
+            elif isinstance(noise, bool):
+                noise = 0.0
+            return ss["StateVectors"](out.T) + noise
+
+    return ReportModel
+
+
 def report_model(report: Report):
     """A Stone Soup measurement model of one report (core's ``h``) and its measured vector.
 
@@ -59,32 +97,8 @@ def report_model(report: Report):
     if rows.toa_reference >= 0:
         toa = kinds == TOA
         noise[np.ix_(toa, toa)] += rows.variances[rows.toa_reference]
-    stations, rotations = report.stations_enu_m, report.rotations
-    reference = rows.toa_reference
-
-    class ReportModel(ss["_AngleNonLinearGaussianMeasurement"]):
-        @property
-        def ndim_meas(self):
-            return len(used)
-
-        @staticmethod
-        def _typed_vector():
-            return ss["StateVector"](typed)
-
-        def _function(self, state, noise=False, **kwargs):
-            vectors = np.asarray(state.state_vector, dtype=float)
-            positions = vectors[(0, 2, 4), :].T
-            values, _ = predict(positions, np.zeros(len(positions)), stations, rotations, report.kinds)
-            out = values[:, used]
-            if reference >= 0:
-                out = np.where(kinds == TOA, out - values[:, [reference]], out)
-            if isinstance(noise, bool) and noise:
-                noise = self.rvs(num_samples=len(positions), **kwargs)
-            elif isinstance(noise, bool):
-                noise = 0.0
-            return ss["StateVectors"](out.T) + noise
-
-    model = ReportModel(ndim_state=6, mapping=(0, 2, 4), noise_covar=noise)
+    model = _report_model_class()(ndim_state=6, mapping=(0, 2, 4), noise_covar=noise, report=report, used=used,
+                                  reference=rows.toa_reference, typed=typed)
     measured = ss["StateVector"]([typed[i] + rows.values[m] if kinds[i] != TOA else rows.values[m]
                                   for i, m in enumerate(used.tolist())])
     return model, measured
