@@ -565,7 +565,12 @@ def airborne_df_scene(variant: int = 0, **changes) -> NetworkScenario:
     """One airborne direction finder (azimuth and elevation, 1 deg, once a second) at 6 km flying east at
     150 m/s for 90 s, turning left by 90 deg at 3 deg/s, then north, past a ground emitter 30 km north of
     its track moving at 3 m/s (other variants draw its start within 25-35 km and its speed, 2-5 m/s, and
-    heading): the range is not observable before the turn."""
+    heading): the range is not observable before the turn.
+
+    After the turn the range is still learnt slowly and the velocity prior (10 m/s per axis) still weighs:
+    the PCRB is the mean squared error over truths drawn from that prior, and this emitter (3 m/s, level) is
+    one the prior's shrinkage favours, so the tracker's RMSE here sits below the PCRB (0.85-0.9x at 40
+    trials); its NEES stays in its interval."""
     origin = (45.0, 5.0, 0.0)
     stations = _geodetic_stations(origin, (("air-df", -15e3, 0.0, 6000.0, {}),), measures="bearing")
     path = AirbornePath((-15e3, 0.0, 6000.0), 150.0, 90.0, 90.0, -3.0, 30.0)
