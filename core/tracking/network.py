@@ -67,7 +67,7 @@ from core.tracking import imm
 from core.tracking.motion import transitions
 from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel, predict_kernel
 from core.tracking.range_mixture import component_ranges, moments, pruned, reweighted
-from core.tracking.state import frozen_array
+from core.tracking.state import freeze, frozen_array
 
 #: Version of the :meth:`NetworkState.to_dict` layout.
 NETWORK_STATE_FORMAT = 1
@@ -284,7 +284,8 @@ class Track:
     confirmed : bool
         Whether the track has met the confirmation rule.
     reference_range_m : float
-        Distance from the estimate to the nearest station of its last report (for the confirmation rule).
+        Distance from the estimate to the nearest station of its last report before confirmation (for the
+        confirmation rule; kept from then on).
     """
 
     id: str
@@ -595,6 +596,8 @@ def report_rows(report: Report) -> ReportRows:
     the smallest sigma), subtracted in seconds first so that epoch-sized TOAs keep their digits."""
     kinds = report.kinds
     is_toa = kinds == TOA
+    if not is_toa.any():
+        return ReportRows(report.values, report.sigmas * report.sigmas, _all_rows(kinds.size), -1, ())
     values = report.values.copy()
     sigmas = report.sigmas.copy()
     toa_index = np.flatnonzero(is_toa)
@@ -611,6 +614,13 @@ def report_rows(report: Report) -> ReportRows:
         sigmas[is_toa] *= SPEED_OF_LIGHT_MPS
         use[reference] = False
     return ReportRows(values, sigmas * sigmas, np.flatnonzero(use).astype(np.int64), reference, warnings)
+
+
+@functools.lru_cache(maxsize=64)
+def _all_rows(count: int) -> np.ndarray:
+    rows = np.arange(count, dtype=np.int64)
+    rows.flags.writeable = False
+    return rows
 
 
 def advance_track(track: Track | None, report: Report, config: NetworkConfig) -> tuple[Track | None, tuple]:
@@ -646,11 +656,12 @@ def advance_track(track: Track | None, report: Report, config: NetworkConfig) ->
     if not ok.any() or (track.stage != "mixture" and not ok.all()):
         warnings += (("numerical_failure", f"report seq {report.seq}: the update failed; the track was predicted"),)
         return _finish(track, report, weights, means, covs, np.nan, dof, config, warnings)
-    log_likelihood = np.where(ok, -0.5 * (nis + log_det), -np.inf)
-    weights = reweighted(weights, log_likelihood)
-    if track.stage == "imm":
-        weights = imm.floored(weights)
-    new_means, new_covs = new_means, new_covs
+    if weights.size == 1:
+        weights = np.ones(1)
+    else:
+        weights = reweighted(weights, np.where(ok, -0.5 * (nis + log_det), -np.inf))
+        if track.stage == "imm":
+            weights = imm.floored(weights)
     combined_nis = float(nis[ok][np.argmax(weights[ok])]) if track.stage == "mixture" else float(
         np.dot(weights, np.where(ok, nis, 0.0)))
     if track.stage == "mixture":
@@ -686,15 +697,18 @@ def _finish(track: Track | None, report: Report, weights, means, covs, nis: floa
         mean, cov = moments(np.asarray(weights), np.asarray(means), np.asarray(covs))
     agreeing = 0 if track is None else track.agreeing
     agreeing = agreeing + 1 if math.isfinite(nis) and nis <= _chi2_point(_CHI2_AGREE, dof) else 0
-    distances = np.linalg.norm(report.stations_enu_m - mean[:3], axis=1)
-    reference_range_m = float(distances.min())
-    confirmed = (track is not None and track.confirmed) or (
-        stage != "mixture" and agreeing >= config.confirm_updates
-        and math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)) <= config.confirm_relative_sigma * reference_range_m)
+    if track is not None and track.confirmed:
+        confirmed, reference_range_m = True, track.reference_range_m
+    else:
+        reference_range_m = float(np.linalg.norm(report.stations_enu_m - mean[:3], axis=1).min())
+        confirmed = (stage != "mixture" and agreeing >= config.confirm_updates
+                     and math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0))
+                     <= config.confirm_relative_sigma * reference_range_m)
     updates = 1 if track is None else track.updates + 1
-    out = Track(report.emitter_id, "confirmed" if confirmed else "tentative", report.time_s, frozen_array(mean),
-                frozen_array(cov), updates, warnings, stage, frozen_array(weights), frozen_array(means),
-                frozen_array(covs), agreeing, bool(confirmed), reference_range_m)
+    out = Track(report.emitter_id, "confirmed" if confirmed else "tentative", report.time_s, freeze(mean),
+                freeze(cov), updates, warnings, stage, freeze(np.asarray(weights, dtype=float)),
+                freeze(np.asarray(means, dtype=float)), freeze(np.asarray(covs, dtype=float)), agreeing,
+                bool(confirmed), reference_range_m)
     return out, warnings
 
 

@@ -46,6 +46,8 @@ STATE_SIZE = 6
 #: Largest move of a linearisation pass after the first, in standard deviations of the last posterior's
 #: position (see :func:`network_ukf_kernel`).
 MAX_PASS_STEP = 3.0
+#: A pass that moves the estimate by less than this (same units) ends the passes.
+PASS_TOLERANCE = 1e-3
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -279,6 +281,8 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
                         for j in range(f):
                             new_cov[i, j] = around_cov[i, j]
                     break
+                if step < PASS_TOLERANCE * PASS_TOLERANCE:
+                    break  # the linearisation has settled
             for i in range(f):
                 around[i] = new_mean[i]
                 for j in range(f):
