@@ -96,7 +96,7 @@ class ServiceMiddleware:
 
         try:
             path, method = scope.get("path", ""), scope.get("method", "GET")
-            if header_error is not None:
+            if header_error is not None and self._route_matches(scope):  # else the router's 404 or 405
                 headers_out = {"WWW-Authenticate": 'Bearer realm="passive-locator", error="invalid_request"'} \
                     if header_error.status == 401 else None
                 refusal = ApiError(header_error.status, "unauthorized" if header_error.status == 401
@@ -109,7 +109,7 @@ class ServiceMiddleware:
                     await _send_problem(send_with_id, 429, "rate_limited", "over the configured rate limit",
                                         request_id, [(b"retry-after", str(max(1, round(retry_after))).encode())])
                     return
-            if method in _BODY_METHODS and self._takes_body(scope):
+            if method in _BODY_METHODS and self._route_matches(scope):
                 if not is_json_media_type(headers.content_type):
                     await _send_problem(send_with_id, 415, "unsupported_media_type",
                                         "the body must be JSON: Content-Type: application/json", request_id,
@@ -136,8 +136,9 @@ class ServiceMiddleware:
                                           "status": status_holder["status"], "duration_ms": round(seconds * 1e3, 2)})
             request_id_var.reset(token)
 
-    def _takes_body(self, scope) -> bool:
-        """Whether a route serves this method at this path (else the router answers 404 or 405 unread)."""
+    def _route_matches(self, scope) -> bool:
+        """Whether a route serves this method at this path (else the router answers 404 or 405, reading
+        nothing of the request)."""
         return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
 
     def _client_key(self, scope, headers: dict) -> bytes:

@@ -32,7 +32,7 @@ _RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before retrying"
 
 #: Status -> (description, headers) for statuses a route does not describe itself.
 DEFAULT_ERRORS = {
-    400: ("the body is not valid JSON", None),
+    400: ("the body is not valid JSON, or a header field is malformed or sent twice (code invalid_header)", None),
     401: ("a bearer key is required (keys are configured) and none was sent",
           {"WWW-Authenticate": {"description": "Bearer", "schema": {"type": "string"}}}),
     403: ("the bearer key is not one of the configured keys", None),
@@ -53,9 +53,9 @@ def _has_parameters(operation: dict) -> bool:
 
 
 def _error_statuses(operation: dict, checks_key: bool, uses_store: bool) -> set[int]:
-    statuses = {429, 500}
+    statuses = {400, 429, 500}  # 400: every request's header fields are parsed (service.headers)
     if "requestBody" in operation:
-        statuses |= {400, 413, 415, 422}
+        statuses |= {413, 415, 422}
     if _has_parameters(operation):
         statuses.add(422)
     if checks_key:

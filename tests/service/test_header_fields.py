@@ -180,3 +180,9 @@ def test_a_live_sessions_event_stream_refuses_a_malformed_last_event_id(client):
         answer = Raw(client, "GET", f"/v1/sessions/{session}/events", [(b"last-event-id", value)])
         assert answer.status == 400, (value, answer.json)
         assert "Last-Event-ID" in answer.json["detail"]
+
+
+def test_a_request_no_route_serves_is_the_routers_404_or_405_whatever_its_fields(client):
+    bad = [(b"last-event-id", b"\xb2"), (b"if-match", b"")]
+    assert Raw(client, "TRACE", "/v1/sessions/abc/events", bad).status == 405
+    assert Raw(client, "GET", "/v1/nowhere", bad).status == 404
