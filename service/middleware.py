@@ -1,12 +1,14 @@
-"""Pure-ASGI middleware: request ids, the header fields (400), rate limiting (429), content type (415), the
-body limit (413), metrics, one log line per request, and the 500 of last resort.
+"""Pure-ASGI middleware: request ids, the header fields (400), rate limiting (429), who is asking (401),
+content type (415), the body limit (413), metrics, one log line per request, and the 500 of last resort.
 
 Pure ASGI rather than ``BaseHTTPMiddleware``: no extra task per request, and
 the body is read here, counted while it streams (a chunked body over the
 limit is a 413 like a declared one), and handed to the app in one piece.
 
-The header fields the service reads are parsed once, strictly (:mod:`service.headers`), before anything
-uses them.
+In that order, so that nothing of a request is read or parsed for a caller that is not let in: the header
+fields the service reads are parsed once, strictly (:mod:`service.headers`), the caller's one identity is
+worked out from them (:mod:`service.auth`: the limiter's bucket, the 401 and the routes' owner all come
+from it), and only then is the body read.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from collections import OrderedDict
 import orjson
 from starlette.routing import Match
 
-from service.auth import authenticate
+from service import auth
 from service.headers import HeaderError, RequestHeaders
 from service.limits import fix_cost_limit
 from service.logs import request_id_var
@@ -55,8 +57,8 @@ async def _send_error(send, error: ApiError, request_id: str) -> None:
 
 
 class ServiceMiddleware:
-    """Request id (echoed or made), 400 (header fields), 429, 415, 413, metrics, access log, and the 500 of
-    last resort."""
+    """Request id (echoed or made), 400 (header fields), 429, 401, 415, 413, metrics, access log, and the 500
+    of last resort."""
 
     def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None,
                  key_digests: frozenset[bytes] = frozenset(), max_fix_cost: int | None = None, routes=()):
@@ -83,6 +85,9 @@ class ServiceMiddleware:
         request_id = headers.request_id or self._next_request_id()
         state["request_id"] = request_id
         state["headers"] = headers
+        identity = auth.identify(headers.authorization, self.key_digests,
+                                 str((scope.get("client") or ("?",))[0]))
+        state["identity"] = identity
         token = request_id_var.set(request_id)
         fix_cost_limit.set(self.max_fix_cost)
         started = time.perf_counter()
@@ -97,18 +102,19 @@ class ServiceMiddleware:
         try:
             path, method = scope.get("path", ""), scope.get("method", "GET")
             if header_error is not None and self._route_matches(scope):  # else the router's 404 or 405
-                headers_out = {"WWW-Authenticate": 'Bearer realm="passive-locator", error="invalid_request"'} \
-                    if header_error.status == 401 else None
-                refusal = ApiError(header_error.status, "unauthorized" if header_error.status == 401
-                                   else "invalid_header", header_error.detail, headers=headers_out)
+                refusal = (auth.unauthorized(None, header_error.detail) if header_error.status == 401
+                           else ApiError(400, "invalid_header", header_error.detail))
                 await _send_error(send_with_id, refusal, request_id)
                 return
             if self.rate_limiter is not None and path not in PROBE_PATHS:
-                retry_after = self.rate_limiter.take(self._client_key(scope, dict(scope["headers"])))
+                retry_after = self.rate_limiter.take(identity.limiter_key)
                 if retry_after:
                     await _send_problem(send_with_id, 429, "rate_limited", "over the configured rate limit",
                                         request_id, [(b"retry-after", str(max(1, round(retry_after))).encode())])
                     return
+            if self.key_digests and identity.owner is None and auth.protects(path) and self._route_matches(scope):
+                await _send_error(send_with_id, auth.unauthorized(identity), request_id)  # before any body is read
+                return
             if method in _BODY_METHODS and self._route_matches(scope):
                 if not is_json_media_type(headers.content_type):
                     await _send_problem(send_with_id, 415, "unsupported_media_type",
@@ -140,14 +146,6 @@ class ServiceMiddleware:
         """Whether a route serves this method at this path (else the router answers 404 or 405, reading
         nothing of the request)."""
         return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
-
-    def _client_key(self, scope, headers: dict) -> bytes:
-        """The authenticated key's digest, else the peer address: a made-up header buys no fresh bucket."""
-        if self.key_digests:
-            digest = authenticate(headers.get(b"authorization"), self.key_digests)
-            if digest is not None:
-                return b"key:" + digest
-        return b"addr:" + str((scope.get("client") or ("?",))[0]).encode()
 
     async def _read_body(self, declared: int | None, receive) -> bytes | None:
         """The whole body, or None once it is over the limit (``declared`` by Content-Length, or as it

@@ -151,6 +151,51 @@ def test_two_authorization_fields_are_a_401_whichever_comes_first(make_client):
     assert len(secured.app.state.rate_limiter.buckets) == 0  # refused before any bucket was taken from
 
 
+def test_a_key_whose_bucket_is_empty_gets_no_other_bucket(make_client):
+    secured = make_client(api_key_hashes=f"{_digest('alice')},{_digest('bob')}", rate_limit_per_s=0.001,
+                          rate_limit_burst=2)
+    alice = [(b"authorization", b"Bearer alice")]
+    assert [Raw(secured, "GET", "/v1/sessions", alice).status for _ in range(3)] == [200, 200, 429]
+    for trick in ([(b"authorization", b"Bearer alice"), (b"authorization", b"Bearer bob")],
+                  [(b"authorization", b"Bearer junk"), (b"authorization", b"Bearer alice")],
+                  [(b"authorization", b"bearer  alice")]):
+        assert Raw(secured, "GET", "/v1/sessions", trick).status in (401, 429)
+    limiter = secured.app.state.rate_limiter
+    assert set(limiter.buckets) == {b"key:" + _digest("alice").encode()}  # no fallback to the address's bucket
+
+
+def test_the_owner_a_route_sees_is_the_identity_the_limiter_charged(make_client):
+    secured = make_client(api_key_hashes=f"{_digest('alice')},{_digest('bob')}")
+    from tests.service.sessions.helpers import create_body
+
+    made = secured.post("/v1/sessions", json=create_body(), headers={"authorization": "Bearer alice"})
+    assert made.status_code == 201
+    assert secured.get(f"/v1/sessions/{made.json()['id']}", headers={"authorization": "Bearer bob"}).status_code \
+        == 404
+    assert secured.get(f"/v1/sessions/{made.json()['id']}", headers={"authorization": "Bearer alice"}) \
+        .status_code == 200
+
+
+@pytest.mark.parametrize("path", ["/v1/fixes", "/v1/fixes/batch", "/v1/evaluations", "/v1/crlb", "/v1/crlb/grid",
+                                  "/v1/sessions", "/v1/sessions/abc/measurements"])
+def test_no_body_is_read_before_the_caller_is_authenticated(make_client, path):
+    secured = make_client(api_key_hashes=_digest("alice"), max_body_bytes=1000)
+    for body, declared in ((b"{" * 5000, b"5000"), (_fix_body(), str(len(_fix_body())).encode()),
+                           (b"not json", b"8")):
+        for authorization in ([], [(b"authorization", b"Bearer junk")]):
+            answer = Raw(secured, "POST", path, [JSON, (b"content-length", declared), *authorization], body)
+            assert answer.status == 401, (path, answer.json)
+            assert answer.body_reads == 0
+    good = Raw(secured, "POST", path, [JSON, (b"authorization", b"Bearer alice")], b"not json")
+    assert good.status == 400 and good.body_reads >= 1  # the same body is read and refused once let in
+
+
+def test_the_probes_and_the_docs_stay_open_with_keys(make_client):
+    secured = make_client(api_key_hashes=_digest("alice"))
+    for path in ("/healthz", "/readyz", "/metrics", "/openapi.json"):
+        assert secured.get(path).status_code == 200, path
+
+
 _FIELDS = st.sampled_from([b"last-event-id", b"if-match", b"content-length", b"x-request-id", b"accept",
                            b"content-type", b"authorization", b"origin", b"host"])
 _VALUES = st.binary(max_size=40).filter(lambda v: not any(c in v for c in b"\r\n\0")) | st.sampled_from(
