@@ -1,5 +1,6 @@
 """Pure-ASGI middleware: request ids, the header fields (400), rate limiting (429), who is asking (401),
-content type (415), the body limit (413), metrics, one log line per request, and the 500 of last resort.
+content type (415), the body limit (413), metrics, one log line per request, the 503 of a request cut off
+at shutdown, and the 500 of last resort.
 
 Pure ASGI rather than ``BaseHTTPMiddleware``: no extra task per request, and
 the body is read here, counted while it streams (a chunked body over the
@@ -13,6 +14,7 @@ from it), and only then is the body read.
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import logging
 import time
@@ -127,6 +129,14 @@ class ServiceMiddleware:
                     return
                 receive = _replay(body, receive)
             await self.app(scope, receive, send_with_id)
+        except asyncio.CancelledError:
+            # Only the server cancels a request's task: at shutdown, once its graceful timeout is over. The
+            # client is told to come back (to another replica) rather than left with the server's plain 500.
+            if status_holder["started"]:
+                raise
+            logger.warning("request cancelled at shutdown: answered 503 shutting_down")
+            await _send_problem(send_with_id, 503, "shutting_down", "the server is shutting down; retry",
+                                request_id, [(b"retry-after", b"1"), (b"connection", b"close")])
         except Exception:
             logger.exception("unhandled error")
             if not status_holder["started"]:
