@@ -35,6 +35,8 @@ logger = logging.getLogger("passive_locator")
 
 #: Probes are never rate-limited (an orchestrator's health check must not fail under load).
 PROBE_PATHS = frozenset(("/healthz", "/readyz", "/metrics"))
+#: What :meth:`ServiceMiddleware._read_body` returns for a body whose connection ended before it did.
+_GONE = object()
 #: Methods whose body must be JSON (the only one any route takes a body with; others get 405 from the router).
 _BODY_METHODS = frozenset(("POST",))
 
@@ -127,6 +129,9 @@ class ServiceMiddleware:
                 if body is None:
                     await self._too_large(send_with_id, request_id)
                     return
+                if body is _GONE:  # the client went away (or the server's body deadline closed it)
+                    status_holder["status"] = 499
+                    return
                 receive = _replay(body, receive)
             await self.app(scope, receive, send_with_id)
         except asyncio.CancelledError:
@@ -157,16 +162,16 @@ class ServiceMiddleware:
         nothing of the request)."""
         return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
 
-    async def _read_body(self, declared: int | None, receive) -> bytes | None:
-        """The whole body, or None once it is over the limit (``declared`` by Content-Length, or as it
-        streams)."""
+    async def _read_body(self, declared: int | None, receive):
+        """The whole body; None once it is over the limit (``declared`` by Content-Length, or as it streams);
+        :data:`_GONE` when the connection ended before the body did (nothing is left to answer)."""
         if declared is not None and declared > self.max_body_bytes:
             return None
         chunks, received = [], 0
         while True:
             message = await receive()
             if message["type"] != "http.request":
-                break  # the client went away: the app sees an empty body, its answer goes nowhere
+                return _GONE
             chunk = message.get("body", b"")
             received += len(chunk)
             if received > self.max_body_bytes:

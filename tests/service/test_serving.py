@@ -111,3 +111,128 @@ def test_a_request_that_finishes_within_the_grace_period_gets_its_answer(serve):
     answer = _answer_during_sigterm(server, ["eove"])  # about 4 s of work on an idle core
     assert answer.status_code == 200, answer.text
     assert answer.json()["trials"] == 100_000
+
+
+def _read_until_closed(connection: socket.socket, within_s: float) -> tuple[bytes, bool]:
+    """What the server sent on ``connection`` and whether it closed it, within ``within_s`` seconds."""
+    received, deadline = b"", time.monotonic() + within_s
+    while (left := deadline - time.monotonic()) > 0:
+        connection.settimeout(left)
+        try:
+            chunk = connection.recv(65536)
+        except TimeoutError:
+            break
+        except ConnectionResetError:
+            return received, True
+        if not chunk:
+            return received, True
+        received += chunk
+    return received, False
+
+
+def _connect(server: Served, send: bytes = b"") -> socket.socket:
+    connection = socket.create_connection(("127.0.0.1", server.port), timeout=5)
+    if send:
+        connection.sendall(send)
+    return connection
+
+
+def _status_and_problem(response: bytes) -> tuple[int, dict]:
+    head, _, body = response.partition(b"\r\n\r\n")
+    assert b"content-type: application/problem+json" in head.lower(), response[:300]
+    return int(head.split(b" ", 2)[1]), orjson.loads(body)
+
+
+PARTIAL_HEADERS = b"GET /healthz HTTP/1.1\r\nHost: x\r\nUser-Agent: slow"
+PARTIAL_BODY = (b"POST /v1/fixes HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 1000\r\n\r\n"
+                b'{"stations"')
+
+
+def test_requests_that_never_finish_are_closed_at_their_deadline_while_healthz_answers(serve):
+    server = serve(header_timeout_s=1, body_timeout_s=1)
+    held = {"nothing sent": [_connect(server) for _ in range(10)],
+            "headers unfinished": [_connect(server, PARTIAL_HEADERS) for _ in range(20)],
+            "body unfinished": [_connect(server, PARTIAL_BODY) for _ in range(20)]}
+    assert httpx.get(f"{server.url}/healthz", timeout=5).status_code == 200  # while all of them are held
+    try:
+        for kind, connections in held.items():
+            for connection in connections:
+                response, closed = _read_until_closed(connection, within_s=30)
+                assert closed, (kind, response)
+                status, problem = _status_and_problem(response)
+                assert (status, problem["code"]) == (408, "request_timeout"), (kind, problem)
+    finally:
+        for connection in (c for connections in held.values() for c in connections):
+            connection.close()
+    assert httpx.get(f"{server.url}/healthz", timeout=5).status_code == 200
+
+
+def test_a_header_trickling_in_byte_by_byte_is_closed_at_the_deadline(serve):
+    server = serve(header_timeout_s=1)
+    with _connect(server) as connection:
+        closed = False
+        for byte in PARTIAL_HEADERS * 10:  # far more bytes than arrive before the deadline, one per 50 ms
+            try:
+                connection.sendall(bytes([byte]))
+            except (BrokenPipeError, ConnectionResetError):
+                closed = True
+                break
+            time.sleep(0.05)  # a slow client, on purpose
+            connection.settimeout(0.001)
+            try:
+                if connection.recv(65536, socket.MSG_PEEK):
+                    closed = True
+                    break
+            except (TimeoutError, BlockingIOError):
+                pass
+        assert closed  # the server answered (408) or closed before the client finished trickling
+
+
+def test_headers_over_their_bound_are_a_431(serve):
+    server = serve()
+    from service.server import MAX_HEADER_BYTES
+
+    with _connect(server, b"GET /healthz HTTP/1.1\r\nHost: x\r\n") as connection:
+        try:
+            for _ in range(MAX_HEADER_BYTES // 1000 + 2):
+                connection.sendall(b"X-Padding: " + b"a" * 987 + b"\r\n")
+        except (BrokenPipeError, ConnectionResetError):
+            pass
+        response, closed = _read_until_closed(connection, within_s=30)
+    assert closed
+    assert _status_and_problem(response)[0] == 431
+
+
+def test_the_connection_bound_makes_room_for_a_new_client(serve):
+    server = serve(header_timeout_s=120, max_connections=10)
+    slow = []
+    for _ in range(30):
+        slow.append(_connect(server, PARTIAL_HEADERS))
+        time.sleep(0.01)  # connections in a known order: the oldest go first
+    try:
+        for _ in range(3):
+            assert httpx.get(f"{server.url}/healthz", timeout=5).status_code == 200
+        outcomes = [_read_until_closed(connection, within_s=0.5 if i >= 20 else 10) for i, connection in
+                    enumerate(slow)]
+        evicted = [i for i, (response, closed) in enumerate(outcomes) if closed]
+        assert len(evicted) >= 20, evicted  # 30 slow connections and the probes' held within 10
+        assert set(range(20)) <= set(evicted)  # the longest waiting went first
+        for i in evicted:
+            status, problem = _status_and_problem(outcomes[i][0])
+            assert (status, problem["code"]) == (503, "too_many_connections")
+    finally:
+        for connection in slow:
+            connection.close()
+
+
+def test_serve_runs_the_bounded_protocol_and_the_defaults_are_at_most_30_s(monkeypatch):
+    from service import cli
+    from service.settings import Settings
+
+    ran = []
+    monkeypatch.setattr("uvicorn.run", lambda *args, **kwargs: ran.append(kwargs))
+    cli.main(["serve", "--host", "127.0.0.1"])
+    assert ran[0]["http"] == "service.server:BoundedHttpToolsProtocol"
+    defaults = Settings(_env_file=None)
+    assert 0 < defaults.header_timeout_s <= 30 and 0 < defaults.body_timeout_s <= 30
+    assert defaults.max_connections >= 1
