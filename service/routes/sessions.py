@@ -10,9 +10,10 @@ from fastapi import APIRouter, Depends, Header, Query, Request
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response, StreamingResponse
 
-from service import events, headers, sessions, tak
+from service import events, sessions, tak
 from service import session_schemas as schemas
 from service.deps import OwnerDep
+from service.headers import of as parsed_headers
 from service.problems import ApiError
 from service.responses import JsonResponse
 from service.schemas import Problem
@@ -145,7 +146,7 @@ async def session_events(session_id: str, owner: OwnerDep, store: StoreDep, requ
                          ) -> StreamingResponse:
     record = await store.run(sessions.get, owner, session_id)
     wanted = formats.split(",") if formats else ()
-    last = headers.of(request).last_event_id  # parsed strictly by the middleware (400 when malformed)
+    last = parsed_headers(request).last_event_id  # parsed strictly by the middleware (400 when malformed)
 
     async def stream():
         nonlocal record, last
