@@ -236,3 +236,17 @@ def test_serve_runs_the_bounded_protocol_and_the_defaults_are_at_most_30_s(monke
     defaults = Settings(_env_file=None)
     assert 0 < defaults.header_timeout_s <= 30 and 0 < defaults.body_timeout_s <= 30
     assert defaults.max_connections >= 1
+
+
+@pytest.mark.parametrize("request_bytes", [
+    b"POST /v1/fixes HTTP/1.1\r\nHost: x\r\nContent-Length: \xb2\r\n\r\n",
+    b"POST /v1/fixes HTTP/1.1\r\nHost: x\r\nContent-Length: 2\r\nContent-Length: 3\r\n\r\n{}",
+    b"GET /healthz HTTP/1.1\r\nHost: x\r\nBad Header: 1\r\n\r\n",
+], ids=["content-length-superscript", "content-length-twice", "space-in-a-field-name"])
+def test_a_request_the_http_parser_refuses_is_a_400_problem(serve, request_bytes):
+    server = serve()
+    with _connect(server, request_bytes) as connection:
+        response, closed = _read_until_closed(connection, within_s=30)
+    assert closed
+    status, problem = _status_and_problem(response)
+    assert (status, problem["code"]) == (400, "malformed_request")
