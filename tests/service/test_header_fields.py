@@ -231,3 +231,26 @@ def test_a_request_no_route_serves_is_the_routers_404_or_405_whatever_its_fields
     bad = [(b"last-event-id", b"\xb2"), (b"if-match", b"")]
     assert Raw(client, "TRACE", "/v1/sessions/abc/events", bad).status == 405
     assert Raw(client, "GET", "/v1/nowhere", bad).status == 404
+
+
+@pytest.mark.parametrize("value", [b"a/b" + b";  " * 40 + b"\x01", b"a/b" + b" , " * 40 + b"\x01",
+                                   b"a/b" + b"\t;\t" * 40 + b"x", b",  " * 40 + b"a/b;\x01"])
+def test_a_value_failing_after_many_empty_elements_is_refused_without_backtracking(value):
+    """A grammar with two blank runs side by side in a repeated group has 2^40 readings of these values; the
+    parse must be linear (done in microseconds; the bound below only stops a regression from hanging)."""
+    import threading
+
+    outcomes = []
+
+    def parse():
+        for parser in (fields.parse_media_type, fields.parse_accept):
+            try:
+                parser(value)
+                outcomes.append("accepted")
+            except fields.HeaderError:
+                outcomes.append("refused")
+
+    worker = threading.Thread(target=parse, daemon=True)
+    worker.start()
+    worker.join(timeout=60)
+    assert outcomes == ["refused", "refused"]
