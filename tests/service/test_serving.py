@@ -233,6 +233,7 @@ def test_serve_runs_the_bounded_protocol_and_the_defaults_are_at_most_30_s(monke
     monkeypatch.setattr("uvicorn.run", lambda *args, **kwargs: ran.append(kwargs))
     cli.main(["serve", "--host", "127.0.0.1"])
     assert ran[0]["http"] == "service.server:BoundedHttpToolsProtocol"
+    assert ran[0]["ws"] == "none"  # the deadlines are the HTTP protocol's: no connection leaves it for another
     defaults = Settings(_env_file=None)
     assert 0 < defaults.header_timeout_s <= 30 and 0 < defaults.body_timeout_s <= 30
     assert defaults.max_connections >= 1
@@ -250,3 +251,12 @@ def test_a_request_the_http_parser_refuses_is_a_400_problem(serve, request_bytes
     assert closed
     status, problem = _status_and_problem(response)
     assert (status, problem["code"]) == (400, "malformed_request")
+
+
+def test_an_upgrade_request_stays_under_the_deadlines(serve):
+    server = serve(body_timeout_s=1)
+    upgrade = (b"GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: Upgrade\r\nUpgrade: websocket\r\n"
+               b"Sec-WebSocket-Version: 13\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n")
+    with _connect(server, upgrade) as connection:
+        response, _ = _read_until_closed(connection, within_s=3)
+    assert response.startswith(b"HTTP/1.1 200"), response[:200]  # answered as the plain GET it also is
