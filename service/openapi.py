@@ -24,6 +24,7 @@ from __future__ import annotations
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
+from service.auth import protects
 from service.problems import MEDIA_TYPE
 
 PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
@@ -93,7 +94,7 @@ def build(app: FastAPI) -> dict:
                        routes=app.routes)
     for path, operations in spec["paths"].items():
         for method, operation in operations.items():
-            checks_key = path.startswith("/v1/")
+            checks_key = protects(path)
             uses_store = path.startswith("/v1/sessions") or path == "/readyz"
             responses = operation["responses"]
             declared = {int(code) for code in responses if code.isdigit() and int(code) >= 400}
