@@ -75,6 +75,23 @@ def _evaluation(trials: int, methods: list[str]) -> dict:
             "methods": methods, "trials": trials, "seed": 1}
 
 
+def _in_flight(server: Served) -> float:
+    """The server's requests-in-flight gauge (the scrape itself included)."""
+    for line in httpx.get(f"{server.url}/metrics", timeout=10).text.splitlines():
+        if line.startswith("passive_locator_requests_in_flight"):
+            return float(line.split()[-1])
+    return 0.0
+
+
+def _wait_for(predicate, timeout_s: float = 60.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)  # polling the server
+    return False
+
+
 def _answer_during_sigterm(server: Served, methods: list[str]) -> httpx.Response:
     """Start an evaluation, SIGTERM the server once it is under way, and return what the client got."""
     answers: list = []
@@ -88,7 +105,8 @@ def _answer_during_sigterm(server: Served, methods: list[str]) -> httpx.Response
 
     thread = threading.Thread(target=client)
     thread.start()
-    time.sleep(1.0)  # the evaluation is under way (it takes far longer than this)
+    assert _wait_for(lambda: _in_flight(server) >= 2)  # the evaluation and this scrape: it is being answered
+    time.sleep(0.5)  # under way (it takes seconds)
     assert thread.is_alive()
     server.process.send_signal(signal.SIGTERM)
     thread.join(timeout=120)
