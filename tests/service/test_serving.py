@@ -165,12 +165,17 @@ PARTIAL_HEADERS = b"GET /healthz HTTP/1.1\r\nHost: x\r\nUser-Agent: slow"
 PARTIAL_BODY = (b"POST /v1/fixes HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 1000\r\n\r\n"
                 b'{"stations"')
 
+PARTIAL_CHUNKED = (b"POST /v1/sessions HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                   b"Transfer-Encoding: chunked\r\n\r\n5\r\n{\"fr")
+
 
 def test_requests_that_never_finish_are_closed_at_their_deadline_while_healthz_answers(serve):
     server = serve(header_timeout_s=1, body_timeout_s=1)
     held = {"nothing sent": [_connect(server) for _ in range(10)],
             "headers unfinished": [_connect(server, PARTIAL_HEADERS) for _ in range(20)],
-            "body unfinished": [_connect(server, PARTIAL_BODY) for _ in range(20)]}
+            "body unfinished": [_connect(server, PARTIAL_BODY) for _ in range(20)],
+            "chunked body unfinished": [_connect(server, PARTIAL_CHUNKED) for _ in range(10)],
+            "request line unfinished": [_connect(server, b"POST /v1/fix") for _ in range(10)]}
     assert httpx.get(f"{server.url}/healthz", timeout=5).status_code == 200  # while all of them are held
     try:
         for kind, connections in held.items():
