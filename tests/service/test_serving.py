@@ -283,3 +283,33 @@ def test_an_upgrade_request_stays_under_the_deadlines(serve):
     with _connect(server, upgrade) as connection:
         response, _ = _read_until_closed(connection, within_s=3)
     assert response.startswith(b"HTTP/1.1 200"), response[:200]  # answered as the plain GET it also is
+
+
+def test_when_every_connection_is_being_served_a_new_one_is_refused_with_a_503(serve):
+    from tests.service.sessions.helpers import create_body
+
+    server = serve(max_connections=3)
+    session = httpx.post(f"{server.url}/v1/sessions", json=create_body()).json()["id"]
+    streams = []
+    try:
+        for _ in range(3):  # event streams: each connection busy with a response that lasts
+            stream = _connect(server, f"GET /v1/sessions/{session}/events HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+            stream.settimeout(30)
+            assert stream.recv(65536).startswith(b"HTTP/1.1 200")
+            streams.append(stream)
+        with _connect(server) as refused:
+            response, closed = _read_until_closed(refused, within_s=30)
+        assert closed
+        status, problem = _status_and_problem(response)
+        assert (status, problem["code"]) == (503, "too_many_connections")
+    finally:
+        for stream in streams:
+            stream.close()
+    assert _wait_for(lambda: _healthy(server))  # the streams' connections are free again
+
+
+def _healthy(server: Served) -> bool:
+    try:
+        return httpx.get(f"{server.url}/healthz", timeout=5).status_code == 200
+    except httpx.HTTPError:
+        return False
