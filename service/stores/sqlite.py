@@ -113,15 +113,18 @@ class SqliteStore(SessionStore):
         self._registry_lock = threading.Lock()
         self._memory_lock = threading.RLock()
         self._writer = _Turns()
-        #: The database file and its WAL as opened (None until the schema's write made the WAL; None in memory).
-        self._identity: tuple[FileIdentity, FileIdentity] | None = None
+        #: The database file and its WAL (None where the filesystem kept SQLite out of WAL mode) as opened; None
+        #: until the schema's write has made them, and in memory.
+        self._identity: tuple[FileIdentity, FileIdentity | None] | None = None
         self._shared: sqlite3.Connection | None = self._connect() if self.memory else None
-        with self._db() as db, self._write(db):
-            for statement in _SCHEMA.split(";"):
-                if statement.strip():
-                    db.execute(statement)
+        with self._db() as db:
+            with self._write(db):
+                for statement in _SCHEMA.split(";"):
+                    if statement.strip():
+                        db.execute(statement)
+            wal = db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         if not self.memory:
-            self._identity = (FileIdentity.of(self.path), FileIdentity.of(self.path + "-wal"))
+            self._identity = (FileIdentity.of(self.path), FileIdentity.of(self.path + "-wal") if wal else None)
 
     @classmethod
     def from_url(cls, url: str, clock: Clock | None = None, timeout_s: float = 30.0,
@@ -156,13 +159,13 @@ class SqliteStore(SessionStore):
     def _verify_in_place(self) -> None:
         """Raise :class:`StoreMoved` unless the configured path still names the database (and WAL) opened.
 
-        Two ``stat`` calls (about 2 us together, against the write's fsync of about a millisecond).
+        Two ``stat`` calls: microseconds, beside the fsync of the commit they guard.
         """
         if self._identity is None:
             return
         database, wal = self._identity
         try:
-            now = (FileIdentity.of(self.path), FileIdentity.of(self.path + "-wal"))
+            now = (FileIdentity.of(self.path), None if wal is None else FileIdentity.of(self.path + "-wal"))
         except FileNotFoundError:
             now = None
         if now != (database, wal):

@@ -140,3 +140,27 @@ def test_the_check_costs_microseconds_beside_the_write():
             store.close()
     print(f"path check {per_check_us:.1f} us per write; a committed write {per_write_us:.0f} us")
     assert per_check_us > 0 and per_write_us > 0
+
+
+def test_a_database_that_sqlite_keeps_out_of_wal_mode_is_checked_by_its_file_alone(tmp_path, monkeypatch):
+    """Where the filesystem refuses WAL (no shared memory), SQLite stays in its rollback journal: no -wal file
+    to compare, and the store must still open and still see the file replaced."""
+    path = tmp_path / "sessions.db"
+    real_connect = sqlite3.connect
+
+    class NoWal(sqlite3.Connection):
+        def execute(self, sql, *args):
+            if sql == "PRAGMA journal_mode=WAL":
+                sql = "PRAGMA journal_mode=DELETE"
+            return super().execute(sql, *args)
+
+    monkeypatch.setattr(sqlite3, "connect", lambda *a, **k: real_connect(*a, factory=NoWal, **k))
+    store = SqliteStore(str(path))
+    try:
+        assert not os.path.exists(f"{path}-wal")
+        store.check()
+        _replace_the_file(path)
+        with pytest.raises(sqlite3.OperationalError):  # StoreMoved, or SQLite's own "database moved"
+            store.check()
+    finally:
+        store.close()
