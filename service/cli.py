@@ -111,7 +111,9 @@ def main(argv: list[str] | None = None) -> None:
     _metrics_for_workers(args.workers)
     uvicorn.run("service.main:app", factory=False, host=args.host, port=args.port, workers=args.workers,
                 log_level=level, log_config=uvicorn_log_config(level, settings.log_format), access_log=False,
-                proxy_headers=False, timeout_graceful_shutdown=settings.graceful_timeout_s)
+                proxy_headers=False, timeout_graceful_shutdown=settings.graceful_timeout_s,
+                http="service.server:BoundedHttpToolsProtocol",  # read deadlines, connection bound
+                ws="none")  # no WebSocket routes: an upgrade is served as the HTTP request it also is
 
 
 TRACKING_HELP = """A session-filter evaluation file:

@@ -9,7 +9,7 @@ import orjson
 from fastapi import Depends, Request
 from fastapi.exceptions import RequestValidationError
 
-from service.auth import authenticate, key_digest, owner_of
+from service.auth import unauthorized
 from service.problems import ApiError
 from service.settings import Settings
 
@@ -19,23 +19,16 @@ async def get_settings(request: Request) -> Settings:
 
 
 def get_owner(request: Request) -> str:
-    """The caller's identity: the digest prefix of its bearer key, or ``anonymous`` when keys are off.
+    """The caller's identity as the middleware worked it out (:mod:`service.auth`): the digest prefix of its
+    bearer key, or ``anonymous`` when keys are off.
 
-    Raises 401 (``WWW-Authenticate: Bearer``, RFC 6750) without a key or with a wrong one when keys are
-    configured.
+    Raises 401 (``WWW-Authenticate: Bearer``, RFC 6750) without a configured key when keys are configured
+    (the middleware already answered it for every ``/v1/`` path, before reading the body).
     """
-    digests: frozenset[bytes] = request.app.state.key_digests
-    if not digests:
-        return "anonymous"
-    header = request.headers.get("authorization")
-    digest = authenticate(header, digests)
-    if digest is None:
-        if key_digest(header) is None:
-            raise ApiError(401, "unauthorized", "missing bearer key (Authorization: Bearer <key>)",
-                           headers={"WWW-Authenticate": 'Bearer realm="passive-locator"'})
-        raise ApiError(401, "unauthorized", "unknown bearer key",
-                       headers={"WWW-Authenticate": 'Bearer realm="passive-locator", error="invalid_token"'})
-    return owner_of(digest)
+    identity = request.scope["state"]["identity"]
+    if identity.owner is None:
+        raise unauthorized(identity)
+    return identity.owner
 
 
 async def _owner(request: Request) -> str:

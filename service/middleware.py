@@ -1,13 +1,20 @@
-"""Pure-ASGI middleware: request ids, content type (415), the body limit (413), rate limiting (429),
-metrics, one log line per request, and the 500 of last resort.
+"""Pure-ASGI middleware: request ids, the header fields (400), rate limiting (429), who is asking (401),
+content type (415), the body limit (413), metrics, one log line per request, the 503 of a request cut off
+at shutdown, and the 500 of last resort.
 
 Pure ASGI rather than ``BaseHTTPMiddleware``: no extra task per request, and
 the body is read here, counted while it streams (a chunked body over the
 limit is a 413 like a declared one), and handed to the app in one piece.
+
+In that order, so that nothing of a request is read or parsed for a caller that is not let in: the header
+fields the service reads are parsed once, strictly (:mod:`service.headers`), the caller's one identity is
+worked out from them (:mod:`service.auth`: the limiter's bucket, the 401 and the routes' owner all come
+from it), and only then is the body read.
 """
 
 from __future__ import annotations
 
+import asyncio
 import itertools
 import logging
 import time
@@ -17,24 +24,27 @@ from collections import OrderedDict
 import orjson
 from starlette.routing import Match
 
-from service.auth import authenticate
+from service import auth
+from service.headers import HeaderError, RequestHeaders
 from service.limits import fix_cost_limit
 from service.logs import request_id_var
 from service.metrics import Metrics
-from service.problems import MEDIA_TYPE, problem_body
+from service.problems import MEDIA_TYPE, ApiError, problem_body
 
 logger = logging.getLogger("passive_locator")
 
 #: Probes are never rate-limited (an orchestrator's health check must not fail under load).
 PROBE_PATHS = frozenset(("/healthz", "/readyz", "/metrics"))
+#: What :meth:`ServiceMiddleware._read_body` returns for a body whose connection ended before it did.
+_GONE = object()
 #: Methods whose body must be JSON (the only one any route takes a body with; others get 405 from the router).
 _BODY_METHODS = frozenset(("POST",))
 
 
-def is_json_media_type(content_type: bytes) -> bool:
-    """``application/json`` or any ``application/<x>+json``, parameters (charset) ignored."""
-    media = content_type.split(b";", 1)[0].strip().lower()
-    return media == b"application/json" or (media.startswith(b"application/") and media.endswith(b"+json"))
+def is_json_media_type(media: bytes | None) -> bool:
+    """``application/json`` or any ``application/<x>+json`` (a parsed media type, without parameters)."""
+    return media is not None and (media == b"application/json"
+                                  or (media.startswith(b"application/") and media.endswith(b"+json")))
 
 
 async def _send_problem(send, status: int, code: str, detail: str, request_id: str, headers=()) -> None:
@@ -45,8 +55,14 @@ async def _send_problem(send, status: int, code: str, detail: str, request_id: s
     await send({"type": "http.response.body", "body": body})
 
 
+async def _send_error(send, error: ApiError, request_id: str) -> None:
+    await _send_problem(send, error.status, error.code, error.detail, request_id,
+                        [(name.lower().encode(), value.encode()) for name, value in error.headers.items()])
+
+
 class ServiceMiddleware:
-    """Request id (echoed or made), 415, 413, 429, metrics, access log, and the 500 of last resort."""
+    """Request id (echoed or made), 400 (header fields), 429, 401, 415, 413, metrics, access log, and the 500
+    of last resort."""
 
     def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None,
                  key_digests: frozenset[bytes] = frozenset(), max_fix_cost: int | None = None, routes=()):
@@ -64,9 +80,18 @@ class ServiceMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        headers = dict(scope.get("headers") or [])
-        request_id = headers.get(b"x-request-id", b"").decode("latin-1")[:128] or self._next_request_id()
-        scope.setdefault("state", {})["request_id"] = request_id
+        state = scope.setdefault("state", {})
+        try:
+            headers = RequestHeaders.parse(scope.get("headers") or [])
+            header_error = None
+        except HeaderError as error:
+            headers, header_error = RequestHeaders(), error
+        request_id = headers.request_id or self._next_request_id()
+        state["request_id"] = request_id
+        state["headers"] = headers
+        identity = auth.identify(headers.authorization, self.key_digests,
+                                 str((scope.get("client") or ("?",))[0]))
+        state["identity"] = identity
         token = request_id_var.set(request_id)
         fix_cost_limit.set(self.max_fix_cost)
         started = time.perf_counter()
@@ -80,24 +105,43 @@ class ServiceMiddleware:
 
         try:
             path, method = scope.get("path", ""), scope.get("method", "GET")
+            if header_error is not None and self._route_matches(scope):  # else the router's 404 or 405
+                refusal = (auth.unauthorized(None, header_error.detail) if header_error.status == 401
+                           else ApiError(400, "invalid_header", header_error.detail))
+                await _send_error(send_with_id, refusal, request_id)
+                return
             if self.rate_limiter is not None and path not in PROBE_PATHS:
-                retry_after = self.rate_limiter.take(self._client_key(scope, headers))
+                retry_after = self.rate_limiter.take(identity.limiter_key)
                 if retry_after:
                     await _send_problem(send_with_id, 429, "rate_limited", "over the configured rate limit",
                                         request_id, [(b"retry-after", str(max(1, round(retry_after))).encode())])
                     return
-            if method in _BODY_METHODS and self._takes_body(scope):
-                if not is_json_media_type(headers.get(b"content-type", b"")):
+            if self.key_digests and identity.owner is None and auth.protects(path) and self._route_matches(scope):
+                await _send_error(send_with_id, auth.unauthorized(identity), request_id)  # before any body is read
+                return
+            if method in _BODY_METHODS and self._route_matches(scope):
+                if not is_json_media_type(headers.content_type):
                     await _send_problem(send_with_id, 415, "unsupported_media_type",
                                         "the body must be JSON: Content-Type: application/json", request_id,
                                         [(b"accept-post", b"application/json")])
                     return
-                body = await self._read_body(headers, receive)
+                body = await self._read_body(headers.content_length, receive)
                 if body is None:
                     await self._too_large(send_with_id, request_id)
                     return
+                if body is _GONE:  # the client went away (or the server's body deadline closed it)
+                    status_holder["status"] = 499
+                    return
                 receive = _replay(body, receive)
             await self.app(scope, receive, send_with_id)
+        except asyncio.CancelledError:
+            # Only the server cancels a request's task: at shutdown, once its graceful timeout is over. The
+            # client is told to come back (to another replica) rather than left with the server's plain 500.
+            if status_holder["started"]:
+                raise
+            logger.warning("request cancelled at shutdown: answered 503 shutting_down")
+            await _send_problem(send_with_id, 503, "shutting_down", "the server is shutting down; retry",
+                                request_id, [(b"retry-after", b"1"), (b"connection", b"close")])
         except Exception:
             logger.exception("unhandled error")
             if not status_holder["started"]:
@@ -113,28 +157,21 @@ class ServiceMiddleware:
                                           "status": status_holder["status"], "duration_ms": round(seconds * 1e3, 2)})
             request_id_var.reset(token)
 
-    def _takes_body(self, scope) -> bool:
-        """Whether a route serves this method at this path (else the router answers 404 or 405 unread)."""
+    def _route_matches(self, scope) -> bool:
+        """Whether a route serves this method at this path (else the router answers 404 or 405, reading
+        nothing of the request)."""
         return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
 
-    def _client_key(self, scope, headers) -> bytes:
-        """The authenticated key's digest, else the peer address: a made-up header buys no fresh bucket."""
-        if self.key_digests:
-            digest = authenticate(headers.get(b"authorization"), self.key_digests)
-            if digest is not None:
-                return b"key:" + digest
-        return b"addr:" + str((scope.get("client") or ("?",))[0]).encode()
-
-    async def _read_body(self, headers, receive) -> bytes | None:
-        """The whole body, or None once it is over the limit (declared or as it streams)."""
-        declared = headers.get(b"content-length")
-        if declared is not None and declared.strip().isdigit() and int(declared) > self.max_body_bytes:
+    async def _read_body(self, declared: int | None, receive):
+        """The whole body; None once it is over the limit (``declared`` by Content-Length, or as it streams);
+        :data:`_GONE` when the connection ended before the body did (nothing is left to answer)."""
+        if declared is not None and declared > self.max_body_bytes:
             return None
         chunks, received = [], 0
         while True:
             message = await receive()
             if message["type"] != "http.request":
-                break  # the client went away: the app sees an empty body, its answer goes nowhere
+                return _GONE
             chunk = message.get("body", b"")
             received += len(chunk)
             if received > self.max_body_bytes:

@@ -24,6 +24,7 @@ from __future__ import annotations
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
+from service.auth import protects
 from service.problems import MEDIA_TYPE
 
 PROBLEM_REF = {"$ref": "#/components/schemas/Problem"}
@@ -32,7 +33,7 @@ _RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before retrying"
 
 #: Status -> (description, headers) for statuses a route does not describe itself.
 DEFAULT_ERRORS = {
-    400: ("the body is not valid JSON", None),
+    400: ("the body is not valid JSON, or a header field is malformed or sent twice (code invalid_header)", None),
     401: ("a bearer key is required (keys are configured) and none was sent",
           {"WWW-Authenticate": {"description": "Bearer", "schema": {"type": "string"}}}),
     403: ("the bearer key is not one of the configured keys", None),
@@ -53,9 +54,9 @@ def _has_parameters(operation: dict) -> bool:
 
 
 def _error_statuses(operation: dict, checks_key: bool, uses_store: bool) -> set[int]:
-    statuses = {429, 500}
+    statuses = {400, 429, 500}  # 400: every request's header fields are parsed (service.headers)
     if "requestBody" in operation:
-        statuses |= {400, 413, 415, 422}
+        statuses |= {413, 415, 422}
     if _has_parameters(operation):
         statuses.add(422)
     if checks_key:
@@ -98,7 +99,7 @@ def build(app: FastAPI) -> dict:
                        routes=app.routes)
     for path, operations in spec["paths"].items():
         for method, operation in operations.items():
-            checks_key = path.startswith("/v1/")
+            checks_key = protects(path)
             uses_store = path.startswith("/v1/sessions") or path == "/readyz"
             responses = operation["responses"]
             declared = {int(code) for code in responses if code.isdigit() and int(code) >= 400}

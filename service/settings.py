@@ -33,6 +33,15 @@ class Settings(BaseSettings):
         ``/readyz`` runs SQLite's ``quick_check`` at most this often.
     max_body_bytes : int
         Larger request bodies get 413 (declared or streamed).
+    header_timeout_s : float
+        A request's line and headers must arrive within this of the connection opening (or of an idle
+        connection's first byte); else 408 and the connection is closed.
+    body_timeout_s : float
+        A request's whole body must arrive within this of its headers (else 408, connection closed): at
+        the default max_body_bytes, 32 MiB in 30 s is about 1.1 MB/s.
+    max_connections : int
+        Open connections per server process; one more closes the one that has waited longest for its
+        client (503 too_many_connections). Keep it below the open-file limit (ulimit -n).
     api_key_hashes : str
         Comma-separated SHA-256 hex digests of the accepted bearer keys (``sha256sum`` of the key without a
         newline); empty with no file disables authentication.
@@ -83,6 +92,9 @@ class Settings(BaseSettings):
     store_breaker_cooldown_s: float = Field(1.0, gt=0.0, le=300.0)
     sqlite_integrity_interval_s: float = Field(60.0, ge=0.0)
     max_body_bytes: int = Field(32 * 1024 * 1024, gt=0)
+    header_timeout_s: float = Field(10.0, gt=0.0, le=300.0)
+    body_timeout_s: float = Field(30.0, gt=0.0, le=3600.0)
+    max_connections: int = Field(1000, ge=1)
     api_key_hashes: str = ""
     api_key_hashes_file: str | None = None
     allow_anonymous: bool = False

@@ -13,6 +13,7 @@ from starlette.responses import Response, StreamingResponse
 from service import events, sessions, tak
 from service import session_schemas as schemas
 from service.deps import OwnerDep
+from service.headers import of as parsed_headers
 from service.problems import ApiError
 from service.responses import JsonResponse
 from service.schemas import Problem
@@ -152,7 +153,7 @@ async def session_events(session_id: str, owner: OwnerDep, store: StoreDep, requ
                          ) -> StreamingResponse:
     record = await store.run(sessions.get, owner, session_id)
     wanted = formats.split(",") if formats else ()
-    last = int(last_event_id) if last_event_id and last_event_id.strip().isdigit() else None
+    last = parsed_headers(request).last_event_id  # parsed strictly by the middleware (400 when malformed)
 
     async def stream():
         nonlocal record, last
