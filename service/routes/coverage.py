@@ -25,8 +25,9 @@ from fastapi import APIRouter, Query, Request
 from pydantic import Field
 from starlette.responses import Response
 
-from service import schemas
+from service import headers, schemas
 from service.deps import OwnerDep
+from service.headers import MediaRange
 from service.problems import ApiError
 from service.responses import JsonResponse
 from service.translate import coverage_renderings, grid_of_request
@@ -52,32 +53,27 @@ _GRID_REQUEST_LIMITS = {
           "description": "not finished within the request deadline (code deadline_exceeded)"}}
 
 
-def negotiate(accept: str | None) -> str | None:
+def negotiate(accept: tuple[MediaRange, ...]) -> str | None:
     """The media type of :data:`MEDIA_TYPES` that ``Accept`` prefers, or None when it accepts none of them.
+
+    Parameters
+    ----------
+    accept : tuple of MediaRange
+        The request's ``Accept`` as the middleware parsed it (:func:`service.headers.parse_accept`); empty
+        when absent.
 
     Each offered type takes the q-value of the most specific range that names it (``type/subtype``, then
     ``type/*``, then ``*/*``); the highest q wins, then the range listed first, then :data:`MEDIA_TYPES`'
     order. No header, or ``*/*``, is JSON; ``application/geo+json`` is JSON.
     """
-    if not accept or not accept.strip():
+    if not accept:
         return JSON
-    ranges: list[tuple[str, float, int]] = []
-    for position, part in enumerate(accept.split(",")):
-        media, *parameters = (p.strip() for p in part.split(";"))
-        q = 1.0
-        for parameter in parameters:
-            name, _, value = parameter.partition("=")
-            if name.strip().lower() == "q":
-                try:
-                    q = float(value)
-                except ValueError:
-                    q = 0.0
-        media = media.lower()
-        ranges.append(("application/json" if media == "application/geo+json" else media, q, position))
+    ranges = [("application/json" if r.media == "application/geo+json" else r.media, r.q, position)
+              for position, r in enumerate(accept)]
     best, best_key = None, None
     for order, offered in enumerate(MEDIA_TYPES):
         kind = offered.split("/")[0]
-        for specificity, wanted in enumerate((offered, f"{kind}/*", "*/*")):
+        for wanted in (offered, f"{kind}/*", "*/*"):
             if offered != JSON and wanted == "*/*":
                 continue  # a wildcard asks for the default rendering, not for any picture
             matches = [(q, position) for media, q, position in ranges if media == wanted]
@@ -126,7 +122,7 @@ _NOT_PLACED = ("a KMZ or GeoTIFF map is placed by latitude and longitude: it nee
                      "not_acceptable)")},
                  **_GRID_REQUEST_LIMITS})
 async def crlb_grid(request: schemas.CrlbGridRequest, owner: OwnerDep, http: Request) -> Response:
-    media_type = negotiate(http.headers.get("accept"))
+    media_type = negotiate(headers.of(http).accept)
     if media_type is None:
         raise ApiError(406, "not_acceptable", f"Accept names none of the coverage map's renderings: "
                                               f"{', '.join(MEDIA_TYPES)}")

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from service import schemas
-from service.routes.coverage import negotiate
+from service.headers import parse_accept
+from service.routes.coverage import negotiate as negotiate_ranges
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -160,6 +161,11 @@ def test_geodetic_centre_needs_a_geodetic_frame(client):
     response = client.post("/v1/crlb/grid", json=request)
     assert response.status_code == 422
     assert response.json()["errors"][0]["loc"] == ["grid", "centre"]
+
+
+def negotiate(accept: str | None):
+    """The negotiation of an ``Accept`` value as the middleware parses it (absent: None)."""
+    return negotiate_ranges(parse_accept(accept.encode()) if accept is not None else ())
 
 
 def test_accept_negotiation():
