@@ -1,0 +1,251 @@
+"""The network tracker's per-report work, compiled: predict a set of constant-velocity states and update them
+with one report through :func:`core.measurements.measure_point`.
+
+State ``[east_m, north_m, up_m, east_mps, north_mps, up_mps]`` in the session's common ENU frame. Every
+measurement of a report depends on the position only, so the unscented transform runs over the position:
+the six cubature points ``p +- sqrt(3) L[:, j]`` (``L L^T = P_pp``, weights 1/6; the third-degree spherical
+rule, every weight positive, so the transformed covariance is positive semi-definite by construction). The
+velocity's covariance with the measurement then follows exactly from its linear regression on the
+position (``P_vz = P_vp P_pp^-1 P_pz``, exact for a Gaussian), which is what the 12-point transform of the
+whole state would give with ``sqrt(3)`` in place of ``sqrt(6)``, at half the model evaluations.
+
+TOA rows are differences ``TOA_i - TOA_ref`` of one report's TOAs (as pseudo-ranges, metres), with the
+differences' full noise covariance (``sigma_i^2`` on the diagonal plus ``sigma_ref^2`` everywhere): that is
+the exact marginal over the unknown emission time under a flat prior on it, whichever TOA is the
+reference. The update is in whitened form: with the innovation covariance ``S = L_S L_S^T``,
+``V = L_S^-1 P_zx`` and ``t = L_S^-1 innovation``, the mean moves by ``V^T t``, the covariance loses
+``V^T V`` (exactly symmetric), the NIS is ``|t|^2`` and ``log det S = 2 sum log diag L_S``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from core.angles import wrap_point
+from core.measurements import AZIMUTH, TOA, measure_point
+from core.tracking.linalg import cholesky_into, lower_inverse_into
+
+#: Outcome of :func:`network_ukf_kernel` per state: updated; the predicted position covariance, the
+#: innovation covariance or the updated covariance not positive definite; the update not finite.
+UPDATED, PREDICTED_NOT_PD, INNOVATION_NOT_PD, UPDATED_NOT_PD, NOT_FINITE = range(5)
+
+STATE_SIZE = 6
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _predict_one(mean, cov, transition, noise, point, work):
+    """``mean <- F mean``, ``cov <- F cov F^T + Q`` in place (lower triangle computed, mirrored); ``point``
+    ``(6,)`` and ``work`` ``(6, 6)`` are scratch."""
+    f = mean.shape[0]
+    for i in range(f):
+        total = 0.0
+        for k in range(f):
+            total += transition[i, k] * mean[k]
+        point[i] = total
+        for j in range(f):
+            total = 0.0
+            for k in range(f):
+                total += transition[i, k] * cov[k, j]
+            work[i, j] = total
+    for i in range(f):
+        mean[i] = point[i]
+        for j in range(i + 1):
+            total = noise[i, j]
+            for k in range(f):
+                total += work[i, k] * transition[j, k]
+            cov[i, j] = total
+            cov[j, i] = total
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _rows_at(east_m, north_m, up_m, stations_enu_m, rotations, kinds, rows, toa_reference, out):
+    """The model value of each row at a position: angles (rad), ranges (m), TOA rows as the pseudo-range
+    difference to the reference TOA's station (m)."""
+    reference = 0.0
+    if toa_reference >= 0:
+        reference = measure_point(east_m, north_m, up_m, 0.0, stations_enu_m, rotations, toa_reference, TOA)[0]
+    for r in range(rows.size):
+        m = rows[r]
+        value = measure_point(east_m, north_m, up_m, 0.0, stations_enu_m, rotations, m, kinds[m])[0]
+        out[r] = value - reference if kinds[m] == TOA else value
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m, rotations, kinds, values, variances,
+                       rows, toa_reference, new_means, new_covs, nis, log_det, status):
+    """Predict ``C`` states over one interval and update each with one report (module docstring).
+
+    Parameters
+    ----------
+    means : ndarray, shape (C, 6)
+    covs : ndarray, shape (C, 6, 6)
+        With ``predict``, overwritten with the prediction.
+    transition : ndarray, shape (6, 6)
+    noises : ndarray, shape (C, 6, 6)
+        Each state's process noise over the interval (:func:`core.tracking.motion.transitions`).
+    predict : bool
+        False: ``means`` and ``covs`` are already at the report's time.
+    stations_enu_m : ndarray, shape (M, 3)
+    rotations : ndarray, shape (M, 3, 3)
+        Each measurement's station and its rotation (station ENU <- common ENU) at the report's time.
+    kinds : ndarray of int, shape (M,)
+    values : ndarray, shape (M,)
+        Model units: radians, metres, TOAs as ``c (toa - toa_of_reference)`` (m).
+    variances : ndarray, shape (M,)
+        Model units squared.
+    rows : ndarray of int, shape (R,)
+        The measurements used, in row order; a TOA row is differenced with ``toa_reference`` (not a row).
+    toa_reference : int
+        Index of the reference TOA, -1 without TOA rows.
+    new_means : ndarray, shape (C, 6)
+    new_covs : ndarray, shape (C, 6, 6)
+    nis, log_det : ndarray, shape (C,)
+    status : ndarray of int, shape (C,)
+        Written: the updated states, the NIS (chi-square with ``R`` degrees of freedom when the model holds),
+        ``log det S`` and the outcome (:data:`UPDATED` ... :data:`NOT_FINITE`).
+    """
+    count = means.shape[0]
+    f = STATE_SIZE
+    size = rows.size
+    spread = math.sqrt(3.0)
+    weight = 1.0 / 6.0
+    work = np.empty((f, f))
+    point = np.empty(f)
+    chol = np.empty((3, 3))
+    inverse = np.empty((3, 3))
+    full_chol = np.empty((f, f))
+    centre = np.empty(size)
+    z = np.empty(size)
+    deviation = np.empty((size, 6))
+    mean_deviation = np.empty(size)
+    innovation = np.empty(size)
+    innovation_cov = np.empty((size, size))
+    innovation_chol = np.empty((size, size))
+    regression = np.empty((f, 3))
+    v = np.empty((size, f))
+    t = np.empty(size)
+    reference_variance = variances[toa_reference] if toa_reference >= 0 else 0.0
+    reference_value = values[toa_reference] if toa_reference >= 0 else 0.0
+    for b in range(count):
+        mean, cov, new_mean, new_cov = means[b], covs[b], new_means[b], new_covs[b]
+        if predict:
+            _predict_one(mean, cov, transition, noises[b], point, work)
+        if not cholesky_into(cov[:3, :3], chol):
+            status[b] = PREDICTED_NOT_PD
+            continue
+        lower_inverse_into(chol, inverse)
+        x0, y0, z0 = mean[0], mean[1], mean[2]
+        _rows_at(x0, y0, z0, stations_enu_m, rotations, kinds, rows, toa_reference, centre)
+        for j in range(6):
+            c = j % 3
+            sign = 1.0 if j < 3 else -1.0
+            _rows_at(x0 + sign * (spread * chol[0, c]), y0 + sign * (spread * chol[1, c]),
+                     z0 + sign * (spread * chol[2, c]), stations_enu_m, rotations, kinds, rows, toa_reference, z)
+            for r in range(size):
+                change = z[r] - centre[r]
+                deviation[r, j] = wrap_point(change) if kinds[rows[r]] == AZIMUTH else change
+        for r in range(size):
+            total = 0.0
+            for j in range(6):
+                total += deviation[r, j]
+            mean_deviation[r] = total * weight
+            m = rows[r]
+            raw = values[m] - centre[r]
+            if kinds[m] == AZIMUTH:
+                raw = wrap_point(raw)
+            elif kinds[m] == TOA:
+                raw -= reference_value
+            innovation[r] = raw - mean_deviation[r]
+        for r in range(size):
+            for q in range(r + 1):
+                total = 0.0
+                for j in range(6):
+                    total += (deviation[r, j] - mean_deviation[r]) * (deviation[q, j] - mean_deviation[q])
+                total *= weight
+                if kinds[rows[r]] == TOA and kinds[rows[q]] == TOA:
+                    total += reference_variance
+                innovation_cov[r, q] = total
+                innovation_cov[q, r] = total
+            innovation_cov[r, r] += variances[rows[r]]
+        # regression = P_xp L^-T: the state's covariance with the whitened position.
+        for i in range(f):
+            for a in range(3):
+                total = 0.0
+                for k in range(a + 1):
+                    total += cov[i, k] * inverse[a, k]
+                regression[i, a] = total
+        # P_zx rows: sum over the whitened position directions of the points' symmetric differences.
+        for r in range(size):
+            for i in range(f):
+                total = 0.0
+                for a in range(3):
+                    total += regression[i, a] * (deviation[r, a] - deviation[r, a + 3])
+                v[r, i] = total * (spread * weight)
+        if not cholesky_into(innovation_cov, innovation_chol):
+            status[b] = INNOVATION_NOT_PD
+            continue
+        chi2 = 0.0
+        half_log_det = 0.0
+        for r in range(size):
+            pivot = innovation_chol[r, r]
+            total = innovation[r]
+            for q in range(r):
+                total -= innovation_chol[r, q] * t[q]
+            t[r] = total / pivot
+            chi2 += t[r] * t[r]
+            half_log_det += math.log(pivot)
+            for i in range(f):
+                total = v[r, i]
+                for q in range(r):
+                    total -= innovation_chol[r, q] * v[q, i]
+                v[r, i] = total / pivot
+        nis[b] = chi2
+        log_det[b] = 2.0 * half_log_det
+        finite = True
+        for i in range(f):
+            total = mean[i]
+            for r in range(size):
+                total += v[r, i] * t[r]
+            new_mean[i] = total
+            finite = finite and math.isfinite(total)
+            for j in range(i + 1):
+                total = cov[i, j]
+                for r in range(size):
+                    total -= v[r, i] * v[r, j]
+                new_cov[i, j] = total
+                new_cov[j, i] = total
+                finite = finite and math.isfinite(total)
+        if not finite:
+            status[b] = NOT_FINITE
+        elif not cholesky_into(new_cov, full_chol):
+            status[b] = UPDATED_NOT_PD
+        else:
+            status[b] = UPDATED
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def predict_kernel(means, covs, transition, noises):
+    """``mean <- F mean``, ``cov <- F cov F^T + Q`` of ``C`` states in place (exactly symmetric)."""
+    point = np.empty(STATE_SIZE)
+    work = np.empty((STATE_SIZE, STATE_SIZE))
+    for b in range(means.shape[0]):
+        _predict_one(means[b], covs[b], transition, noises[b], point, work)
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) this module's kernels with the argument types the tracker passes."""
+    from core.tracking.motion import transitions
+
+    phi, noises = transitions(STATE_SIZE, (3,), True, 1.0, (1.0,))
+    means = np.array([[1e4, 2e4, 100.0, 10.0, 0.0, 0.0]])
+    covs = np.diag([1e4, 1e4, 1e4, 1e2, 1e2, 1e2])[None].copy()
+    stations = np.zeros((2, 3))
+    rotations = np.tile(np.eye(3), (2, 1, 1))
+    kinds = np.array([0, 3], dtype=np.int64)
+    network_ukf_kernel(means.copy(), covs.copy(), phi, noises, True, stations, rotations, kinds, np.zeros(2),
+                       np.ones(2), np.array([0], dtype=np.int64), -1, np.empty((1, 6)), np.empty((1, 6, 6)),
+                       np.empty(1), np.empty(1), np.empty(1, dtype=np.int64))
+    predict_kernel(means.copy(), covs.copy(), phi, noises)
