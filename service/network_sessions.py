@@ -57,12 +57,18 @@ def network_config(request: dict | schemas.NetworkSessionCreate) -> NetworkConfi
     try:
         return NetworkConfig(accel_sigma_mps2=noise.accel_sigma_mps2,
                              imm_accel_sigmas_mps2=tuple(noise.imm_accel_sigmas_mps2 or ()),
-                             reorder_window_s=request.reorder_window_s)
+                             imm_mean_sojourn_s=noise.imm_mean_sojourn_s,
+                             reorder_window_s=request.reorder_window_s, coast_after_s=request.coast_after_s,
+                             end_after_s=request.end_after_s)
     except LocalizationError as error:
         field = error.loc[0] if error.loc else None
         loc = {"accel_sigma_mps2": ("process_noise", "accel_sigma_mps2"),
                "imm_accel_sigmas_mps2": ("process_noise", "imm_accel_sigmas_mps2"),
-               "reorder_window_s": ("reorder_window_s",)}.get(field)
+               "imm_mean_sojourn_s": ("process_noise", "imm_mean_sojourn_s"),
+               "reorder_window_s": ("reorder_window_s",), "coast_after_s": ("coast_after_s",),
+               "end_after_s": ("end_after_s",)}.get(field)
+        if loc is not None and len(error.loc) > 1:
+            loc = (*loc, *error.loc[1:])
         raise _problem(422, error.code, error.message, loc) from error
 
 
@@ -187,11 +193,13 @@ def core_report(report: schemas.Report, index: int, registry: dict, frame: str, 
 
 
 def _core_loc(loc, source_index) -> list:
-    """A core report error's ``loc`` as the API's path: a scalar measurement row becomes its request measurement."""
+    """A core report error's ``loc`` as the API's path: a scalar measurement row becomes its request measurement
+    (core names the row's ``value``, ``sigma`` or ``kind``, which the request spells per type: the path stops at
+    the measurement)."""
     loc = list(loc)
-    if len(loc) >= 2 and loc[0] in ("measurements", "kinds", "values", "sigmas") and isinstance(loc[1], int) \
-            and 0 <= loc[1] < len(source_index):
-        return ["measurements", int(source_index[loc[1]]), *api_loc(loc[2:])]
+    if len(loc) >= 2 and loc[0] == "measurements" and isinstance(loc[1], int) and 0 <= loc[1] < len(source_index):
+        rest = [part for part in loc[2:] if part not in ("value", "sigma", "kind")]
+        return ["measurements", int(source_index[loc[1]]), *api_loc(rest)]
     return api_loc(loc)
 
 

@@ -191,7 +191,9 @@ class NetworkProcessNoise(Strict):
         None, min_length=2, max_length=4,
         description="increasing acceleration-noise levels of an interacting multiple model (for targets that "
                     "switch between quiet and manoeuvring legs); absent: one constant-velocity model at "
-                    "accel_sigma_mps2")
+                    "accel_sigma_mps2 (which then serves a track's start only)")
+    imm_mean_sojourn_s: float = Field(60.0, gt=0.0, le=1e6, description="mean time a target stays at one level "
+                                                                       "(the IMM's Markov switching matrix)")
 
 
 class NetworkSessionCreate(Strict):
@@ -215,6 +217,12 @@ class NetworkSessionCreate(Strict):
                                     description="a report up to this much older than the newest applied one is "
                                                 "still applied in time order; older ones are counted as late "
                                                 "and not applied")
+    coast_after_s: float = Field(10.0, gt=0.0, le=1e6, description="a track without a report for longer than "
+                                                                   "this is coasting (predicted only)")
+    end_after_s: float = Field(60.0, gt=0.0, le=1e7, description="a track without a report for longer than this "
+                                                                 "ends: it leaves tracks (the event stream and the "
+                                                                 "TAK feed say so); above coast_after_s and "
+                                                                 "reorder_window_s")
     ttl_s: float = Field(86400.0, ge=MIN_TTL_S, le=MAX_TTL_S,
                          description="idle lifetime: the session is deleted ttl_s after its last write")
     cot: CotOptions | None = Field(None, description="CoT uid, type and stale time of the tracks' events: a "
