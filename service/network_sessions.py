@@ -468,3 +468,56 @@ def tak_events(record: SessionRecord, body: dict, ended: list[dict]) -> list[str
     if record.config["request"]["frame"] == "wgs84" or record.config["origin"] is not None:
         events += [ended_cot(record.id, e["id"], cot) for e in ended]
     return events
+
+
+# -- evaluation: the tracker on a simulated scene against the posterior CRLB --------------------------------------
+
+def network_evaluation(spec: schemas.NetworkEvaluationSpec):
+    """Run core's Monte Carlo of a network scene (:func:`core.simulation.network.evaluate_network`) with the
+    request's tracker settings over the scene's."""
+    from core.simulation.network import SCENES, evaluate_network
+
+    scene = SCENES[spec.scene]()
+    config = scene.config
+    changes = {}
+    if spec.process_noise is not None:
+        noise = spec.process_noise
+        changes.update(accel_sigma_mps2=noise.accel_sigma_mps2,
+                       imm_accel_sigmas_mps2=tuple(noise.imm_accel_sigmas_mps2 or ()),
+                       imm_mean_sojourn_s=noise.imm_mean_sojourn_s)
+    if spec.reorder_window_s is not None:
+        changes["reorder_window_s"] = spec.reorder_window_s
+    if changes:
+        try:
+            config = replace(config, **changes)
+        except LocalizationError as error:
+            raise _problem(422, error.code, error.message, ("network", *api_loc(error.loc or ()))) from error
+    return evaluate_network(scene, spec.trials, spec.seed, config)
+
+
+def _finite_list(values) -> list:
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(values, dtype=float).tolist()]
+
+
+def _finite(value) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def network_evaluation_body(spec: schemas.NetworkEvaluationSpec) -> dict:
+    """The response body of a network evaluation (``NetworkEvaluationResponse``)."""
+    result = network_evaluation(spec)
+    return {
+        "scene": spec.scene, "trials": spec.trials, "seed": spec.seed,
+        "converged_after_s": float(result.converged_after_s), "rmse_over_pcrb": _finite(result.rmse_over_pcrb),
+        "nees_after": _finite(result.nees_after), "nees_interval_99": [float(v) for v in result.nees_interval_99],
+        "late_reports": int(result.late_reports),
+        "epochs": {"time_s": [float(t) for t in result.times_s],
+                   "rmse_position_m": _finite_list(result.rmse_position_m),
+                   "pcrb_position_m": _finite_list(result.pcrb_position_m),
+                   "rmse_velocity_mps": _finite_list(result.rmse_velocity_mps),
+                   "pcrb_velocity_mps": _finite_list(result.pcrb_velocity_mps),
+                   "nees_position": _finite_list(result.nees_position),
+                   "nees_state": _finite_list(result.nees_state),
+                   "tracked_fraction": _finite_list(result.tracked_fraction),
+                   "confirmed_fraction": _finite_list(result.confirmed_fraction)},
+    }

@@ -367,3 +367,52 @@ AnySessionCreate = Annotated[
 class SessionList(BaseModel):
     sessions: list[AnySessionState] = Field(description="oldest first (ids begin with the creation time in ms)")
     next_cursor: str | None = Field(description="pass as cursor for the next page; null on the last page")
+
+
+# -- network tracking evaluation (POST /v1/evaluations with "network", passive-locator evaluate) ------------------
+
+NetworkScene = Literal["df_network", "toa_network", "airborne_df"]
+
+
+class NetworkEvaluationSpec(Strict):
+    scene: NetworkScene = Field(description="df_network: four direction finders 25-35 km apart, a ground vehicle "
+                                            "at 15-25 m/s, a tenth of the reports up to 1.5 s late; toa_network: "
+                                            "five TOA stations (20-50 ns) timing an aircraft at 5-10 km, "
+                                            "150-250 m/s; airborne_df: one airborne direction finder flying "
+                                            "straight, then turning, past a slow ground emitter")
+    trials: int = Field(20, ge=1, le=500, description="Monte Carlo runs (run r draws from seed + r)")
+    seed: int = Field(0, ge=0, le=2**32)
+    process_noise: NetworkProcessNoise | None = Field(None, description="the tracker's process noise (default: "
+                                                                        "the scene's, matched to its truth)")
+    reorder_window_s: float | None = Field(None, ge=0.0, le=3600.0, description="default: the scene's")
+
+
+class NetworkEvaluationRequest(Strict):
+    network: NetworkEvaluationSpec
+
+
+class NetworkEpochs(BaseModel):
+    time_s: list[float] = Field(description="evaluation epochs (session clock)")
+    rmse_position_m: list[float | None] = Field(description="over the trials with a track (null: none has one)")
+    pcrb_position_m: list[float | None] = Field(description="sqrt(trace) of the posterior CRLB's position block "
+                                                            "(null while the position is not determined)")
+    rmse_velocity_mps: list[float | None]
+    pcrb_velocity_mps: list[float | None]
+    nees_position: list[float | None] = Field(description="mean position NEES over the trials (3 if honest)")
+    nees_state: list[float | None] = Field(description="mean 6-state NEES over the trials (6 if honest)")
+    tracked_fraction: list[float]
+    confirmed_fraction: list[float]
+
+
+class NetworkEvaluationResponse(BaseModel):
+    scene: str
+    trials: int
+    seed: int
+    converged_after_s: float = Field(description="epochs from this long after the start are judged")
+    rmse_over_pcrb: float | None = Field(description="position RMSE over the judged epochs / the PCRB's (1 is at "
+                                                     "the bound)")
+    nees_after: float | None = Field(description="mean position NEES over the judged epochs and trials")
+    nees_interval_99: list[float] = Field(description="the chi-square 99 % interval of a per-epoch mean "
+                                                      "position NEES over the trials")
+    late_reports: int
+    epochs: NetworkEpochs
