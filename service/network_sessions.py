@@ -59,14 +59,17 @@ def network_config(request: dict | schemas.NetworkSessionCreate) -> NetworkConfi
                              imm_accel_sigmas_mps2=tuple(noise.imm_accel_sigmas_mps2 or ()),
                              imm_mean_sojourn_s=noise.imm_mean_sojourn_s,
                              reorder_window_s=request.reorder_window_s, coast_after_s=request.coast_after_s,
-                             end_after_s=request.end_after_s)
+                             end_after_s=request.end_after_s,
+                             velocity_prior_sigma_mps=request.start.velocity_sigma_mps,
+                             range_min_m=request.start.range_min_m, range_max_m=request.start.range_max_m)
     except LocalizationError as error:
         field = error.loc[0] if error.loc else None
         loc = {"accel_sigma_mps2": ("process_noise", "accel_sigma_mps2"),
                "imm_accel_sigmas_mps2": ("process_noise", "imm_accel_sigmas_mps2"),
                "imm_mean_sojourn_s": ("process_noise", "imm_mean_sojourn_s"),
                "reorder_window_s": ("reorder_window_s",), "coast_after_s": ("coast_after_s",),
-               "end_after_s": ("end_after_s",)}.get(field)
+               "end_after_s": ("end_after_s",), "velocity_prior_sigma_mps": ("start", "velocity_sigma_mps"),
+               "range_min_m": ("start", "range_min_m"), "range_max_m": ("start", "range_max_m")}.get(field)
         if loc is not None and len(error.loc) > 1:
             loc = (*loc, *error.loc[1:])
         raise _problem(422, error.code, error.message, loc) from error

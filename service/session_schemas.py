@@ -13,7 +13,7 @@ from typing import Annotated, Literal, Union
 from pydantic import BaseModel, Discriminator, Field, Tag, model_validator
 
 from core.tracking import WARNING_CODES as TRACKING_WARNING_CODES
-from service.schemas import (MAX_ABS_TIME_S, MAX_FIX_MEASUREMENTS, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions,
+from service.schemas import (MAX_ABS_TIME_S, MAX_FIX_MEASUREMENTS, MAX_RANGE_M, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions,
                              ErrorSummary, FeatureCollection, GeodeticPosition, GeodeticPositionResult, LocalPosition,
                              LocalPositionResult, Measurement, Position, Station, Strict, Warning, codes_in_use)
 
@@ -196,6 +196,18 @@ class NetworkProcessNoise(Strict):
                                                                        "(the IMM's Markov switching matrix)")
 
 
+class TrackStart(Strict):
+    """How a track starts from its first report."""
+
+    velocity_sigma_mps: float = Field(100.0, gt=0.0, le=1e5, description="standard deviation of each velocity "
+                                                                         "component at a track's start (zero "
+                                                                         "mean): about the fastest target speed")
+    range_min_m: float = Field(1e3, gt=0.0, le=MAX_RANGE_M, description="a track started from one bearing: the "
+                                                                         "nearest the emitter may be")
+    range_max_m: float = Field(200e3, gt=0.0, le=MAX_RANGE_M, description="... and the farthest (a Gaussian sum "
+                                                                           "along the line of sight covers these)")
+
+
 class NetworkSessionCreate(Strict):
     frame: Literal["wgs84", "local"] = "wgs84"
     origin: GeodeticPosition | None = Field(None, description="the session's common frame's tangent point; "
@@ -209,6 +221,7 @@ class NetworkSessionCreate(Strict):
                                                      "rates in the session's common frame (exact geodesy), updated "
                                                      "with the fix measurement models")
     process_noise: NetworkProcessNoise = Field(default_factory=NetworkProcessNoise)
+    start: TrackStart = Field(default_factory=TrackStart)
     association: Literal["labelled", "auto"] = Field(
         "labelled", description="labelled: each report names its emitter (emitter_id; absent = the session's "
                                 f"single emitter, track id {DEFAULT_EMITTER_ID!r}). auto is reserved: answered "
