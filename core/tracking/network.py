@@ -133,7 +133,7 @@ class NetworkConfig:
     range_max_m: float = 200e3
     azimuth_only_elevation_sigma_rad: float = 0.25
     confirm_updates: int = 3
-    confirm_relative_sigma: float = 0.1
+    confirm_relative_sigma: float = 0.05
     coast_after_s: float = 10.0
     end_after_s: float = 60.0
 
@@ -521,9 +521,8 @@ def predict_tracks(state: NetworkState, time_s: float, config: NetworkConfig) ->
     now = time_s if state.last_time_s is None else max(time_s, state.last_time_s)
     out = []
     for track in state.tracks:
-        if time_s > track.time_s:
-            track = _predicted(track, time_s, config)
-        out.append(with_status(track, now, config))
+        track = with_status(track, now, config)  # against its last report, before the prediction moves time_s
+        out.append(_predicted(track, time_s, config) if time_s > track.time_s else track)
     return tuple(out)
 
 
