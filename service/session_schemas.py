@@ -340,7 +340,9 @@ class NetworkSessionState(BaseModel):
     updates: int = Field(description="reports applied")
     tracks: list[NetworkTrack] = Field(description="one per emitter (or, with at_time_s, predicted to that time)")
     ended_tracks: list[EndedTrack] = Field(description="the latest tracks that ended (coasted out), newest last")
-    at_time_s: float | None = Field(None, description="with ?at_time_s=: the time the tracks were predicted to")
+    at_time_s: float | None = Field(None, description="with ?at_time_s=: the time the tracks were predicted to "
+                                                      "(constant velocity, IMM-mixed; a track already newer is "
+                                                      "given as it is)")
     warnings: list[Warning] = Field(description="raised by the last post that applied reports")
     created_at: str = Field(description="RFC 3339, UTC")
     updated_at: str = Field(description="RFC 3339, UTC")
