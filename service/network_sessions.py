@@ -249,16 +249,19 @@ class ReportsChange:
         self.batch, self.if_match, self.clock = batch, if_match, clock
         self.applied = self.duplicates = self.late = 0
         self.ended: list[dict] = []
+        #: The core state of the record the change made (None when it wrote nothing).
+        self.state: NetworkState | None = None
         self._prepared: tuple | None = None
 
     def prepare(self, record: SessionRecord, should_stop=None) -> None:
         new = self._change(record)
-        self._prepared = (record.id, record.version, new, self.applied, self.duplicates, self.late, self.ended)
+        self._prepared = (record.id, record.version, new, self.applied, self.duplicates, self.late, self.ended,
+                          self.state)
 
     def __call__(self, record: SessionRecord) -> SessionRecord | None:
         prepared = self._prepared
         if prepared is not None and prepared[:2] == (record.id, record.version):
-            new, self.applied, self.duplicates, self.late, self.ended = prepared[2:]
+            new, self.applied, self.duplicates, self.late, self.ended, self.state = prepared[2:]
             return new
         return self._change(record)
 
@@ -277,7 +280,7 @@ class ReportsChange:
             while first_new < len(reports) and reports[first_new].seq <= record.last_seq:
                 first_new += 1
         fresh = reports[first_new:]
-        self.duplicates, self.applied, self.late, self.ended = first_new, 0, 0, []
+        self.duplicates, self.applied, self.late, self.ended, self.state = first_new, 0, 0, [], None
         if not fresh:
             return None
         request = record.config["request"]
@@ -294,7 +297,7 @@ class ReportsChange:
         except LocalizationError as error:
             raise _problem(422, error.code, f"{error.message}; nothing of this post was applied",
                            api_loc(error.loc) if error.loc else None) from error
-        self.applied, self.late = int(outcome.applied), int(outcome.late)
+        self.applied, self.late, self.state = int(outcome.applied), int(outcome.late), outcome.state
         now_ids = {t.id for t in outcome.state.tracks}
         version = record.version + 1
         self.ended = [{"id": t.id, "time_s": float(t.time_s), "version": version}
@@ -340,13 +343,14 @@ def _track_body(track, frame: CommonFrame) -> dict:
     }
 
 
-def state_body(record: SessionRecord, at_time_s: float | None = None) -> dict:
+def state_body(record: SessionRecord, at_time_s: float | None = None, state: NetworkState | None = None) -> dict:
     """The response body of a network session (``NetworkSessionState``); ``at_time_s``: every track predicted to
-    that time."""
+    that time; ``state``: the record's core state when the caller has it already (else read from the record)."""
     from service.sessions import _timestamp
 
     request = record.config["request"]
-    state = NetworkState.from_dict(record.state["core"])
+    if state is None:
+        state = NetworkState.from_dict(record.state["core"])
     frame = _frame(record)
     tracks = state.tracks if at_time_s is None else predict_tracks(state, at_time_s, network_config(request))
     origin = frame.origin

@@ -376,6 +376,8 @@ class ReportsOutcome:
     duplicates: int
     late: int
     ended: list
+    #: The record's core state when this post wrote it (None: the record is as it was).
+    state: object = None
 
 
 def post_reports(store: SessionStore, owner: str, session_id: str, change: network_sessions.ReportsChange,
@@ -384,4 +386,4 @@ def post_reports(store: SessionStore, owner: str, session_id: str, change: netwo
     record = store.update(owner, session_id, change, read) if _SESSION_ID.fullmatch(session_id) else None
     if record is None:
         raise not_found(session_id)
-    return ReportsOutcome(record, change.applied, change.duplicates, change.late, change.ended)
+    return ReportsOutcome(record, change.applied, change.duplicates, change.late, change.ended, change.state)

@@ -158,8 +158,8 @@ async def post_reports(session_id: str, batch: schemas.ReportBatch, owner: Owner
     metrics.count("session_reports_applied_total", outcome.applied)
     metrics.count("session_reports_duplicate_total", outcome.duplicates)
     metrics.count("session_reports_late_total", outcome.late)
-    body = {**sessions.state_body(outcome.record), "applied": outcome.applied, "duplicates": outcome.duplicates,
-            "late": outcome.late}
+    body = {**network_sessions.state_body(outcome.record, state=outcome.state), "applied": outcome.applied,
+            "duplicates": outcome.duplicates, "late": outcome.late}
     if outcome.applied or outcome.ended:
         await run_in_threadpool(events.bus(request.app).publish, session_id, outcome.record.version)
         metrics.count("events_published_total")
