@@ -62,6 +62,7 @@ async def _feed(host: str, port: int, posts: list[tuple[str, bytes]], deadline: 
                 counts["reports"] += orjson.loads(data)["applied"]
             else:
                 counts["failures"] += 1
+                counts.setdefault("statuses", {}).setdefault(status, data[:200])
     finally:
         writer.close()
 
@@ -96,7 +97,7 @@ def report_load(url: str, per_post: int, duration_s: float, connections: int = C
     ms = np.array(latencies) * 1e3
     return {"reports_per_s": counts["reports"] / elapsed, "posts_per_s": len(latencies) / elapsed,
             "p50_ms": float(np.percentile(ms, 50)), "p99_ms": float(np.percentile(ms, 99)),
-            "failures": counts["failures"], "posts": len(latencies)}
+            "failures": counts["failures"], "posts": len(latencies), "statuses": counts.get("statuses", {})}
 
 
 def network_session_rows(duration_s: float, rounds: int = 3, store: str | None = None) -> list[Row]:
@@ -124,7 +125,8 @@ def network_session_rows(duration_s: float, rounds: int = 3, store: str | None =
     notes = [f"{store_name} store, 1 uvicorn worker; DF-network reports (one station's bearing each), each "
              f"connection feeding its own sessions in arrival order; {rounds} interleaved rounds of "
              f"{duration_s:g} s; failed posts: single {sum(m['failures'] for m in single)}, batched "
-             f"{sum(m['failures'] for m in batched)}",
+             f"{sum(m['failures'] for m in batched)} "
+             f"({sorted({code for m in single + batched for code in m['statuses']}) or 'none'})",
              "per round, single posts/s / healthz req/s: " + ", ".join(
                  f"{s['posts_per_s'] / h.requests_per_s:.2f}" for s, h in zip(single, healthz)),
              "per round, 50-report reports/s / single-report reports/s: " + ", ".join(

@@ -479,6 +479,31 @@ def tak_events(record: SessionRecord, body: dict, ended: list[dict]) -> list[str
 
 # -- evaluation: the tracker on a simulated scene against the posterior CRLB --------------------------------------
 
+#: Cost units (:mod:`service.limits`) per scalar measurement of a network evaluation's trial: what a filter
+#: step and the bound's recursion take, as measured on the three scenes.
+NETWORK_EVALUATION_UNITS_PER_ROW = 3
+
+
+def network_evaluation_cost(spec: schemas.NetworkEvaluationSpec) -> int:
+    """``trials x the scene's scalar measurements x`` :data:`NETWORK_EVALUATION_UNITS_PER_ROW`."""
+    from core.simulation.network import SCENES, report_schedule
+
+    scene = SCENES[spec.scene]()
+    rows = sum(2 if scene.stations[i].measures == "bearing" else 1
+               for _, members in report_schedule(scene) for i in members)
+    return spec.trials * rows * NETWORK_EVALUATION_UNITS_PER_ROW
+
+
+def check_network_evaluation(spec: schemas.NetworkEvaluationSpec, limit: int) -> None:
+    """422 ``over_limit`` (at ``network.trials``) when the evaluation costs more than ``limit``."""
+    from service.limits import over_limit
+
+    cost = network_evaluation_cost(spec)
+    if cost > limit:
+        raise over_limit("max_evaluation_cost", cost, limit, ["network", "trials"],
+                         f"{spec.trials} trials of the {spec.scene} scene")
+
+
 def network_evaluation(spec: schemas.NetworkEvaluationSpec):
     """Run core's Monte Carlo of a network scene (:func:`core.simulation.network.evaluate_network`) with the
     request's tracker settings over the scene's."""

@@ -56,6 +56,7 @@ async def create_evaluation(request: AnyEvaluationRequest, owner: OwnerDep, http
     settings = http.app.state.settings
     if isinstance(request, session_schemas.NetworkEvaluationRequest):
         spec = request.network
+        network_sessions.check_network_evaluation(spec, settings.max_evaluation_cost)
         body = await watched(http, in_pool(http.app.state.cpu_pool,
                                            lambda should_stop: network_sessions.network_evaluation_body(spec)),
                              "ask for fewer trials")
