@@ -1,5 +1,8 @@
 """Sessions: the schema <-> core translation and the session logic.
 
+Paper-001 (``observer``) sessions are handled here; a network session (created with ``stations``) is
+recognised by its record and handed to :mod:`service.network_sessions`, which follows the same pattern.
+
 A route validates the request (``service.session_schemas``) and calls one
 function here, which translates to core types (radians, SI), loads the record
 from the store, runs the pure core filter step and saves what comes back.
