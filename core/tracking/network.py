@@ -122,6 +122,9 @@ class NetworkConfig:
         at which a track may be confirmed.
     coast_after_s, end_after_s : float
         Without a report for longer than these, a track is ``coasting``, then ended.
+    linearisation_passes : int
+        Passes of the iterated posterior linearisation of each update (1: the plain unscented update; see
+        :mod:`core.tracking.network_kernel`).
     """
 
     accel_sigma_mps2: float = 1.0
@@ -136,6 +139,7 @@ class NetworkConfig:
     confirm_relative_sigma: float = 0.05
     coast_after_s: float = 10.0
     end_after_s: float = 60.0
+    linearisation_passes: int = 3
 
     def __post_init__(self):
         for name in ("accel_sigma_mps2", "velocity_prior_sigma_mps", "range_min_m", "range_max_m",
@@ -153,9 +157,10 @@ class NetworkConfig:
             _check_positive("imm_accel_sigmas_mps2", value, ("imm_accel_sigmas_mps2", i))
         if not self.range_max_m > self.range_min_m:
             raise InvalidInput("range_max_m must be above range_min_m", ("range_max_m",))
-        if isinstance(self.confirm_updates, bool) or not isinstance(self.confirm_updates, int) \
-                or self.confirm_updates < 1:
-            raise InvalidInput("confirm_updates must be an integer >= 1", ("confirm_updates",))
+        for name in ("confirm_updates", "linearisation_passes"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 20:
+                raise InvalidInput(f"{name} must be an integer from 1 to 20", (name,))
         if not self.end_after_s > max(self.coast_after_s, self.reorder_window_s):
             raise InvalidInput("end_after_s must be above coast_after_s and reorder_window_s", ("end_after_s",))
 
@@ -610,7 +615,8 @@ def advance_track(track: Track | None, report: Report, config: NetworkConfig) ->
     else:
         levels = (config.accel_sigma_mps2,) * weights.size
     phi, noises = transitions(STATE_SIZE, (3,), True, dt, tuple(q * q for q in levels))
-    new_means, new_covs, nis, log_det, status = _update(means, covs, phi, noises, dt > 0.0, report, rows)
+    new_means, new_covs, nis, log_det, status = _update(means, covs, phi, noises, dt > 0.0, report, rows,
+                                                        config.linearisation_passes)
     dof = rows.rows.size
     ok = status == UPDATED
     if not ok.any() or (track.stage != "mixture" and not ok.all()):
@@ -631,13 +637,13 @@ def advance_track(track: Track | None, report: Report, config: NetworkConfig) ->
     return _finish(track, report, weights, new_means, new_covs, combined_nis, dof, config, warnings)
 
 
-def _update(means, covs, phi, noises, predict: bool, report: Report, rows: ReportRows):
+def _update(means, covs, phi, noises, predict: bool, report: Report, rows: ReportRows, passes: int):
     count = means.shape[0]
     new_means, new_covs = np.empty((count, STATE_SIZE)), np.empty((count, STATE_SIZE, STATE_SIZE))
     nis, log_det, status = np.empty(count), np.empty(count), np.empty(count, dtype=np.int64)
     network_ukf_kernel(means, covs, phi, noises, predict, report.stations_enu_m, report.rotations, report.kinds,
-                       rows.values, rows.variances, rows.rows, rows.toa_reference, new_means, new_covs, nis, log_det,
-                       status)
+                       rows.values, rows.variances, rows.rows, rows.toa_reference, passes, new_means, new_covs, nis,
+                       log_det, status)
     return new_means, new_covs, nis, log_det, status
 
 
@@ -683,7 +689,8 @@ def _start(report: Report, rows: ReportRows, config: NetworkConfig) -> tuple[Tra
         if rest.size:
             rows_rest = rows._replace(rows=rest)
             phi, noises = transitions(STATE_SIZE, (3,), True, 0.0, (config.accel_sigma_mps2 ** 2,) * weights.size)
-            new_means, new_covs, nis_all, log_det, status = _update(means, covs, phi, noises, False, report, rows_rest)
+            new_means, new_covs, nis_all, log_det, status = _update(means, covs, phi, noises, False, report, rows_rest,
+                                                                config.linearisation_passes)
             ok = status == UPDATED
             if ok.any():
                 weights = reweighted(weights, np.where(ok, -0.5 * (nis_all + log_det), -np.inf))

@@ -6,15 +6,22 @@ measurement of a report depends on the position only, so the unscented transform
 the six cubature points ``p +- sqrt(3) L[:, j]`` (``L L^T = P_pp``, weights 1/6; the third-degree spherical
 rule, every weight positive, so the transformed covariance is positive semi-definite by construction). The
 velocity's covariance with the measurement then follows exactly from its linear regression on the
-position (``P_vz = P_vp P_pp^-1 P_pz``, exact for a Gaussian), which is what the 12-point transform of the
-whole state would give with ``sqrt(3)`` in place of ``sqrt(6)``, at half the model evaluations.
+position (``P_vz = P_vp P_pp^-1 P_pz``, exact for a Gaussian state because the measurement depends on the
+position alone), at half the model evaluations of a transform of the whole state.
+
+Each update iterates the posterior linearisation (Garcia-Fernandez, Svensson, Morelande and Sarkka 2015):
+the statistical linear regression of the measurement on the position, ``z ~ A p + b + e`` with
+``cov(e) = P_zz - A P_pp A^T``, is taken over the cubature points of the current posterior (the prior in the
+first pass, which is the plain unscented update) and the prior is updated with that linear model; each pass
+linearises where the posterior lies. Where the prior is wide against the measurement's curvature (a range
+learnt from bearings) this is what reaches the bound; where it is narrow the passes agree with the first.
 
 TOA rows are differences ``TOA_i - TOA_ref`` of one report's TOAs (as pseudo-ranges, metres), with the
 differences' full noise covariance (``sigma_i^2`` on the diagonal plus ``sigma_ref^2`` everywhere): that is
 the exact marginal over the unknown emission time under a flat prior on it, whichever TOA is the
 reference. The update is in whitened form: with the innovation covariance ``S = L_S L_S^T``,
 ``V = L_S^-1 P_zx`` and ``t = L_S^-1 innovation``, the mean moves by ``V^T t``, the covariance loses
-``V^T V`` (exactly symmetric), the NIS is ``|t|^2`` and ``log det S = 2 sum log diag L_S``.
+``V^T V`` (exactly symmetric), the NIS is ``|t|^2`` and ``log det S = 2 sum log diag L_S`` (of the last pass).
 """
 
 from __future__ import annotations
@@ -75,7 +82,7 @@ def _rows_at(east_m, north_m, up_m, stations_enu_m, rotations, kinds, rows, toa_
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m, rotations, kinds, values, variances,
-                       rows, toa_reference, new_means, new_covs, nis, log_det, status):
+                       rows, toa_reference, passes, new_means, new_covs, nis, log_det, status):
     """Predict ``C`` states over one interval and update each with one report (module docstring).
 
     Parameters
@@ -100,6 +107,8 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
         The measurements used, in row order; a TOA row is differenced with ``toa_reference`` (not a row).
     toa_reference : int
         Index of the reference TOA, -1 without TOA rows.
+    passes : int
+        Posterior linearisation passes (1: the unscented update).
     new_means : ndarray, shape (C, 6)
     new_covs : ndarray, shape (C, 6, 6)
     nis, log_det : ndarray, shape (C,)
@@ -121,109 +130,135 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
     z = np.empty(size)
     deviation = np.empty((size, 6))
     mean_deviation = np.empty(size)
+    whitened = np.empty((3, size))
+    slope = np.empty((size, 3))
     innovation = np.empty(size)
     innovation_cov = np.empty((size, size))
     innovation_chol = np.empty((size, size))
-    regression = np.empty((f, 3))
     v = np.empty((size, f))
     t = np.empty(size)
+    around = np.empty(f)
+    around_cov = np.empty((f, f))
     reference_variance = variances[toa_reference] if toa_reference >= 0 else 0.0
     reference_value = values[toa_reference] if toa_reference >= 0 else 0.0
     for b in range(count):
         mean, cov, new_mean, new_cov = means[b], covs[b], new_means[b], new_covs[b]
         if predict:
             _predict_one(mean, cov, transition, noises[b], point, work)
-        if not cholesky_into(cov[:3, :3], chol):
-            status[b] = PREDICTED_NOT_PD
-            continue
-        lower_inverse_into(chol, inverse)
-        x0, y0, z0 = mean[0], mean[1], mean[2]
-        _rows_at(x0, y0, z0, stations_enu_m, rotations, kinds, rows, toa_reference, centre)
-        for j in range(6):
-            c = j % 3
-            sign = 1.0 if j < 3 else -1.0
-            _rows_at(x0 + sign * (spread * chol[0, c]), y0 + sign * (spread * chol[1, c]),
-                     z0 + sign * (spread * chol[2, c]), stations_enu_m, rotations, kinds, rows, toa_reference, z)
-            for r in range(size):
-                change = z[r] - centre[r]
-                deviation[r, j] = wrap_point(change) if kinds[rows[r]] == AZIMUTH else change
-        for r in range(size):
-            total = 0.0
+        for i in range(f):
+            around[i] = mean[i]
+            for j in range(f):
+                around_cov[i, j] = cov[i, j]
+        outcome = UPDATED
+        for _ in range(passes):
+            # Statistical linear regression of the rows on the position over N(around, around_cov):
+            # z ~ slope p + offset + e, cov(e) = P_zz - slope P_pp slope^T.
+            if not cholesky_into(around_cov[:3, :3], chol):
+                outcome = PREDICTED_NOT_PD
+                break
+            lower_inverse_into(chol, inverse)
+            x0, y0, z0 = around[0], around[1], around[2]
+            _rows_at(x0, y0, z0, stations_enu_m, rotations, kinds, rows, toa_reference, centre)
             for j in range(6):
-                total += deviation[r, j]
-            mean_deviation[r] = total * weight
-            m = rows[r]
-            raw = values[m] - centre[r]
-            if kinds[m] == AZIMUTH:
-                raw = wrap_point(raw)
-            elif kinds[m] == TOA:
-                raw -= reference_value
-            innovation[r] = raw - mean_deviation[r]
-        for r in range(size):
-            for q in range(r + 1):
+                c = j % 3
+                sign = 1.0 if j < 3 else -1.0
+                _rows_at(x0 + sign * (spread * chol[0, c]), y0 + sign * (spread * chol[1, c]),
+                         z0 + sign * (spread * chol[2, c]), stations_enu_m, rotations, kinds, rows, toa_reference, z)
+                for r in range(size):
+                    change = z[r] - centre[r]
+                    deviation[r, j] = wrap_point(change) if kinds[rows[r]] == AZIMUTH else change
+            for r in range(size):
                 total = 0.0
                 for j in range(6):
-                    total += (deviation[r, j] - mean_deviation[r]) * (deviation[q, j] - mean_deviation[q])
-                total *= weight
-                if kinds[rows[r]] == TOA and kinds[rows[q]] == TOA:
-                    total += reference_variance
-                innovation_cov[r, q] = total
-                innovation_cov[q, r] = total
-            innovation_cov[r, r] += variances[rows[r]]
-        # regression = P_xp L^-T: the state's covariance with the whitened position.
-        for i in range(f):
-            for a in range(3):
-                total = 0.0
-                for k in range(a + 1):
-                    total += cov[i, k] * inverse[a, k]
-                regression[i, a] = total
-        # P_zx rows: sum over the whitened position directions of the points' symmetric differences.
-        for r in range(size):
-            for i in range(f):
-                total = 0.0
+                    total += deviation[r, j]
+                mean_deviation[r] = total * weight
+                # L^-1 P_pz, column r: the points' symmetric differences along each whitened direction.
                 for a in range(3):
-                    total += regression[i, a] * (deviation[r, a] - deviation[r, a + 3])
-                v[r, i] = total * (spread * weight)
-        if not cholesky_into(innovation_cov, innovation_chol):
-            status[b] = INNOVATION_NOT_PD
-            continue
-        chi2 = 0.0
-        half_log_det = 0.0
-        for r in range(size):
-            pivot = innovation_chol[r, r]
-            total = innovation[r]
-            for q in range(r):
-                total -= innovation_chol[r, q] * t[q]
-            t[r] = total / pivot
-            chi2 += t[r] * t[r]
-            half_log_det += math.log(pivot)
-            for i in range(f):
-                total = v[r, i]
-                for q in range(r):
-                    total -= innovation_chol[r, q] * v[q, i]
-                v[r, i] = total / pivot
-        nis[b] = chi2
-        log_det[b] = 2.0 * half_log_det
-        finite = True
-        for i in range(f):
-            total = mean[i]
+                    whitened[a, r] = (spread * weight) * (deviation[r, a] - deviation[r, a + 3])
+                for k in range(3):
+                    total = 0.0
+                    for a in range(k, 3):
+                        total += whitened[a, r] * inverse[a, k]
+                    slope[r, k] = total
+            # Innovation against the regression at the prior: z - (slope p_prior + offset).
             for r in range(size):
-                total += v[r, i] * t[r]
-            new_mean[i] = total
-            finite = finite and math.isfinite(total)
-            for j in range(i + 1):
-                total = cov[i, j]
+                m = rows[r]
+                raw = values[m] - centre[r]
+                if kinds[m] == AZIMUTH:
+                    raw = wrap_point(raw)
+                elif kinds[m] == TOA:
+                    raw -= reference_value
+                raw -= mean_deviation[r]
+                for k in range(3):
+                    raw -= slope[r, k] * (mean[k] - around[k])
+                innovation[r] = raw
+            # S = slope P_pp slope^T + (P_zz - L^-1 P_pz squared) + R, over the prior's P_pp.
+            for r in range(size):
+                for q in range(r + 1):
+                    total = 0.0
+                    for j in range(6):
+                        total += (deviation[r, j] - mean_deviation[r]) * (deviation[q, j] - mean_deviation[q])
+                    total *= weight
+                    for a in range(3):
+                        total -= whitened[a, r] * whitened[a, q]
+                    for k in range(3):
+                        for l in range(3):
+                            total += slope[r, k] * cov[k, l] * slope[q, l]
+                    if kinds[rows[r]] == TOA and kinds[rows[q]] == TOA:
+                        total += reference_variance
+                    innovation_cov[r, q] = total
+                    innovation_cov[q, r] = total
+                innovation_cov[r, r] += variances[rows[r]]
+            for r in range(size):
+                for i in range(f):
+                    total = 0.0
+                    for k in range(3):
+                        total += cov[i, k] * slope[r, k]
+                    v[r, i] = total
+            if not cholesky_into(innovation_cov, innovation_chol):
+                outcome = INNOVATION_NOT_PD
+                break
+            chi2 = 0.0
+            half_log_det = 0.0
+            for r in range(size):
+                pivot = innovation_chol[r, r]
+                total = innovation[r]
+                for q in range(r):
+                    total -= innovation_chol[r, q] * t[q]
+                t[r] = total / pivot
+                chi2 += t[r] * t[r]
+                half_log_det += math.log(pivot)
+                for i in range(f):
+                    total = v[r, i]
+                    for q in range(r):
+                        total -= innovation_chol[r, q] * v[q, i]
+                    v[r, i] = total / pivot
+            nis[b] = chi2
+            log_det[b] = 2.0 * half_log_det
+            finite = True
+            for i in range(f):
+                total = mean[i]
                 for r in range(size):
-                    total -= v[r, i] * v[r, j]
-                new_cov[i, j] = total
-                new_cov[j, i] = total
+                    total += v[r, i] * t[r]
+                new_mean[i] = total
+                around[i] = total
                 finite = finite and math.isfinite(total)
-        if not finite:
-            status[b] = NOT_FINITE
-        elif not cholesky_into(new_cov, full_chol):
-            status[b] = UPDATED_NOT_PD
-        else:
-            status[b] = UPDATED
+                for j in range(i + 1):
+                    total = cov[i, j]
+                    for r in range(size):
+                        total -= v[r, i] * v[r, j]
+                    new_cov[i, j] = total
+                    new_cov[j, i] = total
+                    around_cov[i, j] = total
+                    around_cov[j, i] = total
+                    finite = finite and math.isfinite(total)
+            if not finite:
+                outcome = NOT_FINITE
+                break
+            if not cholesky_into(new_cov, full_chol):
+                outcome = UPDATED_NOT_PD
+                break
+        status[b] = outcome
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -246,6 +281,6 @@ def compile_kernels() -> None:
     rotations = np.tile(np.eye(3), (2, 1, 1))
     kinds = np.array([0, 3], dtype=np.int64)
     network_ukf_kernel(means.copy(), covs.copy(), phi, noises, True, stations, rotations, kinds, np.zeros(2),
-                       np.ones(2), np.array([0], dtype=np.int64), -1, np.empty((1, 6)), np.empty((1, 6, 6)),
+                       np.ones(2), np.array([0], dtype=np.int64), -1, 1, np.empty((1, 6)), np.empty((1, 6, 6)),
                        np.empty(1), np.empty(1), np.empty(1, dtype=np.int64))
     predict_kernel(means.copy(), covs.copy(), phi, noises)
