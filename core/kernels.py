@@ -26,7 +26,7 @@ def compile_kernels() -> None:
     from core.errors import LocalizationError
     from core.estimators import REGISTRY, SolveOptions, solve
     from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
-    from core.tracking import unscented
+    from core.tracking import network_kernel, unscented
 
     local = [(name, LocalPoint(east, north, 0.0)) for name, east, north in
              (("a", 0.0, 0.0), ("b", 10_000.0, 0.0), ("c", 0.0, 10_000.0), ("d", 10_000.0, 10_000.0))]
@@ -52,3 +52,4 @@ def compile_kernels() -> None:
     error_summary(np.eye(3), exact=True)
     gdop(np.eye(3)[None], np.ones(1))  # the planning routes' (a fix's GDOP comes from the finisher's kernel)
     unscented.compile_kernels()
+    network_kernel.compile_kernels()

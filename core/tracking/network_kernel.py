@@ -271,16 +271,14 @@ def predict_kernel(means, covs, transition, noises):
 
 
 def compile_kernels() -> None:
-    """Compile (or load from numba's cache) this module's kernels with the argument types the tracker passes."""
-    from core.tracking.motion import transitions
+    """Compile (or load from numba's cache) this module's kernels with the argument types the tracker passes:
+    a track started from a bearing, updated with bearings and with a TOA group, and predicted."""
+    from core.tracking.network import NetworkConfig, NetworkState, Report, apply_reports, predict_tracks
 
-    phi, noises = transitions(STATE_SIZE, (3,), True, 1.0, (1.0,))
-    means = np.array([[1e4, 2e4, 100.0, 10.0, 0.0, 0.0]])
-    covs = np.diag([1e4, 1e4, 1e4, 1e2, 1e2, 1e2])[None].copy()
-    stations = np.zeros((2, 3))
-    rotations = np.tile(np.eye(3), (2, 1, 1))
-    kinds = np.array([0, 3], dtype=np.int64)
-    network_ukf_kernel(means.copy(), covs.copy(), phi, noises, True, stations, rotations, kinds, np.zeros(2),
-                       np.ones(2), np.array([0], dtype=np.int64), -1, 1, np.empty((1, 6)), np.empty((1, 6, 6)),
-                       np.empty(1), np.empty(1), np.empty(1, dtype=np.int64))
-    predict_kernel(means.copy(), covs.copy(), phi, noises)
+    config = NetworkConfig()
+    eye = np.tile(np.eye(3), (4, 1, 1))
+    stations = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2e4, 0.0, 0.0], [0.0, 2e4, 0.0]])
+    bearing = Report(0, 0.0, "e", ("a", "a"), stations[:2], eye[:2], [AZIMUTH, 1], [0.8, 0.0], [0.01, 0.01])
+    toas = Report(1, 1.0, "e", ("a", "b", "c"), stations[1:], eye[1:], [TOA] * 3, [1e-4, 2e-4, 1.5e-4], [3e-8] * 3)
+    state = apply_reports(NetworkState(), [bearing, toas], config).state
+    predict_tracks(state, 2.0, config)

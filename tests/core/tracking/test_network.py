@@ -272,3 +272,25 @@ def test_ten_thousand_reports_keep_the_covariance_symmetric_positive_definite():
     for cov in track.covariances:
         assert np.array_equal(cov, cov.T)
         np.linalg.cholesky(cov)
+
+
+def test_bearings_across_south_wrap_and_the_track_stays_consistent():
+    """A station due north of the emitter sees it at azimuth +-pi: its bearings jump across the wrap and the
+    update must treat them as the few milliradians they differ by."""
+    config = NetworkConfig(accel_sigma_mps2=0.2, velocity_prior_sigma_mps=30.0)
+    stations = [(0.0, 25e3, 0.0), (-20e3, -5e3, 0.0), (20e3, -5e3, 0.0)]
+    errors = []
+    for r in range(20):
+        rng = np.random.default_rng(700 + r)
+        velocity = np.array([8.0, 0.0, 0.0])  # crosses the north station's south line
+        reports = []
+        for k in range(90):
+            position = np.array([-360.0, 0.0, 0.0]) + velocity * k
+            reports.append(_bearing_report(k, START_TIME_S + k, stations[k % 3], position, rng))
+        azimuths = [r.values[0] for r in reports[::3]]
+        assert min(azimuths) < -3.0 and max(azimuths) > 3.0  # both sides of the wrap
+        state, _ = _apply_each(reports, config)
+        track = state.tracks[0]
+        error = track.mean_enu[:3] - position
+        errors.append(float(error @ np.linalg.solve(track.covariance_enu[:3, :3], error)))
+    assert np.mean(errors) <= chi2.ppf(0.995, 3 * 20) / 20
