@@ -295,8 +295,11 @@ class ReportsChange:
         try:
             outcome = apply_reports(before, core_reports, config)
         except LocalizationError as error:
+            loc = list(error.loc or ())
+            if loc and isinstance(loc[0], int) and 0 <= loc[0] < len(fresh):  # core names the report by its index
+                loc = ["reports", first_new + loc[0], *api_loc(loc[1:])]
             raise _problem(422, error.code, f"{error.message}; nothing of this post was applied",
-                           api_loc(error.loc) if error.loc else None) from error
+                           api_loc(loc) if loc else None) from error
         self.applied, self.late, self.state = int(outcome.applied), int(outcome.late), outcome.state
         now_ids = {t.id for t in outcome.state.tracks}
         version = record.version + 1
