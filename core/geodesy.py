@@ -316,6 +316,55 @@ def rotation_from_point(lat_rad, lon_rad, origin_rotation, out):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def covariance_to_point(covariance_enu_m2, lat_rad, lon_rad, origin_rotation, turn, out):
+    """Into ``out`` ``(3, 3)``: a covariance ``(3, 3)`` in the common frame's ENU axes (ECEF -> ENU
+    ``origin_rotation``) re-expressed in the east/north/up axes at ``(lat_rad, lon_rad)``, ``T C T^T`` with
+    ``T`` :func:`rotation_from_point` (written into ``turn`` ``(3, 3)``; compiled).
+
+    The two frames' axes differ by the meridian convergence and the earth's curvature between their
+    points: over a few hundred kilometres the vertical variance moves by a few percent.
+    """
+    rotation_from_point(lat_rad, lon_rad, origin_rotation, turn)
+    for i in range(3):
+        for j in range(i + 1):
+            total = 0.0
+            for k in range(3):
+                total += turn[i, k] * (covariance_enu_m2[k, 0] * turn[j, 0] + covariance_enu_m2[k, 1] * turn[j, 1]
+                                       + covariance_enu_m2[k, 2] * turn[j, 2])
+            out[i, j] = out[j, i] = total
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _covariances_to_points(covariance_enu_m2, lat_rad, lon_rad, origin_rotation):
+    out, turn = np.empty_like(covariance_enu_m2), np.empty((3, 3))
+    for i in range(covariance_enu_m2.shape[0]):
+        covariance_to_point(covariance_enu_m2[i], lat_rad[i], lon_rad[i], origin_rotation, turn, out[i])
+    return out
+
+
+def covariances_to_points(covariance_enu_m2, lat_rad, lon_rad, origin_rotation):
+    """Covariances in one common frame's ENU axes, each in the east/north/up axes at its own point
+    (:func:`covariance_to_point`).
+
+    Parameters
+    ----------
+    covariance_enu_m2 : ndarray, shape (N, 3, 3)
+    lat_rad, lon_rad : ndarray, shape (N,)
+        Each covariance's point.
+    origin_rotation : ndarray, shape (3, 3)
+        The common frame's ECEF -> ENU rotation (:func:`ecef_to_enu_rotation` at its origin).
+
+    Returns
+    -------
+    ndarray, shape (N, 3, 3)
+    """
+    covariance = np.ascontiguousarray(covariance_enu_m2, dtype=float).reshape(-1, 3, 3)
+    return _covariances_to_points(covariance, np.ascontiguousarray(lat_rad, dtype=float).reshape(-1),
+                                  np.ascontiguousarray(lon_rad, dtype=float).reshape(-1),
+                                  np.ascontiguousarray(origin_rotation, dtype=float))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def centroid_on_ellipsoid_point(lat_rad, lon_rad):
     """:func:`centroid_on_ellipsoid` of points ``(N,)`` (compiled; callable from kernels)."""
     x = y = z = 0.0

@@ -14,9 +14,9 @@ follow from how the service answers (so a new route gets them too):
   503) with its own description;
 - ``components.securitySchemes.bearer`` and, on the operations that check a
   key, ``security`` (bearer, or none when the service runs without keys);
-- request bodies given inline (the batch route reads its own body) become
-  named components, so clients get readable model names; the models that
-  routes reading their own body refer to (``FixRequest``) are added.
+- request bodies, responses and event-stream items given inline with a title
+  become named components, so clients get readable model names; the models
+  that routes reading their own body refer to (``FixRequest``) are added.
 """
 
 from __future__ import annotations
@@ -72,19 +72,24 @@ def _problem_response(description: str, headers: dict | None) -> dict:
     return response
 
 
-def _name_inline_bodies(spec: dict) -> None:
+def _name_inline_schemas(spec: dict) -> None:
+    """Inline request and response schemas that have a title become components of that name (a generated client
+    names its models after them, not after the operation and status)."""
     schemas = spec["components"]["schemas"]
     for operations in spec["paths"].values():
         for operation in operations.values():
-            for media in operation.get("requestBody", {}).get("content", {}).values():
-                schema = media.get("schema", {})
-                title = schema.get("title")
-                if "$ref" not in schema and title and title not in schemas:
-                    defs = schema.pop("$defs", {})
-                    schemas[title] = schema
-                    for name, definition in defs.items():
-                        schemas.setdefault(name, definition)
-                    media["schema"] = {"$ref": f"#/components/schemas/{title}"}
+            contents = [operation.get("requestBody", {}).get("content", {})]
+            contents += [response.get("content", {}) for response in operation.get("responses", {}).values()]
+            for media in (media for content in contents for media in content.values()):
+                for key in ("schema", "itemSchema"):
+                    schema = media.get(key, {})
+                    title = schema.get("title")
+                    if "$ref" not in schema and title and title not in schemas:
+                        defs = schema.pop("$defs", {})
+                        schemas[title] = schema
+                        for name, definition in defs.items():
+                            schemas.setdefault(name, definition)
+                        media[key] = {"$ref": f"#/components/schemas/{title}"}
 
 
 def build(app: FastAPI) -> dict:
@@ -114,7 +119,7 @@ def build(app: FastAPI) -> dict:
         "type": "http", "scheme": "bearer",
         "description": "An API key as a bearer token, when the service is configured with keys (otherwise no "
                        "authentication); sessions belong to the key that created them."}}
-    _name_inline_bodies(spec)
+    _name_inline_schemas(spec)
     _add_body_models(spec)
     return spec
 

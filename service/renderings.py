@@ -2,9 +2,9 @@
 
 Both are built from the response bodies (the dicts of :mod:`service.translate`
 and :func:`service.sessions.state_body`), so a rendering says exactly what the
-JSON says. Errors are re-expressed in the east/north/up plane at the rendered
-point itself (the body's ``covariance_enu_m2`` is in the request's common
-frame, whose axes differ from the point's by the meridian convergence):
+JSON says. Errors are in the east/north/up axes at the rendered point itself
+(a fix body's ``covariance_enu_m2`` already is; a session's ``covariance_enu``
+is turned from the observer's axes to the emitter's):
 
 - CoT ``ce`` is the one-sigma circular error ``sqrt((l1 + l2) / 2)`` of the
   horizontal covariance's eigenvalues ``l1, l2`` (the RMS of the two axes'
@@ -63,16 +63,6 @@ def of_request(request) -> Renderings:
 
 # -- shared geometry ----------------------------------------------------------------------------------------------
 
-def _rotation_at(lat_deg: float, lon_deg: float) -> np.ndarray:
-    return geodesy.ecef_to_enu_rotation(math.radians(lat_deg), math.radians(lon_deg))
-
-
-def covariance_at_point(position: dict, covariance_ecef_m2) -> np.ndarray:
-    """A 3x3 ECEF covariance in the east/north/up axes at a geodetic position (degrees)."""
-    rotation = _rotation_at(position["lat_deg"], position["lon_deg"])
-    return rotation @ np.asarray(covariance_ecef_m2, dtype=float) @ rotation.T
-
-
 def one_sigma_errors(covariance_enu_m2) -> tuple[float, float]:
     """``(ce, le)``: one-sigma circular and vertical errors (m) of an ENU covariance at the point."""
     cov = np.asarray(covariance_enu_m2, dtype=float)
@@ -109,26 +99,56 @@ def _clip(ring: list, boundary: float, keep_below: bool) -> list:
     return out
 
 
+def polygon_geometries(lon_deg, lat_deg, centre_lon_deg) -> list[dict | None]:
+    """GeoJSON (RFC 7946) geometries of convex rings given by their vertices in longitude and latitude.
+
+    Each ring's longitudes are unwrapped around its centre's (so a ring near the antimeridian is one
+    piece), then written within [-180, 180]: as a Polygon when it fits, else cut at the antimeridian
+    into a MultiPolygon of its two sides. A ring around a pole (its unwrapped longitudes spanning 180
+    degrees or more) has no such representation: its geometry is None.
+
+    Parameters
+    ----------
+    lon_deg, lat_deg : ndarray, shape (N, K)
+        The vertices of each ring, counter-clockwise, the first not repeated.
+    centre_lon_deg : ndarray, shape (N,)
+        A longitude inside each ring.
+
+    Returns
+    -------
+    list of dict or None, length N
+    """
+    lon = np.asarray(lon_deg, dtype=float)
+    lat = np.asarray(lat_deg, dtype=float)
+    centre = np.asarray(centre_lon_deg, dtype=float).reshape(-1, 1)
+    unwrapped = centre + (lon - centre + 180.0) % 360.0 - 180.0
+    high, low = unwrapped.max(axis=1), unwrapped.min(axis=1)
+    shift = np.where(low > 180.0, -360.0, np.where(high < -180.0, 360.0, 0.0))  # wholly across: move it back
+    unwrapped += shift[:, None]
+    high, low = high + shift, low + shift
+    closed = np.stack([np.concatenate([unwrapped, unwrapped[:, :1]], axis=1),
+                       np.concatenate([lat, lat[:, :1]], axis=1)], axis=-1)
+    out: list[dict | None] = []
+    for ring, top, bottom in zip(closed.tolist(), high.tolist(), low.tolist()):
+        if top - bottom >= 180.0:
+            out.append(None)
+        elif top <= 180.0 and bottom >= -180.0:
+            out.append({"type": "Polygon", "coordinates": [ring]})
+        else:
+            boundary = 180.0 if top > 180.0 else -180.0
+            turn = -360.0 if boundary > 0 else 360.0
+            near = _clip(ring, boundary, keep_below=boundary > 0)
+            far = [[x + turn, y] for x, y in _clip(ring, boundary, keep_below=boundary < 0)]
+            out.append({"type": "MultiPolygon", "coordinates": [[near], [far]]})
+    return out
+
+
 def _ellipse_geometry(position: dict, covariance_enu_m2) -> tuple[dict | None, dict]:
     """The 95 % ellipse as a GeoJSON Polygon (or MultiPolygon across the antimeridian), and its axes."""
     vertices, axes = _ellipse_enu(covariance_enu_m2)
     lat, lon, _ = geodesy.enu_to_geodetic(vertices, math.radians(position["lat_deg"]),
                                           math.radians(position["lon_deg"]), position["alt_m"])
-    lat_deg, lon_deg = np.degrees(lat), np.degrees(lon)
-    centre = position["lon_deg"]
-    unwrapped = centre + (lon_deg - centre + 180.0) % 360.0 - 180.0
-    if np.ptp(unwrapped) >= 180.0:  # around a pole
-        return None, axes
-    ring = [[float(x), float(y)] for x, y in zip(unwrapped, lat_deg)]
-    ring.append(list(ring[0]))
-    high, low = max(p[0] for p in ring), min(p[0] for p in ring)
-    if high <= 180.0 and low >= -180.0:
-        return {"type": "Polygon", "coordinates": [ring]}, axes
-    boundary = 180.0 if high > 180.0 else -180.0
-    shift = -360.0 if boundary > 0 else 360.0
-    near = _clip(ring, boundary, keep_below=boundary > 0)
-    far = [[x + shift, y] for x, y in _clip(ring, boundary, keep_below=boundary < 0)]
-    return {"type": "MultiPolygon", "coordinates": [[near], [far]]}, axes
+    return polygon_geometries(np.degrees(lon)[None], np.degrees(lat)[None], [position["lon_deg"]])[0], axes
 
 
 def utc_timestamp(moment: datetime) -> str:
@@ -145,9 +165,7 @@ def _decimal(value: float, places: int) -> str:
 # -- fixes --------------------------------------------------------------------------------------------------------
 
 def _fix_errors(body: dict) -> np.ndarray:
-    """The fix's covariance in the ENU axes at the fix."""
-    if "covariance_ecef_m2" in body:
-        return covariance_at_point(body["position"], body["covariance_ecef_m2"])
+    """The fix's covariance in the ENU axes at the fix (as the body gives it)."""
     return np.asarray(body["covariance_enu_m2"], dtype=float)
 
 
@@ -160,7 +178,7 @@ def fix_cot(body: dict, options=()) -> str | None:
         A fix response body.
     options : Renderings or tuple
         ``observed_at`` sets ``time`` and ``start`` (else now); ``cot`` sets ``uid`` (else unique per
-        call), ``type`` and ``stale_s``.
+        call), ``type``, ``stale_s`` and ``callsign`` (else the uid).
     """
     if "position" not in body:
         return None
@@ -176,10 +194,13 @@ def fix_cot(body: dict, options=()) -> str | None:
               f'covariance_source={quoteattr(body.get("covariance_source", ""))} '
               f'cep50_m="{_decimal(body["error"]["cep50_m"], 2)}" '
               f'sep50_m="{_decimal(body["error"]["sep50_m"], 2)}"/>')
-    return _event(uid, kind, HOW_FIX, start, stale_s, body["position"], covariance, axes, detail)
+    return _event(uid, kind, HOW_FIX, start, stale_s, body["position"], covariance, axes, detail,
+                  getattr(cot, "callsign", None))
 
 
-def _event(uid, kind, how, start, stale_s, position, covariance, axes, detail="") -> str:
+def _event(uid, kind, how, start, stale_s, position, covariance, axes, detail="", callsign=None) -> str:
+    """The one CoT event writer: every event carries ``<contact callsign>`` (the uid unless one is given),
+    the label TAK shows on its marker."""
     ce, le = one_sigma_errors(covariance)
     stamp = utc_timestamp(start)
     return (
@@ -187,7 +208,7 @@ def _event(uid, kind, how, start, stale_s, position, covariance, axes, detail=""
         f'start="{stamp}" stale="{utc_timestamp(start + timedelta(seconds=stale_s))}">'
         f'<point lat="{_decimal(position["lat_deg"], 8)}" lon="{_decimal(_lon180(position["lon_deg"]), 8)}" '
         f'hae="{_decimal(position["alt_m"], 2)}" ce="{_decimal(ce, 2)}" le="{_decimal(le, 2)}"/>'
-        f'<detail>{detail}'
+        f'<detail><contact callsign={quoteattr(callsign or uid)}/>{detail}'
         f'<shape><ellipse major="{_decimal(axes["semi_major_m"], 2)}" minor="{_decimal(axes["semi_minor_m"], 2)}" '
         f'angle="{_decimal(axes["orientation_deg"], 2)}"/></shape>'
         f'<remarks>95 % error ellipse: semi-axes (m), major axis clockwise from true north (deg); '
@@ -296,7 +317,8 @@ def session_cot(state: dict, cot=None) -> str | None:
               f'<passive_locator model={quoteattr(state["model"])} version="{state["version"]}" '
               f'updates="{state["updates"]}"/>')
     return _event(session_uid(state, cot), cot.type if cot is not None else DEFAULT_TYPE, HOW_TRACK, start,
-                  cot.stale_s if cot is not None else DEFAULT_STALE_S, state["position"], covariance, axes, detail)
+                  cot.stale_s if cot is not None else DEFAULT_STALE_S, state["position"], covariance, axes, detail,
+                  getattr(cot, "callsign", None))
 
 
 def session_geojson(state: dict, cot=None) -> dict:

@@ -64,9 +64,9 @@ class GeodeticPositionResult(BaseModel):
 class LocalPositionResult(BaseModel):
     """A computed position in a local east/north/up plane, metres: not bounded like a request's positions."""
 
-    east_m: float
-    north_m: float
-    up_m: float
+    east_m: float = Field(description="metres east of the plane's origin")
+    north_m: float = Field(description="metres north of the plane's origin")
+    up_m: float = Field(description="metres up from the plane's origin")
 
 
 def _position_kind(value: Any) -> str | None:
@@ -146,7 +146,8 @@ class EvaluationOptions(Strict):
 
     max_iterations: int = Field(50, ge=1, le=1000)
     tolerance_m: float = Field(1e-3, ge=1e-9, le=1e6)
-    variant: Variant | None = Field(None, description="method variant: ctls newton (default) | projected")
+    variant: Annotated[Variant, Field(title="MethodSolver")] | None = Field(
+        None, description="method variant: ctls newton (default) | projected")
     outliers: Literal["report", "exclude"] = Field(
         "report", description="exclude: fault detection and exclusion (chi-square test, then the measurement with "
                               "the largest studentized residual, repeated while the test fails and dof remain); "
@@ -198,6 +199,10 @@ class CotOptions(Strict):
     type: str = Field("a-u-G", max_length=64, pattern=r"^[A-Za-z0-9_]+(-[A-Za-z0-9_]+)*$",
                       description="CoT type; default a-u-G, an unknown-affiliation ground track")
     stale_s: float = Field(300.0, gt=0.0, le=MAX_STALE_S, description="stale = start + stale_s")
+    callsign: str | None = Field(
+        None, min_length=1, max_length=64, pattern=r"^[^\x00-\x1f\x7f-\x9f\ufffe\uffff]+$",
+        description="the label a TAK client shows on the marker (detail/contact callsign; characters XML 1.0 "
+                    "allows, no control characters); absent = the uid")
 
 
 class FixRequest(Strict):
@@ -245,27 +250,37 @@ GDOP_DESCRIPTION = (
 
 
 class Ellipse(BaseModel):
-    semi_major_m: float
-    semi_minor_m: float
+    """The 95 % horizontal error ellipse (chi-square, 2 degrees of freedom) in the east/north plane at the point."""
+
+    semi_major_m: float = Field(description="semi-major axis, metres")
+    semi_minor_m: float = Field(description="semi-minor axis, metres")
     orientation_deg: float = Field(description="major axis, clockwise from north, [0, 180)")
 
 
 class ErrorSummary(BaseModel):
-    cep50_m: float
-    sep50_m: float
-    vertical_sigma_m: float
-    gdop: float | None = Field(description=GDOP_DESCRIPTION + "; null where undefined. Of the bound (a fix's crlb_enu_m2), so it describes the "
-                                                       "geometry, not the method. Until issue 14 this field held "
-                                                       "sqrt(trace(covariance)) in metres: that is sqrt_trace_m")
-    sqrt_trace_m: float = Field(description="sqrt(trace(covariance)) in metres, east, north and up (what gdop "
-                                            "held before it became dimensionless)")
-    ellipse95: Ellipse
+    """Error figures of a covariance in the east/north/up axes at the point (a fix's covariance_enu_m2, or the
+    planning bound)."""
+
+    cep50_m: float = Field(description="horizontal circular error probable: the radius, metres, of the circle "
+                                       "around the estimate that holds it with probability 0.5")
+    sep50_m: float = Field(description="spherical error probable: the radius, metres, of the sphere that holds "
+                                       "it with probability 0.5")
+    vertical_sigma_m: float = Field(description="one-sigma error up, metres: sqrt of the covariance's up-up entry")
+    gdop: float | None = Field(description=GDOP_DESCRIPTION + "; null where undefined. Of the bound (a fix's "
+                                                              "crlb_enu_m2), so it describes the geometry, not the "
+                                                              "method; sqrt_trace_m holds the metres")
+    sqrt_trace_m: float = Field(description="sqrt(trace(covariance)) in metres, east, north and up")
+    ellipse95: Ellipse = Field(description="the 95 % horizontal error ellipse")
 
 
 class Residual(BaseModel):
-    station_id: str
+    """One measurement component's residual at the fix."""
+
+    station_id: str = Field(description="the station that made the measurement")
     measurement_index: int = Field(description="index of the request measurement")
-    component: Literal["azimuth", "elevation", "range", "toa"]
+    component: Literal["azimuth", "elevation", "range", "toa"] = Field(
+        description="which part of the measurement: a bearing gives an azimuth and, with an elevation, an "
+                    "elevation residual")
     residual: float = Field(description="measured minus fitted: deg, m or s")
     normalized: float = Field(description="residual / sigma")
     used: bool = Field(True, description="false: left out of the fit and its verdicts (the method does not use "
@@ -274,10 +289,14 @@ class Residual(BaseModel):
 
 
 class Fit(BaseModel):
-    chi2: float
-    dof: int
-    p_value: float | None
-    sigma_scale: float | None
+    """How well the stated sigmas explain the residuals."""
+
+    chi2: float = Field(description="sum of the squared normalized residuals of the measurements used")
+    dof: int = Field(description="degrees of freedom: measurement components used minus unknowns")
+    p_value: float | None = Field(description="probability of a chi2 at least this large if the sigmas are "
+                                              "right; null when dof is 0")
+    sigma_scale: float | None = Field(description="sqrt(chi2 / dof) (with a robust loss, sqrt(sum rho / dof)): "
+                                                  "about 1 when the sigmas are right; null when dof is 0")
 
 
 def codes_in_use(codes: dict[str, str]) -> str:
@@ -287,37 +306,42 @@ def codes_in_use(codes: dict[str, str]) -> str:
 
 class Warning(BaseModel):
     code: str = Field(description="fixes: " + codes_in_use(WARNING_CODES) + " (sessions: see SessionState.warnings)")
-    message: str
+    message: str = Field(description="what was seen, with its figures, for a person")
 
 
 class Stages(BaseModel):
-    coarse: LocalPositionResult | None = None
+    """Intermediate results of a method with more than one stage."""
+
+    coarse: LocalPositionResult | None = Field(None, description="the coarse stage's position (angle_range, "
+                                                                 "los_intersection), in position_local's frame")
 
 
 Matrix3 = list[list[float]]
 
 
 class PointGeometry(BaseModel):
-    type: Literal["Point"]
+    type: Literal["Point"] = Field(description="GeoJSON geometry type")
     coordinates: list[float] = Field(description="[longitude_deg, latitude_deg, height_m] (RFC 7946)")
 
 
 class PolygonGeometry(BaseModel):
-    type: Literal["Polygon"]
+    type: Literal["Polygon"] = Field(description="GeoJSON geometry type")
     coordinates: list[list[list[float]]] = Field(description="one closed counter-clockwise ring of "
                                                              "[longitude_deg, latitude_deg]")
 
 
 class MultiPolygonGeometry(BaseModel):
-    type: Literal["MultiPolygon"]
-    coordinates: list[list[list[list[float]]]] = Field(description="the ellipse cut at the antimeridian")
+    type: Literal["MultiPolygon"] = Field(description="GeoJSON geometry type")
+    coordinates: list[list[list[list[float]]]] = Field(description="a ring cut at the antimeridian: its two "
+                                                                   "sides, each one closed ring of "
+                                                                   "[longitude_deg, latitude_deg]")
 
 
 Geometry = Annotated[Union[PointGeometry, PolygonGeometry, MultiPolygonGeometry], Field(discriminator="type")]
 
 
 class Feature(BaseModel):
-    type: Literal["Feature"]
+    type: Literal["Feature"] = Field(description="GeoJSON object type")
     geometry: Geometry | None = Field(description="null for a fix in a flat local frame (no place on the earth)")
     properties: dict[str, Any] = Field(description="kind fix: method, time, error summary; kind track: course_deg, "
                                                    "speed_mps; kind error_ellipse: semi-axes (m), orientation "
@@ -327,31 +351,46 @@ class Feature(BaseModel):
 class FeatureCollection(BaseModel):
     """GeoJSON (RFC 7946): the point, and its 95 % error ellipse as a polygon placed in the point's tangent plane."""
 
-    type: Literal["FeatureCollection"]
-    features: list[Feature]
+    type: Literal["FeatureCollection"] = Field(description="GeoJSON object type")
+    features: list[Feature] = Field(description="kind fix (or track) Points, then kind error_ellipse Polygons "
+                                                "(MultiPolygons when cut at the antimeridian)")
 
 
 class FixResponse(BaseModel):
-    method: str
-    position: GeodeticPositionResult | None = None
-    position_local: LocalPositionResult
-    position_ecef_m: list[float] | None = None
-    covariance_enu_m2: Matrix3
-    covariance_ecef_m2: Matrix3 | None = None
+    """One fix: the position, its covariance, the bound, the fit and what to watch for.
+
+    Covariances are in square metres; a geodetic fix's ENU matrices are in the east/north/up axes at the fix."""
+
+    method: str = Field(description="the method that ran (auto resolves to its choice)")
+    position: GeodeticPositionResult | None = Field(None, description="WGS84 position; present when the frame is "
+                                                                      "wgs84 or an origin is given")
+    position_local: LocalPositionResult = Field(description="in the request's local plane (frame local), else in "
+                                                            "the east/north/up plane at the reference point (the "
+                                                            "origin, or the stations' centroid on the ellipsoid)")
+    position_ecef_m: list[float] | None = Field(None, description="[x, y, z] earth-centred earth-fixed, metres; "
+                                                                  "when geodetic")
+    covariance_enu_m2: Matrix3 = Field(description="3x3 position covariance, east/north/up at the fix (a flat "
+                                                   "local frame: its own axes); its source is covariance_source")
+    covariance_ecef_m2: Matrix3 | None = Field(None, description="the same covariance in earth-centred "
+                                                                 "earth-fixed axes; when geodetic")
     covariance_source: Literal[COVARIANCE_SOURCES + SCALED_COVARIANCE_SOURCES] = Field(  # type: ignore[valid-type]
         description="information: inverse Fisher information at the fix; propagated: first-order through the "
                     "closed form; crlb: the bound; robust: with options.loss, the sandwich A^-1 B A^-1 of the "
                     "loss's final weights w = rho' (A = J^T W w J, B = J^T W w^2 J); _scaled: times "
                     "sigma_scale^2 (options.absolute_sigma false)")
-    crlb_enu_m2: Matrix3
-    error: ErrorSummary
-    residuals: list[Residual]
-    fit: Fit
-    converged: bool
-    iterations: int
-    stages: Stages | None = None
-    estimated_bearing_errors_deg: list[float] | None = None
-    warnings: list[Warning]
+    crlb_enu_m2: Matrix3 = Field(description="3x3 Cramer-Rao bound at the fix for the measurements used, "
+                                             "east/north/up at the fix (the least covariance an unbiased "
+                                             "estimator can reach)")
+    error: ErrorSummary = Field(description="figures of covariance_enu_m2 (gdop: of crlb_enu_m2)")
+    residuals: list[Residual] = Field(description="one per measurement component, in request order")
+    fit: Fit = Field(description="the chi-square test of the residuals")
+    converged: bool = Field(description="false: the iteration limit came first (warning not_converged)")
+    iterations: int = Field(description="iterations the method took (0 for a closed form)")
+    stages: Stages | None = Field(None, description="methods with a coarse stage")
+    estimated_bearing_errors_deg: list[float] | None = Field(None, description="taylor_wls: each bearing's "
+                                                                               "estimated sigma, request order")
+    warnings: list[Warning] = Field(description="conditions that make the fix less trustworthy than its "
+                                                "covariance says; empty when none")
     geojson: FeatureCollection | None = Field(None, description="when formats asks for geojson")
     cot: str | None = Field(None, description="when formats asks for cot: a CoT 2.0 event; point ce and le are "
                                               "one-sigma errors in metres, ce = sqrt((l1 + l2) / 2) of the "
@@ -397,8 +436,11 @@ class CrlbRequest(PlanningGeometry):
 
 
 class CrlbResponse(BaseModel):
-    crlb_enu_m2: Matrix3
-    error: ErrorSummary
+    """The planning bound at a target."""
+
+    crlb_enu_m2: Matrix3 = Field(description="3x3 Cramer-Rao bound, square metres, east/north/up at the target "
+                                             "(a flat local frame: its own axes)")
+    error: ErrorSummary = Field(description="figures of the bound")
 
 
 #: Finest grid step: a millimetre (the number of cells is bounded by max_grid_cost anyway).
@@ -419,26 +461,27 @@ class GridSpec(Strict):
 
 
 class ImageSpec(Strict):
-    """Size of the PNG heat map (with Accept: image/png)."""
+    """Size of the pictures: the PNG heat map exactly; the KMZ and GeoTIFF rasters take the larger of the two
+    along their longer side."""
 
-    width_px: int = Field(640, ge=16, le=4096)
-    height_px: int = Field(480, ge=16, le=4096)
+    width_px: int = Field(640, ge=16, le=4096, description="PNG width, pixels")
+    height_px: int = Field(480, ge=16, le=4096, description="PNG height, pixels")
 
 
 class CrlbGridRequest(PlanningGeometry):
     grid: GridSpec
-    image: ImageSpec = Field(default_factory=ImageSpec, description="used only for the PNG (Accept: image/png)")
+    image: ImageSpec = Field(default_factory=ImageSpec, description="the pictures' size (PNG, KMZ, GeoTIFF)")
 
 
 class CellProperties(BaseModel):
     """One cell (kind cell) of a coverage map; the bound's values are null where the cell is unobservable."""
 
-    kind: Literal["cell"]
+    kind: Literal["cell"] = Field(description="a cell of the grid")
     row: int = Field(description="0 = southernmost row")
     column: int = Field(description="0 = westernmost column")
-    east_m: float
-    north_m: float
-    up_m: float = Field(description="cell centre in the scene's common east/north/up frame")
+    east_m: float = Field(description="cell centre east, metres, in the scene's common east/north/up frame")
+    north_m: float = Field(description="cell centre north, metres, in that frame")
+    up_m: float = Field(description="cell centre up, metres, in that frame")
     unobservable: bool = Field(description="the sensors do not determine a target here (singular information)")
     cep50_m: float | None = Field(description="horizontal CEP50 of the CRLB")
     sqrt_trace_crlb_m: float | None = Field(description="sqrt(trace(CRLB)), east, north and up")
@@ -447,25 +490,30 @@ class CellProperties(BaseModel):
 
 
 class StationProperties(BaseModel):
-    kind: Literal["station"]
-    id: str
-    east_m: float
-    north_m: float
-    up_m: float
+    """One station (kind station) of a coverage map."""
+
+    kind: Literal["station"] = Field(description="a station of the geometry")
+    id: str = Field(description="the station's id")
+    east_m: float = Field(description="east, metres, in the scene's common east/north/up frame")
+    north_m: float = Field(description="north, metres, in that frame")
+    up_m: float = Field(description="up, metres, in that frame")
 
 
 class CoverageFeature(BaseModel):
-    type: Literal["Feature"]
-    geometry: PolygonGeometry | PointGeometry | None = Field(
+    type: Literal["Feature"] = Field(description="GeoJSON object type")
+    geometry: Geometry | None = Field(
         description="cell: its square (corners step_m / 2 from the centre in the common frame) as "
-                    "[longitude_deg, latitude_deg]; station: a Point; null in a flat local frame")
-    properties: CellProperties | StationProperties
+                    "[longitude_deg, latitude_deg] within [-180, 180], a MultiPolygon when cut at the "
+                    "antimeridian, null around a pole; station: a Point; null in a flat local frame")
+    properties: CellProperties | StationProperties = Field(description="a cell's bound, or a station")
 
 
 class GridSummary(BaseModel):
-    rows: int
-    columns: int
-    step_m: float
+    """The grid's shape."""
+
+    rows: int = Field(description="cells south to north")
+    columns: int = Field(description="cells west to east")
+    step_m: float = Field(description="distance between cell centres, metres")
     altitude_m: float = Field(description="of every cell: height above the ellipsoid, or up in a flat frame")
     east_m: list[float] = Field(description="[first, last] column's east coordinate in the common frame")
     north_m: list[float] = Field(description="[first, last] row's north coordinate in the common frame")
@@ -474,8 +522,9 @@ class GridSummary(BaseModel):
 class CrlbGridResponse(BaseModel):
     """GeoJSON (RFC 7946): one feature per cell (row-major from the south-west corner), then the stations."""
 
-    type: Literal["FeatureCollection"]
-    features: list[CoverageFeature]
+    type: Literal["FeatureCollection"] = Field(description="GeoJSON object type")
+    features: list[CoverageFeature] = Field(description="the cells, row-major from the south-west corner, then "
+                                                        "the stations")
     grid: GridSummary = Field(description="a foreign member (RFC 7946 section 6.1): the grid's shape")
 
 
@@ -491,11 +540,11 @@ class Problem(BaseModel):
     """RFC 9457 problem details (``application/problem+json``)."""
 
     type: str = Field(description="URI of the problem type: PROBLEM_BASE + code")
-    title: str
-    status: int
-    detail: str
+    title: str = Field(description="short summary of the problem type")
+    status: int = Field(description="the HTTP status")
+    detail: str = Field(description="what went wrong in this request, naming the first invalid field")
     code: str = Field(description="stable machine-readable code, e.g. invalid_input, unobservable, not_found")
-    errors: list[ProblemError] = Field(default_factory=list)
+    errors: list[ProblemError] = Field(default_factory=list, description="every invalid field (422)")
     instance: str | None = Field(None, description="URI of this occurrence (urn:passive-locator:request:<id>)")
     request_id: str | None = Field(None, description="the X-Request-ID of the request: quote it when reporting")
 
@@ -511,14 +560,16 @@ class BatchRequest(Strict):
 
 
 class BatchResult(BaseModel):
-    index: int
-    ok: bool
-    fix: FixResponse | None = None
-    error: Problem | None = None
+    """One problem's outcome."""
+
+    index: int = Field(description="the problem's index in the request")
+    ok: bool = Field(description="true: fix is given; false: error is")
+    fix: FixResponse | None = Field(None, description="the fix, when ok")
+    error: Problem | None = Field(None, description="why there is no fix, when not ok")
 
 
 class BatchResponse(BaseModel):
-    results: list[BatchResult]
+    results: list[BatchResult] = Field(description="one per problem, in request order")
     geojson: FeatureCollection | None = Field(None, description="when the request's formats ask for geojson")
 
 
@@ -544,22 +595,27 @@ class FailureReason(BaseModel):
 
 class MethodEvaluation(BaseModel):
     rmse_m: float | None = Field(description="null when every trial failed")
-    rmse_enu_m: list[float] | None
-    bias_enu_m: list[float] | None
-    crlb_rmse_m: float
+    rmse_enu_m: list[float] | None = Field(description="[east, north, up] root-mean-square errors, metres, in the "
+                                                       "scene's common frame; null when every trial failed")
+    bias_enu_m: list[float] | None = Field(description="[east, north, up] mean error, metres; null when every "
+                                                       "trial failed")
+    crlb_rmse_m: float = Field(description="sqrt(trace(CRLB)) at the target: the least rmse_m an unbiased "
+                                           "method can reach")
     efficiency: float | None = Field(description="rmse^2 / trace(crlb); 1 is efficient")
     nees_mean: float | None = Field(description="mean e^T C^-1 e with the method's own covariance; 3 if honest")
-    failures: int
+    failures: int = Field(description="trials without a fix")
     excluded_trials: int = Field(0, description="trials with a fix in which outlier exclusion dropped a measurement")
     failure_reasons: list[FailureReason] = Field(default_factory=list, description=(
         "why the failed trials gave no fix, one entry per problem code, most trials first"))
 
 
 class EvaluationResponse(BaseModel):
-    methods: dict[str, MethodEvaluation]
-    trials: int
-    seed: int
-    noise: str
+    """Monte Carlo accuracy of each method on one scenario."""
+
+    methods: dict[str, MethodEvaluation] = Field(description="by method name, as requested")
+    trials: int = Field(description="noisy trials per method")
+    seed: int = Field(description="the random seed: the same request gives the same numbers")
+    noise: str = Field(description="the noise model of the trials")
 
 
 class Health(BaseModel):

@@ -84,7 +84,8 @@ class SessionCreate(Strict):
                          description="idle lifetime: the session is deleted ttl_s after its last write "
                                      "(creation or a post that applied measurements)")
     cot: CotOptions | None = Field(None, description="CoT uid (default passive-locator-session-<id>: one uid per "
-                                                     "session), type and stale time of the session's track events")
+                                                     "session), callsign (default the uid), type and stale time "
+                                                     "of the session's track events")
 
     @model_validator(mode="after")
     def _observer_matches_frame(self):
@@ -126,15 +127,16 @@ class SessionState(BaseModel):
     """The session's filter state. Before initialisation (the filter needs a few epochs to see the
     velocity and range) the position, velocity, range and covariance fields are null."""
 
-    id: str
+    id: str = Field(description="the session id: its URL is /v1/sessions/{id}")
     version: int = Field(description="+1 on every write; the ETag is the quoted version")
-    model: Model
-    frame: Literal["wgs84", "local"]
-    observer: Observer
+    model: Model = Field(description="the tracking model, as created")
+    frame: Literal["wgs84", "local"] = Field(description="the frame of the positions, as created")
+    observer: Observer = Field(description="the observer, as created")
     last_seq: int | None = Field(description="highest seq applied; null before the first")
     last_time_s: float | None = Field(description="time_s of that epoch")
     updates: int = Field(description="epochs applied")
-    initialized: bool
+    initialized: bool = Field(description="false until the filter has an estimate (the estimate fields are null "
+                                          "until then)")
     position: GeodeticPositionResult | None = Field(description="emitter position; when the frame is wgs84")
     position_local: LocalPositionResult | None = Field(description="emitter position: in the request's local plane, or "
                                                              "ENU metres at the observer when the frame is wgs84")
@@ -152,7 +154,7 @@ class SessionState(BaseModel):
     created_at: str = Field(description="RFC 3339, UTC")
     updated_at: str = Field(description="RFC 3339, UTC")
     expires_at: str = Field(description="RFC 3339, UTC; moves forward by ttl_s on every write")
-    ttl_s: float
+    ttl_s: float = Field(description="idle lifetime, seconds, as created")
     cot: str | None = Field(None, description="with ?formats=cot: the estimate as a CoT 2.0 track event (how m-p, "
                                               "detail/track course and speed, ce/le one-sigma; null before the "
                                               "filter is initialised or in a local frame)")

@@ -39,7 +39,7 @@ from core.problem_batch import ProblemBatch, build_problem_batch, size_groups
 from core.simulation.measurements import evaluate
 from service import schemas, wire
 from service.limits import check_grid, fix_within_limit
-from service.maps import coverage_geojson, coverage_png
+from service.maps import coverage_geojson, coverage_geotiff, coverage_kmz, coverage_png
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
 from service.responses import JsonObject
@@ -136,6 +136,10 @@ def crlb_response(request: schemas.CrlbRequest) -> dict:
     if not info.observable[0]:
         raise UnobservableGeometry("these sensors do not determine the target position (singular information)")
     bound = info.covariance_enu_m2[0:1]
+    frame = problem.frame
+    if frame.is_geodetic:  # in the east/north/up axes at the target, as a fix's bound is
+        lat, lon, _ = frame.to_geodetic(target)
+        bound = geodesy.covariances_to_points(bound, lat, lon, frame.ecef_to_enu_rotation)
     return {"crlb_enu_m2": bound[0].tolist(),
             "error": error_dict(error_summary(bound), gdop(bound, info.reference_sigma_m))}
 
@@ -162,7 +166,9 @@ def grid_of_request(request: schemas.CrlbGridRequest, max_grid_cost: int | None 
 
 def coverage_renderings(request: schemas.CrlbGridRequest, problem: Problem, grid_cells: Grid, formats, *,
                         scheduler=None, should_stop=None, progress=None) -> dict:
-    """A coverage map computed once and rendered as asked: ``{"geojson": dict, "png": bytes}`` for ``formats``.
+    """A coverage map computed once and rendered as asked: ``{"geojson": dict, "png": bytes, "kmz": bytes,
+    "tiff": bytes}`` for ``formats`` (a KMZ or GeoTIFF raises :class:`service.maps.NotOnTheEarth` in a flat
+    frame).
 
     Raises core.parallel.Stopped when ``should_stop`` says so; ``scheduler`` as for :func:`core.parallel.run_chunks`.
     """
@@ -173,6 +179,11 @@ def coverage_renderings(request: schemas.CrlbGridRequest, problem: Problem, grid
         out["geojson"] = coverage_geojson(problem, grid_cells, coverage)
     if "png" in formats:
         out["png"] = coverage_png(problem, grid_cells, coverage, request.image.width_px, request.image.height_px)
+    longer_side_px = max(request.image.width_px, request.image.height_px)
+    if "kmz" in formats:
+        out["kmz"] = coverage_kmz(problem, grid_cells, coverage, longer_side_px)
+    if "tiff" in formats:
+        out["tiff"] = coverage_geotiff(problem, grid_cells, coverage, longer_side_px)
     return out
 
 
@@ -908,20 +919,27 @@ def _warning_texts(warnings_per_fix) -> list[bytes]:
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fix_numbers(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, residuals, normalized, kinds, chi2,
-                 p_value, sigma_scale, coarse_enu_m, origin_ecef_m, rotation, circle, sphere):
+                 p_value, sigma_scale, coarse_enu_m, geodetic, origin_ecef_m, rotation, circle, sphere):
     """Every number of each fix body, in :data:`_BLOCKS` order (the first eleven blocks), in one pass.
+
+    A geodetic fix's covariance and CRLB are written in the east/north/up axes at the fix
+    (:func:`core.geodesy.covariance_to_point`), as its error figures and renderings are, and not in the
+    common frame's axes at the stations' centroid; a flat frame has one set of axes.
 
     Parameters
     ----------
     ok : ndarray of bool, shape (B,)
         Fixes whose position and covariance are written (zeros for the others).
     position_enu_m, covariance_enu_m2, crlb_enu_m2 : ndarray, shape (B, 3), (B, 3, 3), (B, 3, 3)
+        In the common frame.
     gdop, chi2, p_value, sigma_scale : ndarray, shape (B,)
     residuals, normalized : ndarray, shape (B, M)
         Residuals in model units (angles in radians: written in degrees).
     kinds : ndarray of int8, shape (B, M)
     coarse_enu_m : ndarray, shape (B, 3)
         NaN where no coarse stage ran (written as 0).
+    geodetic : ndarray of bool, shape (B,)
+        Whether each frame touches the earth.
     origin_ecef_m, rotation : ndarray, shape (B, 3), (B, 3, 3)
         Each frame's placement (:meth:`core.problem_batch.ProblemBatch.frame_placements`).
     circle, sphere : ndarray
@@ -932,20 +950,29 @@ def _fix_numbers(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, resid
     ndarray, shape (B, 50 + 2 M)
     """
     size, width = residuals.shape
-    position, covariance = np.zeros((size, 3)), np.zeros((size, 3, 3))
+    position, covariance, crlb = np.zeros((size, 3)), np.zeros((size, 3, 3)), crlb_enu_m2.copy()
+    placed, covariance_ecef = np.empty((size, 6)), np.empty((size, 3, 3))
+    turn = np.empty((3, 3))
     for b in range(size):
+        r = rotation[b]
         if ok[b]:
             position[b], covariance[b] = position_enu_m[b], covariance_enu_m2[b]
+        x, y, z = geodesy.enu_to_ecef_point(position[b, 0], position[b, 1], position[b, 2], origin_ecef_m[b], r)
+        lat, lon, alt = geodesy.ecef_to_geodetic_point(x, y, z)
+        placed[b, 0], placed[b, 1], placed[b, 2], placed[b, 3], placed[b, 4], placed[b, 5] = lat, lon, alt, x, y, z
+        geodesy.covariance_enu_to_ecef_point(covariance[b], r, covariance_ecef[b])
+        if ok[b] and geodetic[b]:
+            geodesy.covariance_to_point(covariance_enu_m2[b], lat, lon, r, turn, covariance[b])
+            geodesy.covariance_to_point(crlb_enu_m2[b], lat, lon, r, turn, crlb[b])
     _, _, orientation, cep, sep, vertical, root_trace, semi_major, semi_minor, _ = summaries_kernel(
         covariance, circle, sphere, True)
     out = np.empty((size, 50 + 2 * width))
     to_degrees = 180.0 / math.pi
-    covariance_ecef = np.empty((3, 3))
     for b in range(size):
-        row, r = out[b], rotation[b]
+        row = out[b]
         row[0:3] = position[b]
         row[3:12] = covariance[b].ravel()
-        row[12:21] = crlb_enu_m2[b].ravel()
+        row[12:21] = crlb[b].ravel()
         row[21], row[22], row[23], row[24] = cep[b], sep[b], vertical[b], gdop[b]
         row[25], row[26], row[27] = root_trace[b], semi_major[b], semi_minor[b]
         row[28] = orientation[b] * to_degrees
@@ -956,12 +983,9 @@ def _fix_numbers(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, resid
             row[k + width + m] = normalized[b, m]
         k += 2 * width
         row[k], row[k + 1], row[k + 2] = chi2[b], p_value[b], sigma_scale[b]
-        x, y, z = geodesy.enu_to_ecef_point(position[b, 0], position[b, 1], position[b, 2], origin_ecef_m[b], r)
-        lat, lon, alt = geodesy.ecef_to_geodetic_point(x, y, z)
-        row[k + 3], row[k + 4], row[k + 5] = lat * to_degrees, lon * to_degrees, alt
-        row[k + 6], row[k + 7], row[k + 8] = x, y, z
-        geodesy.covariance_enu_to_ecef_point(covariance[b], r, covariance_ecef)
-        row[k + 9:k + 18] = covariance_ecef.ravel()
+        row[k + 3], row[k + 4], row[k + 5] = placed[b, 0] * to_degrees, placed[b, 1] * to_degrees, placed[b, 2]
+        row[k + 6], row[k + 7], row[k + 8] = placed[b, 3], placed[b, 4], placed[b, 5]
+        row[k + 9:k + 18] = covariance_ecef[b].ravel()
         for i in range(3):
             coarse = coarse_enu_m[b, i]
             row[k + 18 + i] = 0.0 if math.isnan(coarse) else min(max(coarse, -_MAX), _MAX)
@@ -1003,7 +1027,7 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
         fixes.position_enu_m, fixes.covariance_enu_m2, fixes.crlb_enu_m2, fixes.gdop, fixes.residuals,
         fixes.normalized_residuals)), np.ascontiguousarray(batch.kinds, dtype=np.int8),
         *(np.ascontiguousarray(a, dtype=float) for a in (fixes.chi2, fixes.p_value, fixes.sigma_scale, coarse)),
-        *batch.frame_placements(), *radius50_tables())
+        np.ascontiguousarray(batch.geodetic, dtype=bool), *batch.frame_placements(), *radius50_tables())
     value_texts = _warning_texts(fixes.warnings) + bearing_errors
     values = np.frombuffer(orjson.dumps(numbers.ravel(), option=_NUMPY) + b"".join(value_texts), dtype=np.uint8)
     text_lengths = np.fromiter(map(len, value_texts), dtype=np.int64, count=len(value_texts))

@@ -38,21 +38,33 @@ _UNAVAILABLE = {503: {"model": Problem, "description": "the session store is una
                                                        "within the request deadline (deadline_exceeded); retry "
                                                        "after Retry-After",
                       "headers": {"Retry-After": {"description": "seconds", "schema": {"type": "string"}}}}}
-#: One server-sent event, as parsed from the stream (OpenAPI 3.1 has ``schema`` describe each event of a
-#: ``text/event-stream``; 3.2 names it ``itemSchema``). ``data`` is one line of JSON: a SessionState for
-#: ``state`` (a NetworkSessionState for a network session), ``{"id"}`` for ``deleted``, ``{"id", "track_id",
-#: "time_s", "version"}`` for ``track_ended`` (a network session's track that coasted out).
-_EVENT = {"type": "object", "required": ["event", "data"], "properties": {
-    "event": {"type": "string", "enum": ["state", "deleted", "track_ended"]},
-    "id": {"type": "string", "pattern": "^[0-9]+$", "description": "the session's version (state events)"},
-    "data": {"type": "string", "contentMediaType": "application/json", "contentSchema": {"anyOf": [
-        {"$ref": "#/components/schemas/SessionState"},
-        {"$ref": "#/components/schemas/NetworkSessionState"},
-        {"type": "object", "required": ["id", "track_id"], "properties": {
-            "id": {"type": "string"}, "track_id": {"type": "string"}, "time_s": {"type": "number"},
-            "version": {"type": "integer"}}},
-        {"type": "object", "required": ["id"], "properties": {"id": {"type": "string"}}}]}},
-}}
+#: The stream declared for generated clients as text (read as it comes: a client that parses the body as one
+#: document never returns, as the stream lasts while the session lives), and each event as the stream's
+#: ``itemSchema`` (OpenAPI 3.2's field for one event of a sequential media type; named SessionEvent).
+_EVENT_STREAM = {"type": "string", "description": (
+    "server-sent events (text/event-stream): `event: state` events (a network session's also `event: "
+    "track_ended`), then `event: deleted`, the last (each a SessionEvent); lines starting with `:` are "
+    "keep-alive comments")}
+_EVENT = {"title": "SessionEvent", "description": "One server-sent event of a session's stream, as parsed.",
+          "type": "object", "required": ["event", "data"], "properties": {
+              "event": {"title": "Kind", "type": "string", "enum": ["state", "deleted", "track_ended"],
+                        "description": "state: the session's state after an update; deleted: the session ended; "
+                                       "track_ended: a network session's track coasted out (it leaves tracks)"},
+              "id": {"type": "string", "pattern": "^[0-9]+$", "description": "the session's version (state events)"},
+              "data": {"type": "string", "contentMediaType": "application/json",
+                       "description": "one line of JSON: the SessionState or NetworkSessionState (state), {\"id\"} "
+                                      "(deleted), {\"id\", \"track_id\", \"time_s\", \"version\"} (track_ended)",
+                       "contentSchema": {"anyOf": [
+                           {"$ref": "#/components/schemas/SessionState"},
+                           {"$ref": "#/components/schemas/NetworkSessionState"},
+                           {"type": "object", "required": ["id", "track_id"], "properties": {
+                               "id": {"type": "string", "description": "the session's id"},
+                               "track_id": {"type": "string", "description": "the track that ended"},
+                               "time_s": {"type": "number", "description": "the time of its last estimate"},
+                               "version": {"type": "integer", "description": "the session version whose post "
+                                                                             "ended it"}}},
+                           {"type": "object", "required": ["id"],
+                            "properties": {"id": {"type": "string", "description": "the session's id"}}}]}}}}
 _FORMATS = Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$", description="comma-separated renderings: cot, geojson")
 _AT_TIME = Query(ge=-schemas.MAX_ABS_TIME_S, le=schemas.MAX_ABS_TIME_S, allow_inf_nan=False,
                  description="network sessions: every track predicted to this time (session clock, s)")
@@ -191,7 +203,7 @@ async def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, requ
                         "version) before the state that no longer lists it (a client that resumes with "
                         "`Last-Event-ID` gets those of the versions it missed, of the latest 50).",
             responses={200: {"description": "the event stream", "content": {"text/event-stream": {
-                "schema": _EVENT}}}, **_NOT_FOUND, **_UNAVAILABLE})
+                "schema": _EVENT_STREAM, "itemSchema": _EVENT}}}, **_NOT_FOUND, **_UNAVAILABLE})
 async def session_events(session_id: str, owner: OwnerDep, store: StoreDep, request: Request,
                          formats: Annotated[str | None, _FORMATS] = None,
                          last_event_id: Annotated[str | None, Header(description="the id (version) of the last "

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from service import schemas
-from service.routes.coverage import wants_png
+from service.routes.coverage import negotiate
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -163,17 +163,28 @@ def test_geodetic_centre_needs_a_geodetic_frame(client):
 
 
 def test_accept_negotiation():
-    assert not wants_png(None) and not wants_png("*/*") and not wants_png("application/json")
-    assert wants_png("image/png") and wants_png("image/png, application/json")
-    assert not wants_png("application/json, image/png")
-    assert wants_png("application/json;q=0.5, image/png") and not wants_png("image/png;q=0")
+    json_, png, kmz, tiff = "application/json", "image/png", "application/vnd.google-earth.kmz", "image/tiff"
+    assert negotiate(None) == negotiate("") == negotiate("*/*") == negotiate("application/json") == json_
+    assert negotiate("application/geo+json") == json_
+    assert negotiate("image/png") == negotiate("image/png, application/json") == png
+    assert negotiate("application/json, image/png") == json_
+    assert negotiate("application/json;q=0.5, image/png") == png and negotiate("image/png;q=0") is None
+    assert negotiate("application/vnd.google-earth.kmz") == kmz and negotiate("image/tiff;q=0.9, */*;q=0.1") == tiff
+    assert negotiate("image/*") == png and negotiate("image/*, image/png;q=0") == tiff
+    assert negotiate("text/html, */*;q=0.8") == json_  # a browser
+    assert negotiate("application/vnd.google-earth.kml+xml") is None and negotiate("text/html") is None
 
 
-def test_openapi_declares_the_png(client):
+def test_openapi_declares_the_renderings(client):
     spec = client.get("/openapi.json").json()
     content = spec["paths"]["/v1/crlb/grid"]["post"]["responses"]["200"]["content"]
-    assert content["image/png"]["schema"] == {"type": "string", "format": "binary"}
-    assert "application/json" in content
+    for media_type in ("image/png", "application/vnd.google-earth.kmz", "image/tiff"):
+        assert content[media_type]["schema"] == {"type": "string", "format": "binary"}
+    assert next(iter(sorted(content))) == "application/json"  # what a generated client parses
+    download = spec["paths"]["/v1/crlb/grid/map"]["post"]
+    assert download["responses"]["200"]["content"] == {
+        "application/octet-stream": {"schema": {"type": "string", "format": "binary"}}}
+    assert download["parameters"][0]["schema"]["enum"] == ["png", "kmz", "tiff"]
 
 
 def test_fix_and_crlb_gdop_is_dimensionless_and_sqrt_trace_keeps_the_metres(client):
@@ -209,3 +220,74 @@ def test_past_the_deadline_is_503(make_client):
     response = client.post("/v1/crlb/grid", json=local_request(step_m=100.0))  # 40,401 cells, 40 chunks
     assert response.status_code == 503, response.text
     assert response.json()["code"] == "deadline_exceeded" and "coverage map" in response.json()["detail"]
+
+
+def _grid_across(centre_lat: float, centre_lon: float, stations: list[tuple[float, float]], half_width_m: float,
+                 step_m: float) -> dict:
+    ids = [f"rx-{k}" for k in range(len(stations))]
+    return {
+        "frame": "wgs84",
+        "stations": [{"id": i, "position": {"lat_deg": lat, "lon_deg": lon, "alt_m": 0.0}}
+                     for i, (lat, lon) in zip(ids, stations)],
+        "sensors": [{"station_id": i, "sigma_azimuth_deg": 0.5, "sigma_elevation_deg": 0.5} for i in ids],
+        "grid": {"centre": {"lat_deg": centre_lat, "lon_deg": centre_lon}, "half_width_m": half_width_m,
+                 "step_m": step_m, "altitude_m": 8000.0},
+    }
+
+
+def _rings(geometry: dict) -> list:
+    parts = geometry["coordinates"] if geometry["type"] == "MultiPolygon" else [geometry["coordinates"]]
+    return [ring for part in parts for ring in part]
+
+
+@pytest.mark.parametrize("centre_lon", [179.9, -179.9, 180.0])
+def test_a_map_across_the_antimeridian_is_cut_there(client, centre_lon):
+    """RFC 7946 section 3.1.9: longitudes within [-180, 180], a geometry crossing the antimeridian cut in two."""
+    from shapely.geometry import LinearRing, Polygon, shape
+
+    request = _grid_across(-17.0, centre_lon, [(-16.8, 179.2), (-17.6, -179.4), (-16.2, -179.7)], 30_000.0, 5_000.0)
+    response = client.post("/v1/crlb/grid", json=request)
+    assert response.status_code == 200, response.text
+    collection = geojson.loads(response.text)
+    assert collection.is_valid, collection.errors()
+    body = response.json()
+    schemas.CrlbGridResponse.model_validate(body)
+    cut = 0
+    for feature in body["features"]:
+        geometry = feature["geometry"]
+        assert geometry is not None
+        if geometry["type"] == "Point":
+            assert -180.0 <= geometry["coordinates"][0] <= 180.0
+            continue
+        rings = _rings(geometry)
+        for ring in rings:
+            assert ring[0] == ring[-1] and LinearRing(ring).is_ccw
+            assert all(-180.0 <= lon <= 180.0 for lon, _ in ring)
+        assert shape(geometry).is_valid
+        if geometry["type"] == "MultiPolygon":
+            cut += 1
+            west, east = sorted((np.array(ring) for ring in rings), key=lambda ring: -ring[:, 0].mean())
+            assert west[:, 0].max() == pytest.approx(180.0) and east[:, 0].min() == pytest.approx(-180.0)
+            # the two sides are the whole cell: together, their area is the area of the cell drawn in one piece
+            whole = Polygon(np.vstack([west[:-1], east[:-1] + [360.0, 0.0]])).convex_hull
+            assert Polygon(west).area + Polygon(east).area == pytest.approx(whole.area, rel=1e-9)
+    assert cut == body["grid"]["rows"]  # one column of cells straddles the antimeridian
+
+
+def test_a_map_around_a_pole_draws_every_cell_but_the_one_on_the_pole(client):
+    from shapely.geometry import shape
+
+    request = _grid_across(89.97, 0.0, [(89.8, 0.0), (89.8, 120.0), (89.8, -120.0)], 20_000.0, 10_000.0)
+    response = client.post("/v1/crlb/grid", json=request)
+    assert response.status_code == 200, response.text
+    assert geojson.loads(response.text).is_valid
+    body = response.json()
+    cell_features = [f for f in body["features"] if f["properties"]["kind"] == "cell"]
+    empty = [f["properties"] for f in cell_features if f["geometry"] is None]
+    # the pole is 3.3 km north of the centre cell, inside it (cells are 10 km squares)
+    assert [(c["row"], c["column"]) for c in empty] == [(2, 2)]
+    for feature in cell_features:
+        if feature["geometry"] is not None:
+            assert shape(feature["geometry"]).is_valid
+            assert all(-180.0 <= lon <= 180.0 and -90.0 <= lat <= 90.0
+                       for ring in _rings(feature["geometry"]) for lon, lat in ring)

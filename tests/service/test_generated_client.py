@@ -132,3 +132,64 @@ def test_every_error_is_problem_json_and_no_fastapi_validation_model():
                         "schema": {"$ref": "#/components/schemas/Problem"}}}, (path, method, code)
     names = set(spec["components"]["schemas"])
     assert {"BatchRequest", "Problem", "ProblemError", "FeatureCollection", "Health", "Readiness"} <= names
+
+
+def test_generated_names_come_from_the_schemas(generated):
+    """Every model is named after a schema (a title or a component), not after where an anonymous schema sat
+    (``OptionsVariantType0``, ``SessionsEventsResponse200Event``)."""
+    import pl_client.models as models
+
+    names = [name for name in dir(models) if not name.startswith("_")]
+    assert {"FixResponse", "SessionEvent", "CrlbGridResponse"} <= set(names)
+    assert not [n for n in names if any(part in n for part in ("Variant", "Type0", "Type1", "Response200"))], names
+
+
+def test_the_event_stream_and_the_map_files_reach_a_generated_client_as_they_were_sent(generated, server):
+    import threading
+    import time
+
+    import httpx
+    from pl_client import Client
+    from pl_client.api.fixes import fixes_crlb_grid, fixes_crlb_grid_map
+    from pl_client.api.sessions import sessions_create, sessions_events, sessions_post_measurements
+    from pl_client.models import CrlbGridRequest, CrlbGridResponse, MeasurementBatch, SessionCreate
+    from pl_client.types import File
+
+    client = Client(base_url=server.url, timeout=60.0, raise_on_unexpected_status=True)
+    session = sessions_create.sync(client=client, body=SessionCreate.from_dict(create_body(frame="wgs84")))
+    sessions_post_measurements.sync(session_id=session.id, client=client, body=MeasurementBatch.from_dict(
+        {"measurements": api_epochs(paper_track(seed=3, epochs=12))}))
+    # The stream lasts while the session lives: end it from outside, then the generated call returns the text.
+    ender = threading.Timer(2.0, lambda: httpx.delete(f"{server.url}/v1/sessions/{session.id}", timeout=30))
+    ender.start()
+    started = time.monotonic()
+    try:
+        answer = sessions_events.sync_detailed(session_id=session.id, client=client)
+    finally:
+        ender.join()
+    assert answer.status_code == 200 and time.monotonic() - started < 50
+    assert isinstance(answer.parsed, str) and answer.parsed == answer.content.decode()
+    events = [dict(line.split(": ", 1) for line in block.splitlines() if not line.startswith(":"))
+              for block in answer.parsed.split("\n\n") if block.strip() and not block.startswith(":")]
+    assert [(e["event"], e.get("id")) for e in events] == [("state", "2"), ("deleted", None)], events
+
+    stations = [{"id": "rx-1", "position": {"lat_deg": 34.0, "lon_deg": 108.0, "alt_m": 100.0}},
+                {"id": "rx-2", "position": {"lat_deg": 34.0, "lon_deg": 108.6, "alt_m": 100.0}}]
+    request = {"stations": stations,
+               "sensors": [{"station_id": s["id"], "sigma_azimuth_deg": 0.5, "sigma_elevation_deg": 0.5}
+                           for s in stations],
+               "grid": {"centre": {"lat_deg": 34.3, "lon_deg": 108.3}, "half_width_m": 30_000.0, "step_m": 10_000.0,
+                        "altitude_m": 8000.0}}
+    geojson = fixes_crlb_grid.sync(client=client, body=CrlbGridRequest.from_dict(request))
+    assert isinstance(geojson, CrlbGridResponse) and len(geojson.features) == 49 + 2
+    from pl_client.models import FixesCrlbGridMapFormat
+
+    for format_, accept, signature in ((FixesCrlbGridMapFormat.PNG, "image/png", b"\x89PNG\r\n\x1a\n"),
+                                       (FixesCrlbGridMapFormat.KMZ, "application/vnd.google-earth.kmz", b"PK\x03\x04"),
+                                       (FixesCrlbGridMapFormat.TIFF, "image/tiff", b"II*\x00")):
+        picture = fixes_crlb_grid_map.sync(client=client, body=CrlbGridRequest.from_dict(request), format_=format_)
+        assert isinstance(picture, File)
+        data = picture.payload.read()
+        assert data.startswith(signature)
+        sent = httpx.post(f"{server.url}/v1/crlb/grid", json=request, headers={"Accept": accept}, timeout=60)
+        assert sent.status_code == 200 and data == sent.content

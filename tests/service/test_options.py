@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import copy
 
+import pytest
+
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.test_fixes_api import assert_problem
 
@@ -35,7 +37,8 @@ def test_relative_sigma_scales_the_covariance(client):
     relative = client.post("/v1/fixes", json=request | {"options": {"absolute_sigma": False}}).json()
     scale = relative["fit"]["sigma_scale"] ** 2
     assert relative["covariance_source"] == "information_scaled"
-    assert relative["covariance_enu_m2"][0][0] == absolute["covariance_enu_m2"][0][0] * scale
+    # to rounding: each is turned into the fix's axes after its scaling
+    assert relative["covariance_enu_m2"][0][0] == pytest.approx(absolute["covariance_enu_m2"][0][0] * scale, rel=1e-12)
 
 
 def test_unknown_option_values_are_422_with_their_path(client):

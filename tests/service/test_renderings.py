@@ -244,3 +244,33 @@ def test_batch_slot_with_cot_options_renders_them(client):
     event = cot_event(result["fix"]["cot"])
     assert event.get("uid") == "e-9"
     assert _time(event.get("stale")) - _time(event.get("start")) == timedelta(seconds=10)
+
+
+def _callsign(cot: str) -> str:
+    contacts = cot_event(cot).findall("detail/contact")
+    assert len(contacts) == 1
+    return contacts[0].get("callsign")
+
+
+@pytest.mark.parametrize("cot, expected", [({"uid": "emitter-17"}, "emitter-17"),
+                                           ({"uid": "emitter-17", "callsign": "Radar 7 <Alpha & \"Bravo\">"},
+                                            "Radar 7 <Alpha & \"Bravo\">"),
+                                           ({"callsign": "Ωmega-1"}, "Ωmega-1")])
+def test_cot_carries_a_contact_callsign_default_the_uid(client, cot, expected):
+    fix = _fix(client, formats=["cot"], cot=cot)
+    assert _callsign(fix["cot"]) == expected
+    batch = client.post("/v1/fixes/batch", json={"problems": [bearing_request(STATIONS_300KM, TARGET, cot=cot,
+                                                                                 formats=["cot"])]}).json()
+    assert _callsign(batch["results"][0]["fix"]["cot"]) == expected
+
+
+def test_a_fix_without_cot_options_is_labelled_with_its_generated_uid(client):
+    event = cot_event(_fix(client, formats=["cot"])["cot"])
+    assert event.find("detail/contact").get("callsign") == event.get("uid")
+
+
+@pytest.mark.parametrize("callsign", ["", "tab\there", "x" * 65, "nul\u0000", "c1\u0085", "\uffff"])
+def test_a_callsign_xml_cannot_carry_is_422_with_its_path(client, callsign):
+    body = bearing_request(STATIONS_300KM, TARGET, formats=["cot"], cot={"callsign": callsign})
+    problem = assert_problem(client.post("/v1/fixes", json=body), 422)
+    assert problem["errors"][0]["loc"][:2] == ["cot", "callsign"]

@@ -98,3 +98,12 @@ def test_unknown_formats_are_422(client, formats):
     response = client.get(f"/v1/sessions/{session['id']}", params={"formats": formats})
     assert response.status_code == 422
     assert response.json()["errors"][0]["loc"][-1] == "formats"
+
+
+@pytest.mark.parametrize("cot, expected", [(None, None), ({"callsign": "Track Alpha"}, "Track Alpha"),
+                                           ({"uid": "emitter-9"}, "emitter-9")])
+def test_a_session_track_carries_a_contact_callsign_default_its_uid(client, epochs, cot, expected):
+    state = _session(client, epochs, **({} if cot is None else {"cot": cot}))
+    body = client.get(f"/v1/sessions/{state['id']}", params={"formats": "cot"}).json()
+    event = cot_event(body["cot"])
+    assert event.find("detail/contact").get("callsign") == (expected or event.get("uid"))
