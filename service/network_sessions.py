@@ -399,8 +399,17 @@ def _course(velocity_enu_mps) -> tuple[float, float]:
     return math.degrees(math.atan2(v[0], v[1])) % 360.0, math.hypot(v[0], v[1])
 
 
+def track_callsign(track_id: str, cot=None) -> str:
+    """A track's CoT callsign: the session's ``cot.callsign`` for its single emitter, ``callsign-<track>`` for
+    the others; without one, the track id (a label a map can show, unlike the uid)."""
+    callsign = getattr(cot, "callsign", None)
+    if callsign:
+        return callsign if track_id == schemas.DEFAULT_EMITTER_ID else f"{callsign}-{track_id}"
+    return track_id
+
+
 def track_cot(body: dict, track: dict, cot=None) -> str | None:
-    """One track as a CoT 2.0 track event (how m-p, course and speed, the track id as callsign); None in a flat
+    """One track as a CoT 2.0 track event (how m-p, course and speed, :func:`track_callsign`); None in a flat
     local frame. ``time`` and ``start`` are the session's ``updated_at``."""
     from xml.sax.saxutils import quoteattr
 
@@ -412,14 +421,13 @@ def track_cot(body: dict, track: dict, cot=None) -> str | None:
     course, speed = _course(track["velocity_enu_mps"])
     _, axes = renderings._ellipse_enu(covariance)
     start = datetime.fromisoformat(body["updated_at"].replace("Z", "+00:00"))
-    detail = (f'<contact callsign={quoteattr(track["id"])}/>'
-              f'<track course="{renderings._decimal(course, 2)}" speed="{renderings._decimal(speed, 3)}"/>'
+    detail = (f'<track course="{renderings._decimal(course, 2)}" speed="{renderings._decimal(speed, 3)}"/>'
               f'<passive_locator session={quoteattr(body["id"])} model={quoteattr(body["model"])} '
               f'status={quoteattr(track["status"])} version="{body["version"]}" updates="{track["updates"]}"/>')
     return renderings._event(track_uid(body["id"], track["id"], cot),
                              cot.type if cot is not None else renderings.DEFAULT_TYPE, renderings.HOW_TRACK, start,
                              cot.stale_s if cot is not None else renderings.DEFAULT_STALE_S, track["position"],
-                             covariance, axes, detail)
+                             covariance, axes, detail, track_callsign(track["id"], cot))
 
 
 def ended_cot(session_id: str, track_id: str, cot=None, now: datetime | None = None) -> str:
@@ -437,8 +445,28 @@ def ended_cot(session_id: str, track_id: str, cot=None, now: datetime | None = N
             f'type={quoteattr(cot.type if cot is not None else DEFAULT_TYPE)}/><__forcedelete/></detail></event>')
 
 
+#: A track's course line in GeoJSON: where it goes in this many seconds at its velocity.
+COURSE_LINE_S = 60.0
+
+
+def _course_line(position: dict, velocity_enu_mps) -> dict | None:
+    """A LineString from a track's point along its horizontal velocity for :data:`COURSE_LINE_S` (the end placed
+    in the point's tangent plane, converted exactly); None when it would cross the antimeridian."""
+    from service.renderings import _lon180
+
+    step = np.array([velocity_enu_mps[0], velocity_enu_mps[1], 0.0]) * COURSE_LINE_S
+    lat, lon, alt = geodesy.enu_to_geodetic(step, math.radians(position["lat_deg"]),
+                                            math.radians(position["lon_deg"]), position["alt_m"])
+    start = [_lon180(position["lon_deg"]), position["lat_deg"]]
+    end = [_lon180(math.degrees(float(lon))), math.degrees(float(lat))]
+    if abs(end[0] - start[0]) > 180.0:
+        return None
+    return {"type": "LineString", "coordinates": [start, end]}
+
+
 def geojson(body: dict, cot=None) -> dict:
-    """Every track's point (id, status, course, speed, time) and its 95 % ellipse, as one FeatureCollection."""
+    """Every track's point (id, status, course, speed, time), its 95 % ellipse and its course line (where it
+    goes in :data:`COURSE_LINE_S` at its velocity), as one FeatureCollection."""
     from service import renderings
 
     features = []
@@ -452,6 +480,11 @@ def geojson(body: dict, cot=None) -> dict:
                       "time_s": track["time_s"], "time": body["updated_at"], "course_deg": course,
                       "speed_mps": speed, "version": body["version"]}
         features.extend(renderings._features(track["position"], covariance, properties))
+        line = _course_line(track["position"], track["velocity_enu_mps"])
+        if line is not None:
+            features.append({"type": "Feature", "geometry": line,
+                             "properties": {"kind": "course", "id": track["id"], "course_deg": course,
+                                            "speed_mps": speed, "seconds": COURSE_LINE_S}})
     return {"type": "FeatureCollection", "features": features}
 
 

@@ -13,6 +13,7 @@ from typing import Annotated, Literal, Union
 from pydantic import BaseModel, Discriminator, Field, Tag, model_validator
 
 from core.tracking import WARNING_CODES as TRACKING_WARNING_CODES
+from core.tracking.network import NETWORK_WARNING_CODES
 from service.schemas import (MAX_ABS_TIME_S, MAX_FIX_MEASUREMENTS, MAX_RANGE_M, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions,
                              ErrorSummary, FeatureCollection, GeodeticPosition, GeodeticPositionResult, LocalPosition,
                              LocalPositionResult, Measurement, Position, Station, Strict, Warning, codes_in_use)
@@ -293,9 +294,9 @@ class ReportBatch(Strict):
 
 
 class NetworkStationState(BaseModel):
-    id: str
+    id: str = Field(description="the station id")
     position: GeodeticPositionResult | LocalPositionResult = Field(description="the latest known position")
-    moving: bool
+    moving: bool = Field(description="true: every report that measures from it gives its position")
     time_s: float | None = Field(description="report time of that position; null: as given at creation")
 
 
@@ -313,14 +314,15 @@ class NetworkTrack(BaseModel):
                                                 "up_mps] in the east/north/up axes at the track")
     error: ErrorSummary = Field(description="the position's error, as a fix's (gdop null)")
     updates: int = Field(description="reports applied to this track")
-    warnings: list[Warning]
+    warnings: list[Warning] = Field(description="raised by the track's last report; codes: "
+                                                + codes_in_use(NETWORK_WARNING_CODES))
     cot: str | None = Field(None, description="with ?formats=cot: the track as a CoT 2.0 track event (how m-p, "
                                               "track course and speed, contact callsign, ce/le one-sigma; null "
                                               "in a flat local frame)")
 
 
 class EndedTrack(BaseModel):
-    id: str
+    id: str = Field(description="the track (emitter) id")
     time_s: float = Field(description="the time of its last estimate")
     version: int = Field(description="the session version whose post ended it")
 
@@ -328,15 +330,17 @@ class EndedTrack(BaseModel):
 class NetworkSessionState(BaseModel):
     """A network session: the stations and one track per emitter."""
 
-    id: str
+    id: str = Field(description="the session id (in its URL)")
     version: int = Field(description="+1 on every write; the ETag is the quoted version")
-    model: Literal["ukf"]
-    frame: Literal["wgs84", "local"]
+    model: Literal["ukf"] = Field(description="the tracker (as created)")
+    frame: Literal["wgs84", "local"] = Field(description="the frame of the stations' positions (as created)")
     origin: GeodeticPositionResult | None = Field(description="the common frame's tangent point (null: a flat "
                                                               "local plane)")
-    association: Literal["labelled", "auto"]
-    reorder_window_s: float
-    stations: list[NetworkStationState]
+    association: Literal["labelled", "auto"] = Field(description="how reports are assigned to tracks (as created)")
+    reorder_window_s: float = Field(description="as created: how much older than the newest applied report a "
+                                                "report may be and still be applied in time order")
+    stations: list[NetworkStationState] = Field(description="every station the session knows, with its latest "
+                                                            "position")
     last_seq: int | None = Field(description="highest seq seen; null before the first")
     last_time_s: float | None = Field(description="newest report time applied")
     updates: int = Field(description="reports applied")
@@ -345,13 +349,15 @@ class NetworkSessionState(BaseModel):
     at_time_s: float | None = Field(None, description="with ?at_time_s=: the time the tracks were predicted to "
                                                       "(constant velocity, IMM-mixed; a track already newer is "
                                                       "given as it is)")
-    warnings: list[Warning] = Field(description="raised by the last post that applied reports")
+    warnings: list[Warning] = Field(description="raised by the last post that applied reports; codes: "
+                                                + codes_in_use(NETWORK_WARNING_CODES))
     created_at: str = Field(description="RFC 3339, UTC")
     updated_at: str = Field(description="RFC 3339, UTC")
     expires_at: str = Field(description="RFC 3339, UTC; moves forward by ttl_s on every write")
-    ttl_s: float
+    ttl_s: float = Field(description="idle lifetime (as created)")
     geojson: FeatureCollection | None = Field(None, description="with ?formats=geojson: every track's point "
-                                                                "(course, speed), and its 95 % ellipse")
+                                                                "(course, speed), its 95 % ellipse and its "
+                                                                "course line (60 s at its velocity)")
 
 
 class ReportResult(NetworkSessionState):
@@ -413,23 +419,23 @@ class NetworkEpochs(BaseModel):
     rmse_position_m: list[float | None] = Field(description="over the trials with a track (null: none has one)")
     pcrb_position_m: list[float | None] = Field(description="sqrt(trace) of the posterior CRLB's position block "
                                                             "(null while the position is not determined)")
-    rmse_velocity_mps: list[float | None]
-    pcrb_velocity_mps: list[float | None]
+    rmse_velocity_mps: list[float | None] = Field(description="velocity RMSE (m/s), as rmse_position_m")
+    pcrb_velocity_mps: list[float | None] = Field(description="sqrt(trace) of the bound's velocity block (m/s)")
     nees_position: list[float | None] = Field(description="mean position NEES over the trials (3 if honest)")
     nees_state: list[float | None] = Field(description="mean 6-state NEES over the trials (6 if honest)")
-    tracked_fraction: list[float]
-    confirmed_fraction: list[float]
+    tracked_fraction: list[float] = Field(description="fraction of the trials with a track at the epoch")
+    confirmed_fraction: list[float] = Field(description="fraction of the trials with a confirmed track")
 
 
 class NetworkEvaluationResponse(BaseModel):
-    scene: str
-    trials: int
-    seed: int
+    scene: str = Field(description="the scene evaluated")
+    trials: int = Field(description="Monte Carlo runs")
+    seed: int = Field(description="run r drew from seed + r")
     converged_after_s: float = Field(description="epochs from this long after the start are judged")
     rmse_over_pcrb: float | None = Field(description="position RMSE over the judged epochs / the PCRB's (1 is at "
                                                      "the bound)")
     nees_after: float | None = Field(description="mean position NEES over the judged epochs and trials")
     nees_interval_99: list[float] = Field(description="the chi-square 99 % interval of a per-epoch mean "
                                                       "position NEES over the trials")
-    late_reports: int
-    epochs: NetworkEpochs
+    late_reports: int = Field(description="reports counted late (older than the reorder window), over all trials")
+    epochs: NetworkEpochs = Field(description="per evaluation epoch, every list in time order")

@@ -10,6 +10,7 @@ import orjson
 import pytest
 from fastapi.testclient import TestClient
 
+from core import geodesy
 from service.app import create_app
 from service.session_schemas import NetworkSessionState, ReportResult, SessionList
 from service.settings import Settings
@@ -302,6 +303,15 @@ def test_formats_give_one_valid_cot_track_event_per_track_and_geojson(client):
     ellipses = [f for f in collection["features"] if f["properties"]["kind"] == "error_ellipse"]
     assert [p["properties"]["id"] for p in points] == ["default", "e2"] and len(ellipses) == 2
     assert all("course_deg" in p["properties"] and "speed_mps" in p["properties"] for p in points)
+    courses = [f for f in collection["features"] if f["properties"]["kind"] == "course"]
+    assert [c["properties"]["id"] for c in courses] == ["default", "e2"]
+    for line, track in zip(courses, body["tracks"]):
+        (lon0, lat0), (lon1, lat1) = line["geometry"]["coordinates"]
+        assert (lon0, lat0) == pytest.approx((track["position"]["lon_deg"], track["position"]["lat_deg"]))
+        step = geodesy.geodetic_to_enu(math.radians(lat1), math.radians(lon1), track["position"]["alt_m"],
+                                       math.radians(lat0), math.radians(lon0), track["position"]["alt_m"])
+        seconds = line["properties"]["seconds"]
+        assert step[:2] == pytest.approx(np.array(track["velocity_enu_mps"][:2]) * seconds, rel=1e-3, abs=0.5)
 
 
 def test_a_local_frame_has_local_positions_and_no_cot(client):

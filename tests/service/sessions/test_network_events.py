@@ -67,8 +67,9 @@ def server(tmp_path_factory):
 
 def test_sse_streams_states_and_track_ended_as_the_spec_declares(server):
     spec = json.loads((REPO / "openapi" / "openapi.json").read_text())
-    schema = spec["paths"]["/v1/sessions/{session_id}/events"]["get"]["responses"]["200"]["content"][
-        "text/event-stream"]["schema"]
+    item = spec["paths"]["/v1/sessions/{session_id}/events"]["get"]["responses"]["200"]["content"][
+        "text/event-stream"]["itemSchema"]
+    schema = spec["components"]["schemas"][item["$ref"].rsplit("/", 1)[-1]]
     first, later = _two_emitters_then_one()
     session = httpx.post(f"{server.url}/v1/sessions", json=create_body(**SHORT_LIVED), timeout=30).json()
     base = f"{server.url}/v1/sessions/{session['id']}"
