@@ -16,7 +16,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service import logs, openapi, problems, tak, translate, web
+from service import logs, network_sessions, openapi, problems, tak, translate, web
 from service.coalesce import Coalescer
 from service.metrics import InFlight, Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
@@ -68,6 +68,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.fix_coalescer = Coalescer(app.state.stopping)
         app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
         await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, translate.compile_kernels)
+        await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, network_sessions.compile_kernels)
         try:
             await store.run(lambda backend: None)  # open now when we can; a store that is down opens later
         except problems.ApiError as error:

@@ -61,7 +61,9 @@ def network_config(request: dict | schemas.NetworkSessionCreate) -> NetworkConfi
                              reorder_window_s=request.reorder_window_s, coast_after_s=request.coast_after_s,
                              end_after_s=request.end_after_s,
                              velocity_prior_sigma_mps=request.start.velocity_sigma_mps,
-                             range_min_m=request.start.range_min_m, range_max_m=request.start.range_max_m)
+                             range_min_m=request.start.range_min_m, range_max_m=request.start.range_max_m,
+                             vertical_accel_sigma_mps2=noise.vertical_accel_sigma_mps2,
+                             vertical_velocity_prior_sigma_mps=request.start.vertical_velocity_sigma_mps)
     except LocalizationError as error:
         field = error.loc[0] if error.loc else None
         loc = {"accel_sigma_mps2": ("process_noise", "accel_sigma_mps2"),
@@ -69,7 +71,9 @@ def network_config(request: dict | schemas.NetworkSessionCreate) -> NetworkConfi
                "imm_mean_sojourn_s": ("process_noise", "imm_mean_sojourn_s"),
                "reorder_window_s": ("reorder_window_s",), "coast_after_s": ("coast_after_s",),
                "end_after_s": ("end_after_s",), "velocity_prior_sigma_mps": ("start", "velocity_sigma_mps"),
-               "range_min_m": ("start", "range_min_m"), "range_max_m": ("start", "range_max_m")}.get(field)
+               "range_min_m": ("start", "range_min_m"), "range_max_m": ("start", "range_max_m"),
+               "vertical_accel_sigma_mps2": ("process_noise", "vertical_accel_sigma_mps2"),
+               "vertical_velocity_prior_sigma_mps": ("start", "vertical_velocity_sigma_mps")}.get(field)
         if loc is not None and len(error.loc) > 1:
             loc = (*loc, *error.loc[1:])
         raise _problem(422, error.code, error.message, loc) from error
@@ -552,7 +556,8 @@ def network_evaluation(spec: schemas.NetworkEvaluationSpec):
         noise = spec.process_noise
         changes.update(accel_sigma_mps2=noise.accel_sigma_mps2,
                        imm_accel_sigmas_mps2=tuple(noise.imm_accel_sigmas_mps2 or ()),
-                       imm_mean_sojourn_s=noise.imm_mean_sojourn_s)
+                       imm_mean_sojourn_s=noise.imm_mean_sojourn_s,
+                       vertical_accel_sigma_mps2=noise.vertical_accel_sigma_mps2)
     if spec.reorder_window_s is not None:
         changes["reorder_window_s"] = spec.reorder_window_s
     if changes:
@@ -589,3 +594,22 @@ def network_evaluation_body(spec: schemas.NetworkEvaluationSpec) -> dict:
                    "tracked_fraction": _finite_list(result.tracked_fraction),
                    "confirmed_fraction": _finite_list(result.confirmed_fraction)},
     }
+
+
+# -- start-up --------------------------------------------------------------------------------------------------
+
+def compile_kernels() -> None:
+    """Run the tracker over a few reports of each scene, with one model and with an IMM, so that every kernel is
+    compiled (or loaded from numba's cache) for the argument types a session's posts pass, before the first
+    post: compiled on a post, they took over 2 s, beyond the store call's deadline (503)."""
+    from core.simulation.network import SCENES, simulate_network
+
+    for name, factory in sorted(SCENES.items()):
+        scene = factory()
+        posted = simulate_network(scene, np.random.default_rng(0)).posted[:12]
+        for config in (scene.config, replace(scene.config, imm_accel_sigmas_mps2=(0.1, 5.0))):
+            state = new_network_state(config)
+            for item in posted:
+                state = apply_reports(state, [item.report], config).state
+            state = apply_reports(state, [p.report for p in posted[:2]], config).state  # re-filtering
+            predict_tracks(NetworkState.from_dict(state.to_dict()), posted[-1].report.time_s + 1.0, config)

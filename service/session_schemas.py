@@ -197,6 +197,11 @@ class NetworkProcessNoise(Strict):
                     "accel_sigma_mps2 (which then serves a track's start only)")
     imm_mean_sojourn_s: float = Field(60.0, gt=0.0, le=1e6, description="mean time a target stays at one level "
                                                                        "(the IMM's Markov switching matrix)")
+    vertical_accel_sigma_mps2: float | None = Field(None, gt=0.0, le=1e4,
+                                                    description="the up axis's white acceleration when it differs "
+                                                                "from the horizontal (an aircraft holding its "
+                                                                "altitude: small); absent: accel_sigma_mps2 on "
+                                                                "every axis")
 
 
 class TrackStart(Strict):
@@ -209,6 +214,10 @@ class TrackStart(Strict):
                                                                          "nearest the emitter may be")
     range_max_m: float = Field(200e3, gt=0.0, le=MAX_RANGE_M, description="... and the farthest (a Gaussian sum "
                                                                            "along the line of sight covers these)")
+    vertical_velocity_sigma_mps: float | None = Field(None, gt=0.0, le=1e5,
+                                                      description="the up velocity's standard deviation at the "
+                                                                  "start when it differs; absent: "
+                                                                  "velocity_sigma_mps")
 
 
 class NetworkSessionCreate(Strict):

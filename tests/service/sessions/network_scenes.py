@@ -17,6 +17,8 @@ def create_body(scene: NetworkScenario) -> dict:
     stations = [{"id": s.id, "position": {"lat_deg": s.lat_deg, "lon_deg": s.lon_deg, "alt_m": s.alt_m},
                  "moving": scene.platform is not None and i == 0} for i, s in enumerate(scene.stations)]
     noise = {"accel_sigma_mps2": config.accel_sigma_mps2}
+    if config.vertical_accel_sigma_mps2 is not None:
+        noise["vertical_accel_sigma_mps2"] = config.vertical_accel_sigma_mps2
     if config.imm_accel_sigmas_mps2:
         noise.update(imm_accel_sigmas_mps2=list(config.imm_accel_sigmas_mps2),
                      imm_mean_sojourn_s=config.imm_mean_sojourn_s)
@@ -24,7 +26,9 @@ def create_body(scene: NetworkScenario) -> dict:
             "origin": {"lat_deg": scene.origin_lat_deg, "lon_deg": scene.origin_lon_deg, "alt_m": scene.origin_alt_m},
             "stations": stations, "process_noise": noise,
             "start": {"velocity_sigma_mps": config.velocity_prior_sigma_mps, "range_min_m": config.range_min_m,
-                      "range_max_m": config.range_max_m},
+                      "range_max_m": config.range_max_m,
+                      **({} if config.vertical_velocity_prior_sigma_mps is None else
+                         {"vertical_velocity_sigma_mps": config.vertical_velocity_prior_sigma_mps})},
             "reorder_window_s": config.reorder_window_s, "coast_after_s": config.coast_after_s,
             "end_after_s": config.end_after_s, "ttl_s": 3600.0}
 

@@ -34,6 +34,17 @@ def sqlite_client(tmp_path):
 
 
 @pytest.mark.parametrize("name", ["df_network", "toa_network", "airborne_df"])
+def test_the_api_carries_every_setting_of_each_scene(name):
+    from service.network_sessions import network_config
+    from service.session_schemas import NetworkSessionCreate
+
+    from .network_scenes import create_body
+
+    scene = SCENES[name]()
+    assert network_config(NetworkSessionCreate.model_validate(create_body(scene))) == scene.config
+
+
+@pytest.mark.parametrize("name", ["df_network", "toa_network", "airborne_df"])
 def test_a_scene_over_http_gives_cores_answers(sqlite_client, name):
     scene = SCENES[name]()
     seed = 41
