@@ -347,6 +347,7 @@ def _track_body(track, frame: CommonFrame) -> dict:
         "error": error_dict(error_summary(at_track[None, :3, :3]), np.array([math.nan])),
         "updates": int(track.updates),
         "warnings": _warnings(track.warnings),
+        "mode_probabilities": getattr(track, "mode_probabilities", None),
     }
 
 

@@ -328,6 +328,9 @@ class NetworkTrack(BaseModel):
     cot: str | None = Field(None, description="with ?formats=cot: the track as a CoT 2.0 track event (how m-p, "
                                               "track course and speed, contact callsign, ce/le one-sigma; null "
                                               "in a flat local frame)")
+    mode_probabilities: list[float] | None = Field(None, description="with process_noise.imm_accel_sigmas_mps2, "
+                                                                     "once the track is one Gaussian: the "
+                                                                     "probability of each level, in their order")
 
 
 class EndedTrack(BaseModel):

@@ -346,3 +346,14 @@ def test_a_store_reload_continues_exactly(store_url, clock):
         straight = second.post("/v1/sessions", json=create_body()).json()
         once = second.post(f"/v1/sessions/{straight['id']}/reports", json={"reports": reports}).json()
     assert resumed["tracks"] == once["tracks"] and resumed["updates"] == once["updates"] == 30
+
+
+def test_an_imm_session_reports_its_mode_probabilities(client):
+    session = create(client, process_noise={"accel_sigma_mps2": 0.5, "imm_accel_sigmas_mps2": [0.1, 3.0]})
+    body = post(client, session["id"], df_reports(40)).json()
+    (track,) = body["tracks"]
+    # once the start's mixture has settled to one Gaussian (40 reports here), the IMM runs
+    assert len(track["mode_probabilities"]) == 2 and sum(track["mode_probabilities"]) == pytest.approx(1.0)
+    plain = post(client, create(client)["id"], df_reports(40)).json()
+    assert plain["tracks"][0]["mode_probabilities"] is None
+    assert track["position_local"] != plain["tracks"][0]["position_local"]  # the IMM filtered differently
