@@ -20,7 +20,7 @@ from urllib.parse import urlsplit
 import numpy as np
 import orjson
 
-from bench.load import LoadGenerator, LoadResult, run_python
+from bench.load import LoadGenerator, run_python
 from bench.rows import Row, _combined, _connection, _post
 from bench.server import serve
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from core import geodesy
 from core.error_summary import error_summary
-from core.errors import InvalidInput, LocalizationError
+from core.errors import LocalizationError
 from core.measurements import Kind
 from core.problem import CommonFrame, GeodeticPoint, build_problem
 from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_reports, new_network_state,
@@ -460,7 +460,7 @@ def _course_line(position: dict, velocity_enu_mps) -> dict | None:
     from service.renderings import _lon180
 
     step = np.array([velocity_enu_mps[0], velocity_enu_mps[1], 0.0]) * COURSE_LINE_S
-    lat, lon, alt = geodesy.enu_to_geodetic(step, math.radians(position["lat_deg"]),
+    lat, lon, _ = geodesy.enu_to_geodetic(step, math.radians(position["lat_deg"]),
                                             math.radians(position["lon_deg"]), position["alt_m"])
     start = [_lon180(position["lon_deg"]), position["lat_deg"]]
     end = [_lon180(math.degrees(float(lon))), math.degrees(float(lat))]

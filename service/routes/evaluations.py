@@ -16,8 +16,7 @@ from typing import Annotated, Union
 from fastapi import APIRouter, Request
 from pydantic import Discriminator, Tag
 
-from service import network_sessions, schemas
-from service import session_schemas
+from service import network_sessions, schemas, session_schemas
 from service.deps import OwnerDep
 from service.limits import check_evaluation, method_weight
 from service.responses import JsonResponse
