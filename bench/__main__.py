@@ -25,6 +25,7 @@ import numpy as np
 from bench import rows as bench_rows
 from bench.load import LoadGenerator
 from bench.network_core import network_step_row
+from bench.network_sessions import network_session_rows
 from bench.server import serve
 
 RESULTS = Path(__file__).resolve().parent / "results.md"
@@ -74,7 +75,7 @@ def _guarded(number: int, what: str, target: str, run) -> bench_rows.Row | list:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short runs (2 s, 2,000 problems): a smoke test")
-    parser.add_argument("--rows", default="1,2,3,4,5,6,7,8,9", help="which rows to run (comma-separated)")
+    parser.add_argument("--rows", default="1,2,3,4,5,6,7,8,9,10", help="which rows to run (comma-separated)")
     parser.add_argument("--duration", type=float, default=None, help="seconds per load run (default 10)")
     parser.add_argument("--batch", type=int, default=None, help="problems in the batch row (default 10,000)")
     parser.add_argument("--output", type=Path, default=RESULTS)
@@ -131,6 +132,9 @@ def main(argv=None) -> int:
     if 7 in wanted:
         print("row 7: one fix in core, one call per problem ...", flush=True)
         results.append(_guarded(7, "one 4-station ML fix in core", "<= 50 us", bench_rows.core_single_row))
+    if 10 in wanted:
+        results.append(_guarded(10, "network-session reports over HTTP", "see rows",
+                                lambda: network_session_rows(duration)))
     if 8 in wanted:
         print("row 8: evaluation in-process vs a local two-worker Dask cluster ...", flush=True)
         results.append(_guarded(8, "evaluation throughput", "same result; report both",

@@ -9,8 +9,9 @@ information pieces of :mod:`core.crlb`, the error summaries, the
 orthogonal-vector passes, the ML iteration, the finisher and the tracking
 filters' kernels. :func:`compile_kernels` runs
 every estimator on a few small problems (every measurement kind, a known
-altitude, a robust loss), so that each kernel meets the argument types the
-estimators pass and no fix pays for a compilation.
+altitude, a robust loss) and the network tracker over a few simulated reports,
+so that each kernel meets the argument types its callers pass and no fix or
+session post pays for a compilation.
 """
 
 from __future__ import annotations
@@ -53,3 +54,24 @@ def compile_kernels() -> None:
     gdop(np.eye(3)[None], np.ones(1))  # the planning routes' (a fix's GDOP comes from the finisher's kernel)
     unscented.compile_kernels()
     network_kernel.compile_kernels()
+    _run_network_tracker()
+
+
+def _run_network_tracker() -> None:
+    """Run the network tracker over a few reports of each simulated scene, with one motion model and with an
+    IMM, late reports and a reload included, so that its kernels meet the argument types a session's posts
+    pass (a kernel compiled on a post takes seconds, beyond a store call's deadline)."""
+    from dataclasses import replace
+
+    from core.simulation.network import SCENES, simulate_network
+    from core.tracking.network import NetworkState, apply_reports, new_network_state, predict_tracks
+
+    for _, scene_of in sorted(SCENES.items()):
+        scene = scene_of()
+        posted = simulate_network(scene, np.random.default_rng(0)).posted[:12]
+        for config in (scene.config, replace(scene.config, imm_accel_sigmas_mps2=(0.1, 5.0))):
+            state = new_network_state(config)
+            for item in posted:
+                state = apply_reports(state, [item.report], config).state
+            state = apply_reports(state, [p.report for p in posted[:2]], config).state
+            predict_tracks(NetworkState.from_dict(state.to_dict()), posted[-1].report.time_s + 1.0, config)

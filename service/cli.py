@@ -3,8 +3,8 @@
 - ``serve [--host H] [--port P] [--workers N] [--log-level L]``: the HTTP service.
 - ``evaluate SCENARIO.json [--out DIR] [--scheduler tcp://host:8786]``: a Monte Carlo evaluation with a
   progress bar, written as Markdown, JSON and a PNG of the RMSE against the bound. The file is either the
-  body of ``POST /v1/evaluations`` or ``{"tracking": {...}}``, a session-filter evaluation against the
-  posterior CRLB (see ``evaluate --help``).
+  body of ``POST /v1/evaluations`` (fix methods, or ``{"network": {...}}``: the network tracker on a scene) or
+  ``{"tracking": {...}}``, a session-filter evaluation against the posterior CRLB (see ``evaluate --help``).
 - ``reproduce [--quick] [--out DIR] [--scheduler ...]``: the five papers' scenarios, ``papers.md`` with
   each table beside the paper's claim; exit status 1 when an asserted claim fails.
 """
@@ -121,7 +121,12 @@ TRACKING_HELP = """A session-filter evaluation file:
                 "config": {"accel_sigma_mps2": 0.05}, "scenario": {"accel_sigma_mps2": 0.05}}}
 config: TrackerConfig fields over paper 001's filter settings; scenario: EmitterScenario fields over paper
 001's emitter (SI units, radians). The report gives the position RMSE over runs per epoch beside the
-posterior CRLB of the scenario's own model."""
+posterior CRLB of the scenario's own model.
+
+A network-tracker evaluation file (the body of POST /v1/evaluations with "network"):
+  {"network": {"scene": "df_network", "trials": 20, "seed": 0}}
+scene: df_network | toa_network | airborne_df; optional process_noise and reorder_window_s over the scene's
+tracker settings. The report gives the position RMSE and NEES per epoch beside the posterior CRLB."""
 
 
 def _add_tools(commands) -> None:
@@ -132,7 +137,8 @@ def _add_tools(commands) -> None:
                                    description="Monte Carlo RMSE of methods (or of a session filter) against the "
                                                "bound; writes evaluation.md, evaluation.json and rmse.png.",
                                    epilog=TRACKING_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    evaluate.add_argument("scenario", help="a POST /v1/evaluations body, or a {\"tracking\": ...} file (below)")
+    evaluate.add_argument("scenario", help="a POST /v1/evaluations body (fixes or {\"network\": ...}), or a "
+                                           "{\"tracking\": ...} file (below)")
     evaluate.add_argument("--out", default=None, help="report directory (default reports/<scenario name>)")
     evaluate.add_argument("--scheduler", default=None, help=scheduler_help)
     evaluate.set_defaults(run=_run_evaluate)
@@ -194,6 +200,8 @@ def _run_evaluate(args) -> int:
         with _scheduler(args) as scheduler:
             if isinstance(data, dict) and "tracking" in data:
                 written = _evaluate_tracking(data["tracking"], out, path.stem, scheduler, bar)
+            elif isinstance(data, dict) and "network" in data:
+                written = _evaluate_network(data, out, path.stem)
             else:
                 written = _evaluate_fixes(data, out, path.stem, scheduler, bar)
     except ValidationError as error:
@@ -237,6 +245,20 @@ def _evaluate_tracking(spec, out, title, scheduler, bar):
     runs, seed = int(spec.get("runs", 20)), int(spec.get("seed", 1000))
     result = against_bound(config, scenario, runs, seed, scheduler=scheduler, progress=bar)
     return write_tracking_evaluation(result, config, runs, seed, out, title)
+
+
+def _evaluate_network(data, out, title):
+    from service.network_sessions import network_evaluation_body
+    from service.problems import ApiError
+    from service.reports import write_network_evaluation
+    from service.session_schemas import NetworkEvaluationRequest
+
+    request = NetworkEvaluationRequest.model_validate(data)
+    try:
+        body = network_evaluation_body(request.network)
+    except ApiError as error:
+        raise ValueError(error.detail) from None
+    return write_network_evaluation(body, out, title)
 
 
 def _run_map(args) -> int:

@@ -28,6 +28,10 @@ session_updates_total                counter    posts that applied at least one 
 session_epochs_applied_total         counter    epochs applied
 session_epochs_duplicate_total       counter    epochs acknowledged as duplicates (not applied)
 event_streams_open                   gauge      session event streams open now
+session_report_posts_total           counter    network-session report posts that applied at least one report
+session_reports_applied_total        counter    network-session reports applied
+session_reports_duplicate_total      counter    network-session reports acknowledged as duplicates (not applied)
+session_reports_late_total           counter    network-session reports older than the reorder window (not applied)
 store_errors_total                   counter    session-store failures by operation
 events_published_total               counter    session update events published to subscribers
 tak_events_total                     counter    CoT events handed to the TAK feed, by outcome
@@ -155,6 +159,13 @@ class Metrics:
             "session_epochs_applied_total": counter("session_epochs_applied", "Session epochs applied"),
             "session_epochs_duplicate_total": counter("session_epochs_duplicate",
                                                       "Session epochs acknowledged as duplicates, not applied"),
+            "session_report_posts_total": counter("session_report_posts",
+                                                  "Network-session report posts that applied at least one report"),
+            "session_reports_applied_total": counter("session_reports_applied", "Network-session reports applied"),
+            "session_reports_duplicate_total": counter("session_reports_duplicate", "Network-session reports "
+                                                       "acknowledged as duplicates, not applied"),
+            "session_reports_late_total": counter("session_reports_late", "Network-session reports older than the "
+                                                  "reorder window: counted, not applied"),
             "events_published_total": counter("events_published", "Session update events published"),
         }
         build = Gauge(PREFIX + "build_info", "Always 1: the running version and Python", ("version", "python"),

@@ -43,7 +43,8 @@ _TITLES = {
 }
 
 #: Tokens pydantic inserts in error locations that are not field names.
-_LOC_NOISE = {"body", "bearing", "range", "toa", "geodetic", "local", "function-after", "tagged-union"}
+_LOC_NOISE = {"body", "bearing", "range", "toa", "geodetic", "local", "function-after", "tagged-union",
+              "observer_session", "network_session", "fix_evaluation", "network_evaluation"}
 
 
 class ApiError(Exception):

@@ -1,7 +1,7 @@
 """Reports of the command-line tools: Markdown, JSON and PNG plots (matplotlib, Agg backend).
 
 ``passive-locator evaluate`` writes ``evaluation.md``, ``evaluation.json``
-and ``rmse.png``; ``passive-locator reproduce`` writes ``papers.md``,
+and ``rmse.png`` (fix methods, the paper-001 session filter, or the network tracker); ``passive-locator reproduce`` writes ``papers.md``,
 ``papers.json`` and one PNG per figure. matplotlib is imported only when a
 plot is drawn (the service itself never needs it).
 """
@@ -131,6 +131,37 @@ def write_tracking_evaluation(result, config, runs: int, seed: int, directory: p
     paths[1].write_text(json.dumps(_plain(body), indent=2, sort_keys=True) + "\n")
     _line_plot(paths[2], times, {f"{config.model} RMSE": rmse, "sqrt tr PCRB": bound}, "time (s)",
                "position error (m)", title, log=True)
+    return paths
+
+
+def write_network_evaluation(body: dict, directory: pathlib.Path, title: str,
+                             every_s: float = 10.0) -> list[pathlib.Path]:
+    """A network-tracker evaluation's report (``body`` as ``POST /v1/evaluations`` answers a ``network`` request)
+    in ``directory``: per-epoch RMSE and NEES beside the posterior CRLB."""
+    directory.mkdir(parents=True, exist_ok=True)
+    epochs = body["epochs"]
+    times = np.asarray(epochs["time_s"])
+    rmse = np.array([np.nan if v is None else v for v in epochs["rmse_position_m"]], dtype=float)
+    bound = np.array([np.nan if v is None else v for v in epochs["pcrb_position_m"]], dtype=float)
+    picked = [i for i in range(times.size) if i in (0, times.size - 1)
+              or math.floor((times[i] - times[0]) / every_s) != math.floor((times[i - 1] - times[0]) / every_s)]
+    rows = [[_num(times[i] - times[0], 0), _num(rmse[i]), _num(bound[i]),
+             _num(rmse[i] / bound[i] if np.isfinite(bound[i]) else None, 3), _num(epochs["nees_position"][i], 2),
+             _num(epochs["confirmed_fraction"][i], 2)] for i in picked]
+    low, high = body["nees_interval_99"]
+    text = [f"# Network-tracker evaluation: {title}", "",
+            f"Scene {body['scene']}, {body['trials']} trials (seeds {body['seed']} + r). From "
+            f"{body['converged_after_s']:g} s after the start: position RMSE / PCRB "
+            f"{_num(body['rmse_over_pcrb'], 3)}, mean position NEES {_num(body['nees_after'], 2)} (99 % interval "
+            f"of a per-epoch mean: {low:.2f} to {high:.2f}); {body['late_reports']} reports late.", "",
+            markdown_table(["time after start (s)", "RMSE (m)", "sqrt tr PCRB (m)", "RMSE / PCRB",
+                            "position NEES (3 if honest)", "confirmed fraction"], rows), "",
+            "![RMSE against the PCRB](rmse.png)", ""]
+    paths = [directory / "evaluation.md", directory / "evaluation.json", directory / "rmse.png"]
+    paths[0].write_text("\n".join(text))
+    paths[1].write_text(json.dumps(_plain(body), indent=2, sort_keys=True) + "\n")
+    _line_plot(paths[2], times - times[0], {"network tracker RMSE": rmse, "sqrt tr PCRB": bound},
+               "time after start (s)", "position error (m)", title, log=True)
     return paths
 
 

@@ -337,7 +337,14 @@ class MultiPolygonGeometry(BaseModel):
                                                                    "[longitude_deg, latitude_deg]")
 
 
-Geometry = Annotated[Union[PointGeometry, PolygonGeometry, MultiPolygonGeometry], Field(discriminator="type")]
+class LineStringGeometry(BaseModel):
+    type: Literal["LineString"] = Field(description="GeoJSON geometry type")
+    coordinates: list[list[float]] = Field(description="[longitude_deg, latitude_deg] points: a network track's "
+                                                       "course line")
+
+
+Geometry = Annotated[Union[PointGeometry, PolygonGeometry, MultiPolygonGeometry, LineStringGeometry],
+                     Field(discriminator="type")]
 
 
 class Feature(BaseModel):
@@ -345,7 +352,8 @@ class Feature(BaseModel):
     geometry: Geometry | None = Field(description="null for a fix in a flat local frame (no place on the earth)")
     properties: dict[str, Any] = Field(description="kind fix: method, time, error summary; kind track: course_deg, "
                                                    "speed_mps; kind error_ellipse: semi-axes (m), orientation "
-                                                   "(deg clockwise from north), probability 0.95")
+                                                   "(deg clockwise from north), probability 0.95; kind course (a "
+                                                   "network track's line): id, course_deg, speed_mps, seconds")
 
 
 class FeatureCollection(BaseModel):

@@ -1,19 +1,22 @@
-"""Request and response models of the session API (API.md, "Sessions"). Field names are binding.
+"""Request and response models of the session API (API.md, "Sessions" and "Network sessions"). Field names
+are binding.
 
-A session tracks one moving emitter from one fixed observer (paper 001).
+A session created with an ``observer`` tracks one moving emitter from one fixed observer (paper 001); one
+created with ``stations`` tracks emitters from the reports of a sensor network.
 Angles are degrees at the API; every float is finite.
 """
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, Field, model_validator
+from pydantic import BaseModel, Discriminator, Field, Tag, model_validator
 
 from core.tracking import WARNING_CODES as TRACKING_WARNING_CODES
-from service.schemas import (MAX_ABS_TIME_S, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions, FeatureCollection,
-                             GeodeticPosition, GeodeticPositionResult, LocalPosition, LocalPositionResult, Position,
-                             Strict, Warning, codes_in_use)
+from core.tracking.network import NETWORK_WARNING_CODES
+from service.schemas import (MAX_ABS_TIME_S, MAX_FIX_MEASUREMENTS, MAX_RANGE_M, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions,
+                             ErrorSummary, FeatureCollection, GeodeticPosition, GeodeticPositionResult, LocalPosition,
+                             LocalPositionResult, Measurement, Position, Station, Strict, Warning, codes_in_use)
 
 #: JavaScript's largest exact integer: a seq above it would be mangled by many JSON clients.
 MAX_SEQ = 2**53 - 1
@@ -21,6 +24,8 @@ MAX_TTL_S = 366 * 86400.0
 #: Below a second a session would expire before its first post could reach it.
 MIN_TTL_S = 1.0
 MAX_EPOCHS_PER_POST = 10_000
+#: The track id of a labelled network session's reports that name no emitter.
+DEFAULT_EMITTER_ID = "default"
 
 
 class Observer(Strict):
@@ -166,6 +171,283 @@ class MeasurementResult(SessionState):
                                         "(acknowledged, not applied)")
 
 
+
+
+# -- network sessions (API.md, "Network sessions") ------------------------------------------------------------
+
+MAX_REPORTS_PER_POST = 1_000
+#: Emitter and track ids: printable ASCII without spaces (they become CoT uids and callsigns).
+EmitterId = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[!-~]+$")]
+
+
+class NetworkStation(Station):
+    moving: bool = Field(False, description="true: a platform that moves; every report that measures from it "
+                                            "carries its position at that report's time_s in the report's "
+                                            "stations (false: the position given here, until a report moves it)")
+
+
+class NetworkProcessNoise(Strict):
+    accel_sigma_mps2: float = Field(1.0, gt=0.0, le=1e4,
+                                    description="white acceleration noise of the constant-velocity model, per "
+                                                "axis: the velocity random walk grows by this many m/s per sqrt(s)")
+    imm_accel_sigmas_mps2: list[Annotated[float, Field(gt=0.0, le=1e4)]] | None = Field(
+        None, min_length=2, max_length=4,
+        description="increasing acceleration-noise levels of an interacting multiple model (for targets that "
+                    "switch between quiet and manoeuvring legs); absent: one constant-velocity model at "
+                    "accel_sigma_mps2 (which then serves a track's start only)")
+    imm_mean_sojourn_s: float = Field(60.0, gt=0.0, le=1e6, description="mean time a target stays at one level "
+                                                                       "(the IMM's Markov switching matrix)")
+    vertical_accel_sigma_mps2: float | None = Field(None, gt=0.0, le=1e4,
+                                                    description="the up axis's white acceleration when it differs "
+                                                                "from the horizontal (an aircraft holding its "
+                                                                "altitude: small); absent: accel_sigma_mps2 on "
+                                                                "every axis")
+
+
+class TrackStart(Strict):
+    """How a track starts from its first report."""
+
+    velocity_sigma_mps: float = Field(100.0, gt=0.0, le=1e5, description="standard deviation of each velocity "
+                                                                         "component at a track's start (zero "
+                                                                         "mean): about the fastest target speed")
+    range_min_m: float = Field(1e3, gt=0.0, le=MAX_RANGE_M, description="a track started from one bearing: the "
+                                                                         "nearest the emitter may be")
+    range_max_m: float = Field(200e3, gt=0.0, le=MAX_RANGE_M, description="... and the farthest (a Gaussian sum "
+                                                                           "along the line of sight covers these)")
+    vertical_velocity_sigma_mps: float | None = Field(None, gt=0.0, le=1e5,
+                                                      description="the up velocity's standard deviation at the "
+                                                                  "start when it differs; absent: "
+                                                                  "velocity_sigma_mps")
+
+
+class NetworkSessionCreate(Strict):
+    frame: Literal["wgs84", "local"] = "wgs84"
+    origin: GeodeticPosition | None = Field(None, description="the session's common frame's tangent point; "
+                                                              "with a local frame it places the plane on the "
+                                                              "earth. Default: wgs84 the stations' centroid on "
+                                                              "the ellipsoid, local a flat plane")
+    stations: list[NetworkStation] = Field(min_length=1, max_length=256,
+                                           description="the network's stations (unique ids); a report may add "
+                                                       "stations or move them")
+    model: Literal["ukf"] = Field("ukf", description="ukf: unscented Kalman filter on east, north, up and their "
+                                                     "rates in the session's common frame (exact geodesy), updated "
+                                                     "with the fix measurement models")
+    process_noise: NetworkProcessNoise = Field(default_factory=NetworkProcessNoise)
+    start: TrackStart = Field(default_factory=TrackStart)
+    association: Literal["labelled", "auto"] = Field(
+        "labelled", description="labelled: each report names its emitter (emitter_id; absent = the session's "
+                                f"single emitter, track id {DEFAULT_EMITTER_ID!r}). auto is reserved: answered "
+                                "422 not_implemented")
+    reorder_window_s: float = Field(2.0, ge=0.0, le=3600.0,
+                                    description="a report up to this much older than the newest applied one is "
+                                                "still applied in time order; older ones are counted as late "
+                                                "and not applied")
+    coast_after_s: float = Field(10.0, gt=0.0, le=1e6, description="a track without a report for longer than "
+                                                                   "this is coasting (predicted only)")
+    end_after_s: float = Field(60.0, gt=0.0, le=1e7, description="a track without a report for longer than this "
+                                                                 "ends: it leaves tracks (the event stream and the "
+                                                                 "TAK feed say so); above coast_after_s and "
+                                                                 "reorder_window_s")
+    ttl_s: float = Field(86400.0, ge=MIN_TTL_S, le=MAX_TTL_S,
+                         description="idle lifetime: the session is deleted ttl_s after its last write")
+    cot: CotOptions | None = Field(None, description="CoT uid, type and stale time of the tracks' events: a "
+                                                     "track's uid is uid (the single emitter's track) or "
+                                                     "uid-<track id>; default passive-locator-session-<id>-"
+                                                     "<track id>")
+
+    @model_validator(mode="after")
+    def _stations(self):
+        wanted = GeodeticPosition if self.frame == "wgs84" else LocalPosition
+        seen = set()
+        for station in self.stations:
+            if station.id in seen:
+                raise ValueError(f"station id {station.id!r} is given twice")
+            seen.add(station.id)
+            if not isinstance(station.position, wanted):
+                raise ValueError(f"frame {self.frame!r} needs {wanted.__name__} station positions; station "
+                                 f"{station.id!r} differs")
+        return self
+
+
+class Report(Strict):
+    seq: int = Field(ge=0, le=MAX_SEQ, description="increases in the order the client sends reports (not in "
+                                                   "time_s order); not above the last applied one = a duplicate, "
+                                                   "acknowledged and not applied")
+    time_s: float = Field(ge=-MAX_ABS_TIME_S, le=MAX_ABS_TIME_S,
+                          description="when the measurements were taken, on the session's clock")
+    emitter_id: EmitterId | None = Field(None, description="the emitter (track id); absent = the session's single "
+                                                           f"emitter, {DEFAULT_EMITTER_ID!r}")
+    frequency_hz: float | None = Field(None, gt=0.0, le=1e13, description="optional signal feature (kept for "
+                                                                          "association; unused by labelled "
+                                                                          "sessions)")
+    stations: list[Station] = Field(default_factory=list, max_length=256,
+                                    description="positions at time_s of moving stations, and new stations "
+                                                "(in the session's frame)")
+    measurements: list[Measurement] = Field(
+        min_length=1, max_length=MAX_FIX_MEASUREMENTS,
+        description="the /v1/fixes measurement objects, every sigma given; the TOAs of one report share one "
+                    "unknown emission time, so a report's TOAs come from at least two stations")
+
+
+class ReportBatch(Strict):
+    reports: list[Report] = Field(min_length=1, max_length=MAX_REPORTS_PER_POST,
+                                  description="reports in increasing seq order (any time_s order)")
+
+    @model_validator(mode="after")
+    def _seq_increasing(self):
+        for i in range(1, len(self.reports)):
+            if self.reports[i].seq <= self.reports[i - 1].seq:
+                raise ValueError(f"reports[{i}].seq must be above reports[{i - 1}].seq (a batch lists reports in "
+                                 "increasing seq order)")
+        return self
+
+
+class NetworkStationState(BaseModel):
+    id: str = Field(description="the station id")
+    position: GeodeticPositionResult | LocalPositionResult = Field(description="the latest known position")
+    moving: bool = Field(description="true: every report that measures from it gives its position")
+    time_s: float | None = Field(description="report time of that position; null: as given at creation")
+
+
+class NetworkTrack(BaseModel):
+    id: str = Field(description="the emitter_id")
+    status: Literal["tentative", "confirmed", "coasting"] = Field(
+        description="tentative: the reports so far do not determine the position well (e.g. one platform that "
+                    "has not manoeuvred); confirmed; coasting: not reported lately, predicted only")
+    time_s: float = Field(description="the time of the estimate")
+    position: GeodeticPositionResult | None = Field(description="when the session's frame is geodetic")
+    position_local: LocalPositionResult = Field(description="in the session's local frame, or ENU metres at "
+                                                            "the frame's origin when the frame is wgs84")
+    velocity_enu_mps: list[float] = Field(description="[east, north, up] in the axes at the track")
+    covariance_enu: Matrix6 = Field(description="6x6 covariance of [east_m, north_m, up_m, east_mps, north_mps, "
+                                                "up_mps] in the east/north/up axes at the track")
+    error: ErrorSummary = Field(description="the position's error, as a fix's (gdop null)")
+    updates: int = Field(description="reports applied to this track")
+    warnings: list[Warning] = Field(description="raised by the track's last report; codes: "
+                                                + codes_in_use(NETWORK_WARNING_CODES))
+    cot: str | None = Field(None, description="with ?formats=cot: the track as a CoT 2.0 track event (how m-p, "
+                                              "track course and speed, contact callsign, ce/le one-sigma; null "
+                                              "in a flat local frame)")
+    mode_probabilities: list[float] | None = Field(None, description="with process_noise.imm_accel_sigmas_mps2, "
+                                                                     "once the track is one Gaussian: the "
+                                                                     "probability of each level, in their order")
+
+
+class EndedTrack(BaseModel):
+    id: str = Field(description="the track (emitter) id")
+    time_s: float = Field(description="the time of its last estimate")
+    version: int = Field(description="the session version whose post ended it")
+
+
+class NetworkSessionState(BaseModel):
+    """A network session: the stations and one track per emitter."""
+
+    id: str = Field(description="the session id (in its URL)")
+    version: int = Field(description="+1 on every write; the ETag is the quoted version")
+    model: Literal["ukf"] = Field(description="the tracker (as created)")
+    frame: Literal["wgs84", "local"] = Field(description="the frame of the stations' positions (as created)")
+    origin: GeodeticPositionResult | None = Field(description="the common frame's tangent point (null: a flat "
+                                                              "local plane)")
+    association: Literal["labelled", "auto"] = Field(description="how reports are assigned to tracks (as created)")
+    reorder_window_s: float = Field(description="as created: how much older than the newest applied report a "
+                                                "report may be and still be applied in time order")
+    stations: list[NetworkStationState] = Field(description="every station the session knows, with its latest "
+                                                            "position")
+    last_seq: int | None = Field(description="highest seq seen; null before the first")
+    last_time_s: float | None = Field(description="newest report time applied")
+    updates: int = Field(description="reports applied")
+    tracks: list[NetworkTrack] = Field(description="one per emitter (or, with at_time_s, predicted to that time)")
+    ended_tracks: list[EndedTrack] = Field(description="the latest tracks that ended (coasted out), newest last")
+    at_time_s: float | None = Field(None, description="with ?at_time_s=: the time the tracks were predicted to "
+                                                      "(constant velocity, IMM-mixed; a track already newer is "
+                                                      "given as it is)")
+    warnings: list[Warning] = Field(description="raised by the last post that applied reports; codes: "
+                                                + codes_in_use(NETWORK_WARNING_CODES))
+    created_at: str = Field(description="RFC 3339, UTC")
+    updated_at: str = Field(description="RFC 3339, UTC")
+    expires_at: str = Field(description="RFC 3339, UTC; moves forward by ttl_s on every write")
+    ttl_s: float = Field(description="idle lifetime (as created)")
+    geojson: FeatureCollection | None = Field(None, description="with ?formats=geojson: every track's point "
+                                                                "(course, speed), its 95 % ellipse and its "
+                                                                "course line (60 s at its velocity)")
+
+
+class ReportResult(NetworkSessionState):
+    """The state after a post of reports, and what the post did."""
+
+    applied: int = Field(description="reports of this post applied (in time order, late ones within "
+                                     "reorder_window_s included)")
+    duplicates: int = Field(description="reports whose seq was not above the last applied one (acknowledged, "
+                                        "not applied)")
+    late: int = Field(description="reports older than the newest applied time less reorder_window_s: "
+                                  "acknowledged, counted, not applied")
+
+
+AnySessionState = Annotated[Union[SessionState, NetworkSessionState], Field(union_mode="left_to_right")]
+
+
+def _create_kind(value) -> str:
+    """Which create request a body is: one with ``stations`` is a network session's, else paper 001's."""
+    if isinstance(value, dict):
+        return "network_session" if "stations" in value and "observer" not in value else "observer_session"
+    return "network_session" if isinstance(value, NetworkSessionCreate) else "observer_session"
+
+
+AnySessionCreate = Annotated[
+    Union[Annotated[SessionCreate, Tag("observer_session")], Annotated[NetworkSessionCreate, Tag("network_session")]],
+    Discriminator(_create_kind),
+]
+
+
 class SessionList(BaseModel):
-    sessions: list[SessionState] = Field(description="oldest first (ids begin with the creation time in ms)")
+    sessions: list[AnySessionState] = Field(description="oldest first (ids begin with the creation time in ms)")
     next_cursor: str | None = Field(description="pass as cursor for the next page; null on the last page")
+
+
+# -- network tracking evaluation (POST /v1/evaluations with "network", passive-locator evaluate) ------------------
+
+NetworkScene = Literal["df_network", "toa_network", "airborne_df"]
+
+
+class NetworkEvaluationSpec(Strict):
+    scene: NetworkScene = Field(description="df_network: four direction finders 25-35 km apart, a ground vehicle "
+                                            "at 15-25 m/s, a tenth of the reports up to 1.5 s late; toa_network: "
+                                            "five TOA stations (20-50 ns) timing an aircraft at 5-10 km, "
+                                            "150-250 m/s; airborne_df: one airborne direction finder flying "
+                                            "straight, then turning, past a slow ground emitter")
+    trials: int = Field(20, ge=1, le=500, description="Monte Carlo runs (run r draws from seed + r)")
+    seed: int = Field(0, ge=0, le=2**32)
+    process_noise: NetworkProcessNoise | None = Field(None, description="the tracker's process noise (default: "
+                                                                        "the scene's, matched to its truth)")
+    reorder_window_s: float | None = Field(None, ge=0.0, le=3600.0, description="default: the scene's")
+
+
+class NetworkEvaluationRequest(Strict):
+    network: NetworkEvaluationSpec
+
+
+class NetworkEpochs(BaseModel):
+    time_s: list[float] = Field(description="evaluation epochs (session clock)")
+    rmse_position_m: list[float | None] = Field(description="over the trials with a track (null: none has one)")
+    pcrb_position_m: list[float | None] = Field(description="sqrt(trace) of the posterior CRLB's position block "
+                                                            "(null while the position is not determined)")
+    rmse_velocity_mps: list[float | None] = Field(description="velocity RMSE (m/s), as rmse_position_m")
+    pcrb_velocity_mps: list[float | None] = Field(description="sqrt(trace) of the bound's velocity block (m/s)")
+    nees_position: list[float | None] = Field(description="mean position NEES over the trials (3 if honest)")
+    nees_state: list[float | None] = Field(description="mean 6-state NEES over the trials (6 if honest)")
+    tracked_fraction: list[float] = Field(description="fraction of the trials with a track at the epoch")
+    confirmed_fraction: list[float] = Field(description="fraction of the trials with a confirmed track")
+
+
+class NetworkEvaluationResponse(BaseModel):
+    scene: str = Field(description="the scene evaluated")
+    trials: int = Field(description="Monte Carlo runs")
+    seed: int = Field(description="run r drew from seed + r")
+    converged_after_s: float = Field(description="epochs from this long after the start are judged")
+    rmse_over_pcrb: float | None = Field(description="position RMSE over the judged epochs / the PCRB's (1 is at "
+                                                     "the bound)")
+    nees_after: float | None = Field(description="mean position NEES over the judged epochs and trials")
+    nees_interval_99: list[float] = Field(description="the chi-square 99 % interval of a per-epoch mean "
+                                                      "position NEES over the trials")
+    late_reports: int = Field(description="reports counted late (older than the reorder window), over all trials")
+    epochs: NetworkEpochs = Field(description="per evaluation epoch, every list in time order")

@@ -1,5 +1,8 @@
 """Sessions: the schema <-> core translation and the session logic.
 
+Paper-001 (``observer``) sessions are handled here; a network session (created with ``stations``) is
+recognised by its record and handed to :mod:`service.network_sessions`, which follows the same pattern.
+
 A route validates the request (``service.session_schemas``) and calls one
 function here, which translates to core types (radians, SI), loads the record
 from the store, runs the pure core filter step and saves what comes back.
@@ -29,6 +32,7 @@ from core.errors import LocalizationError
 from core.parallel import Stopped
 from core.tracking import Epoch as TrackerEpoch
 from core.tracking import TrackerConfig, TrackState, new_state, step_many
+from service import network_sessions
 from service import session_schemas as schemas
 from service.problems import ApiError
 from service.renderings import utc_timestamp
@@ -112,7 +116,9 @@ def _observer(record: SessionRecord) -> dict:
 
 
 def state_body(record: SessionRecord) -> dict:
-    """The response body of a session (``SessionState``)."""
+    """The response body of a session (``SessionState``, or ``NetworkSessionState`` for a network session)."""
+    if network_sessions.is_network(record):
+        return network_sessions.state_body(record)
     request = record.config["request"]
     state = TrackState.from_dict(record.state)
     observer = _observer(record)
@@ -165,10 +171,16 @@ def cot_options(record: SessionRecord):
     return None if found is None else CotOptions.model_validate(found)
 
 
-def rendered_state(record: SessionRecord, formats=()) -> dict:
-    """:func:`state_body` with the renderings ``formats`` asks for (``"cot"``, ``"geojson"``)."""
+def rendered_state(record: SessionRecord, formats=(), at_time_s: float | None = None) -> dict:
+    """:func:`state_body` with the renderings ``formats`` asks for (``"cot"``, ``"geojson"``); ``at_time_s``:
+    a network session's tracks predicted to that time."""
     from service import renderings
 
+    if network_sessions.is_network(record):
+        return network_sessions.rendered_state(record, formats, at_time_s)
+    if at_time_s is not None:
+        raise _problem(422, "invalid_input", "at_time_s predicts a network session's tracks; this session tracks "
+                                             "from one observer", ("query", "at_time_s"))
     body = state_body(record)
     if "cot" in formats:
         body["cot"] = renderings.session_cot(body, cot_options(record))
@@ -206,15 +218,20 @@ def decode_cursor(cursor: str) -> str:
 
 # -- operations -------------------------------------------------------------------------------------------------
 
-def create(store: SessionStore, owner: str, request: schemas.SessionCreate) -> SessionRecord:
-    config = tracker_config(request)
-    state = new_state(config)
+def create(store: SessionStore, owner: str,
+           request: schemas.SessionCreate | schemas.NetworkSessionCreate) -> SessionRecord:
+    if isinstance(request, schemas.NetworkSessionCreate):
+        config, state = network_sessions.initial(request)
+    else:
+        tracker = tracker_config(request)
+        config = {"request": request.model_dump(mode="json"), "tracker": tracker.to_dict()}
+        state = new_state(tracker).to_dict()
     now = store.now()
     record = SessionRecord(
         id=f"{int(now * 1000):012x}{secrets.token_hex(10)}",
         owner=owner,
-        config={"request": request.model_dump(mode="json"), "tracker": config.to_dict()},
-        state=state.to_dict(),
+        config=config,
+        state=state,
         version=1,
         last_seq=None,
         last_time_s=None,
@@ -300,6 +317,9 @@ class MeasurementsChange:
 
     def _change(self, record: SessionRecord, should_stop) -> SessionRecord | None:
         batch, if_match = self.batch, self.if_match
+        if network_sessions.is_network(record):
+            raise _problem(422, "wrong_session_kind", f"session {record.id} is a network session: post its reports "
+                                                      "to /reports")
         if if_match is not None and not if_match_accepts(if_match, record.version):
             raise _problem(412, "precondition_failed",
                            f"If-Match {if_match} is stale: the session is at version {etag(record)}")
@@ -350,3 +370,23 @@ def post_measurements(store: SessionStore, owner: str, session_id: str, change: 
     if record is None:
         raise not_found(session_id)
     return PostOutcome(record, change.applied, change.duplicates)
+
+
+@dataclass(frozen=True)
+class ReportsOutcome:
+    record: SessionRecord
+    applied: int
+    duplicates: int
+    late: int
+    ended: list
+    #: The record's core state when this post wrote it (None: the record is as it was).
+    state: object = None
+
+
+def post_reports(store: SessionStore, owner: str, session_id: str, change: network_sessions.ReportsChange,
+                 read: SessionRecord | None = None) -> ReportsOutcome:
+    """Apply a :class:`service.network_sessions.ReportsChange` to its session, atomically (404 unknown session)."""
+    record = store.update(owner, session_id, change, read) if _SESSION_ID.fullmatch(session_id) else None
+    if record is None:
+        raise not_found(session_id)
+    return ReportsOutcome(record, change.applied, change.duplicates, change.late, change.ended, change.state)

@@ -11,9 +11,12 @@ the CPU within one chunk.
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from typing import Annotated, Union
 
-from service import schemas
+from fastapi import APIRouter, Request
+from pydantic import Discriminator, Tag
+
+from service import network_sessions, schemas, session_schemas
 from service.deps import OwnerDep
 from service.limits import check_evaluation, method_weight
 from service.responses import JsonResponse
@@ -26,15 +29,37 @@ router = APIRouter(prefix="/v1", tags=["evaluations"])
 CHUNK_UNITS = 2000
 
 
+def _evaluation_kind(value) -> str:
+    """A body with ``network`` evaluates the network tracker on a scene; any other, fix methods."""
+    if isinstance(value, dict):
+        return "network_evaluation" if "network" in value and "scenario" not in value else "fix_evaluation"
+    return "network_evaluation" if isinstance(value, session_schemas.NetworkEvaluationRequest) else "fix_evaluation"
+
+
+AnyEvaluationRequest = Annotated[
+    Union[Annotated[schemas.EvaluationRequest, Tag("fix_evaluation")],
+          Annotated[session_schemas.NetworkEvaluationRequest, Tag("network_evaluation")]],
+    Discriminator(_evaluation_kind),
+]
+
+
 @router.post("/evaluations", operation_id="evaluations-create",
-             summary="Monte Carlo RMSE, bias, efficiency and NEES of methods for a scenario",
-             response_model=schemas.EvaluationResponse,
+             summary="Monte Carlo RMSE, bias, efficiency and NEES of methods for a scenario, or of the network "
+                     "tracker on a scene (per epoch, against the posterior CRLB)",
+             response_model=Union[schemas.EvaluationResponse, session_schemas.NetworkEvaluationResponse],
              responses={422: {"model": schemas.Problem,
                               "description": "invalid scenario, or over max_evaluation_cost (code over_limit)"},
                         503: {"model": schemas.Problem,
                               "description": "not finished within the request deadline (code deadline_exceeded)"}})
-async def create_evaluation(request: schemas.EvaluationRequest, owner: OwnerDep, http: Request) -> JsonResponse:
+async def create_evaluation(request: AnyEvaluationRequest, owner: OwnerDep, http: Request) -> JsonResponse:
     settings = http.app.state.settings
+    if isinstance(request, session_schemas.NetworkEvaluationRequest):
+        spec = request.network
+        network_sessions.check_network_evaluation(spec, settings.max_evaluation_cost)
+        body = await watched(http, in_pool(http.app.state.cpu_pool,
+                                           lambda should_stop: network_sessions.network_evaluation_body(spec)),
+                             "ask for fewer trials")
+        return JsonResponse(body)
     problem, target = crlb_problem(request.scenario)
     methods = list(dict.fromkeys(request.methods))
     rows = int(problem.kinds.size)

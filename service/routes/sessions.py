@@ -1,4 +1,4 @@
-"""Sessions: track a moving emitter from one fixed observer (paper 001)."""
+"""Sessions: track a moving emitter from one fixed observer (paper 001), or emitters from a sensor network."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from fastapi import APIRouter, Depends, Header, Query, Request
 from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response, StreamingResponse
 
-from service import events, sessions, tak
+from service import events, network_sessions, sessions, tak
 from service import session_schemas as schemas
 from service.deps import OwnerDep
 from service.headers import of as parsed_headers
@@ -43,20 +43,32 @@ _UNAVAILABLE = {503: {"model": Problem, "description": "the session store is una
 #: document never returns, as the stream lasts while the session lives), and each event as the stream's
 #: ``itemSchema`` (OpenAPI 3.2's field for one event of a sequential media type; named SessionEvent).
 _EVENT_STREAM = {"type": "string", "description": (
-    "server-sent events (text/event-stream): `event: state` events, then `event: deleted`, the last (each a "
-    "SessionEvent); lines starting with `:` are keep-alive comments")}
+    "server-sent events (text/event-stream): `event: state` events (a network session's also `event: "
+    "track_ended`), then `event: deleted`, the last (each a SessionEvent); lines starting with `:` are "
+    "keep-alive comments")}
 _EVENT = {"title": "SessionEvent", "description": "One server-sent event of a session's stream, as parsed.",
           "type": "object", "required": ["event", "data"], "properties": {
-              "event": {"title": "Kind", "type": "string", "enum": ["state", "deleted"],
-                        "description": "state: the session's state after an update; deleted: the session ended"},
+              "event": {"title": "Kind", "type": "string", "enum": ["state", "deleted", "track_ended"],
+                        "description": "state: the session's state after an update; deleted: the session ended; "
+                                       "track_ended: a network session's track coasted out (it leaves tracks)"},
               "id": {"type": "string", "pattern": "^[0-9]+$", "description": "the session's version (state events)"},
               "data": {"type": "string", "contentMediaType": "application/json",
-                       "description": "one line of JSON: the SessionState (state), {\"id\"} (deleted)",
+                       "description": "one line of JSON: the SessionState or NetworkSessionState (state), {\"id\"} "
+                                      "(deleted), {\"id\", \"track_id\", \"time_s\", \"version\"} (track_ended)",
                        "contentSchema": {"anyOf": [
                            {"$ref": "#/components/schemas/SessionState"},
+                           {"$ref": "#/components/schemas/NetworkSessionState"},
+                           {"type": "object", "required": ["id", "track_id"], "properties": {
+                               "id": {"type": "string", "description": "the session's id"},
+                               "track_id": {"type": "string", "description": "the track that ended"},
+                               "time_s": {"type": "number", "description": "the time of its last estimate"},
+                               "version": {"type": "integer", "description": "the session version whose post "
+                                                                             "ended it"}}},
                            {"type": "object", "required": ["id"],
                             "properties": {"id": {"type": "string", "description": "the session's id"}}}]}}}}
 _FORMATS = Query(pattern=r"^(cot|geojson)(,(cot|geojson))?$", description="comma-separated renderings: cot, geojson")
+_AT_TIME = Query(ge=-schemas.MAX_ABS_TIME_S, le=schemas.MAX_ABS_TIME_S, allow_inf_nan=False,
+                 description="network sessions: every track predicted to this time (session clock, s)")
 
 
 def _state_response(record, status_code: int = 200, body: dict | None = None, headers=None) -> JsonResponse:
@@ -64,12 +76,13 @@ def _state_response(record, status_code: int = 200, body: dict | None = None, he
                         headers={"ETag": sessions.etag(record), **(headers or {})})
 
 
-@router.post("", operation_id="sessions-create", status_code=201, summary="Start tracking a moving emitter",
-             response_model=schemas.SessionState,
+@router.post("", operation_id="sessions-create", status_code=201,
+             summary="Start tracking a moving emitter (observer) or emitters from a sensor network (stations)",
+             response_model=schemas.AnySessionState,
              responses={201: {"headers": {**_ETAG, "Location": {"description": "/v1/sessions/{id}",
                                                                  "schema": {"type": "string"}}}},
                         **_INVALID, **_UNAVAILABLE})
-async def create_session(body: schemas.SessionCreate, owner: OwnerDep, store: StoreDep,
+async def create_session(body: schemas.AnySessionCreate, owner: OwnerDep, store: StoreDep,
                          request: Request) -> JsonResponse:
     record = await store.run(sessions.create, owner, body)
     request.app.state.metrics.count("sessions_created_total")
@@ -88,12 +101,14 @@ async def list_sessions(owner: OwnerDep, store: StoreDep,
 
 
 @router.get("/{session_id}", operation_id="sessions-get", summary="A session's state",
-            response_model=schemas.SessionState,
+            response_model=schemas.AnySessionState,
             responses={200: {"headers": _ETAG}, **_NOT_FOUND, **_INVALID, **_UNAVAILABLE})
 async def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
-                      formats: Annotated[str | None, _FORMATS] = None) -> JsonResponse:
+                      formats: Annotated[str | None, _FORMATS] = None,
+                      at_time_s: Annotated[float | None, _AT_TIME] = None) -> JsonResponse:
     record = await store.run(sessions.get, owner, session_id)
-    return _state_response(record, body=sessions.rendered_state(record, formats.split(",") if formats else ()))
+    return _state_response(record, body=sessions.rendered_state(record, formats.split(",") if formats else (),
+                                                                at_time_s))
 
 
 @router.post("/{session_id}/measurements", operation_id="sessions-post-measurements",
@@ -127,6 +142,46 @@ async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, ow
     return _state_response(outcome.record, body=body)
 
 
+@router.post("/{session_id}/reports", operation_id="sessions-post-reports",
+             summary="Apply a batch of a network session's reports, in any time order (duplicates by seq are "
+                     "acknowledged and skipped; reports older than reorder_window_s are counted late)",
+             response_model=schemas.ReportResult,
+             responses={200: {"headers": _ETAG}, **_NOT_FOUND,
+                        412: {"model": Problem, "description": "If-Match is stale"},
+                        422: {"model": Problem, "description": "invalid values, with the field path "
+                                                               "(reports, i, ...): unknown_station, "
+                                                               "station_position_missing, toa_without_partner, "
+                                                               "invalid_input; wrong_session_kind for a paper-001 "
+                                                               "session; nothing of the post was applied"},
+                        **_UNAVAILABLE})
+async def post_reports(session_id: str, batch: schemas.ReportBatch, owner: OwnerDep, store: StoreDep,
+                       request: Request,
+                       if_match: Annotated[str | None, Header(description='"<version>" from an ETag: apply only '
+                                                                          "if the session is still at it")] = None,
+                       ) -> JsonResponse:
+    change = network_sessions.ReportsChange(batch, if_match, store.now)
+    record = None
+    if len(batch.reports) > sessions.INLINE_EPOCHS:
+        record = await store.run(sessions.get, owner, session_id)
+        await watched(request, in_pool(None, lambda should_stop: change.prepare(record, should_stop)),
+                      "post fewer reports at a time")
+    outcome = await store.run(sessions.post_reports, owner, session_id, change, record)
+    metrics = request.app.state.metrics
+    metrics.count("session_report_posts_total", 1 if outcome.applied else 0)
+    metrics.count("session_reports_applied_total", outcome.applied)
+    metrics.count("session_reports_duplicate_total", outcome.duplicates)
+    metrics.count("session_reports_late_total", outcome.late)
+    body = {**network_sessions.state_body(outcome.record, state=outcome.state), "applied": outcome.applied,
+            "duplicates": outcome.duplicates, "late": outcome.late}
+    if outcome.applied or outcome.ended:
+        await run_in_threadpool(events.bus(request.app).publish, session_id, outcome.record.version)
+        metrics.count("events_published_total")
+        if tak.feed(request.app) is not None:
+            for event in network_sessions.tak_events(outcome.record, body, outcome.ended):
+                tak.push(request.app, event)
+    return _state_response(outcome.record, body=body)
+
+
 @router.delete("/{session_id}", operation_id="sessions-delete", status_code=204, summary="End a session",
                response_class=Response, responses={**_NOT_FOUND, **_UNAVAILABLE})
 async def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, request: Request) -> Response:
@@ -143,7 +198,11 @@ async def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, requ
                         "epochs, on whichever replica (Redis pub/sub with the Redis store). States are "
                         "cumulative: a client that falls behind, or reconnects with `Last-Event-ID`, gets the "
                         "latest state, not every version in between. A `deleted` event ends the stream when "
-                        "the session is deleted or expires; comments keep an idle connection open.",
+                        "the session is deleted or expires; comments keep an idle connection open. A network "
+                        "session's state events carry its NetworkSessionState (reports applied), and a track that "
+                        "coasted out is announced by a `track_ended` event (`data`: id, track_id, time_s, "
+                        "version) before the state that no longer lists it (a client that resumes with "
+                        "`Last-Event-ID` gets those of the versions it missed, of the latest 50).",
             responses={200: {"description": "the event stream", "content": {"text/event-stream": {
                 "schema": _EVENT_STREAM, "itemSchema": _EVENT}}}, **_NOT_FOUND, **_UNAVAILABLE})
 async def session_events(session_id: str, owner: OwnerDep, store: StoreDep, request: Request,
@@ -162,6 +221,12 @@ async def session_events(session_id: str, owner: OwnerDep, store: StoreDep, requ
             await asyncio.wait_for(subscription.ready.wait(), 10.0)
             record = await store.run(lambda backend: backend.get(owner, session_id)) or record
             while True:
+                if last is not None and record.version > last:
+                    for ended in record.state.get("ended", ()) if network_sessions.is_network(record) else ():
+                        if ended["version"] > last:
+                            yield events.sse("track_ended", orjson.dumps({"id": session_id, "track_id": ended["id"],
+                                                                          "time_s": ended["time_s"],
+                                                                          "version": ended["version"]}))
                 if last is None or record.version > last:
                     body = orjson.dumps(sessions.rendered_state(record, wanted), option=orjson.OPT_SERIALIZE_NUMPY)
                     yield events.sse("state", body, record.version)

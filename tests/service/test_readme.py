@@ -28,16 +28,23 @@ def test_the_readme_examples_answer(client):
     assert [(m, p.split("?")[0]) for m, p, _ in requests] == [
         ("POST", "/v1/fixes"), ("POST", "/v1/fixes/batch"), ("POST", "/v1/crlb"), ("POST", "/v1/crlb/grid"),
         ("POST", "/v1/evaluations"),
-        ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$ID/measurements"), ("GET", "/v1/sessions/$ID")]
-    session_id = None
+        ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$ID/measurements"), ("GET", "/v1/sessions/$ID"),
+        ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$NID/reports"), ("GET", "/v1/sessions/$NID")]
+    ids = {}
     for method, path, body in requests:
-        if session_id is not None:
-            path = path.replace("$ID", session_id)
+        for name, session_id in ids.items():
+            path = path.replace(f"${name}", session_id)
         response = client.request(method, path, content=body, headers={"content-type": "application/json"})
         assert response.status_code in (200, 201), (path, response.text)
         answer = response.json()
         if path == "/v1/sessions":
-            session_id = answer["id"]
+            ids["NID" if "stations" in answer else "ID"] = answer["id"]
+        if path.endswith("/reports"):
+            assert (answer["applied"], answer["duplicates"], answer["late"]) == (6, 0, 0)
+        if "formats=cot" in path and "tracks" in answer:
+            (track,) = answer["tracks"]
+            assert track["cot"].startswith("<event") and 'uid="vehicle-1"' in track["cot"]
+            assert answer["geojson"]["type"] == "FeatureCollection" and answer["geojson"]["features"]
         if path == "/v1/fixes":
             assert answer["cot"].startswith("<event") and answer["geojson"]["type"] == "FeatureCollection"
         if path == "/v1/fixes/batch":

@@ -1,0 +1,597 @@
+"""Network sessions: the schema <-> core translation and the logic of a session created with ``stations``.
+
+A report's stations and measurements become core arrays the way a fix request's do: the same schema models
+(:class:`service.schemas.Station` and the measurement models), the same converters
+(:func:`service.translate.to_point`, :func:`service.translate.to_measurement`) and the same placement in the
+common frame (:func:`core.problem.build_problem`), with the session's origin fixed at creation so that every
+report lands in one frame. The tracker itself is core's (:mod:`core.tracking.network`): pure
+``(state, reports) -> state``; this module decides what reports are, which are duplicates, and what the
+stored record becomes, as :mod:`service.sessions` does for paper-001 sessions.
+
+The record's ``state`` holds the core state (``NetworkState.to_dict``), the station registry (the latest
+known position of every station), the tracks that ended lately and the last post's warnings.
+"""
+
+from __future__ import annotations
+
+import math
+import uuid
+from dataclasses import replace
+from datetime import datetime, timedelta, timezone
+from typing import Callable
+
+import numpy as np
+
+from core import geodesy
+from core.error_summary import error_summary
+from core.errors import LocalizationError
+from core.measurements import Kind
+from core.problem import CommonFrame, GeodeticPoint, build_problem
+from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_reports, new_network_state,
+                                   predict_tracks, validate_report)
+from service import schemas as fix_schemas
+from service import session_schemas as schemas
+from service.problems import ApiError, api_loc
+from service.stores import SessionRecord
+
+#: Ended tracks a record remembers (for the event stream and the state's ``ended_tracks``).
+ENDED_KEPT = 50
+_TOA = int(Kind.TOA)
+
+
+def _problem(status: int, code: str, detail: str, loc=None) -> ApiError:
+    return ApiError(status, code, detail, [{"loc": list(loc), "msg": detail}] if loc is not None else [])
+
+
+def is_network(record: SessionRecord) -> bool:
+    return "network" in record.config
+
+
+# -- creation ---------------------------------------------------------------------------------------------------
+
+def network_config(request: dict | schemas.NetworkSessionCreate) -> NetworkConfig:
+    """The core tracker settings of a create request (422 with the field path for what core refuses)."""
+    if isinstance(request, dict):
+        request = schemas.NetworkSessionCreate.model_validate(request)
+    noise = request.process_noise
+    try:
+        return NetworkConfig(accel_sigma_mps2=noise.accel_sigma_mps2,
+                             imm_accel_sigmas_mps2=tuple(noise.imm_accel_sigmas_mps2 or ()),
+                             imm_mean_sojourn_s=noise.imm_mean_sojourn_s,
+                             reorder_window_s=request.reorder_window_s, coast_after_s=request.coast_after_s,
+                             end_after_s=request.end_after_s,
+                             velocity_prior_sigma_mps=request.start.velocity_sigma_mps,
+                             range_min_m=request.start.range_min_m, range_max_m=request.start.range_max_m,
+                             vertical_accel_sigma_mps2=noise.vertical_accel_sigma_mps2,
+                             vertical_velocity_prior_sigma_mps=request.start.vertical_velocity_sigma_mps)
+    except LocalizationError as error:
+        field = error.loc[0] if error.loc else None
+        loc = {"accel_sigma_mps2": ("process_noise", "accel_sigma_mps2"),
+               "imm_accel_sigmas_mps2": ("process_noise", "imm_accel_sigmas_mps2"),
+               "imm_mean_sojourn_s": ("process_noise", "imm_mean_sojourn_s"),
+               "reorder_window_s": ("reorder_window_s",), "coast_after_s": ("coast_after_s",),
+               "end_after_s": ("end_after_s",), "velocity_prior_sigma_mps": ("start", "velocity_sigma_mps"),
+               "range_min_m": ("start", "range_min_m"), "range_max_m": ("start", "range_max_m"),
+               "vertical_accel_sigma_mps2": ("process_noise", "vertical_accel_sigma_mps2"),
+               "vertical_velocity_prior_sigma_mps": ("start", "vertical_velocity_sigma_mps")}.get(field)
+        if loc is not None and len(error.loc) > 1:
+            loc = (*loc, *error.loc[1:])
+        raise _problem(422, error.code, error.message, loc) from error
+
+
+def _origin(request: schemas.NetworkSessionCreate) -> GeodeticPoint | None:
+    """The session's frame origin, fixed for its life: the given one, else (wgs84) the create stations' centroid
+    on the ellipsoid, as a fix places its frame, else None (a flat local plane)."""
+    from service.translate import to_point
+
+    if request.origin is not None:
+        return to_point(request.origin)
+    if request.frame != "wgs84":
+        return None
+    lat = np.radians([s.position.lat_deg for s in request.stations])
+    lon = np.radians([s.position.lon_deg for s in request.stations])
+    lat0, lon0 = geodesy.centroid_on_ellipsoid(lat, lon)
+    return GeodeticPoint(float(lat0), float(lon0), 0.0)
+
+
+def initial(request: schemas.NetworkSessionCreate) -> tuple[dict, dict]:
+    """The record ``config`` and ``state`` of a new network session (422 for what is not served)."""
+    if request.association == "auto":
+        raise _problem(422, "not_implemented", "association 'auto' is not implemented yet: label each report with "
+                                               "its emitter_id and create the session with association "
+                                               "'labelled'", ("association",))
+    config = network_config(request)
+    origin = _origin(request)
+    stations = {s.id: {"position": s.position.model_dump(mode="json"), "moving": s.moving, "time_s": None}
+                for s in request.stations}
+    return ({"request": request.model_dump(mode="json"), "network": True,
+             "origin": None if origin is None else [origin.lat_rad, origin.lon_rad, origin.alt_m]},
+            {"core": new_network_state(config).to_dict(), "stations": stations, "ended": [], "warnings": []})
+
+
+def _frame(record: SessionRecord) -> CommonFrame:
+    origin = record.config["origin"]
+    return CommonFrame(None if origin is None else GeodeticPoint(*origin))
+
+
+# -- reports -> core ----------------------------------------------------------------------------------------------
+
+def core_report(report: schemas.Report, index: int, registry: dict, frame: str, origin: GeodeticPoint | None
+                ) -> Report:
+    """One API report as a core :class:`Report` in the session's frame.
+
+    Parameters
+    ----------
+    report : Report
+    index : int
+        Its index in the post (the error paths start ``reports, index``).
+    registry : dict
+        The session's stations: id -> ``{"position", "moving", "time_s"}`` (API positions).
+    frame : str
+        ``"wgs84"`` or ``"local"``: which positions the report's stations must give.
+    origin : GeodeticPoint or None
+
+    Raises
+    ------
+    ApiError
+        422 with the field path: a station position in the wrong frame or given twice, an unknown station, a
+        moving station without its position, a lone TOA, a value core refuses.
+    """
+    from service.translate import to_measurement, to_point
+
+    where = ("reports", index)
+    wanted = fix_schemas.GeodeticPosition if frame == "wgs84" else fix_schemas.LocalPosition
+    given: dict[str, object] = {}
+    for k, station in enumerate(report.stations):
+        if station.id in given:
+            raise _problem(422, "invalid_input", f"reports[{index}] gives station {station.id!r} twice",
+                           (*where, "stations", k, "id"))
+        if not isinstance(station.position, wanted):
+            raise _problem(422, "invalid_input", f"frame {frame!r} needs {wanted.__name__} station positions",
+                           (*where, "stations", k, "position"))
+        given[station.id] = station.position
+    used: dict[str, object] = {}
+    toa_stations: dict[str, int] = {}
+    for j, m in enumerate(report.measurements):
+        sid = m.station_id
+        if sid not in used:
+            if sid in given:
+                used[sid] = given[sid]
+            elif sid not in registry:
+                raise _problem(422, "unknown_station", f"reports[{index}].measurements[{j}]: unknown station "
+                                                       f"{sid!r} (give its position in the report's stations)",
+                               (*where, "measurements", j, "station_id"))
+            elif registry[sid]["moving"]:
+                raise _problem(422, "station_position_missing",
+                               f"reports[{index}].measurements[{j}]: station {sid!r} moves; the report must give "
+                               "its position at time_s in its stations", (*where, "measurements", j, "station_id"))
+            else:
+                used[sid] = wanted.model_validate(registry[sid]["position"])
+        if m.type == "toa":
+            toa_stations.setdefault(sid, j)
+    if len(toa_stations) == 1:
+        j = next(iter(toa_stations.values()))
+        raise _problem(422, "toa_without_partner",
+                       f"reports[{index}].measurements[{j}]: a TOA needs a TOA from another station in the same "
+                       "report (the emission time is unknown: one station's TOA alone says nothing)",
+                       (*where, "measurements", j))
+    try:
+        problem = build_problem([(sid, to_point(p)) for sid, p in used.items()],
+                                [to_measurement(m) for m in report.measurements], origin=origin)
+    except LocalizationError as error:
+        raise _problem(422, error.code, f"reports[{index}]: {error.message}",
+                       (*where, *api_loc(error.loc or ()))) from error
+    rows = problem.station_index
+    values = problem.values.copy()
+    toa = problem.kinds == _TOA
+    if toa.any():  # the client's own TOAs: core takes its own reference, so no digit is lost to a round trip
+        values[toa] = [report.measurements[s].toa_s for s in problem.source_index[toa]]
+    core = Report(seq=report.seq, time_s=report.time_s,
+                  emitter_id=report.emitter_id or schemas.DEFAULT_EMITTER_ID,
+                  station_ids=tuple(problem.station_ids[s] for s in rows),
+                  stations_enu_m=problem.stations_enu_m[rows], rotations=problem.station_rotations[rows],
+                  kinds=problem.kinds.copy(), values=values, sigmas=problem.sigmas.copy())
+    try:
+        validate_report(core)
+    except LocalizationError as error:
+        raise _problem(422, error.code, f"reports[{index}]: {error.message}",
+                       (*where, *_core_loc(error.loc or (), problem.source_index))) from error
+    return core
+
+
+def _core_loc(loc, source_index) -> list:
+    """A core report error's ``loc`` as the API's path: a scalar measurement row becomes its request measurement
+    (core names the row's ``value``, ``sigma`` or ``kind``, which the request spells per type: the path stops at
+    the measurement)."""
+    loc = list(loc)
+    if len(loc) >= 2 and loc[0] == "measurements" and isinstance(loc[1], int) and 0 <= loc[1] < len(source_index):
+        rest = [part for part in loc[2:] if part not in ("value", "sigma", "kind")]
+        return ["measurements", int(source_index[loc[1]]), *api_loc(rest)]
+    return api_loc(loc)
+
+
+def _register(registry: dict, report: schemas.Report) -> None:
+    """The report's station positions into the registry: a station new to the session is a moving one (every
+    report that measures from it gives its position); a known one takes the newest position by time_s."""
+    for station in report.stations:
+        known = registry.get(station.id)
+        if known is None:
+            registry[station.id] = {"position": station.position.model_dump(mode="json"), "moving": True,
+                                    "time_s": report.time_s}
+        elif known["time_s"] is None or report.time_s >= known["time_s"]:
+            known.update(position=station.position.model_dump(mode="json"), time_s=report.time_s)
+
+
+def _warnings(items) -> list[dict]:
+    out = []
+    for w in items or ():
+        if isinstance(w, dict):
+            out.append({"code": str(w.get("code")), "message": str(w.get("message", ""))})
+        elif isinstance(w, (tuple, list)) and len(w) == 2:
+            out.append({"code": str(w[0]), "message": str(w[1])})
+        elif hasattr(w, "code"):
+            out.append({"code": str(w.code), "message": str(getattr(w, "message", ""))})
+        else:
+            out.append({"code": str(w), "message": str(w)})
+    return out
+
+
+class ReportsChange:
+    """What a post of reports does to its network session: all of its new reports, or (on any error) none.
+
+    As :class:`service.sessions.MeasurementsChange`: called with a record it returns the new record (or None),
+    depending on that record only; :meth:`prepare` decides it beforehand on a worker thread for a long post.
+
+    Raises
+    ------
+    ApiError
+        412 stale ``If-Match``; 422 a report that cannot be applied (with its field path), or a session that is
+        not a network session.
+    """
+
+    def __init__(self, batch: schemas.ReportBatch, if_match: str | None, clock: Callable[[], float]):
+        self.batch, self.if_match, self.clock = batch, if_match, clock
+        self.applied = self.duplicates = self.late = 0
+        self.ended: list[dict] = []
+        #: The core state of the record the change made (None when it wrote nothing).
+        self.state: NetworkState | None = None
+        self._prepared: tuple | None = None
+
+    def prepare(self, record: SessionRecord, should_stop=None) -> None:
+        new = self._change(record)
+        self._prepared = (record.id, record.version, new, self.applied, self.duplicates, self.late, self.ended,
+                          self.state)
+
+    def __call__(self, record: SessionRecord) -> SessionRecord | None:
+        prepared = self._prepared
+        if prepared is not None and prepared[:2] == (record.id, record.version):
+            new, self.applied, self.duplicates, self.late, self.ended, self.state = prepared[2:]
+            return new
+        return self._change(record)
+
+    def _change(self, record: SessionRecord) -> SessionRecord | None:
+        from service.sessions import etag, if_match_accepts
+
+        if not is_network(record):
+            raise _problem(422, "wrong_session_kind", f"session {record.id} tracks from one observer: post its "
+                                                      "epochs to /measurements")
+        if self.if_match is not None and not if_match_accepts(self.if_match, record.version):
+            raise _problem(412, "precondition_failed",
+                           f"If-Match {self.if_match} is stale: the session is at version {etag(record)}")
+        reports = self.batch.reports
+        first_new = 0
+        if record.last_seq is not None:
+            while first_new < len(reports) and reports[first_new].seq <= record.last_seq:
+                first_new += 1
+        fresh = reports[first_new:]
+        self.duplicates, self.applied, self.late, self.ended, self.state = first_new, 0, 0, [], None
+        if not fresh:
+            return None
+        request = record.config["request"]
+        registry = {sid: dict(entry) for sid, entry in record.state["stations"].items()}
+        origin = _frame(record).origin
+        core_reports = []
+        for i, report in enumerate(fresh, start=first_new):
+            core_reports.append(core_report(report, i, registry, request["frame"], origin))
+            _register(registry, report)
+        config = network_config(request)
+        before = NetworkState.from_dict(record.state["core"])
+        try:
+            outcome = apply_reports(before, core_reports, config)
+        except LocalizationError as error:
+            loc = list(error.loc or ())
+            if loc and isinstance(loc[0], int) and 0 <= loc[0] < len(fresh):  # core names the report by its index
+                loc = ["reports", first_new + loc[0], *api_loc(loc[1:])]
+            raise _problem(422, error.code, f"{error.message}; nothing of this post was applied",
+                           api_loc(loc) if loc else None) from error
+        self.applied, self.late, self.state = int(outcome.applied), int(outcome.late), outcome.state
+        now_ids = {t.id for t in outcome.state.tracks}
+        version = record.version + 1
+        self.ended = [{"id": t.id, "time_s": float(t.time_s), "version": version}
+                      for t in before.tracks if t.id not in now_ids]
+        ended = (record.state.get("ended", []) + self.ended)[-ENDED_KEPT:]
+        last_time = outcome.state.last_time_s
+        now = self.clock()
+        state = {"core": outcome.state.to_dict(), "stations": registry, "ended": ended,
+                 "warnings": _warnings(outcome.warnings) if self.applied else record.state.get("warnings", [])}
+        return replace(record, state=state, last_seq=fresh[-1].seq,
+                       last_time_s=None if last_time is None else float(last_time),
+                       updates=record.updates + self.applied, updated_at=now, expires_at=now + record.ttl_s)
+
+
+# -- core -> responses ------------------------------------------------------------------------------------------
+
+def _track_body(track, frame: CommonFrame) -> dict:
+    """One core track as the API's track JSON, its errors in the east/north/up axes at the track."""
+    from service.translate import error_dict
+
+    mean = np.asarray(track.mean_enu, dtype=float)
+    covariance = np.asarray(track.covariance_enu, dtype=float)
+    axes = frame.local_axes(mean[:3])
+    turn = np.zeros((6, 6))
+    turn[:3, :3] = turn[3:, 3:] = axes
+    at_track = turn @ covariance @ turn.T
+    at_track = 0.5 * (at_track + at_track.T)
+    position = None
+    if frame.is_geodetic:
+        lat, lon, alt = frame.to_geodetic(mean[:3])
+        position = {"lat_deg": math.degrees(float(lat)), "lon_deg": math.degrees(float(lon)), "alt_m": float(alt)}
+    return {
+        "id": track.id,
+        "status": track.status,
+        "time_s": float(track.time_s),
+        "position": position,
+        "position_local": {"east_m": float(mean[0]), "north_m": float(mean[1]), "up_m": float(mean[2])},
+        "velocity_enu_mps": (axes @ mean[3:]).tolist(),
+        "covariance_enu": at_track.tolist(),
+        "error": error_dict(error_summary(at_track[None, :3, :3]), np.array([math.nan])),
+        "updates": int(track.updates),
+        "warnings": _warnings(track.warnings),
+        "mode_probabilities": getattr(track, "mode_probabilities", None),
+    }
+
+
+def state_body(record: SessionRecord, at_time_s: float | None = None, state: NetworkState | None = None) -> dict:
+    """The response body of a network session (``NetworkSessionState``); ``at_time_s``: every track predicted to
+    that time; ``state``: the record's core state when the caller has it already (else read from the record)."""
+    from service.sessions import _timestamp
+
+    request = record.config["request"]
+    if state is None:
+        state = NetworkState.from_dict(record.state["core"])
+    frame = _frame(record)
+    tracks = state.tracks if at_time_s is None else predict_tracks(state, at_time_s, network_config(request))
+    origin = frame.origin
+    body = {
+        "id": record.id,
+        "version": record.version,
+        "model": request["model"],
+        "frame": request["frame"],
+        "origin": None if origin is None else {"lat_deg": math.degrees(origin.lat_rad),
+                                               "lon_deg": math.degrees(origin.lon_rad), "alt_m": origin.alt_m},
+        "association": request["association"],
+        "reorder_window_s": request["reorder_window_s"],
+        "stations": [{"id": sid, **entry} for sid, entry in record.state["stations"].items()],
+        "last_seq": record.last_seq,
+        "last_time_s": record.last_time_s,
+        "updates": record.updates,
+        "tracks": [_track_body(t, frame) for t in tracks],
+        "ended_tracks": list(record.state.get("ended", [])),
+        "warnings": list(record.state.get("warnings", [])),
+        "created_at": _timestamp(record.created_at),
+        "updated_at": _timestamp(record.updated_at),
+        "expires_at": _timestamp(record.expires_at),
+        "ttl_s": record.ttl_s,
+    }
+    if at_time_s is not None:
+        body["at_time_s"] = at_time_s
+    return body
+
+
+# -- renderings: one CoT track event per track, GeoJSON of every track -------------------------------------------
+
+def track_uid(session_id: str, track_id: str, cot=None) -> str:
+    """A track's CoT uid: the session's ``cot.uid`` for its single emitter, ``uid-<track>`` otherwise."""
+    from service.renderings import UID_PREFIX
+
+    if cot is not None and cot.uid:
+        return cot.uid if track_id == schemas.DEFAULT_EMITTER_ID else f"{cot.uid}-{track_id}"
+    return f"{UID_PREFIX}session-{session_id}-{track_id}"
+
+
+def _course(velocity_enu_mps) -> tuple[float, float]:
+    v = velocity_enu_mps
+    return math.degrees(math.atan2(v[0], v[1])) % 360.0, math.hypot(v[0], v[1])
+
+
+def track_callsign(track_id: str, cot=None) -> str:
+    """A track's CoT callsign: the session's ``cot.callsign`` for its single emitter, ``callsign-<track>`` for
+    the others; without one, the track id (a label a map can show, unlike the uid)."""
+    callsign = getattr(cot, "callsign", None)
+    if callsign:
+        return callsign if track_id == schemas.DEFAULT_EMITTER_ID else f"{callsign}-{track_id}"
+    return track_id
+
+
+def track_cot(body: dict, track: dict, cot=None) -> str | None:
+    """One track as a CoT 2.0 track event (how m-p, course and speed, :func:`track_callsign`); None in a flat
+    local frame. ``time`` and ``start`` are the session's ``updated_at``."""
+    from xml.sax.saxutils import quoteattr
+
+    from service import renderings
+
+    if track["position"] is None:
+        return None
+    covariance = np.asarray(track["covariance_enu"], dtype=float)[:3, :3]
+    course, speed = _course(track["velocity_enu_mps"])
+    _, axes = renderings._ellipse_enu(covariance)
+    start = datetime.fromisoformat(body["updated_at"].replace("Z", "+00:00"))
+    detail = (f'<track course="{renderings._decimal(course, 2)}" speed="{renderings._decimal(speed, 3)}"/>'
+              f'<passive_locator session={quoteattr(body["id"])} model={quoteattr(body["model"])} '
+              f'status={quoteattr(track["status"])} version="{body["version"]}" updates="{track["updates"]}"/>')
+    return renderings._event(track_uid(body["id"], track["id"], cot),
+                             cot.type if cot is not None else renderings.DEFAULT_TYPE, renderings.HOW_TRACK, start,
+                             cot.stale_s if cot is not None else renderings.DEFAULT_STALE_S, track["position"],
+                             covariance, axes, detail, track_callsign(track["id"], cot))
+
+
+def ended_cot(session_id: str, track_id: str, cot=None, now: datetime | None = None) -> str:
+    """A CoT delete event (type ``t-x-d-d``, a link to the track's uid, ``__forcedelete``): the track ended."""
+    from xml.sax.saxutils import quoteattr
+
+    from service.renderings import DEFAULT_TYPE, utc_timestamp
+
+    start = now or datetime.now(timezone.utc)
+    stamp = utc_timestamp(start)
+    return (f'<event version="2.0" uid="{uuid.uuid4()}" type="t-x-d-d" how="h-g-i-g-o" time="{stamp}" '
+            f'start="{stamp}" stale="{utc_timestamp(start + timedelta(seconds=20))}">'
+            '<point lat="0" lon="0" hae="0" ce="9999999" le="9999999"/>'
+            f'<detail><link uid={quoteattr(track_uid(session_id, track_id, cot))} relation="none" '
+            f'type={quoteattr(cot.type if cot is not None else DEFAULT_TYPE)}/><__forcedelete/></detail></event>')
+
+
+#: A track's course line in GeoJSON: where it goes in this many seconds at its velocity.
+COURSE_LINE_S = 60.0
+
+
+def _course_line(position: dict, velocity_enu_mps) -> dict | None:
+    """A LineString from a track's point along its horizontal velocity for :data:`COURSE_LINE_S` (the end placed
+    in the point's tangent plane, converted exactly); None when it would cross the antimeridian."""
+    from service.renderings import _lon180
+
+    step = np.array([velocity_enu_mps[0], velocity_enu_mps[1], 0.0]) * COURSE_LINE_S
+    lat, lon, _ = geodesy.enu_to_geodetic(step, math.radians(position["lat_deg"]),
+                                            math.radians(position["lon_deg"]), position["alt_m"])
+    start = [_lon180(position["lon_deg"]), position["lat_deg"]]
+    end = [_lon180(math.degrees(float(lon))), math.degrees(float(lat))]
+    if abs(end[0] - start[0]) > 180.0:
+        return None
+    return {"type": "LineString", "coordinates": [start, end]}
+
+
+def geojson(body: dict, cot=None) -> dict:
+    """Every track's point (id, status, course, speed, time), its 95 % ellipse and its course line (where it
+    goes in :data:`COURSE_LINE_S` at its velocity), as one FeatureCollection."""
+    from service import renderings
+
+    features = []
+    for track in body["tracks"]:
+        if track["position"] is None:
+            continue
+        covariance = np.asarray(track["covariance_enu"], dtype=float)[:3, :3]
+        course, speed = _course(track["velocity_enu_mps"])
+        properties = {"kind": "track", "id": track["id"], "session": body["id"],
+                      "uid": track_uid(body["id"], track["id"], cot), "status": track["status"],
+                      "time_s": track["time_s"], "time": body["updated_at"], "course_deg": course,
+                      "speed_mps": speed, "version": body["version"]}
+        features.extend(renderings._features(track["position"], covariance, properties))
+        line = _course_line(track["position"], track["velocity_enu_mps"])
+        if line is not None:
+            features.append({"type": "Feature", "geometry": line,
+                             "properties": {"kind": "course", "id": track["id"], "course_deg": course,
+                                            "speed_mps": speed, "seconds": COURSE_LINE_S}})
+    return {"type": "FeatureCollection", "features": features}
+
+
+def rendered_state(record: SessionRecord, formats=(), at_time_s: float | None = None) -> dict:
+    """:func:`state_body` with the renderings ``formats`` asks for (``"cot"``, ``"geojson"``)."""
+    from service.sessions import cot_options
+
+    body = state_body(record, at_time_s)
+    cot = cot_options(record)
+    if "cot" in formats:
+        for track in body["tracks"]:
+            track["cot"] = track_cot(body, track, cot)
+    if "geojson" in formats:
+        body["geojson"] = geojson(body, cot)
+    return body
+
+
+def tak_events(record: SessionRecord, body: dict, ended: list[dict]) -> list[str]:
+    """The TAK feed's events of a post: one CoT track event per track, and a delete event per ended track."""
+    from service.sessions import cot_options
+
+    cot = cot_options(record)
+    events = [event for track in body["tracks"] if (event := track_cot(body, track, cot)) is not None]
+    if record.config["request"]["frame"] == "wgs84" or record.config["origin"] is not None:
+        events += [ended_cot(record.id, e["id"], cot) for e in ended]
+    return events
+
+
+# -- evaluation: the tracker on a simulated scene against the posterior CRLB --------------------------------------
+
+#: Cost units (:mod:`service.limits`) per scalar measurement of a network evaluation's trial: what a filter
+#: step and the bound's recursion take, as measured on the three scenes.
+NETWORK_EVALUATION_UNITS_PER_ROW = 3
+
+
+def network_evaluation_cost(spec: schemas.NetworkEvaluationSpec) -> int:
+    """``trials x the scene's scalar measurements x`` :data:`NETWORK_EVALUATION_UNITS_PER_ROW`."""
+    from core.simulation.network import SCENES, report_schedule
+
+    scene = SCENES[spec.scene]()
+    rows = sum(2 if scene.stations[i].measures == "bearing" else 1
+               for _, members in report_schedule(scene) for i in members)
+    return spec.trials * rows * NETWORK_EVALUATION_UNITS_PER_ROW
+
+
+def check_network_evaluation(spec: schemas.NetworkEvaluationSpec, limit: int) -> None:
+    """422 ``over_limit`` (at ``network.trials``) when the evaluation costs more than ``limit``."""
+    from service.limits import over_limit
+
+    cost = network_evaluation_cost(spec)
+    if cost > limit:
+        raise over_limit("max_evaluation_cost", cost, limit, ["network", "trials"],
+                         f"{spec.trials} trials of the {spec.scene} scene")
+
+
+def network_evaluation(spec: schemas.NetworkEvaluationSpec):
+    """Run core's Monte Carlo of a network scene (:func:`core.simulation.network.evaluate_network`) with the
+    request's tracker settings over the scene's."""
+    from core.simulation.network import SCENES, evaluate_network
+
+    scene = SCENES[spec.scene]()
+    config = scene.config
+    changes = {}
+    if spec.process_noise is not None:
+        noise = spec.process_noise
+        changes.update(accel_sigma_mps2=noise.accel_sigma_mps2,
+                       imm_accel_sigmas_mps2=tuple(noise.imm_accel_sigmas_mps2 or ()),
+                       imm_mean_sojourn_s=noise.imm_mean_sojourn_s,
+                       vertical_accel_sigma_mps2=noise.vertical_accel_sigma_mps2)
+    if spec.reorder_window_s is not None:
+        changes["reorder_window_s"] = spec.reorder_window_s
+    if changes:
+        try:
+            config = replace(config, **changes)
+        except LocalizationError as error:
+            raise _problem(422, error.code, error.message, ("network", *api_loc(error.loc or ()))) from error
+    return evaluate_network(scene, spec.trials, spec.seed, config)
+
+
+def _finite_list(values) -> list:
+    return [float(v) if math.isfinite(v) else None for v in np.asarray(values, dtype=float).tolist()]
+
+
+def _finite(value) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def network_evaluation_body(spec: schemas.NetworkEvaluationSpec) -> dict:
+    """The response body of a network evaluation (``NetworkEvaluationResponse``)."""
+    result = network_evaluation(spec)
+    return {
+        "scene": spec.scene, "trials": spec.trials, "seed": spec.seed,
+        "converged_after_s": float(result.converged_after_s), "rmse_over_pcrb": _finite(result.rmse_over_pcrb),
+        "nees_after": _finite(result.nees_after), "nees_interval_99": [float(v) for v in result.nees_interval_99],
+        "late_reports": int(result.late_reports),
+        "epochs": {"time_s": [float(t) for t in result.times_s],
+                   "rmse_position_m": _finite_list(result.rmse_position_m),
+                   "pcrb_position_m": _finite_list(result.pcrb_position_m),
+                   "rmse_velocity_mps": _finite_list(result.rmse_velocity_mps),
+                   "pcrb_velocity_mps": _finite_list(result.pcrb_velocity_mps),
+                   "nees_position": _finite_list(result.nees_position),
+                   "nees_state": _finite_list(result.nees_state),
+                   "tracked_fraction": _finite_list(result.tracked_fraction),
+                   "confirmed_fraction": _finite_list(result.confirmed_fraction)},
+    }
