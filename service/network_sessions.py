@@ -249,7 +249,7 @@ class ReportsChange:
         not a network session.
     """
 
-    def __init__(self, batch: schemas.ReportBatch, if_match: str | None, clock: Callable[[], float]):
+    def __init__(self, batch: schemas.ReportBatch, if_match: tuple[str, ...] | None, clock: Callable[[], float]):
         self.batch, self.if_match, self.clock = batch, if_match, clock
         self.applied = self.duplicates = self.late = 0
         self.ended: list[dict] = []
@@ -277,7 +277,7 @@ class ReportsChange:
                                                       "epochs to /measurements")
         if self.if_match is not None and not if_match_accepts(self.if_match, record.version):
             raise _problem(412, "precondition_failed",
-                           f"If-Match {self.if_match} is stale: the session is at version {etag(record)}")
+                           f"If-Match {', '.join(self.if_match)} is stale: the session is at version {etag(record)}")
         reports = self.batch.reports
         first_new = 0
         if record.last_seq is not None:

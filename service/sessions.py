@@ -193,13 +193,10 @@ def etag(record: SessionRecord) -> str:
     return f'"{record.version}"'
 
 
-def if_match_accepts(header: str, version: int) -> bool:
-    """Whether an ``If-Match`` value names this version (``*`` names any; weak tags never match)."""
-    for tag in header.split(","):
-        tag = tag.strip()
-        if tag == "*" or tag == f'"{version}"' or tag == str(version):
-            return True
-    return False
+def if_match_accepts(tags: tuple[str, ...], version: int) -> bool:
+    """Whether ``If-Match``'s entity tags (as :func:`service.headers.parse_if_match` gives them) name this
+    version (``*`` names any; weak tags never match)."""
+    return "*" in tags or f'"{version}"' in tags
 
 
 def encode_cursor(session_id: str) -> str:
@@ -297,7 +294,8 @@ class MeasurementsChange:
         When ``should_stop`` (of :meth:`prepare`) said so.
     """
 
-    def __init__(self, batch: schemas.MeasurementBatch, if_match: str | None, clock: Callable[[], float]):
+    def __init__(self, batch: schemas.MeasurementBatch, if_match: tuple[str, ...] | None,
+                 clock: Callable[[], float]):
         self.batch, self.if_match, self.clock = batch, if_match, clock
         self.applied = self.duplicates = 0
         self._prepared: tuple | None = None
@@ -322,7 +320,7 @@ class MeasurementsChange:
                                                       "to /reports")
         if if_match is not None and not if_match_accepts(if_match, record.version):
             raise _problem(412, "precondition_failed",
-                           f"If-Match {if_match} is stale: the session is at version {etag(record)}")
+                           f"If-Match {', '.join(if_match)} is stale: the session is at version {etag(record)}")
         first_new = 0
         if record.last_seq is not None:
             while first_new < len(batch.measurements) and batch.measurements[first_new].seq <= record.last_seq:

@@ -31,6 +31,10 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 
 _ETAG = {"ETag": {"description": "the session's version, quoted: send it back in If-Match",
                   "schema": {"type": "string"}}}
+#: If-Match as the OpenAPI document declares it; a route reads the tags the middleware parsed
+#: (:func:`service.headers.parse_if_match`), not this raw value.
+IfMatchDoc = Annotated[str | None, Header(alias="If-Match", description='"<version>" from an ETag: apply only if '
+                                                                        "the session is still at it")]
 _NOT_FOUND = {404: {"model": Problem, "description": "no such session for this key (or it expired)"}}
 _INVALID = {422: {"model": Problem, "description": "invalid values, with the field path"}}
 _UNAVAILABLE = {503: {"model": Problem, "description": "the session store is unavailable, too slow, or could not "
@@ -120,10 +124,9 @@ async def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
                         412: {"model": Problem, "description": "If-Match is stale"}, **_INVALID, **_UNAVAILABLE})
 async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, owner: OwnerDep, store: StoreDep,
                       request: Request,
-                      if_match: Annotated[str | None, Header(description='"<version>" from an ETag: apply only '
-                                                                         "if the session is still at it")] = None,
+                      if_match: IfMatchDoc = None,
                       ) -> JsonResponse:
-    change = sessions.MeasurementsChange(batch, if_match, store.now)
+    change = sessions.MeasurementsChange(batch, parsed_headers(request).if_match, store.now)
     record = None
     if len(batch.measurements) > sessions.INLINE_EPOCHS:
         record = await store.run(sessions.get, owner, session_id)
@@ -156,10 +159,9 @@ async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, ow
                         **_UNAVAILABLE})
 async def post_reports(session_id: str, batch: schemas.ReportBatch, owner: OwnerDep, store: StoreDep,
                        request: Request,
-                       if_match: Annotated[str | None, Header(description='"<version>" from an ETag: apply only '
-                                                                          "if the session is still at it")] = None,
+                       if_match: IfMatchDoc = None,
                        ) -> JsonResponse:
-    change = network_sessions.ReportsChange(batch, if_match, store.now)
+    change = network_sessions.ReportsChange(batch, parsed_headers(request).if_match, store.now)
     record = None
     if len(batch.reports) > sessions.INLINE_EPOCHS:
         record = await store.run(sessions.get, owner, session_id)
