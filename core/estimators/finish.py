@@ -6,6 +6,13 @@ studentized residuals (leverage-corrected, so the largest names a gross
 error's culprit) and the conditioning and geometry warnings, and returns a
 :class:`~core.estimators.result.FixBatch`. Every method, and a single fix
 (a batch of one), goes through here.
+
+The chi-square, p-value and studentized residuals judge the measurements, not
+the method: they are those of the residuals the ML fit of the used
+measurements leaves (:func:`_ml_residuals`), whatever estimate a method
+returned. A closed form's own residuals also carry its distance from that fit,
+which a chi-square on ``m - n`` dof and the ML leverage do not allow for. The
+reported residuals stay those at the method's estimate.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ from core.estimators.loss import loss_code, loss_point
 from core.estimators.result import Estimates, FixBatch, FixWarning
 from core.measurements import (AZIMUTH, ELEVATION, KIND_NAMES, RANGE, SPEED_OF_LIGHT_MPS, TOA, ahead_point,
                                measure_point, toa_offset_point, toa_spacing_s)
+from core.problem import onto_altitude_point
 from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
@@ -289,6 +297,120 @@ def _singular_reason(batch: ProblemBatch, b: int, position_enu_m, min_eigenvalue
 
 
 
+#: A fit whose residuals are judged lies farther than this (squared Mahalanobis distance, its own information)
+#: from the ML fit one Gauss-Newton step points to: the step's linearisation is then refined by further steps.
+REFINE_MAHALANOBIS2 = 1.0
+#: ... at most this many.
+REFINE_STEPS = 20
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _gauss_newton_step(residual, local, params, weights, gradient, step):
+    """``step`` ``(4,)`` = ``params local W residual`` (``gradient`` ``(4,)``: ``local W residual``); returns
+    ``step . gradient``, the chi-square the step removes to first order (its squared Mahalanobis length)."""
+    width = residual.size
+    for i in range(4):
+        g = 0.0
+        for m in range(width):
+            g += local[i, m] * weights[m] * residual[m]
+        gradient[i] = g
+    removed = 0.0
+    for i in range(4):
+        total = 0.0
+        for j in range(4):
+            total += params[i, j] * gradient[j]
+        step[i] = total
+        removed += total * gradient[i]
+    return removed
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _residuals_at(x, bias, stations, rotations, kinds, model_values, weights, count, residual, jacobian):
+    """Residuals ``(M,)`` (model units, angles wrapped; 0 past ``count``) and Jacobian ``(4, M)`` at ``x``;
+    returns their chi-square."""
+    chi2 = 0.0
+    for m in range(kinds.size):
+        predicted, jacobian[0, m], jacobian[1, m], jacobian[2, m], jacobian[3, m] = measure_point(
+            x[0], x[1], x[2], bias, stations, rotations, m, kinds[m])
+        if m >= count:
+            residual[m] = 0.0
+            continue
+        r = model_values[m] - predicted
+        if kinds[m] == AZIMUTH or kinds[m] == ELEVATION:
+            r = wrap_point(r)
+        residual[m] = r
+        chi2 += weights[m] * r * r
+    return chi2
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _ml_residuals(position, bias, stations, rotations, kinds, model_values, weights, count, altitude_m, has_toa,
+                  geodetic, origin_ecef_m, origin_rotation, local, params, residual, step, gradient, point,
+                  jacobian_fit, local_fit, information_fit, params_fit, position_fit, axes_fit, free, work, vectors):
+    """The residuals the ML fit of a problem's measurements leaves, to first order from an estimate.
+
+    On entry ``residual`` ``(M,)`` holds the residuals at ``position`` and ``local`` / ``params`` the whitened
+    Jacobian and inverse information there. ``step`` ``(4,)`` becomes the Gauss-Newton step to the ML fit, so
+    that ``residual - local^T step`` are its residuals (exact for a linear model). When that step is longer than
+    ``REFINE_MAHALANOBIS2`` (an inefficient closed form, an unfinished iteration), its linearisation is not
+    trusted: Gauss-Newton steps are taken from ``position`` while they lower the chi-square (at most
+    ``REFINE_STEPS``), and ``residual``, ``step``, and ``local_fit`` / ``params_fit`` (then returned True) are
+    those at the last point. The rest: scratch.
+    """
+    removed = _gauss_newton_step(residual, local, params, weights, gradient, step)
+    if not removed > REFINE_MAHALANOBIS2:
+        return False
+    constrained = not math.isnan(altitude_m)
+    for i in range(3):
+        point[i] = position[i]
+    current = 0.0
+    for m in range(count):
+        current += weights[m] * residual[m] * residual[m]
+    moved = False
+    trial = np.empty(3)
+    trial_residual = np.empty(residual.size)
+    for _ in range(REFINE_STEPS):
+        if moved:
+            parameters_point(point, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, axes_fit, free)
+        else:
+            parameters_point(position, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, axes_fit, free)
+        for j in range(3):
+            if constrained:
+                trial[j] = point[j] + step[0] * axes_fit[0, j] + step[1] * axes_fit[1, j]
+            else:
+                trial[j] = point[j] + step[j]
+        if constrained:
+            onto_altitude_point(trial, altitude_m, geodetic, origin_ecef_m, origin_rotation)
+        trial_bias = bias + step[3]
+        chi2 = _residuals_at(trial, trial_bias, stations, rotations, kinds, model_values, weights, count,
+                             trial_residual, jacobian_fit)
+        if not chi2 < current:
+            break
+        moved = True
+        current, bias = chi2, trial_bias
+        for j in range(3):
+            point[j] = trial[j]
+        for m in range(residual.size):
+            residual[m] = trial_residual[m]
+        parameters_point(point, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, axes_fit, free)
+        normal_point(jacobian_fit, weights, axes_fit, constrained, free, local_fit, information_fit)
+        if not invert_point(information_fit, axes_fit, constrained, free, params_fit, position_fit, work,
+                            vectors) > OBSERVABILITY_THRESHOLD:
+            break
+        if not _gauss_newton_step(residual, local_fit, params_fit, weights, gradient, step) > 1e-12:
+            break
+    if not moved:
+        return False
+    # The step from the last point (``local_fit``/``params_fit`` there, unless its inversion failed: then none).
+    if not invert_point(information_fit, axes_fit, constrained, free, params_fit, position_fit, work,
+                        vectors) > OBSERVABILITY_THRESHOLD:
+        for i in range(4):
+            step[i] = 0.0
+    else:
+        _gauss_newton_step(residual, local_fit, params_fit, weights, gradient, step)
+    return True
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
                    n_measurements, valid, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2,
@@ -314,6 +436,9 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
     information, params, work, vectors = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
     bread, meat = np.empty((4, 4)), np.empty((4, 4))
     bread_weights, meat_weights = np.empty(width), np.empty(width)
+    model_residual, whitened, gradient, step = np.empty(width), np.empty(width), np.empty(4), np.empty(4)
+    fitted_residual, point, jacobian_fit, local_fit = np.empty(width), np.empty(3), np.empty((4, width)), np.empty((4, width))
+    information_fit, params_fit, position_fit, axes_fit = np.empty((4, 4)), np.empty((4, 4)), np.empty((3, 3)), np.empty((3, 3))
     for b in range(size):
         p = positions_enu_m[b]
         east, north, up = p[0], p[1], p[2]
@@ -326,6 +451,7 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
         bias = bias_in_m[b] if has_bias else toa_offset_point(east, north, up, stations_enu_m[b], kinds[b],
                                                                model_values, weights)
         for m in range(width):
+            model_residual[m] = 0.0
             kind = kinds[b, m]
             predicted, jacobian[0, m], jacobian[1, m], jacobian[2, m], jacobian[3, m] = measure_point(
                 east, north, up, bias, stations_b, rotations_b, m, kind)
@@ -335,17 +461,39 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
             r = model_values[m] - predicted
             if kind == AZIMUTH or kind == ELEVATION:
                 r = wrap_point(r)
+            model_residual[m] = r
             raw[b, m] = r / unit
             sigma = sigmas[b, m]
             if math.isfinite(sigma):
                 normalized[b, m] = raw[b, m] / sigma
                 if valid[b, m]:
-                    chi2[b] += normalized[b, m] ** 2
                     known_count[b] += 1
         constrained = parameters_point(p, altitude_m[b], has_toa[b], geodetic[b], origin_ecef_m[b],
                                        origin_rotation[b], axes, free)
         normal_point(jacobian, weights, axes, constrained, free, local, information)
         smallest[b] = invert_point(information, axes, constrained, free, params, crlb[b], work, vectors)
+        # The verdicts judge the residuals the ML fit of these measurements leaves: a closed form's (or an
+        # unfinished iteration's) residuals also carry its own distance from that fit, which no chi-square on
+        # m - n dof allows for (:func:`_ml_residuals`). A robust loss judges its own residuals (its weights
+        # are the verdict).
+        hat_local, hat_params = local, params
+        for m in range(width):
+            fitted_residual[m] = model_residual[m]
+        for i in range(4):
+            step[i] = 0.0
+        if loss < 0 and smallest[b] > OBSERVABILITY_THRESHOLD:
+            if _ml_residuals(p, bias, stations_b, rotations_b, kinds[b], model_values, weights, n_measurements[b],
+                             altitude_m[b], has_toa[b], geodetic[b], origin_ecef_m[b], origin_rotation[b],
+                             local, params, fitted_residual, step, gradient, point, jacobian_fit, local_fit,
+                             information_fit, params_fit, position_fit, axes_fit, free, work, vectors):
+                hat_local, hat_params = local_fit, params_fit
+        chi2[b] = 0.0
+        for m in range(width):
+            fitted = fitted_residual[m]
+            for i in range(4):
+                fitted -= hat_local[i, m] * step[i]
+            whitened[m] = fitted * math.sqrt(weights[m])
+            chi2[b] += whitened[m] ** 2
         reach2 = 0.0
         for m in range(n_measurements[b]):
             dx, dy, dz = east - stations_b[m, 0], north - stations_b[m, 1], up - stations_b[m, 2]
@@ -359,10 +507,10 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
             leverage = 0.0
             for i in range(4):
                 for j in range(4):
-                    leverage += local[i, m] * params[i, j] * local[j, m]
+                    leverage += hat_local[i, m] * hat_params[i, j] * hat_local[j, m]
             leverage *= weights[m]
             room = 1.0 - leverage
-            studentized[b, m] = normalized[b, m] / math.sqrt(room if not room < 1e-12 else 1e-12)
+            studentized[b, m] = whitened[m] / math.sqrt(room if not room < 1e-12 else 1e-12)
             if loss >= 0:
                 rho, robust_factor[b, m], _ = loss_point(normalized[b, m] ** 2, loss, c2)
                 robust_cost[b] += rho

@@ -183,8 +183,10 @@ class FixBatch:
     residuals, normalized_residuals : ndarray, shape (B, M)
         Problem units; zero on padding.
     studentized_residuals : ndarray, shape (B, M)
-        Normalized residuals over their own standard deviation (leverage-corrected); zero where unused.
+        The normalized residuals of the ML fit of the used measurements over their own standard deviation
+        (leverage-corrected); zero where unused.
     chi2 : ndarray, shape (B,)
+        Chi-square of the residuals of that ML fit (whatever the method: what ``dof`` counts).
     dof : ndarray of int, shape (B,)
     p_value, sigma_scale : ndarray, shape (B,)
         NaN where ``dof`` is 0 (None in a :class:`Fix`).
