@@ -37,6 +37,12 @@ from core.problem_batch import ProblemBatch
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
 OUTLIER_SIGMAS = 4.0
+#: A detected fault is isolated (its measurement named) only with two degrees of freedom or more and where the
+#: largest studentized residual exceeds every other request measurement's by more than this many standard
+#: deviations of their difference (``2 (1 -+ rho)``, ``rho`` their correlation): were the other one the fault,
+#: so large a lead would happen with probability below ``norm.sf`` of it (0.1 %). RAIM's isolation: with one
+#: degree of freedom every studentized residual is as large, and none can be told from another.
+ISOLATION_SIGMAS = 3.09
 #: Chi-square p-value below which the stated sigmas are reported as too small.
 SIGMA_MISMATCH_P = 1e-3
 #: Lines of sight closer than this to parallel (rad) make a fix collinear.
@@ -56,7 +62,7 @@ RUNAWAY_SIGMA_RATIO = 1e6
 # :func:`_coarse_toas`); RUNAWAY makes the fix an error, and so does SINGULAR where the covariance is the
 # inverse information.
 (ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY, COARSE_TOA, SINGULAR,
- NOT_CONVERGED) = (1 << k for k in range(12))
+ NOT_CONVERGED, NOT_ISOLABLE) = (1 << k for k in range(13))
 
 
 def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None) -> FixBatch:
@@ -99,7 +105,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
     (raw, normalized, studentized, chi2, crlb, covariance, min_eigenvalue, robust_factor, behind, zenith, spread, dof,
-     p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags) = _fix_kernel(
+     p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags, isolated) = _fix_kernel(
         position, np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
         bias is not None, np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
         np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.values, dtype=float),
@@ -107,7 +113,8 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         np.ascontiguousarray(valid), np.ascontiguousarray(excluded), np.asarray(batch.altitude_m, dtype=float),
         np.asarray(batch.has_toa, dtype=np.bool_), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
         origin_rotation, -1 if loss is None else loss_code(loss[0]), 1.0 if loss is None else float(loss[1]) ** 2,
-        is_line, elevation, np.ascontiguousarray(converged, dtype=np.bool_))
+        is_line, elevation, np.ascontiguousarray(converged, dtype=np.bool_),
+        np.ascontiguousarray(batch.source_index, dtype=np.int64))
     p_value = chdtrc(p_dof, chi2)
     if loss is None:
         robust_factor = None
@@ -176,12 +183,9 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
             found.append(FixWarning("azimuth_undefined",
                                     f"the fix is at the zenith of {_station_list(batch, b, zenith[b])}"))
         if bits & OUTLIER:
-            w = worst_of[j]
-            station = batch.station_ids[b][batch.station_index[b, w]]
-            found.append(FixWarning(
-                "outlier_suspected",
-                f"measurement {batch.source_index[b, w]} ({KIND_NAMES[batch.kinds[b, w]]} at "
-                f"{station}) has a studentized residual of {worst_value_of[j]:.1f}"))
+            found.append(outlier_warning(batch, b, worst_of[j], worst_value_of[j]))
+        if bits & NOT_ISOLABLE:
+            found.append(not_isolable_warning(chi2_of[j], dof_of[j], worst_value_of[j]))
         if mismatch_of[j]:
             found.append(FixWarning(
                 "sigma_mismatch",
@@ -231,7 +235,26 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         used=valid,
         excluded=excluded,
         gdop=gdop,
+        isolated=isolated,
     )
+
+
+def outlier_warning(batch: ProblemBatch, b: int, m: int, studentized: float) -> FixWarning:
+    """The ``outlier_suspected`` warning naming measurement ``m`` of problem ``b``."""
+    station = batch.station_ids[b][batch.station_index[b, m]]
+    return FixWarning("outlier_suspected", f"measurement {batch.source_index[b, m]} ({KIND_NAMES[batch.kinds[b, m]]} "
+                                           f"at {station}) has a studentized residual of {studentized:.1f}")
+
+
+def not_isolable_warning(chi2: float, dof: int, largest: float) -> FixWarning:
+    """The ``fault_detected_not_isolable`` warning: the measurements hold a fault, and no single one can be
+    named as it (the studentized residuals, largest ``largest``, do not single one out on ``dof`` dof)."""
+    return FixWarning(
+        "fault_detected_not_isolable",
+        f"the measurements are inconsistent (chi2 = {chi2:.1f} on {dof} dof, largest studentized residual "
+        f"{abs(largest):.1f}) but no single measurement can be blamed: leaving out one or another explains them "
+        "about as well" + (" (one degree of freedom cannot isolate a fault)" if dof < 2 else "")
+        + "; add measurements, or check each")
 
 
 @functools.lru_cache(maxsize=1024)
@@ -412,9 +435,37 @@ def _ml_residuals(position, bias, stations, rotations, kinds, model_values, weig
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _separation(studentized, room, weights, local, params, source_index, count, valid, sigmas):
+    """How far one problem's largest studentized residual stands out: the least, over the other request
+    measurements ``j``, of ``(|t_w| - |t_j|) / sd(t_w -+ t_j)``, the sd ``sqrt(2 (1 -+ rho_wj))`` from their
+    correlation ``rho_wj = -H_wj / sqrt((1 - h_w)(1 - h_j))`` (``H`` the hat matrix of ``local`` ``(4, M)`` and
+    ``params`` ``(4, 4)``; ``room`` ``(M,)``: ``1 - h``). Infinite where no other measurement is judged; 0 with
+    one degree of freedom, where every ``|t|`` is the same."""
+    worst, largest = -1, -1.0
+    for m in range(count):
+        if valid[m] and math.isfinite(sigmas[m]) and abs(studentized[m]) > largest:
+            worst, largest = m, abs(studentized[m])
+    if worst < 0:
+        return np.inf
+    least = np.inf
+    for j in range(count):
+        if j == worst or not (valid[j] and math.isfinite(sigmas[j])) or source_index[j] == source_index[worst]:
+            continue
+        cross = 0.0
+        for i in range(4):
+            for k in range(4):
+                cross += local[i, worst] * params[i, k] * local[k, j]
+        rho = -cross * math.sqrt(weights[worst] * weights[j]) / math.sqrt(room[worst] * room[j])
+        sign = 1.0 if studentized[worst] * studentized[j] >= 0.0 else -1.0
+        spread = math.sqrt(max(2.0 * (1.0 - sign * rho), 1e-12))
+        least = min(least, (largest - abs(studentized[j])) / spread)
+    return least
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
                    n_measurements, valid, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2,
-                   is_line, elevation_rad):
+                   is_line, elevation_rad, source_index):
     """The numbers of :func:`finish`, each problem on its own: residuals (problem units), normalized and
     studentized residuals, chi-square and the count of measurements in it, the CRLB, the covariance (the
     CRLB, or with a robust ``loss`` (code, ``-1`` for none) the sandwich of its weights), the smallest
@@ -429,6 +480,7 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
     sigma_ref, spread = np.empty(size), np.full(size, np.pi / 2)
     behind, zenith = np.zeros((size, width), dtype=np.bool_), np.zeros((size, width), dtype=np.bool_)
     runaway = np.zeros(size, dtype=np.bool_)
+    separation, room = np.full(size, np.inf), np.ones(width)
     weights, model_values = np.empty(width), np.empty(width)
     jacobian, local = np.empty((4, width)), np.empty((4, width))
     seen = np.empty((width, 3))
@@ -509,11 +561,13 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
                 for j in range(4):
                     leverage += hat_local[i, m] * hat_params[i, j] * hat_local[j, m]
             leverage *= weights[m]
-            room = 1.0 - leverage
-            studentized[b, m] = whitened[m] / math.sqrt(room if not room < 1e-12 else 1e-12)
+            room[m] = max(1.0 - leverage, 1e-12) if not math.isnan(leverage) else 1e-12
+            studentized[b, m] = whitened[m] / math.sqrt(room[m])
             if loss >= 0:
                 rho, robust_factor[b, m], _ = loss_point(normalized[b, m] ** 2, loss, c2)
                 robust_cost[b] += rho
+        separation[b] = _separation(studentized[b], room, weights, hat_local, hat_params, source_index[b],
+                                    n_measurements[b], valid[b], sigmas[b])
         if loss >= 0:
             for m in range(width):
                 bread_weights[m] = weights[m] * robust_factor[b, m]
@@ -544,12 +598,13 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
                         cosine = min(cosine, dot)
             spread[b] = math.acos(cosine)
     return (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
-            sigma_ref, behind, zenith, spread, runaway)
+            sigma_ref, behind, zenith, spread, runaway, separation)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith,
-                     runaway, is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, robust, converged):
+                     runaway, is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, robust, converged,
+                     separation):
     """Per problem, from :func:`_finish_kernel`'s numbers: the degrees of freedom, the plain and the reported
     sigma scale (NaN without dof), the measurement with the largest ``|studentized|`` (numpy's ``argmax``:
     the first NaN, else the first largest) and its value, and the verdict bits (``ILL`` ...; ``converged``
@@ -558,6 +613,7 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
     dof, worst = np.empty(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
     plain_scale, sigma_scale = np.full(size, np.nan), np.full(size, np.nan)
     worst_value, flags = np.empty(size), np.zeros(size, dtype=np.int64)
+    isolated = np.zeros(size, dtype=np.bool_)
     for b in range(size):
         dof[b] = known_count[b] - (3 if math.isnan(altitude_m[b]) else 2) - (1 if has_toa[b] else 0)
         if dof[b] > 0:
@@ -576,8 +632,9 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
         bits |= RUNAWAY if runaway[b] else 0
         bits |= 0 if smallest[b] > OBSERVABILITY_THRESHOLD else SINGULAR
         bits |= 0 if converged[b] else NOT_CONVERGED
+        isolated[b] = dof[b] >= 2 and separation[b] > ISOLATION_SIGMAS
         if dof[b] > 0 and abs(worst_value[b]) > OUTLIER_SIGMAS:
-            bits |= OUTLIER
+            bits |= OUTLIER if isolated[b] else NOT_ISOLABLE
         lines = 0
         for m in range(width):  # valid and excluded measurements are present ones
             lines += 1 if is_line[b, m] else 0
@@ -590,25 +647,25 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
         if lines >= 2 and spread[b] < COLLINEAR_SPREAD_RAD:
             bits |= COLLINEAR
         flags[b] = bits
-    return dof, plain_scale, sigma_scale, worst, worst_value, flags
+    return dof, plain_scale, sigma_scale, worst, worst_value, flags, isolated
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
                 n_measurements, valid, excluded, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss,
-                c2, is_line, elevation_rad, converged):
+                c2, is_line, elevation_rad, converged, source_index):
     """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call: the residuals, chi-square, CRLB,
     covariance (made symmetric), smallest eigenvalue, loss factors and line-of-sight facts,
     then the degrees of freedom (also as floats, NaN where there are none: the p-value's), sigma scales, worst
     measurement, GDOP and verdict bits (``excluded`` ``(B, M)``: measurements outlier exclusion set aside;
     ``converged`` ``(B,)``: the estimator's)."""
     (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
-     sigma_ref, behind, zenith, spread, runaway) = _finish_kernel(
+     sigma_ref, behind, zenith, spread, runaway, separation) = _finish_kernel(
         positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas, n_measurements, valid,
-        altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2, is_line, elevation_rad)
-    dof, plain_scale, sigma_scale, worst, worst_value, flags = _verdicts_kernel(
+        altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2, is_line, elevation_rad, source_index)
+    dof, plain_scale, sigma_scale, worst, worst_value, flags, isolated = _verdicts_kernel(
         studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith, runaway,
-        is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0, converged)
+        is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0, converged, separation)
     size = dof.size
     p_dof, gdop = np.empty(size), np.empty(size)
     for b in range(size):
@@ -618,4 +675,4 @@ def _fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations,
             for j in range(i):
                 covariance[b, i, j] = covariance[b, j, i] = 0.5 * (covariance[b, i, j] + covariance[b, j, i])
     return (raw, normalized, studentized, chi2, crlb, covariance, smallest, robust_factor, behind, zenith, spread, dof,
-            p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags)
+            p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags, isolated)
