@@ -569,9 +569,14 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
         separation[b] = _separation(studentized[b], room, weights, hat_local, hat_params, source_index[b],
                                     n_measurements[b], valid[b], sigmas[b])
         if loss >= 0:
+            # The sandwich of the final weights rho': the meat holds each measurement's squared score
+            # rho'^2 z (z its squared whitened residual), but never less than a clean measurement of that weight
+            # adds on average (rho'^2, z averaging 1): a measurement the loss has bent keeps its pull on the fix
+            # (c^2 for huber, not the rho'^2 of a clean one, 1 / z of it), and a small residual is no proof of a
+            # small error.
             for m in range(width):
                 bread_weights[m] = weights[m] * robust_factor[b, m]
-                meat_weights[m] = weights[m] * robust_factor[b, m] ** 2
+                meat_weights[m] = weights[m] * robust_factor[b, m] ** 2 * max(normalized[b, m] ** 2, 1.0)
             sandwich_point(jacobian, bread_weights, meat_weights, axes, constrained, free, local, bread, meat,
                            params, work, vectors, covariance[b])
         else:
