@@ -289,6 +289,8 @@ def confirm_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: Fi
     the residuals' linear isolation misleads both ways (a fault that pulls the fix far along a poorly determined
     direction leaves its largest residual elsewhere, or leaves another as large); with many it holds, and report
     mode's price stays one solve."""
+    if not any(fixes.warnings):  # clean fixes, the usual case: nothing to confirm
+        return fixes
     flagged = np.array([any(w.code in ("outlier_suspected", "fault_detected_not_isolable") for w in warnings)
                         for warnings in fixes.warnings])
     small = batch.source_index.max(axis=-1, initial=0) < CONFIRM_MAX_SOURCES
