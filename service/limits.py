@@ -59,13 +59,10 @@ def over_limit(name: str, cost: int, limit: int, loc: list, what: str) -> ApiErr
 
 def exclusion_solves(exclude: bool, sources: int) -> int:
     """How many times a problem of ``sources`` request measurements may be solved: once, and with outlier
-    exclusion (``exclude``) then per exclusion (at most ``MAX_EXCLUSIONS``, and one fewer than ``sources``) a
-    refit of each candidate left (at most ``EXCLUSION_CANDIDATES``): the worst case."""
-    from core.estimators import EXCLUSION_CANDIDATES, MAX_EXCLUSIONS
+    exclusion (``exclude``) the budget exclusion keeps to (:func:`core.estimators.exclusion_solves`)."""
+    from core.estimators import exclusion_solves as budget
 
-    if not exclude:
-        return 1
-    return 1 + sum(min(EXCLUSION_CANDIDATES, sources - done) for done in range(min(MAX_EXCLUSIONS, sources - 1)))
+    return budget(sources) if exclude else 1
 
 
 def evaluation_cost(trials: int, methods, rows: int, exclude: bool = False, sources: int = 1) -> int:

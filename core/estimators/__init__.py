@@ -10,6 +10,7 @@ Importing this package registers every estimator module.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import math
 import os
@@ -19,8 +20,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from core.errors import InvalidInput, LocalizationError, UnobservableGeometry
+from core.errors import AmbiguousGeometry, InvalidInput, LocalizationError, UnobservableGeometry
 from core.estimators.base import REGISTRY, SolveOptions, get_estimator
+from core.estimators.finish import not_isolable_warning, outlier_warning
 from core.estimators.loss import LOSSES
 from core.estimators.result import Fix, FixBatch, FixWarning
 from core.measurements import AZIMUTH
@@ -171,6 +173,8 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, b
         fixes = spec.solve_batch(part, opts)
         if opts.outliers == "exclude":
             fixes = exclude_outliers(spec, part, opts, fixes, should_stop)
+        elif opts.loss == "linear":  # a robust loss's verdict is its weights (measurement_downweighted)
+            fixes = confirm_outliers(spec, part, opts, fixes)
         return fixes if opts.absolute_sigma else fixes.scaled_by_fit()
 
     parts = sum(len(item) == 3 for item in work)
@@ -198,6 +202,17 @@ EXCLUSION_P = 0.01
 MAX_EXCLUSIONS = 8
 #: Each exclusion tries leaving out at most this many request measurements (the most suspect): a refit each.
 EXCLUSION_CANDIDATES = 8
+#: ... and, where no single one explains the fault, each pair of at most this many (the most suspect).
+PAIR_CANDIDATES = 5
+#: Report mode confirms ``outlier_suspected`` by refits (:func:`confirm_outliers`) in problems of at most this
+#: many request measurements.
+CONFIRM_MAX_SOURCES = 16
+
+
+def exclusion_solves(sources: int) -> int:
+    """How many times exclusion may solve a problem of ``sources`` request measurements at most (its first
+    solve included): the budget :func:`exclude_outliers` keeps to, whatever the rounds cost."""
+    return 1 + sum(min(EXCLUSION_CANDIDATES, sources - done) for done in range(min(MAX_EXCLUSIONS, sources - 1)))
 
 
 def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: FixBatch, should_stop=None) -> FixBatch:
@@ -209,21 +224,43 @@ def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: Fi
     :data:`EXCLUSION_CANDIDATES` most suspect request measurements (largest
     studentized residual first; a bearing's azimuth and elevation together)
     is left out in turn and the problem solved again, all at once as one
-    batch. The exclusion whose converged refit, with a degree of freedom
-    left, has the highest p-value is made, and the test runs again on that
-    fit. This is the largest-studentized-residual rule computed exactly (for
-    a linear model, leaving a measurement out lowers chi-square by its
-    studentized residual squared); the refit also unmasks a gross error that
-    a nonlinear or robust fit absorbed, its own residual small. A problem no
-    exclusion helps keeps the fix it has. The covariance and CRLB are those
-    of the measurements used; every excluded one is named in a warning. ``should_stop`` is asked before
-    each round (True raises :class:`core.parallel.Stopped`).
+    batch (:func:`_isolations`). A measurement is excluded only where that
+    isolates it: its refit is the only one that passes the test (were
+    another measurement the fault, that one's refit would pass but for
+    ``EXCLUSION_P`` of the draws); where none passes (several faults), the
+    only pair of the most suspect whose exclusion passes is excluded. The
+    test then runs again on the refit, so that further faults are excluded
+    while the dof allow. The refits are the nonlinear form of the
+    largest-studentized-residual rule (for a linear model, leaving a
+    measurement out lowers chi-square by its studentized residual squared)
+    and also unmask a gross error that a nonlinear or robust fit absorbed.
+
+    RAIM's rule: a fault is detected with one degree of freedom but
+    isolated only with two or more; a fault detected and not isolable (one
+    dof, or several exclusions that explain it alike) names no one, keeps
+    its fix, and says so (``fault_detected_not_isolable``). The covariance
+    and CRLB are those of the measurements used; every excluded one is named
+    in a warning. ``should_stop`` is asked before each round (True raises
+    :class:`core.parallel.Stopped`).
     """
     used = batch.valid.copy()
     excluded = np.zeros_like(used)
     settled = np.zeros(batch.size, dtype=bool)
+    blameless = np.zeros(batch.size, dtype=bool)  # detected, not isolable
+    sizes, inverse = np.unique(batch.source_index.max(axis=-1, initial=0) + 1, return_inverse=True)
+    budget = np.array([exclusion_solves(int(n)) for n in sizes])[inverse] - 1  # refits left, per problem
     for _ in range(MAX_EXCLUSIONS):
+        # A round's single exclusions and the refit of its choice must fit in the budget (pairs: see below).
+        marked = np.concatenate([np.full((batch.size, 1), -1), np.where(used, batch.source_index, -1)], axis=-1)
+        left = np.count_nonzero(np.diff(np.sort(marked, axis=-1), axis=-1), axis=-1)  # request measurements used
+        broke = ~settled & (budget < np.minimum(EXCLUSION_CANDIDATES, left) + 1)
+        blameless |= broke & fixes.ok & (np.nan_to_num(fixes.p_value, nan=1.0) < EXCLUSION_P)
+        settled |= broke
         testing = ~settled & fixes.ok & (np.nan_to_num(fixes.p_value, nan=1.0) < EXCLUSION_P)
+        few = testing & (fixes.dof < 2)  # every exclusion fits exactly: nothing to tell them apart
+        blameless |= few
+        settled |= few
+        testing &= ~few
         for b, error in fixes.errors.items():
             testing[b] = not settled[b] and isinstance(error, UnobservableGeometry)
         rows = np.flatnonzero(testing)
@@ -231,44 +268,154 @@ def exclude_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: Fi
             break
         if should_stop is not None and should_stop():
             raise Stopped()
-        found, drops, refits = _best_exclusions(spec, batch, options, used, excluded, rows,
-                                                np.abs(fixes.studentized_residuals))
-        settled[rows[~found]] = True
-        keep = rows[found]
-        used[keep] &= ~drops
-        excluded[keep] |= drops
-        fixes = fixes.replace_rows(keep, refits)
-    return fixes
+        isolated, vague, drops, spent = _isolations(spec, batch, options, fixes, used, excluded, rows,
+                                                    budget=budget[rows] - 1)
+        budget[rows] -= spent + isolated
+        blameless[rows[vague]] = True
+        settled[rows[~isolated]] = True
+        keep = rows[isolated]
+        used[keep] &= ~drops[isolated]
+        excluded[keep] |= drops[isolated]
+        fixes = fixes.replace_rows(keep, _refits(spec, batch, options, keep, used[keep], excluded[keep])[1])
+    return _blameless(fixes, blameless)
 
 
-def _best_exclusions(spec, batch: ProblemBatch, options: SolveOptions, used, excluded, rows, suspicion):
-    """For each problem of ``rows``, the request measurement whose exclusion fits best (see
-    :func:`exclude_outliers`): the most suspect ones (by ``suspicion`` ``(B, M)``, NaN first) are left out in
-    turn, all solved as one batch.
+def confirm_outliers(spec, batch: ProblemBatch, options: SolveOptions, fixes: FixBatch) -> FixBatch:
+    """Report mode's isolation, by refits, of a fault its residuals detected (``outlier_suspected`` or
+    ``fault_detected_not_isolable``) where the fit fails the chi-square test, in problems of at most
+    :data:`CONFIRM_MAX_SOURCES` request measurements: the single exclusions of :func:`_isolations` name the
+    measurement (``outlier_suspected``) where exactly one of their refits passes and it is the one with the
+    largest studentized residual, else no one (``fault_detected_not_isolable``). With few degrees of freedom
+    the residuals' linear isolation misleads both ways (a fault that pulls the fix far along a poorly determined
+    direction leaves its largest residual elsewhere, or leaves another as large); with many it holds, and report
+    mode's price stays one solve."""
+    if not any(fixes.warnings):  # clean fixes, the usual case: nothing to confirm
+        return fixes
+    flagged = np.array([any(w.code in ("outlier_suspected", "fault_detected_not_isolable") for w in warnings)
+                        for warnings in fixes.warnings])
+    small = batch.source_index.max(axis=-1, initial=0) < CONFIRM_MAX_SOURCES
+    rows = np.flatnonzero(flagged & small & fixes.ok & (np.nan_to_num(fixes.p_value, nan=1.0) < EXCLUSION_P))
+    if rows.size == 0:
+        return fixes
+    isolated, _, drops, _ = _isolations(spec, batch, options, fixes, batch.valid, np.zeros_like(batch.valid), rows,
+                                        budget=np.zeros(rows.size, dtype=int))
+    studentized = fixes.studentized_residuals[rows]
+    worst = np.argmax(np.where(batch.valid[rows], np.abs(studentized), -1.0), axis=-1)
+    agrees = isolated & drops[np.arange(rows.size), worst] & (fixes.dof[rows] >= 2)
+    warnings = list(fixes.warnings)
+    for j, b in enumerate(rows.tolist()):
+        kept = tuple(w for w in warnings[b] if w.code not in ("outlier_suspected", "fault_detected_not_isolable"))
+        if agrees[j]:
+            warnings[b] = kept + (outlier_warning(batch, b, int(worst[j]), float(studentized[j, worst[j]])),)
+        else:
+            warnings[b] = kept + (not_isolable_warning(float(fixes.chi2[b]), int(fixes.dof[b]),
+                                                       float(np.abs(studentized[j, worst[j]]))),)
+    return dataclasses.replace(fixes, warnings=warnings)
+
+
+def _blameless(fixes: FixBatch, rows) -> FixBatch:
+    """The fixes with ``fault_detected_not_isolable`` added where ``rows`` ``(B,)`` (and no one named as an
+    outlier)."""
+    rows = rows & fixes.ok
+    if not np.count_nonzero(rows):
+        return fixes
+    warnings = list(fixes.warnings)
+    for b in np.flatnonzero(rows).tolist():
+        kept = tuple(w for w in warnings[b] if w.code != "outlier_suspected")
+        if not any(w.code == "fault_detected_not_isolable" for w in kept):
+            kept += (not_isolable_warning(float(fixes.chi2[b]), int(fixes.dof[b]),
+                                          float(np.max(np.abs(fixes.studentized_residuals[b])))),)
+        warnings[b] = kept
+    return dataclasses.replace(fixes, warnings=warnings)
+
+
+def _refits(spec, batch: ProblemBatch, options: SolveOptions, owners, used, excluded) -> tuple:
+    """Problems ``owners`` ``(C,)`` (rows of ``batch``) solved with the measurements ``used`` ``(C, M)``
+    (``excluded`` ``(C, M)``: those exclusion set aside); returns the subsets and their fixes."""
+    trials = batch.take(owners)
+    width = trials.kinds.shape[1]
+    trials = trials.with_used(used[:, :width])
+    return trials, spec.solve_batch(trials, options, excluded=excluded[:, :width])
+
+
+def _scores(trials: ProblemBatch, refits: FixBatch) -> np.ndarray:
+    """``(C,)``: each refit's p-value where it converged with a degree of freedom left (else -inf); a subset with
+    a degree of freedom that two points fit alike (``AmbiguousGeometry``) is consistent too, and scores 1."""
+    score = np.where(refits.ok & refits.converged & (trials.dof > 0), np.nan_to_num(refits.p_value, nan=-1.0),
+                     -np.inf)
+    for j, error in refits.errors.items():
+        if isinstance(error, AmbiguousGeometry) and trials.dof[j] > 0:
+            score[j] = 1.0
+    return score
+
+
+def _isolations(spec, batch: ProblemBatch, options: SolveOptions, fixes: FixBatch, used, excluded, rows, budget):
+    """Which measurements, if any, each problem of ``rows`` isolates as its fault (see :func:`exclude_outliers`).
+
+    Its :data:`EXCLUSION_CANDIDATES` most suspect request measurements (by ``|studentized|``, NaN first) are
+    left out in turn, all solved as one batch. The fault is isolated where exactly one of those refits passes
+    the test. Where none does the data hold two faults or more: the pairs of the :data:`PAIR_CANDIDATES` most
+    suspect are left out (with three dof or more), and exactly one passing pair is isolated. Where several
+    pass, the fault is detected and not isolable. A problem without a fix (it ran off) takes its best single
+    exclusion.
 
     Returns
     -------
-    found : ndarray of bool, shape (R,)
-        Whether some exclusion gives a converged fit with a degree of freedom left.
-    drops : ndarray of bool, shape (F, M)
-        The measurements excluded, for the ``F`` problems found.
-    refits : FixBatch
-        Their fixes, in order.
+    isolated : ndarray of bool, shape (R,)
+    vague : ndarray of bool, shape (R,)
+        Detected, not isolable (a problem with a fix and no isolation: several exclusions explain the fault
+        alike, or none does).
+    drops : ndarray of bool, shape (R, M)
+        The measurements to exclude where ``isolated``.
+    spent : ndarray of int, shape (R,)
+        The refits each problem took (its pairs only where its ``budget`` ``(R,)`` of refits covered them).
     """
+    suspicion = np.abs(fixes.studentized_residuals)
     owners, drops = batch.leave_one_out(rows, used, suspicion, EXCLUSION_CANDIDATES)  # rows ascending
-    trials = batch.take(owners)
-    width = trials.kinds.shape[1]
-    trials = trials.with_used((used[owners] & ~drops)[:, :width])
-    refits = spec.solve_batch(trials, options, excluded=(excluded[owners] | drops)[:, :width])
-    score = np.where(refits.ok & refits.converged & (trials.dof > 0), np.nan_to_num(refits.p_value, nan=-1.0),
-                     -np.inf)
+    trials, refits = _refits(spec, batch, options, owners, used[owners] & ~drops, excluded[owners] | drops)
+    score = _scores(trials, refits)
     problem = np.searchsorted(rows, owners)  # rows ascending: each candidate's index in rows
+    passing = np.bincount(problem[score >= EXCLUSION_P], minlength=rows.size)
     order = np.lexsort((-score, problem))  # per problem, the best score first (the most suspect on a tie)
-    best = order[np.flatnonzero(np.diff(problem[order], prepend=-1))]
-    chosen = best[score[best] > -np.inf]
-    found = np.zeros(rows.size, dtype=bool)
-    found[problem[chosen]] = True
-    return found, drops[chosen], refits.take(chosen)
+    firsts = order[np.flatnonzero(np.diff(problem[order], prepend=-1))]
+    best = np.full(rows.size, -1, dtype=np.intp)  # each problem's best candidate (-1: it had none)
+    best[problem[firsts]] = firsts
+    possible = best >= 0
+    possible[possible] = score[best[possible]] > -np.inf
+    has_fix = fixes.ok[rows]
+    isolated = possible & ((passing == 1) | (passing == 0) & ~has_fix)
+    out = np.zeros((rows.size,) + used.shape[1:], dtype=bool)
+    out[isolated] = drops[best[isolated]]
+    spent = np.bincount(problem, minlength=rows.size)
+    count = np.minimum(np.bincount(problem, minlength=rows.size), PAIR_CANDIDATES)
+    affordable = budget - spent >= count * (count - 1) // 2
+    several = np.flatnonzero(has_fix & (passing == 0) & (fixes.dof[rows] >= 3) & affordable)
+    spent[several] += count[several] * (count[several] - 1) // 2
+    if several.size:
+        # The pairs among each problem's first PAIR_CANDIDATES candidates (they come most suspect first).
+        rank = np.arange(owners.size) - np.searchsorted(problem, problem)
+        mine = np.isin(problem, several) & (rank < PAIR_CANDIDATES)
+        first, second = [], []
+        for k in several.tolist():
+            members = np.flatnonzero(mine & (problem == k))
+            for i in range(members.size):
+                for j in range(i + 1, members.size):
+                    first.append(members[i])
+                    second.append(members[j])
+        first, second = np.array(first, dtype=np.intp), np.array(second, dtype=np.intp)
+        if first.size:
+            pair_drops = drops[first] | drops[second]
+            pair_owners = owners[first]
+            trials, pair_refits = _refits(spec, batch, options, pair_owners, used[pair_owners] & ~pair_drops,
+                                          excluded[pair_owners] | pair_drops)
+            pair_score = _scores(trials, pair_refits)
+            pair_problem = problem[first]
+            pair_passing = np.bincount(pair_problem[pair_score >= EXCLUSION_P], minlength=rows.size)
+            found = several[pair_passing[several] == 1]
+            isolated[found] = True
+            winners = np.flatnonzero((pair_score >= EXCLUSION_P) & np.isin(pair_problem, found))
+            out[pair_problem[winners]] = pair_drops[winners]
+    return isolated, has_fix & ~isolated, out, spent
 
 
 def solve_batch(problems, method=AUTO, options=None) -> list[Fix | LocalizationError]:
@@ -325,5 +472,5 @@ def _check_loss(spec, options: SolveOptions) -> None:
                            ("loss",))
 
 
-__all__ = ["AUTO", "REGISTRY", "Fix", "FixBatch", "FixWarning", "SolveOptions", "exclude_outliers", "resolve_methods", "solve",
-           "iter_solutions", "solve_batch", "solve_many"]
+__all__ = ["AUTO", "REGISTRY", "Fix", "FixBatch", "FixWarning", "SolveOptions", "confirm_outliers", "exclude_outliers",
+           "exclusion_solves", "resolve_methods", "solve", "iter_solutions", "solve_batch", "solve_many"]

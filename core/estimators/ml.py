@@ -57,7 +57,8 @@ from core.estimators.search import candidates
 from core.estimators.starting_points import initial_positions
 from core.geodesy import enu_to_geodetic
 from core.linalg import jacobi_svd
-from core.measurements import AZIMUTH, ELEVATION, ahead_point, measure_point, predict, residuals, toa_offset_point
+from core.measurements import (AZIMUTH, ELEVATION, RANGE, TOA, ahead_point, measure_point, predict, residuals,
+                               toa_offset_point)
 from core.problem import local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
 
@@ -67,6 +68,21 @@ LINEAR = ("linear", 1.0)
 LAMBDA_START = 1e-3
 LAMBDA_MIN = 1e-12
 LAMBDA_MAX = 1e12
+#: An iteration that reaches its cap is still converged where the undamped step would lower the cost by less
+#: than this share of it: the fix is then within ``sqrt(STATIONARY_GAIN * cost)`` sigmas of the minimum (the
+#: data are inconsistent, their cost large, and the steps along a poorly determined direction stay above the
+#: tolerance while the fix no longer moves within its uncertainty). Noise-free data, of cost near 0, converge
+#: by the step tolerance only.
+STATIONARY_GAIN = 1e-9
+#: A fit is converged, whatever the step's length in metres, when the undamped step's squared Mahalanobis
+#: length (the cost it would remove) is below this: the fix moves by less than 1e-6 of its sigma (a direction
+#: the measurements barely see, of sigma kilometres, keeps float64 steps above a millimetre).
+STEP_MAHALANOBIS2 = 1e-12
+#: Where the undamped Gauss-Newton step would remove less than this share of the cost, the residuals are too
+#: large for Gauss-Newton's model (inconsistent data) and the ranges' and TOAs' own curvature joins the matrix
+#: (:func:`_add_distance_curvature`); farther from a fit of consistent data the step removes most of the cost,
+#: and Gauss-Newton's matrix, never indefinite, steers the iteration.
+NEWTON_SHARE = 1e-3
 #: The search's fits from every candidate run in chunks of about this many measurement slots
 #: (candidates x padded width): the expanded problems then take megabytes, not gigabytes.
 CHUNK_ENTRIES = 1 << 15
@@ -159,6 +175,105 @@ def _solve_small(a, rhs, out):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _undamped_gain(information, gradient, work, right, step):
+    """The cost the undamped step ``information^-1 gradient`` would remove, ``gradient . step`` (Jacobi-scaled
+    solve; ``work`` ``(4, 4)``, ``right`` and ``step`` ``(4,)``: scratch); infinite where not finite."""
+    for i in range(4):
+        d = information[i, i]
+        right[i] = 1.0 / math.sqrt(d if d > 0.0 else 1.0)
+    for i in range(4):
+        for j in range(4):
+            work[i, j] = information[i, j] * right[i] * right[j]
+            if not math.isfinite(work[i, j]):
+                return np.inf
+    scale0, scale1, scale2, scale3 = right[0], right[1], right[2], right[3]
+    right[0], right[1], right[2], right[3] = (scale0 * gradient[0], scale1 * gradient[1], scale2 * gradient[2],
+                                              scale3 * gradient[3])
+    rhs0, rhs1, rhs2, rhs3 = right[0], right[1], right[2], right[3]
+    _solve_small(work, right, step)
+    gain = step[0] * rhs0 + step[1] * rhs1 + step[2] * rhs2 + step[3] * rhs3
+    return gain if math.isfinite(gain) else np.inf
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _add_distance_curvature(x, stations, kinds, count, gradient_w, residual, axes, constrained, free, curvature,
+                            information):
+    """Add the residual curvature of the ranges and TOAs, ``-sum w rho' r (I - u u^T) / |d|`` (the Hessian of a
+    distance ``|d|``, ``u = d / |d|``), to the Gauss-Newton matrix ``information`` ``(4, 4)`` of the local
+    parameters, where the sum keeps it positive definite (else it is left as it was).
+
+    Gauss-Newton drops that term, which is right for residuals of the size of the noise; a gross error leaves
+    residuals of tens of sigmas, and Gauss-Newton then converges only linearly (slowly, along a poorly
+    determined direction); Newton's matrix converges there quadratically.
+    """
+    for i in range(3):
+        for j in range(3):
+            curvature[i, j] = 0.0
+    for m in range(count):
+        if not (gradient_w[m] > 0.0 and (kinds[m] == RANGE or kinds[m] == TOA)):
+            continue
+        dx, dy, dz = x[0] - stations[m, 0], x[1] - stations[m, 1], x[2] - stations[m, 2]
+        distance = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not distance > 0.0:
+            continue
+        u0, u1, u2 = dx / distance, dy / distance, dz / distance
+        factor = -gradient_w[m] * residual[m] / distance
+        curvature[0, 0] += factor * (1.0 - u0 * u0)
+        curvature[1, 1] += factor * (1.0 - u1 * u1)
+        curvature[2, 2] += factor * (1.0 - u2 * u2)
+        curvature[0, 1] -= factor * u0 * u1
+        curvature[0, 2] -= factor * u0 * u2
+        curvature[1, 2] -= factor * u1 * u2
+    curvature[1, 0], curvature[2, 0], curvature[2, 1] = curvature[0, 1], curvature[0, 2], curvature[1, 2]
+    trial = np.empty((4, 4))
+    for i in range(4):
+        for j in range(4):
+            trial[i, j] = information[i, j]
+    for i in range(3):
+        if not free[i]:
+            continue
+        for j in range(3):
+            if not free[j]:
+                continue
+            term = 0.0
+            if constrained:
+                for k in range(3):
+                    for n in range(3):
+                        term += axes[i, k] * curvature[k, n] * axes[j, n]
+            else:
+                term = curvature[i, j]
+            trial[i, j] += term
+    # Positive definite (Cholesky succeeds): take it.
+    for k in range(4):
+        pivot = trial[k, k]
+        for n in range(k):
+            pivot -= trial[k, n] * trial[k, n]
+        if not pivot > 1e-12 * max(information[k, k], 1e-300):
+            return
+        pivot = math.sqrt(pivot)
+        trial[k, k] = pivot
+        for i in range(k + 1, 4):
+            total = trial[i, k]
+            for n in range(k):
+                total -= trial[i, n] * trial[k, n]
+            trial[i, k] = total / pivot
+    for i in range(3):
+        if not free[i]:
+            continue
+        for j in range(3):
+            if not free[j]:
+                continue
+            term = 0.0
+            if constrained:
+                for k in range(3):
+                    for n in range(3):
+                        term += axes[i, k] * curvature[k, n] * axes[j, n]
+            else:
+                term = curvature[i, j]
+            information[i, j] += term
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, geodetic, origin_ecef_m,
                origin_rotation, has_toa, loss_code, c2, max_iterations, tolerance_m):
     size, count = kinds.shape
@@ -172,7 +287,8 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
     jacobian, jacobian_new = np.empty((4, count)), np.empty((4, count))
     local = np.empty((4, count))
     axes = np.empty((3, 3))
-    information, scaled = np.empty((4, 4)), np.empty((4, 4))
+    information, scaled, undamped, curvature = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((3, 3))
+    free_right, free_step = np.empty(4), np.empty(4)
     gradient, scale, right, step, free = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
     x, x_new, delta = np.empty(3), np.empty(3), np.empty(3)
     for b in range(size):
@@ -187,7 +303,11 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
         free[3] = 1.0 if has_toa[b] else 0.0
         cost = _evaluate(x, bias, st, rot, kd, val, wt, loss_code, c2, residual, jacobian, gradient_w,
                          curvature_w)
+        has_distance = False
+        for m in range(count):
+            has_distance |= wt[m] > 0.0 and (kd[m] == RANGE or kd[m] == TOA)
         damping = LAMBDA_START
+        stationary = False
         iterations = 0
         converged = False
         for _ in range(max_iterations):
@@ -212,6 +332,10 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
                     for m in range(count):
                         total += local[i, m] * curvature_w[m] * local[j, m]
                     information[i, j] = total + (1.0 - free[i] if i == j else 0.0)
+            if has_distance and cost > 0.0 and _undamped_gain(information, gradient, undamped, free_right,
+                                                              free_step) < NEWTON_SHARE * cost:
+                _add_distance_curvature(x, st, kd, count, gradient_w, residual, axes, constrained, free, curvature,
+                                        information)
             for i in range(4):
                 d = information[i, i]
                 if loss_code != 0:
@@ -230,6 +354,13 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
                 for i in range(4):
                     for j in range(4):
                         scaled[i, j] = 1.0 if i == j else 0.0
+            elif cost > 0.0:
+                # Stationary (STATIONARY_GAIN), should the cap be reached.
+                gain = _undamped_gain(information, gradient, undamped, free_right, free_step)
+                if gain >= 0.0 and gain < STEP_MAHALANOBIS2:
+                    converged = True  # the undamped step would move the fix by less than 1e-6 of its sigma
+                    break
+                stationary = gain >= 0.0 and gain < STATIONARY_GAIN * cost
             _solve_small(scaled, right, step)
             for i in range(4):
                 step[i] *= scale[i] * free[i]
@@ -262,6 +393,7 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
                 break
             if damping > LAMBDA_MAX:
                 break
+        converged = converged or stationary
         position_out[b] = x
         bias_out[b], cost_out[b] = bias, cost
         iterations_out[b], converged_out[b] = iterations, converged
@@ -286,7 +418,8 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     start_enu_m : ndarray, shape (B, 3)
     max_iterations : int
     tolerance_m : float
-        Converged when a step moves the position less than this.
+        Converged when a step moves the position less than this (or, at the cap, where the cost is stationary:
+        ``STATIONARY_GAIN``).
     loss : tuple of (str, float)
         The loss's name and scale in sigmas (:mod:`core.estimators.loss`); the cost minimised is its sum.
 

@@ -23,7 +23,10 @@ WARNING_CODES = {
     "collinear_geometry": "lines of sight or stations are nearly collinear with the target",
     "behind_station": "the fix lies behind a station's measured line of sight",
     "not_converged": "the iteration stopped before converging; the last good iterate is returned",
-    "outlier_suspected": "a measurement's studentized residual exceeds 4 (named in the message)",
+    "outlier_suspected": "a measurement's studentized residual exceeds 4 and singles it out (named in the message)",
+    "fault_detected_not_isolable": "the measurements hold a fault (a studentized residual above 4, or failing the "
+                                   "exclusion test) that no single measurement can be blamed for: too few degrees "
+                                   "of freedom, or several explain it alike; none is named or excluded",
     "sigma_mismatch": "chi-square says the stated sigmas are too small for the residuals",
     "sigma_estimated": "sigmas were estimated from the residuals and scale the covariance",
     "reference_point_moved": "the linearisation point was moved onto a station's line of sight",
@@ -183,8 +186,10 @@ class FixBatch:
     residuals, normalized_residuals : ndarray, shape (B, M)
         Problem units; zero on padding.
     studentized_residuals : ndarray, shape (B, M)
-        Normalized residuals over their own standard deviation (leverage-corrected); zero where unused.
+        The normalized residuals of the ML fit of the used measurements over their own standard deviation
+        (leverage-corrected); zero where unused.
     chi2 : ndarray, shape (B,)
+        Chi-square of the residuals of that ML fit (whatever the method: what ``dof`` counts).
     dof : ndarray of int, shape (B,)
     p_value, sigma_scale : ndarray, shape (B,)
         NaN where ``dof`` is 0 (None in a :class:`Fix`).
@@ -199,6 +204,9 @@ class FixBatch:
         As in :class:`Fix`.
     gdop : ndarray, shape (B,)
         Dimensionless, of the CRLB at the fix (:func:`core.crlb.gdop`); NaN where undefined.
+    isolated : ndarray of bool, shape (B,)
+        Whether the largest studentized residual singles its request measurement out (two dof or more, and
+        ahead of every other by :data:`~core.estimators.finish.ISOLATION_SIGMAS`): a fault there can be named.
     """
 
     method: str
@@ -224,6 +232,7 @@ class FixBatch:
     used: np.ndarray
     excluded: np.ndarray
     gdop: np.ndarray
+    isolated: np.ndarray
 
     @property
     def size(self) -> int:
@@ -340,5 +349,5 @@ class FixBatch:
 
 _MEASUREMENT_FIELDS = ("residuals", "normalized_residuals", "studentized_residuals", "used", "excluded")
 _ARRAY_FIELDS = ("position_enu_m", "covariance_enu_m2", "crlb_enu_m2", "chi2", "dof", "p_value", "sigma_scale",
-                 "converged", "iterations", "coarse_position_enu_m", "gdop", *_MEASUREMENT_FIELDS)
+                 "converged", "iterations", "coarse_position_enu_m", "gdop", "isolated", *_MEASUREMENT_FIELDS)
 _LIST_FIELDS = ("warnings", "estimated_bearing_errors_rad", "details")

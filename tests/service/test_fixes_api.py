@@ -109,6 +109,26 @@ def test_toa_from_five_stations(client):
     assert {r["component"] for r in fix["residuals"]} == {"toa"}
 
 
+@pytest.mark.parametrize("outliers", ["report", "exclude"])
+def test_a_fault_among_five_toas_is_detected_and_no_station_is_blamed(client, outliers):
+    """Five TOAs leave one degree of freedom: a TOA 1 us off (100 sigma) fails the test, and no measurement can
+    be told from another as its cause (every studentized residual is as large)."""
+    stations = dict(STATIONS_300KM, **{"rx-5": {"lat_deg": 35.5, "lon_deg": 110.5, "alt_m": 2000.0}})
+    measurements = [{"type": "toa", "station_id": sid, "sigma_s": 1e-8,
+                     "toa_s": 12.000183 + look_angles_deg(pos, TARGET)[2] / 299_792_458.0}
+                    for sid, pos in stations.items()]
+    measurements[2]["toa_s"] += 1e-6
+    body = {"stations": [{"id": k, "position": v} for k, v in stations.items()], "measurements": measurements,
+            "options": {"outliers": outliers}}
+    response = client.post("/v1/fixes", json=body)
+    assert response.status_code == 200, response.text
+    fix = response.json()
+    codes = [w["code"] for w in fix["warnings"]]
+    assert "fault_detected_not_isolable" in codes
+    assert "outlier_suspected" not in codes and "measurement_excluded" not in codes
+    assert fix["converged"]
+
+
 def test_known_altitude_constraint_with_azimuth_only(client):
     request = bearing_request(dict(list(STATIONS_300KM.items())[:2]), TARGET, constraints={"altitude_m": 9000.0})
     for m in request["measurements"]:
@@ -378,8 +398,10 @@ def test_every_registered_method_is_in_the_schema(client):
 
 
 def test_outlier_is_flagged(client):
+    """30 deg on one azimuth of four 1 deg bearings: only leaving that bearing out explains the rest (at 12 deg
+    leaving out another also passes the test at 1 %, and no one is named)."""
     body = copy.deepcopy(_good())
-    body["measurements"][0]["azimuth_deg"] += 12.0
+    body["measurements"][0]["azimuth_deg"] += 30.0
     fix = client.post("/v1/fixes", json=body).json()
     codes = {w["code"]: w["message"] for w in fix["warnings"]}
     assert "sigma_mismatch" in codes

@@ -2,7 +2,8 @@
 
 The scene is the outlier one of ``test_outliers``: six stations, 0.5 deg bearings, one azimuth 20 deg off.
 A redescending loss (cauchy) sets the culprit aside and reaches the CRLB of the other measurements; a
-bounded-influence one (huber) only bounds its pull. On clean data the robust losses cost a few percent.
+bounded-influence one (huber) only bounds its pull, and its covariance counts that pull. On clean data the
+robust losses cost a few percent. Exclusion under any loss finds two gross bearings among eight.
 """
 
 from __future__ import annotations
@@ -11,10 +12,16 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
+from scipy.stats import binom
+from scipy.stats import chi2 as chi2_distribution
+
 from core.errors import InvalidInput
-from core.estimators import SolveOptions, solve, solve_batch
+from core.estimators import EXCLUSION_P, SolveOptions, solve, solve_batch
 from core.estimators.loss import LOSSES, loss_terms
-from tests.core.estimators.test_outliers import STATIONS, TARGET, _bound_without_culprit, _draws, _problem, _rmse
+from core.problem import Bearing, LocalPoint, build_problem
+from core.simulation.measurements import measure
+from tests.core.estimators.test_outliers import (SIGMA, STATIONS, TARGET, _bound_without_culprit, _draws, _problem,
+                                                 _rmse)
 
 TRIALS = 300
 
@@ -113,3 +120,35 @@ def test_a_method_without_the_loss_refuses_it():
     with pytest.raises(InvalidInput) as raised:
         solve(_problem().with_values(_bearings(TARGET)), "weighted_eove", SolveOptions(loss="huber"))
     assert raised.value.loc == ("loss",) and "ml" in str(raised.value)
+
+
+@pytest.mark.parametrize(("loss", "scale"), [("huber", 1.0), ("huber", 1.345), ("soft_l1", 1.0)])
+def test_a_bounded_influence_fit_under_a_gross_bearing_has_an_honest_covariance(loss, scale):
+    """huber and soft_l1 keep a bent measurement's pull on the fix; their covariance says so: the mean NEES over
+    the seeded draws is inside the chi-square interval of a covariance that matches the errors."""
+    problem = _problem()
+    draws = _draws(problem, 7)
+    fixes = solve_batch(draws, "ml", SolveOptions(loss=loss, loss_scale=scale))
+    lower, upper = chi2_distribution.ppf([0.0005, 0.9995], 3 * len(draws)) / len(draws)
+    assert lower <= _nees(fixes) <= upper
+
+
+EIGHT = [(f"r{k}", LocalPoint(30e3 * np.cos(a), 30e3 * np.sin(a), 0.0))
+         for k, a in enumerate(np.deg2rad(np.arange(8) * 45.0 + 10.0))]
+BAD = (2, 5)
+
+
+@pytest.mark.parametrize("loss", ["linear", "huber", "soft_l1"])
+def test_exclusion_names_both_gross_bearings_among_eight_and_no_innocent(loss):
+    problem = build_problem(EIGHT, [Bearing(sid, 0.0, 0.0, SIGMA, SIGMA) for sid, _ in EIGHT])
+    rng = np.random.default_rng(8)
+    draws = []
+    for _ in range(200):
+        values = measure(problem, TARGET, rng).values.copy()
+        for bad in BAD:
+            values[2 * bad] += np.deg2rad(20.0)
+        draws.append(problem.with_values(values))
+    fixes = solve_batch(draws, "ml", SolveOptions(outliers="exclude", loss=loss))
+    named = [set(problem.source_index[f.excluded].tolist()) for f in fixes]
+    assert np.mean([set(BAD) <= n for n in named]) >= 0.95
+    assert sum(bool(n - set(BAD)) for n in named) <= binom.ppf(0.999, len(draws), EXCLUSION_P)
