@@ -35,8 +35,8 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
+from core.linalg import cholesky_into, lower_inverse_into
 from core.measurements import AZIMUTH, TOA, measure_point
-from core.tracking.linalg import cholesky_into, lower_inverse_into
 
 #: Outcome of :func:`network_ukf_kernel` per state: updated; the predicted position covariance, the
 #: innovation covariance or the updated covariance not positive definite; the update not finite.
