@@ -1,7 +1,7 @@
 """Every compiled (numba) kernel of the core, compiled or loaded from numba's on-disk cache in one call.
 
 The per-problem inner loops are compiled: the point conversions of
-:mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem`,
+:mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem_frame`,
 the frame and station placement, the padding and the model values and weights
 of :mod:`core.problem_batch`, the measurement model and TOA offset of :mod:`core.measurements`, the robust
 losses, the small SVD and eigen-decomposition of :mod:`core.linalg`, the
@@ -26,7 +26,7 @@ def compile_kernels() -> None:
     from core.errors import LocalizationError
     from core.estimators import REGISTRY, SolveOptions, solve
     from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
-    from core.tracking import network_kernel, unscented
+    from core.tracking import unscented
 
     local = [(name, LocalPoint(east, north, 0.0)) for name, east, north in
              (("a", 0.0, 0.0), ("b", 10_000.0, 0.0), ("c", 0.0, 10_000.0), ("d", 10_000.0, 10_000.0))]
@@ -52,4 +52,21 @@ def compile_kernels() -> None:
     error_summary(np.eye(3), exact=True)
     gdop(np.eye(3)[None], np.ones(1))  # the planning routes' (a fix's GDOP comes from the finisher's kernel)
     unscented.compile_kernels()
-    network_kernel.compile_kernels()
+    _compile_network_tracker()
+
+
+def _compile_network_tracker() -> None:
+    """Compile (or load from numba's cache) the network tracker's kernels (:mod:`core.tracking.network_kernel`)
+    with the argument types the tracker passes: a track started from a bearing, updated with bearings and with
+    a TOA group, and predicted. Run through the tracker itself, which imports the kernels (so the kernel module
+    does not import the tracker back)."""
+    from core.measurements import AZIMUTH, TOA
+    from core.tracking.network import NetworkConfig, NetworkState, Report, apply_reports, predict_tracks
+
+    config = NetworkConfig()
+    eye = np.tile(np.eye(3), (4, 1, 1))
+    stations = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2e4, 0.0, 0.0], [0.0, 2e4, 0.0]])
+    bearing = Report(0, 0.0, "e", ("a", "a"), stations[:2], eye[:2], [AZIMUTH, 1], [0.8, 0.0], [0.01, 0.01])
+    toas = Report(1, 1.0, "e", ("a", "b", "c"), stations[1:], eye[1:], [TOA] * 3, [1e-4, 2e-4, 1.5e-4], [3e-8] * 3)
+    state = apply_reports(NetworkState(), [bearing, toas], config).state
+    predict_tracks(state, 2.0, config)

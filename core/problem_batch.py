@@ -25,7 +25,7 @@ import numpy as np
 
 from core import geodesy
 from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, Kind
-from core.problem import CommonFrame, GeodeticPoint, Problem, frame_placements, local_axes_point, onto_altitude
+from core.problem_frame import CommonFrame, GeodeticPoint, Problem, frame_placements, local_axes_point, onto_altitude
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).
 PAD_KIND = Kind.RANGE
