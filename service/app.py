@@ -24,6 +24,7 @@ from service.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
 from service.settings import Settings
 from service.stores import open_store, store_kind
+from service.stores.base import StoreError
 from service.stores.guard import GuardedStore
 
 API_VERSION = importlib.metadata.version("passive-locator")
@@ -72,7 +73,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                                                          translate.compile_kernels)
         try:
             await store.run(lambda backend: None)  # open now when we can; a store that is down opens later
-        except problems.ApiError as error:
+        except StoreError as error:
             logger.warning("session store not available at start: %s", error.detail)
         try:
             yield

@@ -48,8 +48,7 @@ import time
 from contextlib import contextmanager
 from typing import Iterator, NamedTuple
 
-from service.problems import ApiError
-from service.stores.base import Clock, SessionRecord, SessionStore
+from service.stores.base import Clock, SessionRecord, SessionStore, StoreBusy
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS sessions (
@@ -326,5 +325,5 @@ class _Turns:
                 self._held = False
 
 
-def _busy() -> ApiError:
-    return ApiError(503, "store_busy", "the session store is busy; retry", headers={"Retry-After": "1"})
+def _busy() -> StoreBusy:
+    return StoreBusy("the session store is busy; retry")
