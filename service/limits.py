@@ -31,13 +31,18 @@ exclusion may take (:func:`exclusion_solves`): its refits run the method again, 
 
 from __future__ import annotations
 
-import contextvars
-
 from service.problems import ApiError
 from service.wire import measurement_count, requested_method, requests_exclusion
 
-#: The ``max_fix_cost`` of the app serving this request (set per request by the middleware).
-fix_cost_limit: contextvars.ContextVar[int | None] = contextvars.ContextVar("fix_cost_limit", default=None)
+#: The key of pydantic's validation context (``model_validate(..., context=...)``) that carries the app's
+#: ``max_fix_cost`` to :class:`service.schemas.FixRequest`'s cost check (:func:`fix_cost_context`).
+FIX_COST_LIMIT_KEY = "max_fix_cost"
+
+
+def fix_cost_context(limit: int | None) -> dict:
+    """The validation context that makes :class:`service.schemas.FixRequest` check ``limit``
+    (None: no limit)."""
+    return {FIX_COST_LIMIT_KEY: limit}
 
 
 def method_weight(method) -> int:
@@ -115,9 +120,9 @@ def fix_cost(stations: int, measurements: int, method: str = "auto", exclude: bo
     return problem_units(method, stations * measurements, measurements) * exclusion_solves(exclude, measurements)
 
 
-def check_fix(stations: int, measurements: int, method: str = "auto", exclude: bool = False) -> None:
-    """Raise ``ValueError`` (a validation error of the request) when a fix is over this app's ``max_fix_cost``."""
-    limit = fix_cost_limit.get()
+def check_fix(stations: int, measurements: int, method: str, exclude: bool, limit: int | None) -> None:
+    """Raise ``ValueError`` (a validation error of the request) when a fix is over ``limit`` (the app's
+    ``max_fix_cost``; None: no limit)."""
     cost = fix_cost(stations, measurements, method, exclude)
     if limit is not None and cost > limit:
         units = problem_units(method, stations * measurements, measurements)
@@ -129,6 +134,6 @@ def check_fix(stations: int, measurements: int, method: str = "auto", exclude: b
             + f" = {cost:,}, over the limit max_fix_cost = {limit:,}")
 
 
-def fix_within_limit(stations: int, measurements: int, method: str = "auto", exclude: bool = False) -> bool:
-    limit = fix_cost_limit.get()
+def fix_within_limit(stations: int, measurements: int, method: str, exclude: bool, limit: int | None) -> bool:
+    """Whether a fix is within ``limit`` (the app's ``max_fix_cost``; None: no limit)."""
     return limit is None or fix_cost(stations, measurements, method, exclude) <= limit
