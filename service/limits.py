@@ -2,7 +2,7 @@
 
 Costs are in units of about one batched ML measurement row. Every method is
 solved batched, within 4x of ML's cost per problem (10,000 four-station
-problems in core, estimate and finish on one thread, us per fix, 2026-12-03:
+problems in core, estimate and finish on one thread, us per fix:
 ml 9.7, weighted_eove 10.4, eove 8.6, ove 29.9, los_intersection 15.7, ple3d
 10.4, ws3d 15.2, angle_range 38.5 with its range, tls 38.1 and ctls 31.8 with
 the altitude, taylor_wls 27.3; ``python -m bench.closed_form_core -r 5 10000

@@ -1,4 +1,4 @@
-"""HTTP hygiene, auth, the rate limiter, the store guard and the logs (issue 10), in process."""
+"""HTTP hygiene, auth, the rate limiter, the store guard and the logs, in process."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The input domain: every class of hostile input found by probing (issue 10) answers 4xx with its field path.
+"""The input domain: every class of hostile input found by probing answers 4xx with its field path.
 
 One table: a request, how it is broken, the status and the ``loc`` the problem must name. Booleans are not
 numbers, sigmas have floors (1/sigma^2 stays finite), coordinates and times have ranges, and the largest
