@@ -2,8 +2,8 @@
 
 The per-problem inner loops are compiled: the point conversions of
 :mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem_frame`,
-the frame and station placement, the padding and the model values and weights
-of :mod:`core.problem_batch`, the measurement model and TOA offset of :mod:`core.measurements`, the robust
+the frame and station placement and the padding of :mod:`core.problem_batch_build`,
+the model values and weights of :mod:`core.problem_batch`, the measurement model and TOA offset of :mod:`core.measurements`, the robust
 losses, the small SVD and eigen-decomposition of :mod:`core.linalg`, the
 information pieces of :mod:`core.crlb`, the error summaries, the
 orthogonal-vector passes, the ML iteration, the finisher and the tracking

@@ -6,7 +6,7 @@ at fault, and turns them into a :class:`Problem` in its common frame:
 stations in the common tangent frame, each station's rotation (its own ENU
 <- common ENU), and flat measurement arrays in radians, metres and seconds.
 Every estimator reads only a :class:`Problem`. The frame placement is the
-batch's (:func:`core.problem_batch.build_problem_batch` over one problem), so
+batch's (:func:`core.problem_batch_build.build_problem_batch` over one problem), so
 a problem gets the same bits alone and in a batch.
 
 The frame and the problem record live in :mod:`core.problem_frame`, below
@@ -22,7 +22,7 @@ import numpy as np
 
 from core.errors import InvalidInput
 from core.measurements import Kind
-from core.problem_batch import build_problem_batch
+from core.problem_batch_build import build_problem_batch
 from core.problem_frame import (
     CommonFrame,
     GeodeticPoint,

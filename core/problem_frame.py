@@ -8,9 +8,10 @@ without an origin is a flat plane with no earth under it: every station
 shares the plane's axes. :class:`Problem` is one problem in that frame, the
 record every estimator reads.
 
-This module sits below both :mod:`core.problem` (which checks and builds a
-single problem) and :mod:`core.problem_batch` (which builds many at once and
-hands one back as a :class:`Problem`), so neither imports the other back.
+This module sits below :mod:`core.problem` (which checks and builds a single
+problem), :mod:`core.problem_batch` (many at once, handing one back as a
+:class:`Problem`) and :mod:`core.problem_batch_build`, so none of them
+imports another back.
 """
 
 from __future__ import annotations

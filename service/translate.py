@@ -35,7 +35,8 @@ from core.estimators import PART_PROBLEMS, FixBatch, SolveOptions, iter_solution
 from core.measurements import KIND_NAMES, Kind
 from core.parallel import Stopped
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
-from core.problem_batch import ProblemBatch, build_problem_batch, size_groups
+from core.problem_batch import ProblemBatch, size_groups
+from core.problem_batch_build import build_problem_batch
 from core.simulation.measurements import evaluate
 from service import schemas, wire
 from service.limits import check_grid, fix_cost_context, fix_within_limit
@@ -587,7 +588,7 @@ def read_fix_requests(bodies: list, max_fix_cost: int | None = None) -> FixReque
     one, within the bounds of :class:`schemas.FixRequest`, with known and
     unique station ids) is read in bulk: structure problem by problem, numbers
     range-checked for all at once, the frames placed by
-    :func:`core.problem_batch.build_problem_batch`.
+    :func:`core.problem_batch_build.build_problem_batch`.
     Any other body is validated by the schema and built by :func:`to_problem`,
     which decide and word its error, and joins the same batch. A body over
     ``max_fix_cost`` (the app's limit; None: no limit) takes the schema's road,
