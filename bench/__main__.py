@@ -1,4 +1,4 @@
-"""``python -m bench``: the performance table of issues 6 and 9, printed and written to ``bench/results.md``.
+"""``python -m bench``: the performance table of the speed targets, printed and written to ``bench/results.md``.
 
 Every row measures its subject next to its yardstick in the same run (the
 machine is shared and noisy: only same-run ratios mean anything). HTTP rows
@@ -151,7 +151,7 @@ def main(argv=None) -> int:
     notes = [f"- row {r.number}: {note}" for r in results for note in r.notes]
     stamp = datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     text = "\n".join([
-        "# Benchmark results (issues 6 and 9)",
+        "# Benchmark results",
         "",
         f"`make bench` (`python -m bench{' ' + ' '.join(argv or sys.argv[1:]) if (argv or sys.argv[1:]) else ''}`)"
         f", {stamp}.",
@@ -176,12 +176,10 @@ EXTRA_NOTES = """
 ## Where the time goes, and what would close the misses
 
 The machine is shared and its speed moves between sessions and within one
-(one commit's one-fix time was 376-409 us on 2026-12-02 at 08:00, 700-836 us
-at 15:00 and about 1,400 us at 17:40; on 2026-12-03 three commits that do
-not change that path's cost beyond noise gave 317, 419 and 525 us at 06:39,
-06:57 and 07:52, when healthz at c=1 ran at 4,059, 3,625 and 887 req/s):
-compare ratios within one run only. Row 2 is not a ratio, and its rows near the line flip between runs
-(los_intersection: 24,656 fixes/s at 06:39, 17,962 at 06:57).
+(one commit's one-fix time spans about 4x over a day, and healthz at c=1
+about 4.5x): compare ratios within one run only. Row 2 is not a ratio, and
+its rows near the line flip between runs (los_intersection has given both
+about 18,000 and about 24,700 fixes/s).
 
 **Row 1, one fix over HTTP.** The echo route (the fix route's shape with a
 solve that costs nothing: the decoded body, owner, a hop to a worker thread and
@@ -196,10 +194,10 @@ same loop in the server process costs 515-860 us a call, and in one process
 with the caches thrashed between calls (an 8 MB sum and a JSON parse) 1,120-
 1,327 us against 684-779 us without. A lone request finds the caches cold
 after the event loop's turn, so its cost grows with how much code and data
-one fix touches: fewer, larger kernel calls would help it twice. On
-2026-12-03 at 16:40 the fix route with its read, solve and write replaced by
-a canned answer (coalescer, watch, metrics and response unchanged; an ad-hoc
-app, not part of this bench) answered 2,023 req/s at c=1, 0.39x healthz,
+one fix touches: fewer, larger kernel calls would help it twice. The fix
+route with its read, solve and write replaced by a canned answer (coalescer,
+watch, metrics and response unchanged; an ad-hoc app, not part of this bench)
+answered 2,023 req/s at c=1, 0.39x healthz,
 beside echo's 2,195 and the real route's 993: the route's shape alone is
 below the 0.5x target, and the fix's work, about 305 us in a warm loop,
 costs about 510 us in the server.
@@ -209,9 +207,8 @@ finisher and verdicts in one call, the batch's masks and its geometry in one
 pass each, the reader's checks and unit conversions, the writer's numbers,
 lines of sight, error summary, batch building); what is left is Python and
 numpy call overhead around them: about 420 Python-level calls for reading
-and solving one fix (516 with writing it; cProfile), at 0.3-7 us each here
-(2026-12-03: 275 -> 212 us per fix, read 56 -> 41 us, in the same machine
-phase). The 50 us target needs a batch of one to run as a few kernel calls
+and solving one fix (516 with writing it; cProfile), at 0.3-7 us each here.
+The 50 us target needs a batch of one to run as a few kernel calls
 with nothing between them (one compiled pass from the read arrays to the
 written text): not done.
 
@@ -231,11 +228,10 @@ against the writer: compiling those per problem is what would bring them
 to the line.
 
 **Row 3, the scipy ratio.** Core kernels per four-station problem on one
-thread (2026-12-03): weighted-EOVE start ~1.7 us, LM ~2.8 us (3-4 iterations),
+thread: weighted-EOVE start ~1.7 us, LM ~2.8 us (3-4 iterations),
 finisher ~1.5 us, masks, geometry, parts and glue ~1.7 us; the parts are cut
-equal, as many per thread. The ratio moves with the machine (168x on
-2026-12-02 at 19:15; 81x, 95x, 86x and 94x on 2026-12-03, the per-round ratios
-of one run spanning 78-110x): scipy's per-problem Python loop speeds up and
+equal, as many per thread. The ratio moves with the machine (from about 80x
+to about 170x between runs, 78-110x between the rounds of one run): scipy's per-problem Python loop speeds up and
 slows down more than the compiled batch does.
 """
 

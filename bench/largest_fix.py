@@ -1,4 +1,4 @@
-"""``python -m bench.largest_fix``: seconds per method for the largest allowed fix over HTTP (issue 10: within 3 s).
+"""``python -m bench.largest_fix``: seconds per method for the largest allowed fix over HTTP (target: within 3 s).
 
 One uvicorn worker on loopback (:func:`bench.server.serve`); per method one warm-up request, then the median
 of ``--repeats`` requests of :func:`bench.scenarios.largest_fix_request` (256 stations x 1,024 bearings).

@@ -296,7 +296,7 @@ def _phase_times(problems: list) -> dict[str, float]:
     return times
 
 
-#: The closed forms of the batch row (issue 9's list), each measured like ML.
+#: The closed forms of the batch row (its target covers ML and every closed form), each measured like ML.
 CLOSED_FORMS = ("weighted_eove", "eove", "los_intersection", "ple3d", "ws3d", "angle_range", "tls", "ctls",
                 "taylor_wls")
 

@@ -25,8 +25,7 @@ SEP50; round, rank-1 and zero covariances fall on nodes and agree exactly.
 eigen-decompositions (cyclic Jacobi, :func:`core.linalg.symmetric_eigen_in_place`)
 and the interpolation run in one compiled kernel per covariance: the whole
 :func:`error_summary` measured 0.7-1.0 us per covariance in a batch of 10,000
-and 12-16 us for a single one (88-126 us before the kernel), side by side in
-one process.
+and 12-16 us for a single one, side by side in one process.
 """
 
 from __future__ import annotations

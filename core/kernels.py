@@ -1,9 +1,9 @@
 """Every compiled (numba) kernel of the core, compiled or loaded from numba's on-disk cache in one call.
 
 The per-problem inner loops are compiled: the point conversions of
-:mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem`,
-the frame and station placement, the padding and the model values and weights
-of :mod:`core.problem_batch`, the measurement model and TOA offset of :mod:`core.measurements`, the robust
+:mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem_frame`,
+the frame and station placement and the padding of :mod:`core.problem_batch_build`,
+the model values and weights of :mod:`core.problem_batch`, the measurement model and TOA offset of :mod:`core.measurements`, the robust
 losses, the small SVD and eigen-decomposition of :mod:`core.linalg`, the
 information pieces of :mod:`core.crlb`, the error summaries, the
 orthogonal-vector passes, the ML iteration, the finisher and the tracking
@@ -27,7 +27,7 @@ def compile_kernels() -> None:
     from core.errors import LocalizationError
     from core.estimators import REGISTRY, SolveOptions, solve
     from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
-    from core.tracking import network_kernel, unscented
+    from core.tracking import unscented
 
     local = [(name, LocalPoint(east, north, 0.0)) for name, east, north in
              (("a", 0.0, 0.0), ("b", 10_000.0, 0.0), ("c", 0.0, 10_000.0), ("d", 10_000.0, 10_000.0))]
@@ -53,7 +53,6 @@ def compile_kernels() -> None:
     error_summary(np.eye(3), exact=True)
     gdop(np.eye(3)[None], np.ones(1))  # the planning routes' (a fix's GDOP comes from the finisher's kernel)
     unscented.compile_kernels()
-    network_kernel.compile_kernels()
     _run_network_tracker()
 
 

@@ -7,10 +7,9 @@ never carries weight. The batched ML estimator and its closed-form start work
 on a batch; :meth:`ProblemBatch.problem` gives one :class:`~core.problem.Problem`
 back for the per-problem code paths.
 
-:func:`build_problem_batch` is :func:`core.problem.build_problem` over a batch,
-for inputs that already passed its checks: the frame placement is the same
-(exact geodesy, the stations' centroid on the ellipsoid as the default origin),
-done once for every station of every problem.
+A batch is built from the callers' flat inputs by
+:func:`core.problem_batch_build.build_problem_batch`, or padded from built
+problems by :meth:`ProblemBatch.from_problems`.
 """
 
 from __future__ import annotations
@@ -23,9 +22,8 @@ from typing import NamedTuple, Sequence
 import numba
 import numpy as np
 
-from core import geodesy
 from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, Kind
-from core.problem import CommonFrame, GeodeticPoint, Problem, frame_placements, local_axes_point, onto_altitude
+from core.problem_frame import CommonFrame, GeodeticPoint, Problem, frame_placements, onto_altitude
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).
 PAD_KIND = Kind.RANGE
@@ -577,88 +575,6 @@ def _pad(flat, scatter, fill):
     return out
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _place(coordinates, counts, geodetic_stations, origin_given, guess_given, geodetic_guess, origin, geodetic,
-           origin_ecef, origin_rotation, enu, rotations, guess):
-    """Each problem's common frame, its stations in it (padded) and its initial guess in it (compiled).
-
-    A geodetic problem without an origin takes its stations' ECEF centroid on
-    the ellipsoid (the first station where the centroid is at the earth's
-    centre); a geodetic station ``(lat_rad, lon_rad, alt_m)`` is placed by
-    exact geodesy, a local one ``(east_m, north_m, up_m)`` as given, with
-    the local axes at it. So is a guess ``guess_given`` ``(B, 3)`` (where ``geodetic_guess`` ``(B,)``; NaN
-    rows: none).
-
-    Parameters
-    ----------
-    origin, geodetic, origin_ecef, origin_rotation, enu, rotations, guess : ndarray
-        The outputs, filled here (a compiled call costs more for each array it returns than for each it is
-        given): each frame's origin ``(B, 3)`` (zeros for a flat plane), whether it is geodetic ``(B,)``, its
-        placement ``(B, 3)`` and ``(B, 3, 3)`` (:func:`core.problem.frame_placements` of the origin), the
-        stations ``(B, N, 3)`` and their rotations ``(B, N, 3, 3)`` (zero and identity on padding) and the
-        guesses in the frame ``(B, 3)``.
-    """
-    origin[:], geodetic[:], enu[:], rotations[:], guess[:] = 0.0, False, 0.0, 0.0, guess_given
-    first = 0
-    for b in range(counts.size):
-        count = counts[b]
-        stations = coordinates[first:first + count]
-        if geodetic_stations[b] and math.isnan(origin_given[b, 0]):
-            origin[b, 0], origin[b, 1] = geodesy.centroid_on_ellipsoid_point(stations[:, 0].copy(),
-                                                                             stations[:, 1].copy())
-            geodetic[b] = True
-        elif not math.isnan(origin_given[b, 0]):
-            origin[b] = origin_given[b]
-            geodetic[b] = True
-        o = origin[b]
-        origin_ecef[b, 0], origin_ecef[b, 1], origin_ecef[b, 2] = geodesy.geodetic_to_ecef_point(o[0], o[1], o[2])
-        geodesy.ecef_to_enu_rotation_point(o[0], o[1], origin_rotation[b])
-        if geodetic_guess[b] and not math.isnan(guess[b, 0]):
-            x, y, z = geodesy.geodetic_to_ecef_point(guess[b, 0], guess[b, 1], guess[b, 2])
-            guess[b, 0], guess[b, 1], guess[b, 2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef[b],
-                                                                              origin_rotation[b])
-        for i in range(count):
-            c = stations[i]
-            if geodetic_stations[b]:
-                x, y, z = geodesy.geodetic_to_ecef_point(c[0], c[1], c[2])
-                enu[b, i, 0], enu[b, i, 1], enu[b, i, 2] = geodesy.ecef_to_enu_point(x, y, z, origin_ecef[b],
-                                                                                     origin_rotation[b])
-                geodesy.rotation_from_point(c[0], c[1], origin_rotation[b], rotations[b, i])
-            else:
-                enu[b, i, 0], enu[b, i, 1], enu[b, i, 2] = c[0], c[1], c[2]
-                local_axes_point(enu[b, i], geodetic[b], origin_ecef[b], origin_rotation[b], rotations[b, i])
-        for i in range(count, enu.shape[1]):
-            for r in range(3):
-                rotations[b, i, r, r] = 1.0
-        first += count
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pad_measurements(counts, kinds, station_index, values, sigmas, bearing_index, source_index, kinds_out,
-                      station_out, values_out, sigmas_out, bearing_out, source_out, reference):
-    """The flat measurements of B problems padded into the ``(B, M)`` outputs (padding: kind ``PAD_KIND``,
-    station 0, value 0, sigma NaN, indices -1), TOA values less each problem's earliest, and that reference
-    into ``reference`` ``(B,)`` (0 without TOA; compiled)."""
-    kinds_out[:], station_out[:], values_out[:], sigmas_out[:] = _PAD_KIND_CODE, 0, 0.0, np.nan
-    bearing_out[:], source_out[:], reference[:] = -1, -1, 0.0
-    first = 0
-    for b in range(counts.size):
-        earliest = np.inf
-        for m in range(counts[b]):
-            j = first + m
-            kinds_out[b, m], station_out[b, m] = kinds[j], station_index[j]
-            values_out[b, m], sigmas_out[b, m] = values[j], sigmas[j]
-            bearing_out[b, m], source_out[b, m] = bearing_index[j], source_index[j]
-            if kinds[j] == TOA:
-                earliest = min(earliest, values[j])
-        if earliest < np.inf:
-            reference[b] = earliest
-            for m in range(counts[b]):
-                if kinds_out[b, m] == TOA:
-                    values_out[b, m] -= earliest
-        first += counts[b]
-
-
 def size_groups(n_measurements, n_stations=None) -> list[np.ndarray]:
     """Indices grouped so that padding stays under 2x: by the power of two at or above each size.
 
@@ -681,90 +597,3 @@ def size_groups(n_measurements, n_stations=None) -> list[np.ndarray]:
     if bucket.size and bucket.min() == bucket.max():
         return [np.arange(bucket.size)]
     return [np.flatnonzero(bucket == k) for k in np.unique(bucket)]
-
-
-def build_problem_batch(
-    station_counts,
-    station_ids: Sequence[tuple[str, ...]],
-    station_coordinates,
-    geodetic_stations,
-    origin,
-    measurement_counts,
-    kinds,
-    station_index,
-    values,
-    sigmas,
-    bearing_index,
-    source_index,
-    altitude_m,
-    initial_guess,
-    geodetic_guess,
-) -> ProblemBatch:
-    """:func:`core.problem.build_problem` for a batch of inputs that already pass its checks.
-
-    Parameters
-    ----------
-    station_counts : ndarray of int, shape (B,)
-        Stations of each problem (>= 1); their rows are consecutive below.
-    station_ids : sequence of tuple of str, length B
-    station_coordinates : ndarray, shape (S, 3)
-        ``(lat_rad, lon_rad, alt_m)`` for geodetic stations, ``(east_m, north_m, up_m)`` for local ones;
-        ``S = sum(station_counts)``.
-    geodetic_stations : ndarray of bool, shape (B,)
-    origin : ndarray, shape (B, 3)
-        Given origin ``(lat_rad, lon_rad, alt_m)``; NaN rows where none was given.
-    measurement_counts : ndarray of int, shape (B,)
-        Scalar measurements of each problem (>= 1); rows consecutive below.
-    kinds, station_index, values, sigmas, bearing_index, source_index : ndarray, shape (T,)
-        As in :class:`~core.problem.Problem`, except that TOA values are the raw
-        seconds (the per-problem reference is subtracted here); ``station_index``
-        counts within the problem.
-    altitude_m : ndarray, shape (B,)
-        NaN where unconstrained.
-    initial_guess : ndarray, shape (B, 3)
-        Geodetic ``(lat_rad, lon_rad, alt_m)`` or local ENU; NaN rows where none.
-    geodetic_guess : ndarray of bool, shape (B,)
-
-    Returns
-    -------
-    ProblemBatch
-    """
-    station_counts = np.asarray(station_counts, dtype=np.intp)
-    measurement_counts = np.asarray(measurement_counts, dtype=np.intp)
-    size = station_counts.size
-    n, m = max([1, *station_counts.tolist()]), max([1, *measurement_counts.tolist()])
-    placed = (np.empty((size, 3)), np.empty(size, dtype=bool), np.empty((size, 3)), np.empty((size, 3, 3)),
-              np.empty((size, n, 3)), np.empty((size, n, 3, 3)), np.empty((size, 3)))
-    _place(np.asarray(station_coordinates, dtype=float).reshape(-1, 3), station_counts,
-           np.asarray(geodetic_stations, dtype=bool), np.ascontiguousarray(origin, dtype=float).reshape(-1, 3),
-           np.ascontiguousarray(initial_guess, dtype=float).reshape(-1, 3), np.asarray(geodetic_guess, dtype=bool),
-           *placed)
-    origin, geodetic, origin_ecef, origin_rotation, stations_enu, rotations, guess = placed
-    padded = (np.empty((size, m), dtype=np.int8), np.empty((size, m), dtype=np.intp), np.empty((size, m)),
-              np.empty((size, m)), np.empty((size, m), dtype=np.intp), np.empty((size, m), dtype=np.intp),
-              np.empty(size))
-    _pad_measurements(measurement_counts, np.asarray(kinds, dtype=np.int8), np.asarray(station_index, dtype=np.intp),
-                      np.asarray(values, dtype=float), np.asarray(sigmas, dtype=float),
-                      np.asarray(bearing_index, dtype=np.intp), np.asarray(source_index, dtype=np.intp), *padded)
-    kinds, station_index, values, sigmas, bearing_index, source_index, reference = padded
-
-    built = ProblemBatch(
-        station_ids=tuple(station_ids),
-        origin=origin,
-        geodetic=geodetic,
-        n_stations=station_counts,
-        stations_enu_m=stations_enu,
-        station_rotations=rotations,
-        n_measurements=measurement_counts,
-        kinds=kinds,
-        station_index=station_index,
-        values=values,
-        sigmas=sigmas,
-        bearing_index=bearing_index,
-        source_index=source_index,
-        toa_reference_s=reference,
-        altitude_m=np.ascontiguousarray(altitude_m, dtype=float).reshape(-1),
-        initial_guess_enu_m=guess,
-    )
-    built.__dict__["_frame_placements"] = origin_ecef, origin_rotation  # the cache of frame_placements()
-    return built

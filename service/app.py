@@ -24,6 +24,7 @@ from service.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
 from service.settings import Settings
 from service.stores import open_store, store_kind
+from service.stores.base import StoreError
 from service.stores.guard import GuardedStore
 
 API_VERSION = importlib.metadata.version("passive-locator")
@@ -66,13 +67,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         store.on_failure = lambda operation: metrics.store_errors.labels(operation).inc()
         app.state.store = store
         app.state.stopping = threading.Event()
-        app.state.fix_coalescer = Coalescer(app.state.stopping, metrics)
+        app.state.fix_coalescer = Coalescer(app.state.stopping, metrics, settings.max_fix_cost)
         app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
         await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, kernel_cache.load_kernels,
                                                          translate.compile_kernels)
         try:
             await store.run(lambda backend: None)  # open now when we can; a store that is down opens later
-        except problems.ApiError as error:
+        except StoreError as error:
             logger.warning("session store not available at start: %s", error.detail)
         try:
             yield
@@ -108,8 +109,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if settings.rate_limit_per_s else None
     app.state.rate_limiter = limiter
     app.add_middleware(ServiceMiddleware, max_body_bytes=settings.max_body_bytes, metrics=metrics,
-                       rate_limiter=limiter, key_digests=app.state.key_digests, max_fix_cost=settings.max_fix_cost,
-                       routes=app.router.routes)
+                       rate_limiter=limiter, key_digests=app.state.key_digests, routes=app.router.routes)
     app.add_middleware(InFlight, metrics=metrics)
     web.install_cors(app, settings.cors_allow_origins)
     return app

@@ -55,9 +55,12 @@ class Coalescer:
         Set when the server stops: a drain stops between parts.
     metrics : service.metrics.Metrics, optional
         Told each drain's results, under the method each ran with, and each fix's time from submission.
+    max_fix_cost : int, optional
+        The app's ``max_fix_cost``, checked on every body (None: no limit).
     """
 
-    def __init__(self, stopping: threading.Event | None = None, metrics=None) -> None:
+    def __init__(self, stopping: threading.Event | None = None, metrics=None, max_fix_cost: int | None = None) -> None:
+        self._max_fix_cost = max_fix_cost
         self._pending: list[tuple[object, str | None, Callable[[], bool], asyncio.Future, float]] = []
         self._metrics = metrics
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -114,7 +117,7 @@ class Coalescer:
         try:
             work = loop.run_in_executor(self._worker, contextvars.copy_context().run, fix_results,
                                         [item[0] for item in taken], [item[1] for item in taken], should_stop,
-                                        methods_run)
+                                        methods_run, self._max_fix_cost)
         except RuntimeError:  # the worker is shut down: the app is stopping
             work = loop.create_future()
             work.set_exception(Stopped())

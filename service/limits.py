@@ -2,7 +2,7 @@
 
 Costs are in units of about one batched ML measurement row. Every method is
 solved batched, within 4x of ML's cost per problem (10,000 four-station
-problems in core, estimate and finish on one thread, us per fix, 2026-12-03:
+problems in core, estimate and finish on one thread, us per fix:
 ml 9.7, weighted_eove 10.4, eove 8.6, ove 29.9, los_intersection 15.7, ple3d
 10.4, ws3d 15.2, angle_range 38.5 with its range, tls 38.1 and ctls 31.8 with
 the altitude, taylor_wls 27.3; ``python -m bench.closed_form_core -r 5 10000
@@ -31,13 +31,18 @@ exclusion may take (:func:`exclusion_solves`): its refits run the method again, 
 
 from __future__ import annotations
 
-import contextvars
-
 from service.problems import ApiError
 from service.wire import measurement_count, requested_method, requests_exclusion
 
-#: The ``max_fix_cost`` of the app serving this request (set per request by the middleware).
-fix_cost_limit: contextvars.ContextVar[int | None] = contextvars.ContextVar("fix_cost_limit", default=None)
+#: The key of pydantic's validation context (``model_validate(..., context=...)``) that carries the app's
+#: ``max_fix_cost`` to :class:`service.schemas.FixRequest`'s cost check (:func:`fix_cost_context`).
+FIX_COST_LIMIT_KEY = "max_fix_cost"
+
+
+def fix_cost_context(limit: int | None) -> dict:
+    """The validation context that makes :class:`service.schemas.FixRequest` check ``limit``
+    (None: no limit)."""
+    return {FIX_COST_LIMIT_KEY: limit}
 
 
 def method_weight(method) -> int:
@@ -112,9 +117,9 @@ def fix_cost(stations: int, measurements: int, method: str = "auto", exclude: bo
     return problem_units(method, stations * measurements, measurements) * exclusion_solves(exclude, measurements)
 
 
-def check_fix(stations: int, measurements: int, method: str = "auto", exclude: bool = False) -> None:
-    """Raise ``ValueError`` (a validation error of the request) when a fix is over this app's ``max_fix_cost``."""
-    limit = fix_cost_limit.get()
+def check_fix(stations: int, measurements: int, method: str, exclude: bool, limit: int | None) -> None:
+    """Raise ``ValueError`` (a validation error of the request) when a fix is over ``limit`` (the app's
+    ``max_fix_cost``; None: no limit)."""
     cost = fix_cost(stations, measurements, method, exclude)
     if limit is not None and cost > limit:
         units = problem_units(method, stations * measurements, measurements)
@@ -126,6 +131,6 @@ def check_fix(stations: int, measurements: int, method: str = "auto", exclude: b
             + f" = {cost:,}, over the limit max_fix_cost = {limit:,}")
 
 
-def fix_within_limit(stations: int, measurements: int, method: str = "auto", exclude: bool = False) -> bool:
-    limit = fix_cost_limit.get()
+def fix_within_limit(stations: int, measurements: int, method: str, exclude: bool, limit: int | None) -> bool:
+    """Whether a fix is within ``limit`` (the app's ``max_fix_cost``; None: no limit)."""
     return limit is None or fix_cost(stations, measurements, method, exclude) <= limit

@@ -428,6 +428,8 @@ _MODEL_PIXEL_SCALE, _MODEL_TIEPOINT, _GEO_KEY_DIRECTORY, _GDAL_NODATA = 33550, 3
 _GEO_KEYS_WGS84 = (1, 1, 0, 4, 1024, 0, 1, 2, 1025, 0, 1, 1, 2048, 0, 1, 4326, 2054, 0, 1, 9102)
 
 KML_NAMESPACE = "http://www.opengis.net/kml/2.2"
+#: Modification time of every KMZ entry (the earliest a zip can say): a map's bytes do not depend on when it is made.
+KMZ_ENTRY_TIME = (1980, 1, 1, 0, 0, 0)
 #: Opacity of the overlay's cells (0-255): the base map shows through.
 _OVERLAY_ALPHA = 200
 
@@ -482,9 +484,14 @@ def coverage_kmz(problem: Problem, grid: Grid, coverage: Coverage, longer_side_p
         f"</Document></kml>\n")
     out = io.BytesIO()
     with zipfile.ZipFile(out, "w") as archive:  # doc.kml first: the KML a reader opens
-        archive.writestr("doc.kml", document, compress_type=zipfile.ZIP_DEFLATED)
-        archive.writestr("coverage.png", overlay, compress_type=zipfile.ZIP_STORED)
-        archive.writestr("legend.png", _png(legend), compress_type=zipfile.ZIP_STORED)
+        for name, data, compression in (("doc.kml", document, zipfile.ZIP_DEFLATED),
+                                        ("coverage.png", overlay, zipfile.ZIP_STORED),
+                                        ("legend.png", _png(legend), zipfile.ZIP_STORED)):
+            # A fixed entry time: the same map is the same bytes whenever it is made (an entry named by a
+            # string alone would carry the clock's time, to two seconds).
+            entry = zipfile.ZipInfo(name, date_time=KMZ_ENTRY_TIME)
+            entry.compress_type = compression
+            archive.writestr(entry, data)
     return out.getvalue()
 
 

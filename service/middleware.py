@@ -26,7 +26,6 @@ from starlette.routing import Match
 
 from service import auth
 from service.headers import HeaderError, RequestHeaders
-from service.limits import fix_cost_limit
 from service.logs import request_id_var
 from service.metrics import Metrics
 from service.problems import MEDIA_TYPE, ApiError, problem_body
@@ -65,9 +64,8 @@ class ServiceMiddleware:
     of last resort."""
 
     def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None,
-                 key_digests: frozenset[bytes] = frozenset(), max_fix_cost: int | None = None, routes=()):
+                 key_digests: frozenset[bytes] = frozenset(), routes=()):
         self.routes = routes
-        self.max_fix_cost = max_fix_cost
         self._id_prefix = uuid.uuid4().hex[:16]
         self._id_counter = itertools.count(1)
         self.app = app
@@ -93,7 +91,6 @@ class ServiceMiddleware:
                                  str((scope.get("client") or ("?",))[0]))
         state["identity"] = identity
         token = request_id_var.set(request_id)
-        fix_cost_limit.set(self.max_fix_cost)
         started = time.perf_counter()
         status_holder = {"status": 500, "started": False}
 

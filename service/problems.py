@@ -1,13 +1,15 @@
 """problem+json (RFC 9457) responses, and the one place errors are mapped to them.
 
-Core raises :class:`core.errors.LocalizationError` subclasses; each maps to a
-status and a code here. Anything unmapped is a bug: logged with the request
+Core raises :class:`core.errors.LocalizationError` subclasses and the session
+stores raise :class:`service.stores.base.StoreError` subclasses; each maps to
+a status and a code here. Anything unmapped is a bug: logged with the request
 id and answered 500.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 
 import orjson
 from fastapi import FastAPI, Request
@@ -17,6 +19,7 @@ from starlette.responses import Response
 from starlette.routing import Match
 
 from core.errors import LocalizationError
+from service.stores.base import StoreError
 
 logger = logging.getLogger("passive_locator")
 
@@ -89,6 +92,15 @@ def problem_response(status: int, code: str, detail: str, errors=None, request_i
 def clean_loc(loc) -> list:
     """A pydantic location without the ``body`` prefix and union tags."""
     return [part for part in loc if not (isinstance(part, str) and (part in _LOC_NOISE or part.startswith("function-")))]
+
+
+#: A store that cannot serve a request now: the client retries after ``Retry-After``.
+STORE_STATUS = 503
+
+
+def store_headers(error: StoreError) -> dict[str, str]:
+    """``Retry-After`` of a store error: whole seconds, at least 1."""
+    return {"Retry-After": str(max(1, math.ceil(error.retry_after_s)))}
 
 
 def localization_status(error: LocalizationError) -> tuple[int, str]:
@@ -167,6 +179,11 @@ def install(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def _api(request: Request, exc: ApiError):
         return problem_response(exc.status, exc.code, exc.detail, exc.errors, _request_id(request), exc.headers)
+
+    @app.exception_handler(StoreError)
+    async def _store(request: Request, exc: StoreError):
+        return problem_response(STORE_STATUS, exc.code, exc.detail, request_id=_request_id(request),
+                                headers=store_headers(exc))
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):

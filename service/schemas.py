@@ -11,12 +11,12 @@ from datetime import datetime, timedelta, timezone
 from typing import Annotated, Any, Literal, Union, get_args
 
 from pydantic import (AfterValidator, AwareDatetime, BaseModel, ConfigDict, Discriminator, Field, StrictBool, Tag,
-                      model_validator)
+                      ValidationInfo, model_validator)
 
 from core.estimators import REGISTRY
 from core.estimators.loss import LOSSES
 from core.estimators.result import COVARIANCE_SOURCES, SCALED_COVARIANCE_SOURCES, WARNING_CODES
-from service.limits import check_fix
+from service.limits import FIX_COST_LIMIT_KEY, check_fix
 
 #: Local coordinates, heights and a known altitude lie within this distance of the frame (beyond geostationary
 #: orbit); squares and products of such numbers stay far from float64 overflow.
@@ -226,8 +226,10 @@ class FixRequest(Strict):
                                                      "also sent to the TAK feed when one is configured")
 
     @model_validator(mode="after")
-    def _within_cost(self):
-        check_fix(len(self.stations), len(self.measurements), self.method, self.options.outliers == "exclude")
+    def _within_cost(self, info: ValidationInfo):
+        # The limit is the app's, given by whoever validates (service.limits.fix_cost_context); none without it.
+        check_fix(len(self.stations), len(self.measurements), self.method, self.options.outliers == "exclude",
+                  (info.context or {}).get(FIX_COST_LIMIT_KEY))
         return self
 
     @model_validator(mode="after")

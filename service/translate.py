@@ -35,10 +35,11 @@ from core.estimators import PART_PROBLEMS, FixBatch, SolveOptions, iter_solution
 from core.measurements import KIND_NAMES, Kind
 from core.parallel import Stopped
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
-from core.problem_batch import ProblemBatch, build_problem_batch, size_groups
+from core.problem_batch import ProblemBatch, size_groups
+from core.problem_batch_build import build_problem_batch
 from core.simulation.measurements import evaluate
 from service import schemas, wire
-from service.limits import check_grid, fix_within_limit
+from service.limits import check_grid, fix_cost_context, fix_within_limit
 from service.maps import coverage_geojson, coverage_geotiff, coverage_kmz, coverage_png
 from service.problems import ApiError, for_request, localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, fix_cot, fix_geojson, of_request
@@ -396,7 +397,7 @@ _PLAIN_SETTINGS = {(frame, method): ((float(frame == "wgs84"), *_NAN3, math.nan,
                    for frame in ("wgs84", "local") for method in _METHODS}
 
 
-def _read(bodies: list):
+def _read(bodies: list, max_fix_cost: int | None = None):
     """Structure checks and raw columns of the problems that decode as :class:`service.wire.FixBody` and look
     plainly valid (the numbers are checked later, in bulk).
 
@@ -454,7 +455,8 @@ def _read(bodies: list):
                 add_coordinates(coordinates_of(position, geodetic))
             measurements = body.measurements
             if not 0 < len(measurements) <= _MEASUREMENTS_MAX or \
-                    not fix_within_limit(len(ids), len(measurements), method, setting[2].outliers == "exclude"):
+                    not fix_within_limit(len(ids), len(measurements), method, setting[2].outliers == "exclude",
+                                         max_fix_cost):
                 raise _Reject
             n_bearings = 0
             for i, m in enumerate(measurements):
@@ -579,19 +581,21 @@ class FixRequests(typing.NamedTuple):
     errors: dict[int, dict]
 
 
-def read_fix_requests(bodies: list) -> FixRequests:
+def read_fix_requests(bodies: list, max_fix_cost: int | None = None) -> FixRequests:
     """Read FixRequest bodies (:class:`service.wire.FixBody` structs or parsed JSON) into one core batch.
 
     A body that is plainly valid (a FixBody, or parsed JSON that converts to
     one, within the bounds of :class:`schemas.FixRequest`, with known and
     unique station ids) is read in bulk: structure problem by problem, numbers
     range-checked for all at once, the frames placed by
-    :func:`core.problem_batch.build_problem_batch`.
+    :func:`core.problem_batch_build.build_problem_batch`.
     Any other body is validated by the schema and built by :func:`to_problem`,
-    which decide and word its error, and joins the same batch.
+    which decide and word its error, and joins the same batch. A body over
+    ``max_fix_cost`` (the app's limit; None: no limit) takes the schema's road,
+    which words its 422.
     """
     (accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, frames,
-     rest) = _read(bodies)
+     rest) = _read(bodies, max_fix_cost)
     errors: dict[int, dict] = {}
     lean = None
     if accepted:
@@ -638,7 +642,8 @@ def read_fix_requests(bodies: list) -> FixRequests:
     built: list[Problem] = []
     for slot in rest:
         try:
-            request = schemas.FixRequest.model_validate(wire.as_builtins(bodies[slot]))
+            request = schemas.FixRequest.model_validate(wire.as_builtins(bodies[slot]),
+                                                        context=fix_cost_context(max_fix_cost))
         except ValidationError as error:
             errors[slot] = _invalid(error)
             continue
@@ -1117,7 +1122,8 @@ def compile_kernels() -> None:
     fix_results(_WARM_BODIES)
 
 
-def fix_results(bodies: list, request_ids=None, should_stop=None, methods_run: list | None = None) -> list[dict]:
+def fix_results(bodies: list, request_ids=None, should_stop=None, methods_run: list | None = None,
+                max_fix_cost: int | None = None) -> list[dict]:
     """Results of FixRequest bodies (see :func:`read_fix_requests`): read, solved and written as one batch.
 
     A failure that is no problem's own error (a bug) fails only the bodies
@@ -1137,6 +1143,8 @@ def fix_results(bodies: list, request_ids=None, should_stop=None, methods_run: l
     methods_run : list, optional
         Replaced by the method of each body, in order, whatever its outcome: the estimator that ran (``auto``
         resolved), or the requested method of a body refused before solving (what metrics count a fix under).
+    max_fix_cost : int, optional
+        The app's ``max_fix_cost``: a body over it fails its slot (422); None: no limit.
 
     Returns
     -------
@@ -1154,24 +1162,24 @@ def fix_results(bodies: list, request_ids=None, should_stop=None, methods_run: l
     results = None
     if len(bodies) > 1:
         try:
-            results = _shared_results(bodies, request_ids, should_stop, ran)
+            results = _shared_results(bodies, request_ids, should_stop, ran, max_fix_cost)
         except Stopped:
             raise
         except Exception:
             logger.exception("shared solve of %d fixes failed; solving each alone", len(bodies))
     if results is None:
-        results = [{**_alone(body, request_id, should_stop, ran, slot), "index": slot}
+        results = [{**_alone(body, request_id, should_stop, ran, slot, max_fix_cost), "index": slot}
                    for slot, (body, request_id) in enumerate(zip(bodies, request_ids))]
     if methods_run is not None:
         methods_run[:] = ran
     return results
 
 
-def _alone(body, request_id: str | None, should_stop, ran: list, slot: int) -> dict:
+def _alone(body, request_id: str | None, should_stop, ran: list, slot: int, max_fix_cost: int | None) -> dict:
     """One body's result, solved alone (its method set in ``ran[slot]``); a bug is its slot's 500 ``internal_error``."""
     one = [None]
     try:
-        return _shared_results([body], [request_id], should_stop, one)[0]
+        return _shared_results([body], [request_id], should_stop, one, max_fix_cost)[0]
     except Stopped:
         raise
     except Exception:
@@ -1183,7 +1191,7 @@ def _alone(body, request_id: str | None, should_stop, ran: list, slot: int) -> d
         ran[slot] = one[0] if one[0] is not None else wire.requested_method(body)
 
 
-def _shared_results(bodies: list, request_ids: list, should_stop, ran: list) -> list[dict]:
+def _shared_results(bodies: list, request_ids: list, should_stop, ran: list, max_fix_cost: int | None) -> list[dict]:
     """:func:`fix_results` as one shared read, solve and write (chunk by chunk), which any exception fails whole.
 
     ``ran[slot]`` is set to the method each body ran with (the requested one when it was refused before solving).
@@ -1203,7 +1211,7 @@ def _shared_results(bodies: list, request_ids: list, should_stop, ran: list) -> 
     started = []
     try:
         for chunk in chunks:
-            read = read_fix_requests([bodies[slot] for slot in chunk])
+            read = read_fix_requests([bodies[slot] for slot in chunk], max_fix_cost)
             for j, error in read.errors.items():
                 put(chunk[j], {"ok": False, "error": error}, wire.requested_method(bodies[chunk[j]]))
             if read.batch is not None:

@@ -48,7 +48,7 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
                                      ToaEpoch, count_pulses, fresh_toa_reference, initial_position_state,
                                      line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
 from core.tracking.state import TrackState, freeze, symmetric
-from core.tracking.linalg import cholesky_repaired, symmetrized
+from core.linalg import cholesky_repaired, symmetrized
 from core.tracking.motion import constant_velocity_predict, transitions
 from core.tracking.unscented import (INNOVATION_NOT_PD, NIS_LIMIT, NOT_FINITE, PREDICTED_NOT_PD, UPDATED,
                                      UPDATED_NOT_PD, joint_ukf_kernel)

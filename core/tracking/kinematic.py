@@ -41,6 +41,7 @@ from typing import NamedTuple
 import numpy as np
 
 from core.angles import line_of_sight_enu
+from core.linalg import symmetrized
 from core.tracking.config import SPEED_OF_LIGHT_MPS, TrackerConfig
 
 C = SPEED_OF_LIGHT_MPS
@@ -464,4 +465,4 @@ def initial_position_state(pseudo: RangePseudoMeasurement, mean, cov, cross, azi
         g = np.vstack((position_rows, carried))
         x = position + list(mean)
     p = g @ errors @ g.T
-    return x, 0.5 * (p + p.T)
+    return x, symmetrized(p)

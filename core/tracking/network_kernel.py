@@ -35,8 +35,8 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
+from core.linalg import cholesky_into, lower_inverse_into
 from core.measurements import AZIMUTH, TOA, measure_point
-from core.tracking.linalg import cholesky_into, lower_inverse_into
 
 #: Outcome of :func:`network_ukf_kernel` per state: updated; the predicted position covariance, the
 #: innovation covariance or the updated covariance not positive definite; the update not finite.
@@ -297,17 +297,3 @@ def predict_kernel(means, covs, transition, noises):
     work = np.empty((STATE_SIZE, STATE_SIZE))
     for b in range(means.shape[0]):
         _predict_one(means[b], covs[b], transition, noises[b], point, work)
-
-
-def compile_kernels() -> None:
-    """Compile (or load from numba's cache) this module's kernels with the argument types the tracker passes:
-    a track started from a bearing, updated with bearings and with a TOA group, and predicted."""
-    from core.tracking.network import NetworkConfig, NetworkState, Report, apply_reports, predict_tracks
-
-    config = NetworkConfig()
-    eye = np.tile(np.eye(3), (4, 1, 1))
-    stations = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [2e4, 0.0, 0.0], [0.0, 2e4, 0.0]])
-    bearing = Report(0, 0.0, "e", ("a", "a"), stations[:2], eye[:2], [AZIMUTH, 1], [0.8, 0.0], [0.01, 0.01])
-    toas = Report(1, 1.0, "e", ("a", "b", "c"), stations[1:], eye[1:], [TOA] * 3, [1e-4, 2e-4, 1.5e-4], [3e-8] * 3)
-    state = apply_reports(NetworkState(), [bearing, toas], config).state
-    predict_tracks(state, 2.0, config)

@@ -41,8 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.errors import InvalidInput
+from core.linalg import symmetrized
 from core.tracking.config import MODELS
-from core.tracking.linalg import symmetrized
 
 #: Version of the :meth:`TrackState.to_dict` layout.
 STATE_FORMAT = 1
@@ -280,7 +280,7 @@ def freeze(array: np.ndarray) -> np.ndarray:
 
 
 def symmetric(cov: np.ndarray) -> np.ndarray:
-    """:func:`core.tracking.linalg.symmetrized` as a new read-only array (the filters' updates are symmetric
+    """:func:`core.linalg.symmetrized` as a new read-only array (the filters' updates are symmetric
     only to rounding; this is done once per step)."""
     out = symmetrized(cov)
     out.flags.writeable = False

@@ -1,6 +1,6 @@
 """The unscented updates: step 3 of ``velocity_kinematic`` (:func:`polar_update`) and the joint UKF's
 predict and update (:func:`joint_ukf_kernel`); motion in :mod:`core.tracking.motion`, linear algebra in
-:mod:`core.tracking.linalg`.
+:mod:`core.linalg`.
 
 The unscented transform uses ``kappa = 0``, ``alpha = 1``, ``beta = 0``:
 ``2 n`` points ``mean +- sqrt(n) L[:, j]`` (``L L^T = P``), each of weight
@@ -22,8 +22,8 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
+from core.linalg import cholesky_into, lower_inverse_into, symmetrized
 from core.measurements import AZIMUTH, ELEVATION, RANGE, azimuth_rate_point, measure_point
-from core.tracking.linalg import cholesky_into, lower_inverse_into, symmetrized
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi

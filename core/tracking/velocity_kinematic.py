@@ -35,7 +35,7 @@ import numpy as np
 from core.tracking.config import TrackerConfig
 from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, initial_position_state,
                                      range_pseudo_measurement, velocity_update)
-from core.tracking.linalg import repaired_block
+from core.linalg import repaired_block
 from core.tracking.motion import constant_velocity_predict
 from core.tracking.state import TrackState, freeze, symmetric
 from core.tracking.unscented import NIS_LIMIT, polar_update

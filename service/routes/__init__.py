@@ -1,9 +1,5 @@
 """Every router of the service, in the order they are mounted."""
 
-from service.routes import coverage, evaluations, fixes, health, sessions
+from service.routes import batch, coverage, evaluations, fixes, health, sessions
 
-ROUTERS = [health.router, fixes.router, coverage.router, evaluations.router, sessions.router]
-
-from service.routes import batch  # noqa: E402  (the batch path: issue 6)
-
-ROUTERS.append(batch.router)
+ROUTERS = [health.router, fixes.router, coverage.router, evaluations.router, sessions.router, batch.router]

@@ -23,7 +23,7 @@ from pydantic import ValidationError
 
 from service import schemas, tak
 from service.deps import OwnerDep, parse_json, request_id
-from service.limits import check_batch
+from service.limits import check_batch, fix_cost_context
 from service.renderings import batch_geojson
 from service.responses import JsonResponse
 from service.translate import fix_results
@@ -85,8 +85,9 @@ async def _raw_body(request: Request) -> bytes:
 RawBody = Annotated[bytes, Depends(_raw_body)]
 
 
-def _problems(raw: bytes) -> tuple[list, list]:
-    """The ``problems`` list and ``formats`` of a batch body; 400/422 as for any body when it is not one.
+def _problems(raw: bytes, max_fix_cost: int | None) -> tuple[list, list]:
+    """The ``problems`` list and ``formats`` of a batch body; 400/422 as for any body when it is not one
+    (a problem over ``max_fix_cost``, the app's limit, among the errors).
 
     The problems are :class:`service.wire.FixBody` structs when every one decodes as such, else parsed JSON.
     """
@@ -99,7 +100,7 @@ def _problems(raw: bytes) -> tuple[list, list]:
         if type(problems) is list and 0 < len(problems) <= MAX_PROBLEMS:
             return problems, []
     try:
-        schemas.BatchRequest.model_validate(data)
+        schemas.BatchRequest.model_validate(data, context=fix_cost_context(max_fix_cost))
     except ValidationError as error:
         raise RequestValidationError([{**e, "loc": ("body", *e["loc"])} for e in error.errors()]) from None
     return data["problems"], data.get("formats", [])
@@ -113,10 +114,11 @@ def _problems(raw: bytes) -> tuple[list, list]:
 async def create_batch(owner: OwnerDep, raw: RawBody, request: Request) -> JsonResponse:
     def run(should_stop) -> JsonResponse:
         with gc_paused():
-            problems, formats = _problems(raw)
-            check_batch(problems, request.app.state.settings.max_batch_cost)
+            settings = request.app.state.settings
+            problems, formats = _problems(raw, settings.max_fix_cost)
+            check_batch(problems, settings.max_batch_cost)
             methods_run: list = []
-            results = fix_results(problems, request_id(request), should_stop, methods_run)
+            results = fix_results(problems, request_id(request), should_stop, methods_run, settings.max_fix_cost)
             request.app.state.metrics.count("batch_problems_total", len(problems))
             request.app.state.metrics.fixes_done(methods_run, results)
             tak.push_batch(request.app, problems, results)

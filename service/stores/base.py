@@ -22,9 +22,42 @@ from typing import Any, Callable
 
 import orjson
 
-from service.problems import ApiError
-
 Clock = Callable[[], float]
+
+
+class StoreError(Exception):
+    """A session store could not do what was asked, for now: the client should retry.
+
+    The store says what went wrong and when to retry; the app maps it to an
+    HTTP answer in one place (:func:`service.problems.install`).
+
+    Parameters
+    ----------
+    detail : str
+        For the client: what failed and that a retry may succeed.
+    retry_after_s : float
+        Seconds after which a retry may succeed.
+    """
+
+    #: The problem code the client sees.
+    code = "store_error"
+
+    def __init__(self, detail: str, retry_after_s: float = 1.0):
+        super().__init__(detail)
+        self.detail, self.retry_after_s = detail, retry_after_s
+
+
+class StoreUnavailable(StoreError):
+    """The backend failed, did not answer in time, or its breaker is open."""
+
+    code = "store_unavailable"
+
+
+class StoreBusy(StoreError):
+    """The backend is up but could not serialise this write in time: its write lock stayed taken, or a
+    session's compare-and-set lost to other writers every time."""
+
+    code = "store_busy"
 
 
 @dataclass(frozen=True)
@@ -168,8 +201,7 @@ class SessionStore(ABC):
             if self._swap(session_id, record.version, new):
                 return new
             time.sleep(random.uniform(0.0, min(0.05, 0.0005 * 2**attempt)))
-        raise ApiError(503, "store_busy", f"session {session_id} is being updated by many clients at once; retry",
-                       headers={"Retry-After": "1"})
+        raise StoreBusy(f"session {session_id} is being updated by many clients at once; retry")
 
     @abstractmethod
     def _swap(self, session_id: str, version: int, new: SessionRecord) -> bool:

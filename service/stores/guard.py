@@ -19,15 +19,13 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import math
 import sqlite3
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any, Callable, TypeVar
 
-from service.problems import ApiError
-from service.stores.base import SessionStore
+from service.stores.base import SessionStore, StoreError, StoreUnavailable
 
 logger = logging.getLogger("passive_locator")
 
@@ -48,9 +46,8 @@ def _backend_errors() -> tuple[type[BaseException], ...]:
 BACKEND_ERRORS = _backend_errors()
 
 
-def unavailable(detail: str, retry_after_s: float) -> ApiError:
-    return ApiError(503, "store_unavailable", detail,
-                    headers={"Retry-After": str(max(1, math.ceil(retry_after_s)))})
+def unavailable(detail: str, retry_after_s: float) -> StoreUnavailable:
+    return StoreUnavailable(detail, retry_after_s)
 
 
 class CircuitBreaker:
@@ -158,9 +155,8 @@ class GuardedStore:
             logger.warning("session store %s failed: %s: %s", self.kind, type(error).__name__, error)
             raise unavailable(f"session store {self.kind} unavailable ({type(error).__name__}); retry",
                               self.breaker.cooldown_s) from error
-        except ApiError as error:
-            if error.status == 503:
-                self.breaker.failure()
+        except StoreError:
+            self.breaker.failure()
             raise
         self.breaker.success()
         return result
@@ -170,9 +166,9 @@ class GuardedStore:
 
         Raises
         ------
-        ApiError
-            503 ``store_unavailable`` (with ``Retry-After``) on a backend error, a timeout or an open breaker;
-            whatever ``work`` raises otherwise.
+        StoreUnavailable
+            On a backend error, a timeout or an open breaker (the app answers 503 with ``Retry-After``);
+            whatever ``work`` raises otherwise (a :class:`~service.stores.base.StoreBusy` among them).
         """
         wait = self.breaker.admit()
         if wait:

@@ -28,8 +28,7 @@ import redis
 from redis.backoff import NoBackoff
 from redis.retry import Retry
 
-from service.problems import ApiError
-from service.stores.base import Clock, SessionRecord, SessionStore
+from service.stores.base import Clock, SessionRecord, SessionStore, StoreBusy
 
 DEFAULT_PREFIX = "passive-locator:"
 
@@ -170,8 +169,7 @@ class RedisStore(SessionStore):
                 return False
             if self._delete(keys=keys, args=[record.version, session_id]):
                 return True
-        raise ApiError(503, "store_busy", f"session {session_id} is being updated by many clients at once; retry",
-                       headers={"Retry-After": "1"})
+        raise StoreBusy(f"session {session_id} is being updated by many clients at once; retry")
 
     def ping(self) -> None:
         self.client.ping()

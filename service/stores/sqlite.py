@@ -10,10 +10,10 @@ a ``seq`` it saw acknowledged. The price is one fsync per write.
 Concurrency: :meth:`SqliteStore.update` is the base class's compare-and-set:
 the change runs outside any lock, and the write is an ``UPDATE ... WHERE
 version = ?`` inside ``BEGIN IMMEDIATE`` (the database's write lock, held
-for that statement and its fsync only). Before, load-change-save all ran
-inside the lock, so a post of 10,000 epochs (0.6 s of filter steps) made
-the writes of other sessions wait past the 0.5 s busy timeout: 1,082 of
-1,161 posts of six streaming clients answered 503. Writers are serialised
+for that statement and its fsync only). With load-change-save all inside
+the lock, a post of 10,000 epochs (0.6 s of filter steps) would make the
+writes of other sessions wait past the 0.5 s busy timeout (measured: 1,082
+of 1,161 posts of six streaming clients answered 503). Writers are serialised
 across processes sharing the file (waiting up to ``busy_timeout_s``);
 readers are not blocked (WAL). Within one process the writers first queue
 on a lock of the store's: SQLite's own wait is a sleep with growing backoff,
@@ -48,8 +48,7 @@ import time
 from contextlib import contextmanager
 from typing import Iterator, NamedTuple
 
-from service.problems import ApiError
-from service.stores.base import Clock, SessionRecord, SessionStore
+from service.stores.base import Clock, SessionRecord, SessionStore, StoreBusy
 
 _SCHEMA = """
 CREATE TABLE IF NOT EXISTS sessions (
@@ -326,5 +325,5 @@ class _Turns:
                 self._held = False
 
 
-def _busy() -> ApiError:
-    return ApiError(503, "store_busy", "the session store is busy; retry", headers={"Retry-After": "1"})
+def _busy() -> StoreBusy:
+    return StoreBusy("the session store is busy; retry")

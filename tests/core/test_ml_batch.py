@@ -8,7 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from core.problem_batch import ProblemBatch, build_problem_batch, size_groups
+from core.problem_batch import ProblemBatch, size_groups
+from core.problem_batch_build import build_problem_batch
 from core.errors import LocalizationError
 from core.estimators import REGISTRY, SolveOptions, solve_batch
 from core.estimators.base import get_estimator

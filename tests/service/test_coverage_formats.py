@@ -94,6 +94,8 @@ def test_the_kmz_is_a_kml_ground_overlay_placed_on_the_cells(client, scene):
     body = SCENES[scene]
     archive = zipfile.ZipFile(io.BytesIO(_post(client, body, KMZ)))
     assert archive.namelist()[0] == "doc.kml" and {"coverage.png", "legend.png"} <= set(archive.namelist())
+    # A fixed entry time, not the clock's: the same map is the same bytes whenever it is made.
+    assert {entry.date_time for entry in archive.infolist()} == {(1980, 1, 1, 0, 0, 0)}
     document = etree.fromstring(archive.read("doc.kml"))
     KML_SCHEMA.assertValid(document)
     box = {name: float(document.find(f"k:Document/k:GroundOverlay/k:LatLonBox/k:{name}", KML).text)

@@ -1,4 +1,4 @@
-"""Extreme numbers everywhere a number goes (issue 10): nothing non-finite ever leaves the service.
+"""Extreme numbers everywhere a number goes: nothing non-finite ever leaves the service.
 
 One table per route: a valid body, and every numeric leaf of it set in turn to the extremes of a float
 (1e-300 .. 1e308, both signs, zero) and to the bounds the schema states (sigmas at their floor and ceiling,

@@ -1,4 +1,4 @@
-"""Fixes stop at the request deadline and at shutdown (issue 10): single fixes and batches answer 503
+"""Fixes stop at the request deadline and at shutdown: single fixes and batches answer 503
 ``deadline_exceeded`` with Retry-After, and a batch stops between its parts instead of solving them all."""
 
 from __future__ import annotations

@@ -275,8 +275,9 @@ def _on_the_ground(stations_en_m: dict, azimuths_deg: dict, others: list = ()) -
 ], ids=["parallel", "in_line"])
 def test_azimuths_that_do_not_fix_a_point_on_a_known_altitude_are_unobservable_not_a_fix(client, stations_en_m):
     """With the altitude known, every start stage but the search fails and ML's fit slides along the lines
-    until every residual is zero (north 1.4e19 m, or anywhere on the line). Both used to be 200s with a
-    CEP50 of about 5e18 m and only a collinear warning, because the Jacobi-scaled information stays regular."""
+    until every residual is zero (north 1.4e19 m, or anywhere on the line). The Jacobi-scaled information
+    stays regular there, so only the fit's slide tells: such a fit is no fix (a 200 would carry a CEP50 of
+    about 5e18 m and only a collinear warning)."""
     body = _on_the_ground(stations_en_m, {s: 0.0 for s in stations_en_m})
     single = assert_problem(client.post("/v1/fixes", json=body), 422, code="unobservable")
     batch = client.post("/v1/fixes/batch", json={"problems": [body]}).json()["results"][0]

@@ -1,4 +1,4 @@
-"""HTTP hygiene, auth, the rate limiter, the store guard and the logs (issue 10), in process."""
+"""HTTP hygiene, auth, the rate limiter, the store guard and the logs, in process."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ from service import cli, logs, translate
 from service.auth import identify
 from service.headers import parse_authorization
 from service.middleware import TokenBucket
-from service.problems import ApiError
+from service.problems import store_headers
+from service.stores.base import StoreBusy, StoreUnavailable
 from service.stores.guard import GuardedStore
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.test_fixes_api import assert_problem
@@ -170,10 +171,10 @@ def test_the_store_guard_answers_503_opens_its_breaker_and_closes_it_on_success(
 
     async def scenario():
         for _ in range(2):
-            with pytest.raises(ApiError) as failed:
+            with pytest.raises(StoreUnavailable) as failed:
                 await guard.run(lambda store: store.get())
-            assert failed.value.status == 503 and int(failed.value.headers["Retry-After"]) >= 1
-        with pytest.raises(ApiError):
+            assert int(store_headers(failed.value)["Retry-After"]) >= 1
+        with pytest.raises(StoreUnavailable):
             await guard.run(lambda store: store.get())
         assert backend.calls == 2  # open: the store is not touched
         await asyncio.sleep(0.25)  # past the cooldown
@@ -186,6 +187,34 @@ def test_the_store_guard_answers_503_opens_its_breaker_and_closes_it_on_success(
         guard.close()
 
 
+def test_a_store_error_is_answered_503_problem_json_with_its_code_and_retry_after():
+    from fastapi import FastAPI
+    from fastapi.testclient import TestClient
+
+    from service import problems
+
+    app = FastAPI()
+    problems.install(app)
+
+    @app.get("/busy")
+    def busy():
+        raise StoreBusy("the session store is busy; retry")
+
+    @app.get("/down")
+    def down():
+        raise StoreUnavailable("session store sqlite unavailable (OSError); retry", 2.5)
+
+    client = TestClient(app)
+    for path, code, retry_after in (("/busy", "store_busy", "1"), ("/down", "store_unavailable", "3")):
+        response = client.get(path)
+        assert response.status_code == 503
+        assert response.headers["content-type"] == "application/problem+json"
+        assert response.headers["retry-after"] == retry_after
+        body = response.json()
+        assert (body["status"], body["code"]) == (503, code)
+        assert body["type"].endswith(code) and body["detail"].endswith("retry")
+
+
 def test_a_hung_store_call_is_503_at_the_call_timeout():
     import threading
 
@@ -195,9 +224,9 @@ def test_a_hung_store_call_is_503_at_the_call_timeout():
     async def scenario():
         loop = asyncio.get_running_loop()
         started = loop.time()
-        with pytest.raises(ApiError) as failed:
+        with pytest.raises(StoreUnavailable):
             await guard.run(lambda store: release.wait(5))
-        assert failed.value.status == 503 and loop.time() - started < 1.0
+        assert loop.time() - started < 1.0
 
     try:
         asyncio.run(scenario())

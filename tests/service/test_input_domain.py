@@ -1,4 +1,4 @@
-"""The input domain: every class of hostile input found by probing (issue 10) answers 4xx with its field path.
+"""The input domain: every class of hostile input found by probing answers 4xx with its field path.
 
 One table: a request, how it is broken, the status and the ``loc`` the problem must name. Booleans are not
 numbers, sigmas have floors (1/sigma^2 stays finite), coordinates and times have ranges, and the largest
@@ -210,6 +210,22 @@ def test_max_fix_cost_limits_a_fix_and_each_batch_problem(make_client):
     results = small.post("/v1/fixes/batch", json={"problems": [body, three]}).json()["results"]
     assert [r["ok"] for r in results] == [False, True]
     assert "max_fix_cost" in results[0]["error"]["detail"]
+
+
+def test_the_fix_cost_limit_is_passed_to_validation_as_an_argument():
+    from pydantic import ValidationError
+
+    from service import translate
+    from service.limits import fix_cost_context
+
+    body = _fix()  # 4 stations x 4 bearings = 16
+    schemas.FixRequest.model_validate(body)  # no limit given: none applies
+    schemas.FixRequest.model_validate(body, context=fix_cost_context(16))
+    with pytest.raises(ValidationError, match="over the limit max_fix_cost = 15"):
+        schemas.FixRequest.model_validate(body, context=fix_cost_context(15))
+    assert translate.read_fix_requests([body], 16).errors == {}
+    refused = translate.read_fix_requests([body], 15)
+    assert refused.batch is None and "max_fix_cost = 15" in refused.errors[0]["detail"]
 
 
 def test_a_batch_over_its_cost_is_422_naming_the_limit(make_client):

@@ -124,8 +124,8 @@ def test_bad_rendering_options_are_422_with_their_path(client, field, value):
 @pytest.mark.parametrize("observed_at", ["9999-12-31T23:59:59Z", "9999-12-23T00:00:00.001Z",
                                          "0001-01-01T00:00:00+14:00", "0001-01-01T23:59:59Z"])
 def test_an_observed_at_whose_stale_time_is_past_year_9999_or_before_year_1_is_a_422_not_a_500(client, observed_at):
-    """A week of stale time after 9999-12-31 (or a +14:00 offset before 0001-01-01 UTC) is no datetime: these
-    were 500s on every fix route."""
+    """A week of stale time after 9999-12-31 (or a +14:00 offset before 0001-01-01 UTC) is no datetime: the
+    request is at fault, so every fix route answers 422, never 500."""
     body = bearing_request(STATIONS_300KM, TARGET, formats=["cot", "geojson"], observed_at=observed_at,
                            cot={"stale_s": 7 * 86400.0})
     problem = assert_problem(client.post("/v1/fixes", json=body), 422)

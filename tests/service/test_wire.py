@@ -150,8 +150,8 @@ def test_many_bodies_decode_and_the_reader_takes_the_valid_ones(mutations):
 
 
 def test_a_nan_literal_sigma_is_refused_with_its_path(client):
-    """``NaN`` (not JSON, but some clients write it) once read as an absent azimuth sigma; it is a 422 naming
-    the field, alone and in a batch."""
+    """``NaN`` (not JSON, but some clients write it) is not the absent azimuth sigma that NaN stands for inside
+    the reader: it is a 422 naming the field, alone and in a batch."""
     body = copy.deepcopy(FULL)
     del body["formats"], body["origin"]
     body["method"] = "auto"

@@ -20,8 +20,8 @@ velocity_kinematic                1.29 / 2.15 (2.4-3.0) [100]   2.09 / 2.25 (3.8
 
 ([100]: 100 runs, the first two blocks; the default's figures are 200 runs.) The prior start sits on
 this emitter (156 km): it holds range information the bound, with a diffuse position prior, does not.
-The 1.1x target holds at both (at q = 0.5 since the range mixture stopped merging its components, see
-:mod:`core.tracking.range_mixture`; it was 1.13 / 1.21 before); the tests assert 1.1x on their fixed
+The 1.1x target holds at both (at q = 0.5 because the range mixture does not merge its components, see
+:mod:`core.tracking.range_mixture`); the tests assert 1.1x on their fixed
 seeds (1.07 / 1.07 and 1.03 / 1.03 there), and that no ratio is below 0.8 (below the bound by that much
 is a bug in the bound or the bookkeeping, not luck).
 """

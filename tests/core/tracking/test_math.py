@@ -10,13 +10,13 @@ import pytest
 from filterpy.kalman import MerweScaledSigmaPoints, unscented_transform
 
 from core.angles import line_of_sight_enu, wrap_to_pi
+from core.linalg import EIGENVALUE_FLOOR, cholesky_lower, lower_inverse_into, repaired_block, symmetrized
 from core.simulation.emitter import paper_001_scenario, simulate_emitter
 from core.tracking import new_state, step
 from core.tracking.config import SPEED_OF_LIGHT_MPS
 from core.tracking.joint_ukf import joint_epoch
 from core.tracking.kinematic import (RangePseudoMeasurement, ToaEpoch, initial_position_state,
                                      line_of_sight_derivatives, range_pseudo_measurement, velocity_update)
-from core.tracking.linalg import EIGENVALUE_FLOOR, cholesky_lower, lower_inverse_into, repaired_block, symmetrized
 from core.tracking.motion import constant_velocity_predict, transition
 from core.tracking.unscented import polar_update
 from core.simulation.tracking import paper_config
