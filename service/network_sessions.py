@@ -32,6 +32,7 @@ from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_re
 from service import schemas as fix_schemas
 from service import session_schemas as schemas
 from service.problems import ApiError, api_loc
+from service.session_records import cot_options, etag, if_match_accepts, timestamp
 from service.stores import SessionRecord
 
 #: Ended tracks a record remembers (for the event stream and the state's ``ended_tracks``).
@@ -270,7 +271,6 @@ class ReportsChange:
         return self._change(record)
 
     def _change(self, record: SessionRecord) -> SessionRecord | None:
-        from service.sessions import etag, if_match_accepts
 
         if not is_network(record):
             raise _problem(422, "wrong_session_kind", f"session {record.id} tracks from one observer: post its "
@@ -354,7 +354,6 @@ def _track_body(track, frame: CommonFrame) -> dict:
 def state_body(record: SessionRecord, at_time_s: float | None = None, state: NetworkState | None = None) -> dict:
     """The response body of a network session (``NetworkSessionState``); ``at_time_s``: every track predicted to
     that time; ``state``: the record's core state when the caller has it already (else read from the record)."""
-    from service.sessions import _timestamp
 
     request = record.config["request"]
     if state is None:
@@ -378,9 +377,9 @@ def state_body(record: SessionRecord, at_time_s: float | None = None, state: Net
         "tracks": [_track_body(t, frame) for t in tracks],
         "ended_tracks": list(record.state.get("ended", [])),
         "warnings": list(record.state.get("warnings", [])),
-        "created_at": _timestamp(record.created_at),
-        "updated_at": _timestamp(record.updated_at),
-        "expires_at": _timestamp(record.expires_at),
+        "created_at": timestamp(record.created_at),
+        "updated_at": timestamp(record.updated_at),
+        "expires_at": timestamp(record.expires_at),
         "ttl_s": record.ttl_s,
     }
     if at_time_s is not None:
@@ -495,7 +494,6 @@ def geojson(body: dict, cot=None) -> dict:
 
 def rendered_state(record: SessionRecord, formats=(), at_time_s: float | None = None) -> dict:
     """:func:`state_body` with the renderings ``formats`` asks for (``"cot"``, ``"geojson"``)."""
-    from service.sessions import cot_options
 
     body = state_body(record, at_time_s)
     cot = cot_options(record)
@@ -509,7 +507,6 @@ def rendered_state(record: SessionRecord, formats=(), at_time_s: float | None = 
 
 def tak_events(record: SessionRecord, body: dict, ended: list[dict]) -> list[str]:
     """The TAK feed's events of a post: one CoT track event per track, and a delete event per ended track."""
-    from service.sessions import cot_options
 
     cot = cot_options(record)
     events = [event for track in body["tracks"] if (event := track_cot(body, track, cot)) is not None]

@@ -22,7 +22,6 @@ import math
 import re
 import secrets
 from dataclasses import dataclass, replace
-from datetime import datetime, timezone
 from typing import Callable
 
 import numpy as np
@@ -35,7 +34,7 @@ from core.tracking import TrackerConfig, TrackState, new_state, step_many
 from service import network_sessions
 from service import session_schemas as schemas
 from service.problems import ApiError
-from service.renderings import utc_timestamp
+from service.session_records import cot_options, etag, if_match_accepts, timestamp
 from service.stores import SessionRecord, SessionStore
 
 _SESSION_ID = re.compile(r"[0-9a-f]{32}")
@@ -107,10 +106,6 @@ def tracker_epoch(epoch: schemas.Epoch) -> TrackerEpoch:
     )
 
 
-def _timestamp(unix_s: float) -> str:
-    return utc_timestamp(datetime.fromtimestamp(unix_s, timezone.utc))
-
-
 def _observer(record: SessionRecord) -> dict:
     return record.config["request"]["observer"]["position"]
 
@@ -141,9 +136,9 @@ def state_body(record: SessionRecord) -> dict:
         "covariance_enu": None,
         "warnings": [{"code": code, "message": message} for code, message in state.warnings],
         "mode_probabilities": state.mode_probabilities,
-        "created_at": _timestamp(record.created_at),
-        "updated_at": _timestamp(record.updated_at),
-        "expires_at": _timestamp(record.expires_at),
+        "created_at": timestamp(record.created_at),
+        "updated_at": timestamp(record.updated_at),
+        "expires_at": timestamp(record.expires_at),
         "ttl_s": record.ttl_s,
     }
     if state.initialized:
@@ -163,14 +158,6 @@ def state_body(record: SessionRecord) -> dict:
     return body
 
 
-def cot_options(record: SessionRecord):
-    """The session's :class:`service.schemas.CotOptions`, or None."""
-    from service.schemas import CotOptions
-
-    found = record.config["request"].get("cot")
-    return None if found is None else CotOptions.model_validate(found)
-
-
 def rendered_state(record: SessionRecord, formats=(), at_time_s: float | None = None) -> dict:
     """:func:`state_body` with the renderings ``formats`` asks for (``"cot"``, ``"geojson"``); ``at_time_s``:
     a network session's tracks predicted to that time."""
@@ -187,16 +174,6 @@ def rendered_state(record: SessionRecord, formats=(), at_time_s: float | None = 
     if "geojson" in formats:
         body["geojson"] = renderings.session_geojson(body, cot_options(record))
     return body
-
-
-def etag(record: SessionRecord) -> str:
-    return f'"{record.version}"'
-
-
-def if_match_accepts(tags: tuple[str, ...], version: int) -> bool:
-    """Whether ``If-Match``'s entity tags (as :func:`service.headers.parse_if_match` gives them) name this
-    version (``*`` names any; weak tags never match)."""
-    return "*" in tags or f'"{version}"' in tags
 
 
 def encode_cursor(session_id: str) -> str:
