@@ -1,0 +1,762 @@
+"""Many emitters from unlabelled bearings: association, track start across stations, track management.
+
+A direction-finding network reports every bearing it measures, with no emitter label, missed detections and
+false bearings. This module turns those bearings into one track per emitter, each track the network tracker's
+filter (:mod:`core.tracking.network`: the same constant-velocity state, measurement model and update).
+
+Public API (pure functions; the state is an immutable value)::
+
+    config = AssociationConfig(network=NetworkConfig(accel_sigma_mps2=0.2, velocity_prior_sigma_mps=30.0))
+    state = new_association_state()
+    outcome = apply_observations(state, observations, config)   # Observation: one bearing + frequency
+    tracks = current_tracks(outcome.state, time_s, config)     # netcore Tracks, status set by the rules below
+
+**Scans.** Observations are processed in time order, grouped into scans: the bearings one station measured
+at one time. Within a scan a track takes at most one bearing and a bearing feeds at most one track.
+
+**Gating** on the predicted measurement and its innovation covariance, computed by the network tracker's own
+update kernel (:func:`core.tracking.network_kernel.network_ukf_kernel`, one pass: the unscented transform of
+the track's predicted position through :func:`core.measurements.measure_point`), so the gate and the update
+share one measurement model. A pair passes when its NIS is inside the chi-square ``gate_probability`` point
+and, when both carry a frequency, the frequencies differ by at most ``frequency_tolerance_hz``.
+
+**Assignment (global nearest neighbour).** Each gated pair costs ``-log`` of its likelihood ratio against a
+false bearing, ``-log(P_D N(z; z_hat, S) / lambda)`` with ``lambda`` the false-bearing density per rad^dims;
+leaving a track or a bearing unassigned costs 0. :func:`scipy.optimize.linear_sum_assignment` minimises the
+sum over the scan, and only pairs with a negative cost (ratio above 1) are kept. Assigned bearings update
+their track (:func:`core.tracking.network.advance_track`).
+
+**Starting tracks, ghosts rejected.** Bearings no track took stay in a pool for ``init_window_s`` (the
+latest scan of each station). Candidates are built the way S-D assignment builds its tuples: every pair of
+bearings of two stations (frequencies compatible) is crossed; a third station's bearing must lie near the
+crossing's predicted bearing; each triple is fitted (Gauss-Newton maximum likelihood on the position,
+:func:`core.measurements.predict`) and kept when its chi-square is inside the ``init_gate_probability`` point;
+it is then extended with the best-fitting bearing of every further station whose NIS at the fit (the fit's
+covariance propagated) is inside the gate, and refitted. Each candidate's score is the log likelihood ratio of
+"one emitter made these bearings, the other stations missed it" against "these bearings are false" (Laplace
+approximation over a uniform prior on ``surveillance_volume_m3``). Candidates are accepted greedily by score
+among those that share no bearing (the greedy solution of the S-D assignment problem). Of the up to ``N^S``
+crossings of ``N`` emitters seen by ``S`` stations, a ghost needs three stations' bearings to agree on one
+point within the noise and must out-score the real emitters that use the same bearings. A bearing without
+elevation is taken, for the fit, as elevation 0 with ``network.azimuth_only_elevation_sigma_rad``, as the
+network tracker's start does.
+
+**Track management** (statuses are those of the network sessions):
+
+- a track starts ``tentative`` from an accepted candidate: position the fit (covariance its inverse Fisher
+  information), velocity zero +- ``network.velocity_prior_sigma_mps``; its starting bearings count as hits;
+- each later scan of any station is a hit (a bearing assigned) or a miss. A tentative track is ``confirmed``
+  once ``confirm_hits`` of its last ``confirm_window`` scans are hits (M of N), and deleted as soon as it can no
+  longer reach that (more than ``confirm_window - confirm_hits`` misses among them): a ghost or clutter-born
+  track gets the bearings of at most the stations whose lines made it and dies within a few scans;
+- a confirmed track without a hit for ``coast_after_s`` is ``coasting`` (it still gates and may take
+  bearings again, which makes it ``confirmed``), and ends after ``end_after_s`` without one;
+- ids are ``"t1"``, ``"t2"``, ... in start order, never reused.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple, Sequence
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+from scipy.stats import chi2
+
+from core.angles import line_of_sight_enu, station_to_common, wrap_to_pi
+from core.errors import InvalidInput
+from core.measurements import AZIMUTH, ELEVATION, predict
+from core.tracking.network import NetworkConfig, NetworkState, Report, Track, advance_track, predict_tracks, report_rows
+from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel
+from core.tracking.state import frozen_array
+
+#: A pair of bearings whose lines of sight are closer to parallel than this (rad) is not crossed.
+MIN_CROSSING_ANGLE_RAD = math.radians(2.0)
+#: Gauss-Newton iterations of a candidate's fit (each from the pair crossing, which is within a few
+#: standard deviations of the optimum).
+FIT_ITERATIONS = 6
+#: Half-width of the coarse third-station window around a crossing's predicted azimuth, in units of the
+#: pair's combined azimuth sigma (the exact test is the fit's chi-square).
+COARSE_SIGMAS = 6.0
+
+
+@dataclass(frozen=True)
+class AssociationConfig:
+    """Settings of the association and track management (module docstring).
+
+    Attributes
+    ----------
+    network : NetworkConfig
+        The filter of each track (motion model, velocity prior, update passes).
+    detection_probability : float
+        Probability that a station measures a bearing of an emitter in one scan.
+    false_density_per_rad2 : float
+        False bearings per scan per unit of (azimuth, elevation) area (per rad for azimuth-only bearings).
+    surveillance_volume_m3 : float
+        The volume emitters are sought in (the uniform prior of a candidate's position).
+    gate_probability : float
+        Chi-square probability of the track gate.
+    init_gate_probability : float
+        Chi-square probability a candidate's fit and each added bearing must pass.
+    frequency_tolerance_hz : float
+        Largest frequency difference of one emitter's bearings (either frequency NaN: no frequency gate).
+    init_window_s : float
+        Unassigned bearings stay this long in the start pool (the latest scan of each station is used).
+    init_min_stations : int
+        Stations a candidate needs (at least 3: two bearings always cross).
+    range_min_m, range_max_m : float
+        A crossing nearer to or farther from either station than these is not a candidate.
+    confirm_hits, confirm_window : int
+        M of N: hits among the last scans needed to confirm (and whose impossibility deletes a tentative track).
+    coast_after_s, end_after_s : float
+        A confirmed track without a hit for longer is ``coasting``, then ended.
+    """
+
+    network: NetworkConfig = field(default_factory=NetworkConfig)
+    detection_probability: float = 0.9
+    false_density_per_rad2: float = 0.2
+    surveillance_volume_m3: float = 1e13
+    gate_probability: float = 0.999
+    init_gate_probability: float = 0.99
+    frequency_tolerance_hz: float = 10e3
+    init_window_s: float = 1.0
+    init_min_stations: int = 3
+    range_min_m: float = 200.0
+    range_max_m: float = 100e3
+    confirm_hits: int = 6
+    confirm_window: int = 8
+    coast_after_s: float = 5.0
+    end_after_s: float = 30.0
+
+    def __post_init__(self):
+        if not isinstance(self.network, NetworkConfig):
+            raise InvalidInput("network must be a NetworkConfig", ("network",))
+        for name in ("false_density_per_rad2", "surveillance_volume_m3", "frequency_tolerance_hz",
+                     "init_window_s", "range_min_m", "range_max_m", "coast_after_s", "end_after_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
+                raise InvalidInput(f"{name} must be a finite number > 0", (name,))
+        for name in ("detection_probability", "gate_probability", "init_gate_probability"):
+            value = getattr(self, name)
+            if not 0.0 < value < 1.0:
+                raise InvalidInput(f"{name} must be inside (0, 1)", (name,))
+        if not 3 <= self.init_min_stations:
+            raise InvalidInput("init_min_stations must be >= 3", ("init_min_stations",))
+        if not 1 <= self.confirm_hits <= self.confirm_window:
+            raise InvalidInput("confirm_hits must be from 1 to confirm_window", ("confirm_hits",))
+        if not self.end_after_s > self.coast_after_s:
+            raise InvalidInput("end_after_s must be above coast_after_s", ("end_after_s",))
+        if not self.end_after_s < self.network.end_after_s:
+            raise InvalidInput("end_after_s must be below network.end_after_s (the filter restarts after that)",
+                               ("end_after_s",))
+
+
+@dataclass(frozen=True, eq=False)
+class Observation:
+    """One unlabelled bearing: a station's azimuth (and elevation) of one signal at one time.
+
+    Attributes
+    ----------
+    report : Report
+        The network tracker's report of that bearing: one station's azimuth row and, optionally, its
+        elevation row (``emitter_id`` is not read).
+    frequency_hz : float
+        The signal's frequency; NaN when not known.
+    """
+
+    report: Report
+    frequency_hz: float = math.nan
+
+    def __post_init__(self):
+        kinds = self.report.kinds
+        azimuth = np.flatnonzero(kinds == AZIMUTH)
+        elevation = np.flatnonzero(kinds == ELEVATION)
+        if azimuth.size != 1 or elevation.size > 1 or kinds.size != azimuth.size + elevation.size or len(
+                set(self.report.station_ids)) != 1:
+            raise InvalidInput("an unlabelled bearing is one station's azimuth and at most one elevation",
+                               ("measurements",))
+
+    @property
+    def time_s(self) -> float:
+        return self.report.time_s
+
+    @property
+    def station_id(self) -> str:
+        return self.report.station_ids[0]
+
+
+def observations_from_report(report: Report, frequency_hz: float = math.nan) -> list[Observation]:
+    """Split a report into its bearings, one :class:`Observation` per station (its azimuth and elevation rows).
+
+    Raises
+    ------
+    InvalidInput
+        When the report holds a measurement that is not an azimuth or an elevation, or a station's rows are
+        not one azimuth and at most one elevation (``loc`` names the measurement).
+    """
+    out = []
+    for station in dict.fromkeys(report.station_ids):
+        rows = [i for i, s in enumerate(report.station_ids) if s == station]
+        for i in rows:
+            if report.kinds[i] not in (AZIMUTH, ELEVATION):
+                raise InvalidInput("association \"auto\" takes bearings only", ("measurements", i, "kind"))
+        try:
+            out.append(Observation(Report(report.seq, report.time_s, "", tuple(report.station_ids[i] for i in rows),
+                                          report.stations_enu_m[rows], report.rotations[rows], report.kinds[rows],
+                                          report.values[rows], report.sigmas[rows]), float(frequency_hz)))
+        except InvalidInput:
+            raise InvalidInput("a station's bearing is one azimuth and at most one elevation",
+                               ("measurements", rows[0])) from None
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class MultiTrack:
+    """A track of the association state.
+
+    Attributes
+    ----------
+    track : Track
+        The network tracker's track (its filter; ``id`` is this track's id).
+    frequency_hz : float
+        Mean frequency of its bearings (NaN when none carried one).
+    frequency_count : int
+        Bearings the mean is over.
+    hits : tuple of bool
+        The last ``confirm_window`` scans: a bearing assigned (True) or not.
+    last_hit_s : float
+    confirmed : bool
+    started_s : float
+    confirmed_s : float
+        When it was confirmed (NaN while tentative).
+    """
+
+    track: Track
+    frequency_hz: float
+    frequency_count: int
+    hits: tuple[bool, ...]
+    last_hit_s: float
+    confirmed: bool
+    started_s: float
+    confirmed_s: float = math.nan
+
+    @property
+    def id(self) -> str:
+        return self.track.id
+
+
+@dataclass(frozen=True, eq=False)
+class AssociationState:
+    """Everything an unlabelled session carries between posts.
+
+    Attributes
+    ----------
+    tracks : tuple of MultiTrack
+    pool : tuple of Observation
+        Unassigned bearings of the last ``init_window_s``.
+    next_id : int
+        The number of the next track id.
+    last_time_s : float or None
+        Time of the newest processed scan.
+    """
+
+    tracks: tuple[MultiTrack, ...] = ()
+    pool: tuple[Observation, ...] = ()
+    next_id: int = 1
+    last_time_s: float | None = None
+
+
+class AssociationOutcome(NamedTuple):
+    """What :func:`apply_observations` did.
+
+    Attributes
+    ----------
+    state : AssociationState
+    applied : int
+        Observations processed.
+    late : int
+        Observations older than the newest processed scan: counted, not applied.
+    started, ended : tuple of str
+        Ids of the tracks started and ended.
+    """
+
+    state: AssociationState
+    applied: int
+    late: int
+    started: tuple[str, ...]
+    ended: tuple[str, ...]
+
+
+def new_association_state() -> AssociationState:
+    """The state before any bearing."""
+    return AssociationState()
+
+
+def status_of(track: MultiTrack, now_s: float, config: AssociationConfig) -> str:
+    """``tentative``, ``confirmed`` or ``coasting`` as of ``now_s`` (module docstring)."""
+    if not track.confirmed:
+        return "tentative"
+    return "coasting" if now_s - track.last_hit_s > config.coast_after_s else "confirmed"
+
+
+def current_tracks(state: AssociationState, time_s: float, config: AssociationConfig) -> tuple[Track, ...]:
+    """Every live track predicted to ``time_s`` (one newer is returned as it is), its status by the rules of
+    the module docstring, in id order."""
+    if not state.tracks:
+        return ()
+    now = time_s if state.last_time_s is None else max(time_s, state.last_time_s)
+    predicted = predict_tracks(NetworkState(tracks=tuple(t.track for t in state.tracks)), time_s, config.network)
+    return tuple(replace(p, status=status_of(t, now, config)) for t, p in zip(state.tracks, predicted))
+
+
+def apply_observations(state: AssociationState, observations: Sequence[Observation],
+                       config: AssociationConfig) -> AssociationOutcome:
+    """Process bearings: scan by scan in time order, gate, assign, update, start and end tracks.
+
+    Parameters
+    ----------
+    state : AssociationState
+    observations : sequence of Observation
+        Any order; one older than the newest processed scan is counted ``late`` and not applied.
+    config : AssociationConfig
+
+    Returns
+    -------
+    AssociationOutcome
+    """
+    late = 0
+    accepted = []
+    for obs in observations:
+        if not isinstance(obs, Observation):
+            raise InvalidInput("observations must be Observation")
+        if state.last_time_s is not None and obs.time_s < state.last_time_s:
+            late += 1
+        else:
+            accepted.append(obs)
+    accepted.sort(key=lambda o: (o.time_s, o.station_id, o.report.seq))
+    tracks = list(state.tracks)
+    pool = list(state.pool)
+    next_id = state.next_id
+    last = state.last_time_s
+    started, ended = [], []
+    for (time_s, _), scan in itertools.groupby(accepted, key=lambda o: (o.time_s, o.station_id)):
+        scan = list(scan)
+        tracks, gone = _drop_ended(tracks, time_s, config)
+        ended.extend(gone)
+        tracks, unassigned = _scan(tracks, scan, config)
+        pool = [o for o in pool if o.time_s > time_s - config.init_window_s] + unassigned
+        if unassigned:
+            tracks, pool, next_id, new = _start_tracks(tracks, pool, next_id, time_s, config)
+            started.extend(new)
+        last = time_s
+    return AssociationOutcome(AssociationState(tuple(tracks), tuple(pool), next_id, last), len(accepted), late,
+                              tuple(started), tuple(ended))
+
+
+def _drop_ended(tracks, now_s, config):
+    kept, gone = [], []
+    for t in tracks:
+        (gone if now_s - t.last_hit_s > config.end_after_s else kept).append(t)
+    return kept, [t.id for t in gone]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# One scan: gate, assign, update
+
+
+def _frequency_ok(a: float, b: float, config: AssociationConfig) -> bool:
+    return not (abs(a - b) > config.frequency_tolerance_hz)  # NaN on either side: True
+
+
+def gate_costs(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config: AssociationConfig):
+    """The GNN costs of one scan's bearings against the tracks.
+
+    Returns
+    -------
+    cost : ndarray, shape (T, B)
+        ``-log`` likelihood ratio of each pair (track's bearing against a false one); ``inf`` outside the gate.
+    nis : ndarray, shape (T, B)
+    """
+    count, size = len(tracks), len(scan)
+    cost = np.full((count, size), np.inf)
+    nis_out = np.full((count, size), np.inf)
+    if not count or not size:
+        return cost, nis_out
+    time_s = scan[0].time_s
+    predicted = predict_tracks(NetworkState(tracks=tuple(t.track for t in tracks)), time_s, config.network)
+    means = np.ascontiguousarray([p.mean_enu for p in predicted])
+    covs = np.ascontiguousarray([p.covariance_enu for p in predicted])
+    eye = np.eye(STATE_SIZE)
+    noises = np.zeros((count, STATE_SIZE, STATE_SIZE))
+    new_means, new_covs = np.empty_like(means), np.empty_like(covs)
+    nis, log_det, status = np.empty(count), np.empty(count), np.empty(count, dtype=np.int64)
+    log_pd_over_lambda = math.log(config.detection_probability / config.false_density_per_rad2)
+    for j, obs in enumerate(scan):
+        report = obs.report
+        rows = report_rows(report)
+        dof = rows.rows.size
+        network_ukf_kernel(means, covs, eye, noises, False, report.stations_enu_m, report.rotations, report.kinds,
+                           rows.values, rows.variances, rows.rows, rows.toa_reference, 1, new_means, new_covs, nis,
+                           log_det, status)
+        gate = _chi2_point(config.gate_probability, dof)
+        for i, t in enumerate(tracks):
+            if status[i] != UPDATED or not nis[i] <= gate or not _frequency_ok(t.frequency_hz, obs.frequency_hz,
+                                                                                config):
+                continue
+            nis_out[i, j] = nis[i]
+            cost[i, j] = 0.5 * (nis[i] + log_det[i] + dof * math.log(2.0 * math.pi)) - log_pd_over_lambda
+    return cost, nis_out
+
+
+def _scan(tracks, scan, config):
+    """Assign one scan's bearings (GNN), update the tracks; returns the tracks and the unassigned bearings."""
+    time_s = scan[0].time_s
+    pairs = {}
+    if tracks:
+        cost, _ = gate_costs(tracks, scan, config)
+        usable = np.minimum(np.where(np.isfinite(cost), cost, 0.0), 0.0)
+        if usable.any():
+            rows, cols = linear_sum_assignment(usable)
+            pairs = {int(i): int(j) for i, j in zip(rows, cols) if cost[i, j] < 0.0}
+    out = [_after_scan(t, None if pairs.get(i) is None else scan[pairs[i]], time_s, config)
+           for i, t in enumerate(tracks)]
+    taken = set(pairs.values())
+    return [t for t in out if t is not None], [o for j, o in enumerate(scan) if j not in taken]
+
+
+def _after_scan(track: MultiTrack, obs: Observation | None, time_s: float, config: AssociationConfig):
+    """A track after one scan (None: deleted as a tentative track that can no longer confirm)."""
+    hits = (track.hits + (obs is not None,))[-config.confirm_window:]
+    if obs is None:
+        if not track.confirmed and hits.count(False) > config.confirm_window - config.confirm_hits:
+            return None
+        return replace(track, hits=hits)
+    updated, _ = advance_track(track.track, replace(obs.report, emitter_id=track.id), config.network)
+    frequency, count = track.frequency_hz, track.frequency_count
+    if math.isfinite(obs.frequency_hz):
+        count += 1
+        frequency = obs.frequency_hz if not math.isfinite(frequency) else frequency + (obs.frequency_hz - frequency) / count
+    confirmed = track.confirmed or hits.count(True) >= config.confirm_hits
+    confirmed_s = time_s if confirmed and not track.confirmed else track.confirmed_s
+    return replace(track, track=updated, frequency_hz=frequency, frequency_count=count, hits=hits, last_hit_s=time_s,
+                   confirmed=confirmed, confirmed_s=confirmed_s)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Starting tracks from bearings of three or more stations
+
+
+class Candidate(NamedTuple):
+    """A possible emitter: the pool bearings it explains, its fitted position and score.
+
+    Attributes
+    ----------
+    members : tuple of int
+        Pool indices, one per station.
+    position_enu_m : ndarray, shape (3,)
+    covariance_enu_m2 : ndarray, shape (3, 3)
+        Inverse Fisher information of the fit.
+    chi2 : float
+    score : float
+        Log likelihood ratio against "all false" (module docstring).
+    """
+
+    members: tuple[int, ...]
+    position_enu_m: np.ndarray
+    covariance_enu_m2: np.ndarray
+    chi2: float
+    score: float
+
+
+class _Pool(NamedTuple):
+    """The pool's bearings as arrays ``(P, ...)``: two rows (azimuth, elevation) each."""
+
+    station: np.ndarray       # (P,) int, station index
+    positions: np.ndarray     # (P, 3)
+    rotations: np.ndarray     # (P, 3, 3)
+    values: np.ndarray        # (P, 2) azimuth, elevation (0 when not measured)
+    sigmas: np.ndarray        # (P, 2)
+    directions: np.ndarray    # (P, 3) line of sight, common frame
+    frequency: np.ndarray     # (P,)
+    has_elevation: np.ndarray  # (P,) bool
+
+
+def _pool_arrays(pool: Sequence[Observation], config: AssociationConfig) -> _Pool:
+    names = {}
+    station = np.empty(len(pool), dtype=np.int64)
+    positions = np.empty((len(pool), 3))
+    rotations = np.empty((len(pool), 3, 3))
+    values = np.zeros((len(pool), 2))
+    sigmas = np.full((len(pool), 2), config.network.azimuth_only_elevation_sigma_rad)
+    has_elevation = np.zeros(len(pool), dtype=bool)
+    for k, obs in enumerate(pool):
+        report = obs.report
+        station[k] = names.setdefault(obs.station_id, len(names))
+        positions[k] = report.stations_enu_m[0]
+        rotations[k] = report.rotations[0]
+        for kind, value, sigma in zip(report.kinds.tolist(), report.values.tolist(), report.sigmas.tolist()):
+            column = 0 if kind == AZIMUTH else 1
+            values[k, column], sigmas[k, column] = value, sigma
+            has_elevation[k] |= kind == ELEVATION
+    directions = station_to_common(line_of_sight_enu(values[:, 0], values[:, 1]), rotations)
+    frequency = np.array([obs.frequency_hz for obs in pool], dtype=float)
+    return _Pool(station, positions, rotations, values, sigmas, directions, frequency, has_elevation)
+
+
+def _start_tracks(tracks, pool, next_id, time_s, config):
+    """Start tracks from the pool (module docstring); returns tracks, pool, next id and the new ids."""
+    latest = {}
+    for obs in pool:
+        latest[obs.station_id] = max(latest.get(obs.station_id, -math.inf), obs.time_s)
+    usable = [o for o in pool if o.time_s == latest[o.station_id]]
+    if len(latest) < config.init_min_stations:
+        return tracks, pool, next_id, []
+    candidates = find_candidates(usable, config)
+    used: set[int] = set()
+    new_ids = []
+    for cand in sorted(candidates, key=lambda c: -c.score):
+        if used.intersection(cand.members):
+            continue
+        used.update(cand.members)
+        members = [usable[k] for k in cand.members]
+        track_id = f"t{next_id}"
+        next_id += 1
+        new_ids.append(track_id)
+        tracks.append(_new_track(track_id, cand, members, config))
+    consumed = {id(usable[k]) for k in used}
+    return tracks, [o for o in pool if id(o) not in consumed], next_id, new_ids
+
+
+def _new_track(track_id, cand: Candidate, members, config) -> MultiTrack:
+    time_s = max(o.time_s for o in members)
+    mean = np.zeros(STATE_SIZE)
+    mean[:3] = cand.position_enu_m
+    cov = np.zeros((STATE_SIZE, STATE_SIZE))
+    cov[:3, :3] = cand.covariance_enu_m2
+    cov[3:, 3:] = np.eye(3) * config.network.velocity_prior_sigma_mps ** 2
+    nearest = float(min(np.linalg.norm(o.report.stations_enu_m[0] - cand.position_enu_m) for o in members))
+    track = Track(track_id, "tentative", time_s, frozen_array(mean), frozen_array(cov), len(members), (), "single",
+                  frozen_array([1.0]), frozen_array(mean[None]), frozen_array(cov[None]), 0, False, nearest)
+    frequencies = [o.frequency_hz for o in members if math.isfinite(o.frequency_hz)]
+    frequency = float(np.mean(frequencies)) if frequencies else math.nan
+    return MultiTrack(track, frequency, len(frequencies), (True,) * min(len(members), config.confirm_window),
+                      time_s, False, time_s)
+
+
+def find_candidates(pool: Sequence[Observation], config: AssociationConfig) -> list[Candidate]:
+    """Candidate emitters from bearings of at least ``init_min_stations`` stations (module docstring).
+
+    Parameters
+    ----------
+    pool : sequence of Observation
+        At most one scan per station.
+
+    Returns
+    -------
+    list of Candidate
+        Each passing its chi-square test with a positive score; candidates may share bearings.
+    """
+    if len(pool) < 3:
+        return []
+    arrays = _pool_arrays(pool, config)
+    triples = _triples(arrays, config)
+    if not triples.size:
+        return []
+    positions, covariances, chi2_values, ok = _fit(arrays, triples, _crossings(arrays, triples[:, 0], triples[:, 1])[0])
+    gate = _chi2_point(config.init_gate_probability, 3)
+    keep = ok & (chi2_values <= gate)
+    out: dict[frozenset, Candidate] = {}
+    stations = np.unique(arrays.station)
+    for t in np.flatnonzero(keep):
+        members = list(triples[t])
+        position, cov = positions[t], covariances[t]
+        known = arrays.frequency[members][np.isfinite(arrays.frequency[members])]
+        frequency = float(known.mean()) if known.size else math.nan
+        for s in stations:
+            if s in arrays.station[members]:
+                continue
+            best = _best_addition(arrays, s, position, cov, frequency, config)
+            if best >= 0:
+                members.append(best)
+        if len(members) > 3:
+            p, c, x2, good = _fit(arrays, np.array([members]), position[None])
+            if not good[0] or x2[0] > _chi2_point(config.init_gate_probability, 2 * len(members) - 3):
+                members = list(triples[t])
+            else:
+                position, cov, chi2_values[t] = p[0], c[0], x2[0]
+        key = frozenset(members)
+        if key in out:
+            continue
+        score = _score(arrays, members, cov, chi2_values[t], len(stations), config)
+        if score > 0.0 and _in_range(arrays, members, position, config):
+            out[key] = Candidate(tuple(int(m) for m in members), position, cov, float(chi2_values[t]), score)
+    return list(out.values())
+
+
+def _frequency_compatible(arrays: _Pool, a, b, config) -> np.ndarray:
+    difference = np.abs(arrays.frequency[a] - arrays.frequency[b])
+    return ~(difference > config.frequency_tolerance_hz)
+
+
+def _crossings(arrays: _Pool, a: np.ndarray, b: np.ndarray):
+    """Midpoints ``(K, 3)`` of the closest approach of the lines of sight of bearings ``a`` and ``b``, and
+    the ranges ``(K,)`` along each (least squares on ``p_a + r_a u_a = p_b + r_b u_b``)."""
+    ua, ub = arrays.directions[a], arrays.directions[b]
+    pa, pb = arrays.positions[a], arrays.positions[b]
+    d = pb - pa
+    uu = np.einsum("ki,ki->k", ua, ub)
+    da, db = np.einsum("ki,ki->k", d, ua), np.einsum("ki,ki->k", d, ub)
+    det = 1.0 - uu * uu
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ra = (da - uu * db) / det
+        rb = (uu * da - db) / det
+    return 0.5 * (pa + ra[:, None] * ua + pb + rb[:, None] * ub), ra, rb
+
+
+def _triples(arrays: _Pool, config) -> np.ndarray:
+    """Triples ``(K, 3)`` of pool indices of three stations (in station order) whose third bearing lies near
+    the first two's crossing (coarse azimuth window, frequencies compatible)."""
+    stations = np.unique(arrays.station)
+    by_station = {int(s): np.flatnonzero(arrays.station == s) for s in stations}
+    out = []
+    for sa, sb in itertools.combinations(stations.tolist(), 2):
+        a, b = np.meshgrid(by_station[sa], by_station[sb], indexing="ij")
+        a, b = a.ravel(), b.ravel()
+        a, b = a[_frequency_compatible(arrays, a, b, config)], b[_frequency_compatible(arrays, a, b, config)]
+        if not a.size:
+            continue
+        crossing_angle = np.arccos(np.clip(np.abs(np.einsum("ki,ki->k", arrays.directions[a], arrays.directions[b])),
+                                           0.0, 1.0))
+        points, ra, rb = _crossings(arrays, a, b)
+        good = ((crossing_angle > MIN_CROSSING_ANGLE_RAD) & (ra > config.range_min_m) & (rb > config.range_min_m)
+                & (ra < config.range_max_m) & (rb < config.range_max_m))
+        a, b, points, ra, rb = a[good], b[good], points[good], ra[good], rb[good]
+        if not a.size:
+            continue
+        # Angular uncertainty of the crossing as seen from a third station: both bearings' sigmas at their
+        # ranges, over the sine of the crossing angle (a loose bound; the fit's chi-square decides).
+        spread_m = np.hypot(ra * arrays.sigmas[a, 0], rb * arrays.sigmas[b, 0]) / np.sin(crossing_angle[good])
+        for sc in stations.tolist():
+            if sc <= sb:
+                continue
+            c = by_station[sc]
+            station = arrays.positions[c[0]]
+            rotation = arrays.rotations[c[0]]
+            seen, _ = predict(points, 0.0, station[None], rotation[None], np.array([AZIMUTH]))
+            distance = np.linalg.norm(points - station, axis=1)
+            window = COARSE_SIGMAS * np.hypot(arrays.sigmas[c, 0][None, :], (spread_m / distance)[:, None])
+            near = np.abs(wrap_to_pi(arrays.values[c, 0][None, :] - seen[:, 0][:, None])) < window
+            near &= _frequency_compatible(arrays, a[:, None], c[None, :], config)
+            near &= _frequency_compatible(arrays, b[:, None], c[None, :], config)
+            k, l = np.nonzero(near)
+            if k.size:
+                out.append(np.stack([a[k], b[k], c[l]], axis=1))
+    return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.int64)
+
+
+def _fit(arrays: _Pool, members: np.ndarray, start: np.ndarray):
+    """Gauss-Newton maximum-likelihood positions of ``K`` candidates of ``n`` bearings each.
+
+    Parameters
+    ----------
+    members : ndarray of int, shape (K, n)
+    start : ndarray, shape (K, 3)
+
+    Returns
+    -------
+    positions : ndarray, shape (K, 3)
+    covariances : ndarray, shape (K, 3, 3)
+        Inverse Fisher information at the fit.
+    chi2 : ndarray, shape (K,)
+    ok : ndarray of bool, shape (K,)
+    """
+    count, n = members.shape
+    stations = np.repeat(arrays.positions[members], 2, axis=1)              # (K, 2n, 3)
+    rotations = np.repeat(arrays.rotations[members], 2, axis=1)             # (K, 2n, 3, 3)
+    kinds = np.tile(np.array([AZIMUTH, ELEVATION]), (count, n))             # (K, 2n)
+    measured = arrays.values[members].reshape(count, 2 * n)
+    weights = 1.0 / arrays.sigmas[members].reshape(count, 2 * n) ** 2
+    is_azimuth = kinds == AZIMUTH
+    position = np.array(start, dtype=float)
+    ok = np.all(np.isfinite(position), axis=1)
+    position[~ok] = 0.0
+    info = np.tile(np.eye(3), (count, 1, 1))
+    for _ in range(FIT_ITERATIONS + 1):
+        value, jacobian = predict(position, 0.0, stations, rotations, kinds)
+        residual = measured - value
+        residual = np.where(is_azimuth, wrap_to_pi(residual), residual)
+        h = jacobian[..., :3]
+        info = np.einsum("kmi,km,kmj->kij", h, weights, h)
+        gradient = np.einsum("kmi,km,km->ki", h, weights, residual)
+        try:
+            step = np.linalg.solve(info, gradient[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            ok[:] = False
+            break
+        position = position + step
+    chi2_values = np.einsum("km,km,km->k", residual, weights, residual)
+    with np.errstate(invalid="ignore"):
+        covariances = np.linalg.inv(info)
+    ok &= np.all(np.isfinite(position), axis=1) & np.all(np.isfinite(covariances), axis=(1, 2))
+    ok &= np.linalg.eigvalsh(np.where(ok[:, None, None], covariances, np.eye(3)))[:, 0] > 0.0
+    return position, covariances, chi2_values, ok
+
+
+def _best_addition(arrays: _Pool, station: int, position, cov, frequency: float, config) -> int:
+    """The pool index of ``station``'s bearing that best fits a candidate (NIS at the fit, the fit's
+    covariance propagated), -1 when none passes the gate."""
+    index = np.flatnonzero(arrays.station == station)
+    kinds = np.array([AZIMUTH, ELEVATION])
+    value, jacobian = predict(position, 0.0, arrays.positions[index[0]][None].repeat(2, 0),
+                              arrays.rotations[index[0]][None].repeat(2, 0), kinds)
+    h = jacobian[:, :3]
+    base = h @ cov @ h.T
+    best, best_nis = -1, _chi2_point(config.init_gate_probability, 2)
+    for k in index.tolist():
+        if not _frequency_ok(arrays.frequency[k], frequency, config):
+            continue
+        residual = arrays.values[k] - value
+        residual[0] = wrap_to_pi(residual[0])
+        nis = float(residual @ np.linalg.solve(base + np.diag(arrays.sigmas[k] ** 2), residual))
+        if nis < best_nis:
+            best, best_nis = k, nis
+    return best
+
+
+def _score(arrays: _Pool, members, cov, chi2_value: float, stations: int, config) -> float:
+    """Log likelihood ratio of "one emitter made these bearings, the other stations missed it" against "these
+    bearings are false" (Laplace approximation over the uniform prior on the surveillance volume): per
+    bearing ``log(P_D / lambda)`` less its Gaussian normaliser, ``-chi2 / 2`` at the fit, ``log(1 - P_D)`` per
+    station that saw nothing, ``log det(2 pi P) / 2 - log V`` for the position integrated out."""
+    n = len(members)
+    sigmas = arrays.sigmas[members]
+    normaliser = 0.5 * np.log(2.0 * math.pi * sigmas[:, 0] ** 2) + np.where(
+        arrays.has_elevation[members], 0.5 * np.log(2.0 * math.pi * sigmas[:, 1] ** 2), 0.0)
+    sign, log_det = np.linalg.slogdet(2.0 * math.pi * np.asarray(cov))
+    if sign <= 0:
+        return -math.inf
+    return float(n * math.log(config.detection_probability / config.false_density_per_rad2) - normaliser.sum()
+                 - 0.5 * chi2_value + (stations - n) * math.log1p(-config.detection_probability) + 0.5 * log_det
+                 - math.log(config.surveillance_volume_m3))
+
+
+def _in_range(arrays: _Pool, members, position, config) -> bool:
+    distances = np.linalg.norm(arrays.positions[members] - position, axis=1)
+    return bool(np.all((distances > config.range_min_m) & (distances < config.range_max_m)))
+
+
+_CHI2_CACHE: dict = {}
+
+
+def _chi2_point(probability: float, dof: int) -> float:
+    key = (probability, dof)
+    if key not in _CHI2_CACHE:
+        _CHI2_CACHE[key] = float(chi2.ppf(probability, dof))
+    return _CHI2_CACHE[key]
+
+
+__all__ = ["AssociationConfig", "AssociationOutcome", "AssociationState", "Candidate", "MultiTrack", "Observation",
+           "apply_observations", "current_tracks", "find_candidates", "gate_costs", "new_association_state",
+           "observations_from_report", "status_of"]
