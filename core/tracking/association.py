@@ -27,17 +27,20 @@ sum over the scan, and only pairs with a negative cost (ratio above 1) are kept.
 their track (:func:`core.tracking.network.advance_track`).
 
 **Starting tracks, ghosts rejected.** Bearings no track took stay in a pool for ``init_window_s`` (the
-latest scan of each station). Candidates are built the way S-D assignment builds its tuples: every pair of
+latest scan of each station); starts are sought from ``init_window_s`` after the first scan on, once every
+station's scan can be in the pool (three stations can place a ghost as well as an emitter where two
+emitters line up; the others tell them apart). Candidates are built the way S-D assignment builds its tuples: every pair of
 bearings of two stations (frequencies compatible) is crossed; a third station's bearing must lie near the
 crossing's predicted bearing; each triple is fitted (Gauss-Newton maximum likelihood on the position,
 :func:`core.measurements.predict`) and kept when its chi-square is inside the ``init_gate_probability`` point;
 it is then extended with the best-fitting bearing of every further station whose NIS at the fit (the fit's
 covariance propagated) is inside the gate, and refitted. Each candidate's score is the log likelihood ratio of
 "one emitter made these bearings, the other stations missed it" against "these bearings are false" (Laplace
-approximation over a uniform prior on ``surveillance_volume_m3``). Candidates are accepted greedily by score
-among those that share no bearing (the greedy solution of the S-D assignment problem). Of the up to ``N^S``
-crossings of ``N`` emitters seen by ``S`` stations, a ghost needs three stations' bearings to agree on one
-point within the noise and must out-score the real emitters that use the same bearings. A bearing without
+approximation over a uniform prior on ``surveillance_volume_m3``). The accepted candidates are those that
+share no bearing with the largest total score (the S-D assignment problem as a set packing, solved exactly
+by :func:`select_candidates`). Of the up to ``N^S`` crossings of ``N`` emitters seen by ``S`` stations, a
+ghost needs three stations' bearings to agree on one point within the noise, and is chosen only when it
+explains the bearings better than the real emitters that share them. A bearing without
 elevation is taken, for the fit, as elevation 0 with ``network.azimuth_only_elevation_sigma_rad``, as the
 network tracker's start does.
 
@@ -260,12 +263,15 @@ class AssociationState:
         The number of the next track id.
     last_time_s : float or None
         Time of the newest processed scan.
+    first_time_s : float or None
+        Time of the first scan.
     """
 
     tracks: tuple[MultiTrack, ...] = ()
     pool: tuple[Observation, ...] = ()
     next_id: int = 1
     last_time_s: float | None = None
+    first_time_s: float | None = None
 
 
 class AssociationOutcome(NamedTuple):
@@ -339,19 +345,20 @@ def apply_observations(state: AssociationState, observations: Sequence[Observati
     tracks = list(state.tracks)
     pool = list(state.pool)
     next_id = state.next_id
-    last = state.last_time_s
+    last, first = state.last_time_s, state.first_time_s
     started, ended = [], []
     for (time_s, _), scan in itertools.groupby(accepted, key=lambda o: (o.time_s, o.station_id)):
         scan = list(scan)
+        first = time_s if first is None else first
         tracks, gone = _drop_ended(tracks, time_s, config)
         ended.extend(gone)
         tracks, unassigned = _scan(tracks, scan, config)
         pool = [o for o in pool if o.time_s > time_s - config.init_window_s] + unassigned
-        if unassigned:
+        if unassigned and time_s - first >= config.init_window_s:
             tracks, pool, next_id, new = _start_tracks(tracks, pool, next_id, time_s, config)
             started.extend(new)
         last = time_s
-    return AssociationOutcome(AssociationState(tuple(tracks), tuple(pool), next_id, last), len(accepted), late,
+    return AssociationOutcome(AssociationState(tuple(tracks), tuple(pool), next_id, last, first), len(accepted), late,
                               tuple(started), tuple(ended))
 
 
@@ -516,9 +523,7 @@ def _start_tracks(tracks, pool, next_id, time_s, config):
     candidates = find_candidates(usable, config)
     used: set[int] = set()
     new_ids = []
-    for cand in sorted(candidates, key=lambda c: -c.score):
-        if used.intersection(cand.members):
-            continue
+    for cand in select_candidates(candidates, len(usable)):
         used.update(cand.members)
         members = [usable[k] for k in cand.members]
         track_id = f"t{next_id}"
@@ -527,6 +532,46 @@ def _start_tracks(tracks, pool, next_id, time_s, config):
         tracks.append(_new_track(track_id, cand, members, config))
     consumed = {id(usable[k]) for k in used}
     return tracks, [o for o in pool if id(o) not in consumed], next_id, new_ids
+
+
+def select_candidates(candidates: Sequence[Candidate], size: int) -> list[Candidate]:
+    """The candidates that share no bearing with the largest total score: the S-D assignment problem as a
+    set packing, ``max sum score_k x_k`` over binary ``x`` with every bearing in at most one chosen candidate,
+    solved exactly (:func:`scipy.optimize.milp`). A greedy pick by score is not enough: where stations see two
+    emitters nearly in line, a ghost that borrows one bearing of each can out-score either real emitter and
+    would block both.
+
+    Parameters
+    ----------
+    candidates : sequence of Candidate
+        Scores positive.
+    size : int
+        Number of bearings (pool indices ``0 .. size-1``).
+
+    Returns
+    -------
+    list of Candidate
+        In descending score.
+    """
+    if len(candidates) <= 1:
+        return list(candidates)
+    from scipy.optimize import Bounds, LinearConstraint, milp
+    from scipy.sparse import coo_matrix
+
+    rows = [m for c in candidates for m in c.members]
+    cols = [k for k, c in enumerate(candidates) for _ in c.members]
+    usage = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(size, len(candidates)))
+    scores = np.array([c.score for c in candidates])
+    result = milp(-scores, constraints=LinearConstraint(usage, -np.inf, 1.0), integrality=np.ones(len(candidates)),
+                  bounds=Bounds(0.0, 1.0))
+    if result.x is None:  # no solution within HiGHS's limits: the greedy pick
+        chosen, used = [], set()
+        for cand in sorted(candidates, key=lambda c: -c.score):
+            if not used.intersection(cand.members):
+                used.update(cand.members)
+                chosen.append(cand)
+        return chosen
+    return sorted((c for c, x in zip(candidates, result.x) if x > 0.5), key=lambda c: -c.score)
 
 
 def _new_track(track_id, cand: Candidate, members, config) -> MultiTrack:
