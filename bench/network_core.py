@@ -107,12 +107,15 @@ def report_model(report: Report):
 class StoneSoupFilter:
     """Stone Soup's ``UnscentedKalmanPredictor`` and ``UnscentedKalmanUpdater`` (its default unscented
     parameters) on the constant-velocity model of a :class:`NetworkConfig` (``ConstantVelocity`` per axis
-    with ``noise_diff_coeff = accel_sigma_mps2**2``, the same white acceleration)."""
+    with ``noise_diff_coeff = accel_sigma_mps2**2``, ``vertical_accel_sigma_mps2**2`` on the up axis when
+    set: the same white acceleration)."""
 
     def __init__(self, config: NetworkConfig, mean_enu, covariance_enu, time_s: float):
         ss = self.ss = _stonesoup()
         q = config.accel_sigma_mps2 ** 2
-        self.transition = ss["CombinedLinearGaussianTransitionModel"]([ss["ConstantVelocity"](q)] * 3)
+        vertical = q if config.vertical_accel_sigma_mps2 is None else config.vertical_accel_sigma_mps2 ** 2
+        self.transition = ss["CombinedLinearGaussianTransitionModel"](
+            [ss["ConstantVelocity"](q), ss["ConstantVelocity"](q), ss["ConstantVelocity"](vertical)])
         self.predictor = ss["UnscentedKalmanPredictor"](self.transition)
         self.updater = ss["UnscentedKalmanUpdater"](measurement_model=None)
         index = TO_STONESOUP

@@ -27,7 +27,8 @@ report: with a bearing, as a range-parameterised Gaussian sum along that line of
 ``range_min_m .. range_max_m`` (sub-intervals of ratio 2, :func:`core.tracking.range_mixture.component_ranges`),
 each component reweighted by its innovation density and pruned below 1e-3, the track reporting the sum's
 moments; without a bearing, from the static fix (:func:`core.estimators.solve`) of the report's ranges and
-TOAs with its CRLB, or from both fixes when two points fit them equally. Velocity starts at zero with
+TOAs with its CRLB, or, when that fix leaves the height open (four TOAs from stations on the ground), as a
+Gaussian sum over heights of the fixes at known altitude. Velocity starts at zero with
 ``velocity_prior_sigma_mps`` per component.
 
 Status (computed against the newest applied report time, ``now``):
@@ -66,7 +67,7 @@ from core.tracking import imm
 from core.tracking.motion import transitions
 from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel, predict_kernel
 from core.tracking.range_mixture import component_ranges, moments, pruned, reweighted
-from core.tracking.state import frozen_array
+from core.tracking.state import freeze, frozen_array
 
 #: Version of the :meth:`NetworkState.to_dict` layout.
 NETWORK_STATE_FORMAT = 1
@@ -125,6 +126,17 @@ class NetworkConfig:
     linearisation_passes : int
         Passes of the iterated posterior linearisation of each update (1: the plain unscented update; see
         :mod:`core.tracking.network_kernel`).
+    start_altitudes_m : tuple of 2 floats
+        Heights (the common frame's up, m) a track started from ranges and TOAs alone may be at, when its first
+        fix does not place it in height (``_fix_start``).
+    start_altitude_step_m : float
+        Their spacing, and the vertical standard deviation a first fix must reach to be used alone.
+    vertical_accel_sigma_mps2 : float or None
+        The white acceleration's intensity on the up axis (aircraft and ground vehicles hold their height far
+        better than their course); None: ``accel_sigma_mps2`` (isotropic). An IMM scales each level's up axis
+        by the same ratio.
+    vertical_velocity_prior_sigma_mps : float or None
+        The start's up-velocity standard deviation; None: ``velocity_prior_sigma_mps``.
     """
 
     accel_sigma_mps2: float = 1.0
@@ -140,6 +152,10 @@ class NetworkConfig:
     coast_after_s: float = 10.0
     end_after_s: float = 60.0
     linearisation_passes: int = 3
+    start_altitudes_m: tuple[float, float] = (-500.0, 20_000.0)
+    vertical_accel_sigma_mps2: float | None = None
+    vertical_velocity_prior_sigma_mps: float | None = None
+    start_altitude_step_m: float = 500.0
 
     def __post_init__(self):
         for name in ("accel_sigma_mps2", "velocity_prior_sigma_mps", "range_min_m", "range_max_m",
@@ -155,6 +171,14 @@ class NetworkConfig:
             raise InvalidInput("imm_accel_sigmas_mps2 must hold 2 to 4 levels", ("imm_accel_sigmas_mps2",))
         for i, value in enumerate(levels):
             _check_positive("imm_accel_sigmas_mps2", value, ("imm_accel_sigmas_mps2", i))
+        _check_positive("start_altitude_step_m", self.start_altitude_step_m)
+        for name in ("vertical_accel_sigma_mps2", "vertical_velocity_prior_sigma_mps"):
+            if getattr(self, name) is not None:
+                _check_positive(name, getattr(self, name))
+        low, high = (float(v) for v in self.start_altitudes_m)
+        object.__setattr__(self, "start_altitudes_m", (low, high))
+        if not (math.isfinite(low) and math.isfinite(high) and high >= low):
+            raise InvalidInput("start_altitudes_m must be finite, low to high", ("start_altitudes_m",))
         if not self.range_max_m > self.range_min_m:
             raise InvalidInput("range_max_m must be above range_min_m", ("range_max_m",))
         for name in ("confirm_updates", "linearisation_passes"):
@@ -260,7 +284,8 @@ class Track:
     confirmed : bool
         Whether the track has met the confirmation rule.
     reference_range_m : float
-        Distance from the estimate to the nearest station of its last report (for the confirmation rule).
+        Distance from the estimate to the nearest station of its last report before confirmation (for the
+        confirmation rule; kept from then on).
     """
 
     id: str
@@ -571,6 +596,8 @@ def report_rows(report: Report) -> ReportRows:
     the smallest sigma), subtracted in seconds first so that epoch-sized TOAs keep their digits."""
     kinds = report.kinds
     is_toa = kinds == TOA
+    if not is_toa.any():
+        return ReportRows(report.values, report.sigmas * report.sigmas, _all_rows(kinds.size), -1, ())
     values = report.values.copy()
     sigmas = report.sigmas.copy()
     toa_index = np.flatnonzero(is_toa)
@@ -587,6 +614,13 @@ def report_rows(report: Report) -> ReportRows:
         sigmas[is_toa] *= SPEED_OF_LIGHT_MPS
         use[reference] = False
     return ReportRows(values, sigmas * sigmas, np.flatnonzero(use).astype(np.int64), reference, warnings)
+
+
+@functools.lru_cache(maxsize=64)
+def _all_rows(count: int) -> np.ndarray:
+    rows = np.arange(count, dtype=np.int64)
+    rows.flags.writeable = False
+    return rows
 
 
 def advance_track(track: Track | None, report: Report, config: NetworkConfig) -> tuple[Track | None, tuple]:
@@ -614,7 +648,7 @@ def advance_track(track: Track | None, report: Report, config: NetworkConfig) ->
         levels = config.imm_accel_sigmas_mps2
     else:
         levels = (config.accel_sigma_mps2,) * weights.size
-    phi, noises = transitions(STATE_SIZE, (3,), True, dt, tuple(q * q for q in levels))
+    phi, noises = motion_model(config, dt, levels)
     new_means, new_covs, nis, log_det, status = _update(means, covs, phi, noises, dt > 0.0, report, rows,
                                                         config.linearisation_passes)
     dof = rows.rows.size
@@ -622,11 +656,12 @@ def advance_track(track: Track | None, report: Report, config: NetworkConfig) ->
     if not ok.any() or (track.stage != "mixture" and not ok.all()):
         warnings += (("numerical_failure", f"report seq {report.seq}: the update failed; the track was predicted"),)
         return _finish(track, report, weights, means, covs, np.nan, dof, config, warnings)
-    log_likelihood = np.where(ok, -0.5 * (nis + log_det), -np.inf)
-    weights = reweighted(weights, log_likelihood)
-    if track.stage == "imm":
-        weights = imm.floored(weights)
-    new_means, new_covs = new_means, new_covs
+    if weights.size == 1:
+        weights = np.ones(1)
+    else:
+        weights = reweighted(weights, np.where(ok, -0.5 * (nis + log_det), -np.inf))
+        if track.stage == "imm":
+            weights = imm.floored(weights)
     combined_nis = float(nis[ok][np.argmax(weights[ok])]) if track.stage == "mixture" else float(
         np.dot(weights, np.where(ok, nis, 0.0)))
     if track.stage == "mixture":
@@ -662,15 +697,18 @@ def _finish(track: Track | None, report: Report, weights, means, covs, nis: floa
         mean, cov = moments(np.asarray(weights), np.asarray(means), np.asarray(covs))
     agreeing = 0 if track is None else track.agreeing
     agreeing = agreeing + 1 if math.isfinite(nis) and nis <= _chi2_point(_CHI2_AGREE, dof) else 0
-    distances = np.linalg.norm(report.stations_enu_m - mean[:3], axis=1)
-    reference_range_m = float(distances.min())
-    confirmed = (track is not None and track.confirmed) or (
-        stage != "mixture" and agreeing >= config.confirm_updates
-        and math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0)) <= config.confirm_relative_sigma * reference_range_m)
+    if track is not None and track.confirmed:
+        confirmed, reference_range_m = True, track.reference_range_m
+    else:
+        reference_range_m = float(np.linalg.norm(report.stations_enu_m - mean[:3], axis=1).min())
+        confirmed = (stage != "mixture" and agreeing >= config.confirm_updates
+                     and math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0))
+                     <= config.confirm_relative_sigma * reference_range_m)
     updates = 1 if track is None else track.updates + 1
-    out = Track(report.emitter_id, "confirmed" if confirmed else "tentative", report.time_s, frozen_array(mean),
-                frozen_array(cov), updates, warnings, stage, frozen_array(weights), frozen_array(means),
-                frozen_array(covs), agreeing, bool(confirmed), reference_range_m)
+    out = Track(report.emitter_id, "confirmed" if confirmed else "tentative", report.time_s, freeze(mean),
+                freeze(cov), updates, warnings, stage, freeze(np.asarray(weights, dtype=float)),
+                freeze(np.asarray(means, dtype=float)), freeze(np.asarray(covs, dtype=float)), agreeing,
+                bool(confirmed), reference_range_m)
     return out, warnings
 
 
@@ -688,7 +726,7 @@ def _start(report: Report, rows: ReportRows, config: NetworkConfig) -> tuple[Tra
         nis = np.nan
         if rest.size:
             rows_rest = rows._replace(rows=rest)
-            phi, noises = transitions(STATE_SIZE, (3,), True, 0.0, (config.accel_sigma_mps2 ** 2,) * weights.size)
+            phi, noises = motion_model(config, 0.0, (config.accel_sigma_mps2,) * weights.size)
             new_means, new_covs, nis_all, log_det, status = _update(means, covs, phi, noises, False, report, rows_rest,
                                                                 config.linearisation_passes)
             ok = status == UPDATED
@@ -705,17 +743,37 @@ def _start(report: Report, rows: ReportRows, config: NetworkConfig) -> tuple[Tra
     return _finish(None, report, weights, means, covs, np.nan, 1, config, warnings, "mixture")
 
 
+def motion_model(config: NetworkConfig, dt_s: float, accel_sigmas_mps2: tuple[float, ...]):
+    """Transition ``(6, 6)`` and process noises ``(C, 6, 6)`` over ``dt_s`` of the constant-velocity model at
+    each horizontal intensity (:func:`core.tracking.motion.transitions`), the vertical axis at
+    ``vertical_accel_sigma_mps2 / accel_sigma_mps2`` of it when that is set."""
+    phi, noises = transitions(STATE_SIZE, (3,), True, dt_s, tuple(q * q for q in accel_sigmas_mps2))
+    if config.vertical_accel_sigma_mps2 is not None:
+        scale = np.ones(STATE_SIZE)
+        scale[[2, 5]] = config.vertical_accel_sigma_mps2 / config.accel_sigma_mps2
+        noises = noises * np.outer(scale, scale)
+    return phi, noises
+
+
+def velocity_prior(config: NetworkConfig) -> np.ndarray:
+    """Covariance ``(3, 3)`` of the velocity at a track's start."""
+    vertical = config.velocity_prior_sigma_mps if config.vertical_velocity_prior_sigma_mps is None else \
+        config.vertical_velocity_prior_sigma_mps
+    return np.diag([config.velocity_prior_sigma_mps ** 2] * 2 + [vertical ** 2])
+
+
 def _pruned_mixture(weights, means, covs):
     """The Gaussian sum without components below :data:`core.tracking.range_mixture.MIN_WEIGHT`, and collapsed
-    to its moments once every component's mean lies within :data:`MERGE_DISTANCE` standard deviations of the
-    sum's mean (Mahalanobis, under the sum's covariance): neighbouring components that the data have pulled
-    onto the same point stay apart in weight forever and would keep the track a mixture."""
+    to its moments once every component's mean lies within :data:`MERGE_DISTANCE` of its own standard
+    deviations from the sum's mean (Mahalanobis, under the component's covariance: the sum is then one
+    Gaussian to within a fraction of each component's width): neighbouring components that the data have
+    pulled onto the same point stay apart in weight forever and would keep the track a mixture."""
     keep = pruned(weights)
     weights, means, covs = weights[keep] / weights[keep].sum(), means[keep], covs[keep]
     if weights.size > 1:
         mean, cov = moments(weights, means, covs)
         offsets = means - mean
-        distances = np.einsum("ci,ci->c", offsets, np.linalg.solve(cov, offsets.T).T)
+        distances = np.einsum("ci,ci->c", offsets, np.linalg.solve(covs, offsets[..., None])[..., 0])
         if distances.max() < MERGE_DISTANCE ** 2:
             return np.ones(1), mean[None], cov[None]
     return weights, means, covs
@@ -745,14 +803,21 @@ def _line_of_sight_mixture(report: Report, azimuth: int, elevation: int, config:
                  + (r * sigma_el) ** 2 * np.outer(across_el, across_el))
         means[c, :3] = station + to_common @ (r * along)
         covs[c, :3, :3] = to_common @ local @ to_common.T
-        covs[c, 3:, 3:] = np.eye(3) * config.velocity_prior_sigma_mps ** 2
+        covs[c, 3:, 3:] = velocity_prior(config)
     return np.full(count, 1.0 / count), means, 0.5 * (covs + np.swapaxes(covs, 1, 2))
 
 
 def _fix_start(report: Report, rows: ReportRows, config: NetworkConfig):
-    """One or two Gaussians from the static fix of a report without bearings (ranges and TOAs), or None."""
-    from core.estimators import solve
-    from core.errors import AmbiguousGeometry
+    """A Gaussian, or a Gaussian sum over altitude, from the static fixes of a report without bearings.
+
+    The free fix (:func:`core.estimators.solve`) with its CRLB when that places the emitter within
+    :attr:`NetworkConfig.start_altitude_step_m` vertically. Otherwise (four TOAs from stations on the
+    ground fix a point exactly, twice, and their hyperboloids meet at a shallow angle in height) the fixes at
+    known altitudes over ``start_altitudes_m`` (step ``start_altitude_step_m``): each a component with its
+    horizontal CRLB and half a step of height, weighted by the Laplace approximation of its likelihood
+    (``exp(-chi2 / 2)`` times the square root of its CRLB's determinant). None when nothing fits.
+    """
+    from core.estimators import solve, solve_batch
     from core.problem import LocalPoint, Range, TimeOfArrival, build_problem
 
     used = [int(i) for i in rows.rows] + ([rows.toa_reference] if rows.toa_reference >= 0 else [])
@@ -766,31 +831,38 @@ def _fix_start(report: Report, rows: ReportRows, config: NetworkConfig):
         else:
             measurements.append(TimeOfArrival(f"s{i}", float(report.values[i] - report.values[rows.toa_reference]),
                                               float(report.sigmas[i])))
-    centroid = report.stations_enu_m[used].mean(axis=0)
-    fixes = []
+    step = config.start_altitude_step_m
     try:
-        fixes.append(solve(build_problem(stations, measurements)))
-    except AmbiguousGeometry:
-        # Two points fit equally: both become components, the reports that follow tell them apart.
-        for side in (1.0, -1.0):
-            guess = LocalPoint(*(centroid + [0.0, 0.0, side * config.range_max_m]).tolist())
-            try:
-                fixes.append(solve(build_problem(stations, measurements, initial_guess=guess)))
-            except LocalizationError:
-                pass
+        fix = solve(build_problem(stations, measurements))
+        if np.all(np.isfinite(fix.crlb_enu_m2)) and math.sqrt(fix.crlb_enu_m2[2, 2]) <= step:
+            means = np.zeros((1, STATE_SIZE))
+            covs = np.zeros((1, STATE_SIZE, STATE_SIZE))
+            means[0, :3] = fix.position_enu_m
+            covs[0, :3, :3] = fix.crlb_enu_m2
+            covs[0, 3:, 3:] = velocity_prior(config)
+            return np.ones(1), means, covs
     except LocalizationError:
+        pass
+    low, high = config.start_altitudes_m
+    altitudes = np.arange(low, high + 0.5 * step, step)
+    fixes = solve_batch([build_problem(stations, measurements, altitude_m=float(h)) for h in altitudes])
+    kept = [(h, f) for h, f in zip(altitudes.tolist(), fixes)
+            if not isinstance(f, LocalizationError) and np.all(np.isfinite(f.crlb_enu_m2[:2, :2]))
+            and np.linalg.det(f.crlb_enu_m2[:2, :2]) > 0.0]
+    if not kept:
         return None
-    if not fixes:
-        return None
-    means = np.zeros((len(fixes), STATE_SIZE))
-    covs = np.zeros((len(fixes), STATE_SIZE, STATE_SIZE))
-    for c, fix in enumerate(fixes):
-        if not np.all(np.isfinite(fix.crlb_enu_m2)):
-            return None
-        means[c, :3] = fix.position_enu_m
-        covs[c, :3, :3] = fix.crlb_enu_m2
-        covs[c, 3:, 3:] = np.eye(3) * config.velocity_prior_sigma_mps ** 2
-    return np.full(len(fixes), 1.0 / len(fixes)), means, covs
+    log_w = np.array([-0.5 * f.chi2 + 0.5 * math.log(np.linalg.det(f.crlb_enu_m2[:2, :2])) for _, f in kept])
+    weights = np.exp(log_w - log_w.max())
+    weights /= weights.sum()
+    means = np.zeros((len(kept), STATE_SIZE))
+    covs = np.zeros((len(kept), STATE_SIZE, STATE_SIZE))
+    for c, (h, f) in enumerate(kept):
+        means[c, :3] = f.position_enu_m[0], f.position_enu_m[1], h
+        covs[c, :2, :2] = f.crlb_enu_m2[:2, :2]
+        covs[c, 2, 2] = (0.5 * step) ** 2
+        covs[c, 3:, 3:] = velocity_prior(config)
+    keep = pruned(weights)
+    return weights[keep] / weights[keep].sum(), means[keep], covs[keep]
 
 
 def _predicted(track: Track, time_s: float, config: NetworkConfig) -> Track:
@@ -804,7 +876,7 @@ def _predicted(track: Track, time_s: float, config: NetworkConfig) -> Track:
         levels = config.imm_accel_sigmas_mps2
     else:
         levels = (config.accel_sigma_mps2,) * weights.size
-    phi, noises = transitions(STATE_SIZE, (3,), True, dt, tuple(q * q for q in levels))
+    phi, noises = motion_model(config, dt, levels)
     means, covs = np.ascontiguousarray(means), np.ascontiguousarray(covs)
     predict_kernel(means, covs, phi, noises)
     mean, cov = (means[0], covs[0]) if weights.size == 1 else moments(weights, means, covs)

@@ -54,14 +54,18 @@ def report_information(report, positions_enu_m) -> np.ndarray:
     return out
 
 
-def network_prior_information(velocity_prior_sigma_mps: float) -> np.ndarray:
-    """The tracker's start as information ``(6, 6)``: position diffuse, each velocity component
-    ``velocity_prior_sigma_mps``."""
-    return np.diag([0.0] * 3 + [velocity_prior_sigma_mps ** -2] * 3)
+def network_prior_information(velocity_prior_sigma_mps: float,
+                              vertical_velocity_prior_sigma_mps: float | None = None) -> np.ndarray:
+    """The tracker's start as information ``(6, 6)``: position diffuse, each horizontal velocity component
+    ``velocity_prior_sigma_mps``, the vertical one ``vertical_velocity_prior_sigma_mps`` (default the same)."""
+    vertical = velocity_prior_sigma_mps if vertical_velocity_prior_sigma_mps is None else \
+        vertical_velocity_prior_sigma_mps
+    return np.diag([0.0] * 3 + [velocity_prior_sigma_mps ** -2] * 2 + [vertical ** -2])
 
 
 def network_pcrb(states_enu, reports: Sequence, accel_sigma_mps2: float, velocity_prior_sigma_mps: float,
-                 times_s=None, each_truth: bool = False) -> PosteriorBound:
+                 times_s=None, each_truth: bool = False, vertical_accel_sigma_mps2: float | None = None,
+                 vertical_velocity_prior_sigma_mps: float | None = None) -> PosteriorBound:
     """The PCRB of the network model along truths, after each report (or at given times).
 
     Parameters
@@ -82,6 +86,9 @@ def network_pcrb(states_enu, reports: Sequence, accel_sigma_mps2: float, velocit
         trajectory. Where the truths' geometries differ by more than the measurement noise, the PCRB's mean
         information holds what no single run has and is not attainable; the RMS of the per-truth bounds is
         then the figure filters approach (it is not itself a bound: ``E[J^-1] >= E[J]^-1``).
+    vertical_accel_sigma_mps2, vertical_velocity_prior_sigma_mps : float, optional
+        The up axis's acceleration intensity and start sigma when they differ from the horizontal ones (as
+        :class:`core.tracking.network.NetworkConfig`).
 
     Returns
     -------
@@ -97,11 +104,16 @@ def network_pcrb(states_enu, reports: Sequence, accel_sigma_mps2: float, velocit
     if not each_truth:
         measurement = measurement.mean(axis=0)
     q = accel_sigma_mps2 ** 2
+    scale = np.ones(STATE_SIZE)
+    if vertical_accel_sigma_mps2 is not None:
+        scale[[2, 5]] = vertical_accel_sigma_mps2 / accel_sigma_mps2
+    scale = np.outer(scale, scale)
     pairs = [transition(STATE_SIZE, (3,), True, float(dt), q) for dt in np.diff(report_times)]
     transitions = np.array([f for f, _ in pairs]).reshape(-1, STATE_SIZE, STATE_SIZE)
-    noises = np.array([n for _, n in pairs]).reshape(-1, STATE_SIZE, STATE_SIZE)
-    information = pcrb_recursion(network_prior_information(velocity_prior_sigma_mps), transitions, noises,
-                                 measurement)
+    noises = np.array([n * scale for _, n in pairs]).reshape(-1, STATE_SIZE, STATE_SIZE)
+    information = pcrb_recursion(network_prior_information(velocity_prior_sigma_mps,
+                                                           vertical_velocity_prior_sigma_mps),
+                                 transitions, noises, measurement)
     if times_s is not None:
         times = np.asarray(times_s, dtype=float)
         last = np.searchsorted(report_times, times, side="right") - 1
@@ -110,7 +122,7 @@ def network_pcrb(states_enu, reports: Sequence, accel_sigma_mps2: float, velocit
             if k < 0:
                 continue
             phi, noise = transition(STATE_SIZE, (3,), True, t - report_times[k], q)
-            at_times[..., j, :, :] = information_predict(information[..., k, :, :], phi, noise)
+            at_times[..., j, :, :] = information_predict(information[..., k, :, :], phi, noise * scale)
         information = at_times
     covariance = invert_information(information)
     position = np.trace(covariance[..., :3, :3], axis1=-2, axis2=-1)

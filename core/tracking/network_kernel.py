@@ -14,7 +14,10 @@ the statistical linear regression of the measurement on the position, ``z ~ A p 
 ``cov(e) = P_zz - A P_pp A^T``, is taken over the cubature points of the current posterior (the prior in the
 first pass, which is the plain unscented update) and the prior is updated with that linear model; each pass
 linearises where the posterior lies. Where the prior is wide against the measurement's curvature (a range
-learnt from bearings) this is what reaches the bound; where it is narrow the passes agree with the first.
+learnt from bearings) this is what reaches the bound; where it is narrow the passes agree with the first. A
+pass that moves the estimate by more than :data:`MAX_PASS_STEP` standard deviations of the last posterior
+has jumped to another solution of the measurement and is not taken; the NIS and the likelihood are the
+first pass's (the report's predictive density).
 
 TOA rows are differences ``TOA_i - TOA_ref`` of one report's TOAs (as pseudo-ranges, metres), with the
 differences' full noise covariance (``sigma_i^2`` on the diagonal plus ``sigma_ref^2`` everywhere): that is
@@ -40,6 +43,11 @@ from core.tracking.linalg import cholesky_into, lower_inverse_into
 UPDATED, PREDICTED_NOT_PD, INNOVATION_NOT_PD, UPDATED_NOT_PD, NOT_FINITE = range(5)
 
 STATE_SIZE = 6
+#: Largest move of a linearisation pass after the first, in standard deviations of the last posterior's
+#: position (see :func:`network_ukf_kernel`).
+MAX_PASS_STEP = 3.0
+#: A pass that moves the estimate by less than this (same units) ends the passes.
+PASS_TOLERANCE = 1e-3
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -150,7 +158,7 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
             for j in range(f):
                 around_cov[i, j] = cov[i, j]
         outcome = UPDATED
-        for _ in range(passes):
+        for iteration in range(passes):
             # Statistical linear regression of the rows on the position over N(around, around_cov):
             # z ~ slope p + offset + e, cov(e) = P_zz - slope P_pp slope^T.
             if not cholesky_into(around_cov[:3, :3], chol):
@@ -233,15 +241,16 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
                     for q in range(r):
                         total -= innovation_chol[r, q] * v[q, i]
                     v[r, i] = total / pivot
-            nis[b] = chi2
-            log_det[b] = 2.0 * half_log_det
+            if iteration == 0:
+                # The predictive density of the report (NIS, likelihood): the prior's own regression.
+                nis[b] = chi2
+                log_det[b] = 2.0 * half_log_det
             finite = True
             for i in range(f):
                 total = mean[i]
                 for r in range(size):
                     total += v[r, i] * t[r]
                 new_mean[i] = total
-                around[i] = total
                 finite = finite and math.isfinite(total)
                 for j in range(i + 1):
                     total = cov[i, j]
@@ -249,8 +258,6 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
                         total -= v[r, i] * v[r, j]
                     new_cov[i, j] = total
                     new_cov[j, i] = total
-                    around_cov[i, j] = total
-                    around_cov[j, i] = total
                     finite = finite and math.isfinite(total)
             if not finite:
                 outcome = NOT_FINITE
@@ -258,6 +265,28 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
             if not cholesky_into(new_cov, full_chol):
                 outcome = UPDATED_NOT_PD
                 break
+            if iteration > 0:
+                # A pass refines the linearisation where the last posterior lies; one that leaves it by more
+                # than MAX_PASS_STEP of its standard deviations has jumped to another branch of the
+                # measurement (two points fit four TOAs): keep the last posterior.
+                step = 0.0
+                for a in range(3):
+                    total = 0.0
+                    for k in range(a + 1):
+                        total += inverse[a, k] * (new_mean[k] - around[k])
+                    step += total * total
+                if step > MAX_PASS_STEP * MAX_PASS_STEP:
+                    for i in range(f):
+                        new_mean[i] = around[i]
+                        for j in range(f):
+                            new_cov[i, j] = around_cov[i, j]
+                    break
+                if step < PASS_TOLERANCE * PASS_TOLERANCE:
+                    break  # the linearisation has settled
+            for i in range(f):
+                around[i] = new_mean[i]
+                for j in range(f):
+                    around_cov[i, j] = new_cov[i, j]
         status[b] = outcome
 
 
