@@ -32,6 +32,11 @@ from core.tracking.gospa import gospa
 from core.tracking.network import NetworkConfig, Report
 
 
+#: The filter of a ground emitter's track: gentle horizontal manoeuvres, next to none vertically.
+GROUND_EMITTERS = NetworkConfig(accel_sigma_mps2=0.2, velocity_prior_sigma_mps=30.0, vertical_accel_sigma_mps2=0.02,
+                                vertical_velocity_prior_sigma_mps=1.0, coast_after_s=10.0, end_after_s=60.0)
+
+
 @dataclass(frozen=True)
 class EmitterPath:
     """One emitter: a straight path at constant velocity while it transmits.
@@ -401,8 +406,7 @@ def multi_emitter_scene(variant: int = 0, **changes) -> MultiEmitterScenario:
         _path_through(still_at, 0.0, 0.0, 0.0, duration / 2.0, duration, "e3", 446.1e6, 200.0),
         _path_through(e4_at, e4_off / 2.0, speeds[3], headings[3], 0.0, e4_off, "e4", 145.5e6, 50.0),
     )
-    network = NetworkConfig(accel_sigma_mps2=0.2, velocity_prior_sigma_mps=30.0, coast_after_s=10.0,
-                            end_after_s=60.0)
+    network = GROUND_EMITTERS
     scene = MultiEmitterScenario("multi_emitter", *origin, stations, emitters, duration_s=duration,
                                  config=AssociationConfig(network=network))
     return replace(scene, **changes)
@@ -419,8 +423,7 @@ def scale_scene(emitters: int = 20, stations: int = 10, duration_s: float = 60.0
     paths = tuple(_path_through(tuple(rng.uniform(-20e3, 20e3, 2).tolist()), 0.0, rng.uniform(5.0, 20.0),
                                 rng.uniform(0.0, 360.0), 0.0, duration_s, f"e{k + 1}", 400e6 + 25e3 * k, 100.0)
                   for k in range(emitters))
-    network = NetworkConfig(accel_sigma_mps2=0.2, velocity_prior_sigma_mps=30.0, coast_after_s=10.0,
-                            end_after_s=60.0)
+    network = GROUND_EMITTERS
     scene = MultiEmitterScenario("scale", *origin, _geodetic_stations(origin, offsets, measures="bearing"), paths,
                                  duration_s=duration_s, config=AssociationConfig(network=network))
     return replace(scene, **changes)

@@ -47,7 +47,7 @@ network tracker's start does.
 **Track management** (statuses are those of the network sessions):
 
 - a track starts ``tentative`` from an accepted candidate: position the fit (covariance its inverse Fisher
-  information), velocity zero +- ``network.velocity_prior_sigma_mps``; its starting bearings count as hits;
+  information), velocity zero with the network tracker's prior (:func:`core.tracking.network.velocity_prior`); its starting bearings count as hits;
 - each later scan of any station is a hit (a bearing assigned) or a miss. A tentative track is ``confirmed``
   once ``confirm_hits`` of its last ``confirm_window`` scans are hits (M of N), and deleted as soon as it can no
   longer reach that (more than ``confirm_window - confirm_hits`` misses among them): a ghost or clutter-born
@@ -71,7 +71,8 @@ from scipy.stats import chi2
 from core.angles import line_of_sight_enu, station_to_common, wrap_to_pi
 from core.errors import InvalidInput
 from core.measurements import AZIMUTH, ELEVATION, predict
-from core.tracking.network import NetworkConfig, NetworkState, Report, Track, advance_track, predict_tracks, report_rows
+from core.tracking.network import (NetworkConfig, NetworkState, Report, Track, advance_track, predict_tracks,
+                                  report_rows, velocity_prior)
 from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel
 from core.tracking.state import frozen_array
 
@@ -580,7 +581,7 @@ def _new_track(track_id, cand: Candidate, members, config) -> MultiTrack:
     mean[:3] = cand.position_enu_m
     cov = np.zeros((STATE_SIZE, STATE_SIZE))
     cov[:3, :3] = cand.covariance_enu_m2
-    cov[3:, 3:] = np.eye(3) * config.network.velocity_prior_sigma_mps ** 2
+    cov[3:, 3:] = velocity_prior(config.network)
     nearest = float(min(np.linalg.norm(o.report.stations_enu_m[0] - cand.position_enu_m) for o in members))
     track = Track(track_id, "tentative", time_s, frozen_array(mean), frozen_array(cov), len(members), (), "single",
                   frozen_array([1.0]), frozen_array(mean[None]), frozen_array(cov[None]), 0, False, nearest)
@@ -609,14 +610,22 @@ def find_candidates(pool: Sequence[Observation], config: AssociationConfig) -> l
     triples = _triples(arrays, config)
     if not triples.size:
         return []
-    positions, covariances, chi2_values, ok = _fit(arrays, triples, _crossings(arrays, triples[:, 0], triples[:, 1])[0])
+    positions, covariances, chi2_values, ok = _fit(arrays, triples, _best_crossings(arrays, triples))
     gate = _chi2_point(config.init_gate_probability, 3)
     keep = ok & (chi2_values <= gate)
     out: dict[frozenset, Candidate] = {}
     stations = np.unique(arrays.station)
+    grown: list[frozenset] = []
     for t in np.flatnonzero(keep):
-        members = list(triples[t])
+        triple = [int(m) for m in triples[t]]
         position, cov = positions[t], covariances[t]
+        _add_candidate(out, arrays, triple, position, cov, float(chi2_values[t]), len(stations), config)
+        # The triple extended with every further station's best-fitting bearing, kept beside the triple: the
+        # set packing decides (a bearing of another emitter may pass the gate of a triple on its own). A triple
+        # inside a set already extended (an emitter seen by S stations has S-choose-3 triples) extends to it.
+        if any(extended.issuperset(triple) for extended in grown):
+            continue
+        members = list(triple)
         known = arrays.frequency[members][np.isfinite(arrays.frequency[members])]
         frequency = float(known.mean()) if known.size else math.nan
         for s in stations:
@@ -627,17 +636,20 @@ def find_candidates(pool: Sequence[Observation], config: AssociationConfig) -> l
                 members.append(best)
         if len(members) > 3:
             p, c, x2, good = _fit(arrays, np.array([members]), position[None])
-            if not good[0] or x2[0] > _chi2_point(config.init_gate_probability, 2 * len(members) - 3):
-                members = list(triples[t])
-            else:
-                position, cov, chi2_values[t] = p[0], c[0], x2[0]
-        key = frozenset(members)
-        if key in out:
-            continue
-        score = _score(arrays, members, cov, chi2_values[t], len(stations), config)
-        if score > 0.0 and _in_range(arrays, members, position, config):
-            out[key] = Candidate(tuple(int(m) for m in members), position, cov, float(chi2_values[t]), score)
+            if good[0] and x2[0] <= _chi2_point(config.init_gate_probability, 2 * len(members) - 3):
+                _add_candidate(out, arrays, members, p[0], c[0], float(x2[0]), len(stations), config)
+                grown.append(frozenset(members))
     return list(out.values())
+
+
+def _add_candidate(out: dict, arrays: _Pool, members, position, cov, chi2_value: float, stations: int,
+                   config) -> None:
+    key = frozenset(members)
+    if key in out:
+        return
+    score = _score(arrays, members, cov, chi2_value, stations, config)
+    if score > 0.0 and _in_range(arrays, members, position, config):
+        out[key] = Candidate(tuple(int(m) for m in members), position, cov, chi2_value, score)
 
 
 def _frequency_compatible(arrays: _Pool, a, b, config) -> np.ndarray:
@@ -660,9 +672,22 @@ def _crossings(arrays: _Pool, a: np.ndarray, b: np.ndarray):
     return 0.5 * (pa + ra[:, None] * ua + pb + rb[:, None] * ub), ra, rb
 
 
+def _best_crossings(arrays: _Pool, triples: np.ndarray) -> np.ndarray:
+    """Each triple's starting point ``(K, 3)``: the crossing of its pair of lines of sight closest to
+    perpendicular."""
+    pairs = ((0, 1), (0, 2), (1, 2))
+    sines = np.stack([np.linalg.norm(np.cross(arrays.directions[triples[:, i]], arrays.directions[triples[:, j]]),
+                                     axis=1) for i, j in pairs], axis=1)
+    best = np.argmax(sines, axis=1)
+    first = np.array([pairs[b][0] for b in best])
+    second = np.array([pairs[b][1] for b in best])
+    rows = np.arange(triples.shape[0])
+    return _crossings(arrays, triples[rows, first], triples[rows, second])[0]
+
+
 def _triples(arrays: _Pool, config) -> np.ndarray:
-    """Triples ``(K, 3)`` of pool indices of three stations (in station order) whose third bearing lies near
-    the first two's crossing (coarse azimuth window, frequencies compatible)."""
+    """Triples ``(K, 3)`` of pool indices of three stations whose third bearing lies near the first two's
+    crossing (coarse azimuth window, frequencies compatible), each set once."""
     stations = np.unique(arrays.station)
     by_station = {int(s): np.flatnonzero(arrays.station == s) for s in stations}
     out = []
@@ -684,7 +709,7 @@ def _triples(arrays: _Pool, config) -> np.ndarray:
         # ranges, over the sine of the crossing angle (a loose bound; the fit's chi-square decides).
         spread_m = np.hypot(ra * arrays.sigmas[a, 0], rb * arrays.sigmas[b, 0]) / np.sin(crossing_angle[good])
         for sc in stations.tolist():
-            if sc <= sb:
+            if sc in (sa, sb):
                 continue
             c = by_station[sc]
             station = arrays.positions[c[0]]
@@ -698,7 +723,13 @@ def _triples(arrays: _Pool, config) -> np.ndarray:
             k, l = np.nonzero(near)
             if k.size:
                 out.append(np.stack([a[k], b[k], c[l]], axis=1))
-    return np.concatenate(out) if out else np.zeros((0, 3), dtype=np.int64)
+    if not out:
+        return np.zeros((0, 3), dtype=np.int64)
+    # Each triple is reached from each of its pairs (a near-collinear pair crosses far from the emitter, so
+    # the well-conditioned pairs must be tried too): one copy each.
+    triples = np.concatenate(out)
+    _, first = np.unique(np.sort(triples, axis=1), axis=0, return_index=True)
+    return triples[np.sort(first)]
 
 
 def _fit(arrays: _Pool, members: np.ndarray, start: np.ndarray):
