@@ -33,7 +33,11 @@ def multi_scale_row(duration_s: float = 120.0, seed: int = 0):
 
     from bench.rows import Row, committed, unavailable
     from core.simulation.multi_emitter import scale_scene, simulate_multi
-    from core.tracking.association import apply_observations, current_tracks, new_association_state
+    from core.tracking.association import (
+        apply_observations,
+        current_tracks,
+        new_association_state,
+    )
     from core.tracking.network import apply_reports, new_network_state
 
     number, what = 10, "20 emitters x 10 stations, unlabelled bearings, 1 scan/s each, one core"
@@ -79,12 +83,12 @@ def multi_scale_row(duration_s: float = 120.0, seed: int = 0):
     return Row(number, what, f"{per_second:.3f} s CPU per simulated s ({steady:.3f} steady; {per_bearing_us:,.0f} us "
                "per bearing)", f"labelled session on the true bearings: {labelled_us:,.0f} us per bearing",
                f"{ratio:.2f}x labelled per bearing", target, verdict,
-               [f"core.simulation.multi_emitter.scale_scene(20, 10, {duration_s:g} s, seed {seed}): "
+               [(f"core.simulation.multi_emitter.scale_scene(20, 10, {duration_s:g} s, seed {seed}): "
                 f"{int(bearings.sum()):,} bearings ({int(bearings.sum() - true_bearings.sum()):,} false) in "
                 f"{len(scans):,} scans through apply_observations one scan at a time; process CPU time over the "
                 f"whole run and over its second half (steady); {confirmed} confirmed tracks at the end. Yardstick: "
                 "core.tracking.network.apply_reports on the same true bearings labelled with their emitter, one "
-                "scan at a time, second half."])
+                "scan at a time, second half.")])
 
 
 def _sources_by_scan(run, scans):

@@ -22,15 +22,23 @@ from typing import NamedTuple
 
 import numpy as np
 
-from core import geodesy
 from core.angles import line_of_sight_enu, station_to_common
 from core.measurements import AZIMUTH, ELEVATION, predict
-from core.simulation.network import START_TIME_S, NetworkStation, _geodetic_stations, station_frame
-from core.tracking.association import (AssociationConfig, Observation, apply_observations, current_tracks,
-                                       new_association_state)
+from core.simulation.network import (
+    START_TIME_S,
+    NetworkStation,
+    _geodetic_stations,
+    station_frame,
+)
+from core.tracking.association import (
+    AssociationConfig,
+    Observation,
+    apply_observations,
+    current_tracks,
+    new_association_state,
+)
 from core.tracking.gospa import gospa
 from core.tracking.network import NetworkConfig, Report
-
 
 #: The filter of a ground emitter's track: gentle horizontal manoeuvres, next to none vertically.
 GROUND_EMITTERS = NetworkConfig(accel_sigma_mps2=0.2, velocity_prior_sigma_mps=30.0, vertical_accel_sigma_mps2=0.02,
@@ -294,7 +302,8 @@ def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: Assoc
         ``false_tracks``, ``identity_switches``.
     """
     config = config or scenario.config
-    epochs = START_TIME_S + scenario.scan_interval_s * np.arange(1, int(scenario.duration_s / scenario.scan_interval_s) + 1)
+    count = int(scenario.duration_s / scenario.scan_interval_s)
+    epochs = START_TIME_S + scenario.scan_interval_s * np.arange(1, count + 1)
     state = new_association_state()
     observations = run.observations
     cursor = 0
@@ -324,7 +333,7 @@ def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: Assoc
             if emitter in last_id and last_id[emitter] != tracks[j].id:
                 switches += 1
             last_id[emitter] = tracks[j].id
-        assigned = set(int(j) for j in score.assignment if j >= 0)
+        assigned = {int(j) for j in score.assignment if j >= 0}
         for j, tr in enumerate(tracks):
             track_epochs.setdefault(tr.id, []).append(j in assigned)
         base = gospa(baseline_estimates(scenario, observations[:cursor], t), truths[:, :2], cutoff)

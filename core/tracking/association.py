@@ -29,9 +29,10 @@ their track (:func:`core.tracking.network.advance_track`).
 **Starting tracks, ghosts rejected.** Bearings no track took stay in a pool for ``init_window_s`` (the
 latest scan of each station); starts are sought from ``init_window_s`` after the first scan on, once every
 station's scan can be in the pool (three stations can place a ghost as well as an emitter where two
-emitters line up; the others tell them apart). Candidates are built the way S-D assignment builds its tuples: every pair of
-bearings of two stations (frequencies compatible) is crossed; a third station's bearing must lie near the
-crossing's predicted bearing; each triple is fitted (Gauss-Newton maximum likelihood on the position,
+emitters line up; the others tell them apart). Candidates are built the way S-D assignment builds its
+tuples: every pair of bearings of two stations (frequencies compatible) is crossed; a third station's
+bearing must lie near the crossing's predicted bearing (every pair of a triple is tried: a near-collinear pair
+crosses far from the emitter); each triple is fitted (Gauss-Newton maximum likelihood on the position,
 :func:`core.measurements.predict`) and kept when its chi-square is inside the ``init_gate_probability`` point;
 it is then extended with the best-fitting bearing of every further station whose NIS at the fit (the fit's
 covariance propagated) is inside the gate, and refitted. Each candidate's score is the log likelihood ratio of
@@ -47,7 +48,8 @@ network tracker's start does.
 **Track management** (statuses are those of the network sessions):
 
 - a track starts ``tentative`` from an accepted candidate: position the fit (covariance its inverse Fisher
-  information), velocity zero with the network tracker's prior (:func:`core.tracking.network.velocity_prior`); its starting bearings count as hits;
+  information), velocity zero with the network tracker's prior (:func:`core.tracking.network.velocity_prior`);
+  its starting bearings count as hits;
 - each later scan of any station is a hit (a bearing assigned) or a miss. A tentative track is ``confirmed``
   once ``confirm_hits`` of its last ``confirm_window`` scans are hits (M of N), and deleted as soon as it can no
   longer reach that (more than ``confirm_window - confirm_hits`` misses among them): a ghost or clutter-born
@@ -61,8 +63,9 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -71,8 +74,16 @@ from scipy.stats import chi2
 from core.angles import line_of_sight_enu, station_to_common, wrap_to_pi
 from core.errors import InvalidInput
 from core.measurements import AZIMUTH, ELEVATION, predict
-from core.tracking.network import (NetworkConfig, NetworkState, Report, Track, advance_track, predict_tracks,
-                                  report_rows, velocity_prior)
+from core.tracking.network import (
+    NetworkConfig,
+    NetworkState,
+    Report,
+    Track,
+    advance_track,
+    predict_tracks,
+    report_rows,
+    velocity_prior,
+)
 from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel
 from core.tracking.state import frozen_array
 
@@ -445,7 +456,8 @@ def _after_scan(track: MultiTrack, obs: Observation | None, time_s: float, confi
     frequency, count = track.frequency_hz, track.frequency_count
     if math.isfinite(obs.frequency_hz):
         count += 1
-        frequency = obs.frequency_hz if not math.isfinite(frequency) else frequency + (obs.frequency_hz - frequency) / count
+        frequency = obs.frequency_hz if not math.isfinite(frequency) else (
+            frequency + (obs.frequency_hz - frequency) / count)
     confirmed = track.confirmed or hits.count(True) >= config.confirm_hits
     confirmed_s = time_s if confirmed and not track.confirmed else track.confirmed_s
     return replace(track, track=updated, frequency_hz=frequency, frequency_count=count, hits=hits, last_hit_s=time_s,

@@ -10,10 +10,19 @@ from core.errors import InvalidInput
 from core.measurements import AZIMUTH, ELEVATION, TOA, predict
 from core.simulation.multi_emitter import multi_emitter_scene, simulate_multi
 from core.simulation.network import START_TIME_S, station_frame
-from core.tracking.association import (AssociationConfig, AssociationState, MultiTrack, Observation,
-                                       apply_observations, current_tracks, find_candidates, gate_costs, select_candidates,
-                                       new_association_state, observations_from_report)
-from core.tracking.network import NetworkConfig, Report, Track
+from core.tracking.association import (
+    AssociationConfig,
+    MultiTrack,
+    Observation,
+    apply_observations,
+    current_tracks,
+    find_candidates,
+    gate_costs,
+    new_association_state,
+    observations_from_report,
+    select_candidates,
+)
+from core.tracking.network import Report, Track
 from core.tracking.state import frozen_array
 
 SCENE = multi_emitter_scene(0)
@@ -85,12 +94,12 @@ def test_starts_only_real_emitters_from_crossing_bearings():
                 for s in range(4) for k, e in enumerate(emitters)]
         chosen = select_candidates(find_candidates(pool, CONFIG), len(pool))
         sets = sorted(tuple(sorted(m % 3 for m in c.members)) for c in chosen)
-        wrong += any(len(set(m % 3 for m in c.members)) > 1 for c in chosen) or len(chosen) != 3
+        wrong += any(len({m % 3 for m in c.members}) > 1 for c in chosen) or len(chosen) != 3
         for c in chosen:
             assert np.linalg.norm(emitters[:, :2] - c.position_enu_m[:2], axis=1).min() < 1000.0, seed
             truth = emitters[c.members[0] % 3]
             error = c.position_enu_m - truth
-            if len(set(m % 3 for m in c.members)) == 1:
+            if len({m % 3 for m in c.members}) == 1:
                 assert error @ np.linalg.solve(c.covariance_enu_m2, error) < bound, (seed, sets)
     assert wrong <= 1
 
