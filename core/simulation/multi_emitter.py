@@ -264,7 +264,8 @@ class MultiEvaluation:
     false_tracks : ndarray of int, shape (trials,)
         Confirmed tracks assigned to no emitter at most of the epochs they were reported.
     identity_switches : ndarray of int, shape (trials,)
-        Changes of the track id assigned to an emitter from one assigned epoch to the next.
+        Changes of the track that corresponds to an emitter (:func:`correspondences`) from one epoch it has
+        one to the next.
     gospa_per_trial, baseline_gospa_per_trial : ndarray, shape (trials,)
     """
 
@@ -326,13 +327,12 @@ def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: Assoc
         distances.append(score.distance)
         parts.append((score.localisation, score.missed, score.false))
         for k, emitter in enumerate(ids):
-            j = int(score.assignment[k])
-            if j < 0:
-                continue
-            first_assigned.setdefault(emitter, t)
-            if emitter in last_id and last_id[emitter] != tracks[j].id:
+            if score.assignment[k] >= 0:
+                first_assigned.setdefault(emitter, t)
+        for emitter, track_id in correspondences(ids, truths[:, :2], tracks, estimates, last_id, cutoff).items():
+            if emitter in last_id and last_id[emitter] != track_id:
                 switches += 1
-            last_id[emitter] = tracks[j].id
+            last_id[emitter] = track_id
         assigned = {int(j) for j in score.assignment if j >= 0}
         for j, tr in enumerate(tracks):
             track_epochs.setdefault(tr.id, []).append(j in assigned)
@@ -345,6 +345,47 @@ def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: Assoc
     return {"gospa": np.array(distances), "parts": np.array(parts), "baseline_gospa": np.array(base_distances),
             "baseline_parts": np.array(base_parts), "confirm_delay_s": delays, "false_tracks": false_tracks,
             "identity_switches": switches}
+
+
+def correspondences(ids, truths, tracks, estimates, previous: dict, cutoff: float) -> dict:
+    """Which track stands for each emitter at one epoch, the CLEAR MOT way (Bernardin and Stiefelhagen 2008):
+    an emitter keeps its previous track while that track is still within ``cutoff`` of it; the others are
+    matched by the optimal assignment of the distances (pairs within ``cutoff``). An identity switch is a
+    change of an emitter's track. (GOSPA's own per-epoch assignment would swap two tracks that pass close by
+    whenever their errors trade places, and count switches the tracks never made.)
+
+    Parameters
+    ----------
+    ids : sequence of str, length N
+    truths : ndarray, shape (N, D)
+    tracks : sequence of Track, length M
+    estimates : ndarray, shape (M, D)
+    previous : dict of str to str
+        Each emitter's track at the last epoch it had one.
+    cutoff : float
+
+    Returns
+    -------
+    dict of str to str
+        Emitter id to track id, for the emitters that have one.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    index = {tr.id: j for j, tr in enumerate(tracks)}
+    out, used = {}, set()
+    for k, emitter in enumerate(ids):
+        j = index.get(previous.get(emitter))
+        if j is not None and np.linalg.norm(estimates[j] - truths[k]) < cutoff:
+            out[emitter] = tracks[j].id
+            used.add(j)
+    rest = [k for k, emitter in enumerate(ids) if emitter not in out]
+    free = [j for j in range(len(tracks)) if j not in used]
+    if rest and free:
+        distances = np.linalg.norm(truths[rest][:, None, :] - estimates[free][None, :, :], axis=-1)
+        for a, b in zip(*linear_sum_assignment(np.minimum(distances, cutoff))):
+            if distances[a, b] < cutoff:
+                out[ids[rest[a]]] = tracks[free[b]].id
+    return out
 
 
 def evaluate_multi(scenario: MultiEmitterScenario, trials: int, seed: int = 0,

@@ -121,6 +121,9 @@ class AssociationConfig:
         Unassigned bearings stay this long in the start pool (the latest scan of each station is used).
     init_min_stations : int
         Stations a candidate needs (at least 3: two bearings always cross).
+    init_ambiguity_margin : float
+        A candidate starts a track only when every packing without it is this much less likely (log
+        likelihood ratio; :func:`select_candidates`).
     range_min_m, range_max_m : float
         A crossing nearer to or farther from either station than these is not a candidate.
     confirm_hits, confirm_window : int
@@ -138,6 +141,7 @@ class AssociationConfig:
     frequency_tolerance_hz: float = 10e3
     init_window_s: float = 1.0
     init_min_stations: int = 3
+    init_ambiguity_margin: float = 0.0
     range_min_m: float = 200.0
     range_max_m: float = 100e3
     confirm_hits: int = 6
@@ -536,7 +540,7 @@ def _start_tracks(tracks, pool, next_id, time_s, config):
     candidates = find_candidates(usable, config)
     used: set[int] = set()
     new_ids = []
-    for cand in select_candidates(candidates, len(usable)):
+    for cand in select_candidates(candidates, len(usable), config.init_ambiguity_margin):
         used.update(cand.members)
         members = [usable[k] for k in cand.members]
         track_id = f"t{next_id}"
@@ -547,7 +551,7 @@ def _start_tracks(tracks, pool, next_id, time_s, config):
     return tracks, [o for o in pool if id(o) not in consumed], next_id, new_ids
 
 
-def select_candidates(candidates: Sequence[Candidate], size: int) -> list[Candidate]:
+def select_candidates(candidates: Sequence[Candidate], size: int, margin: float = 0.0) -> list[Candidate]:
     """The candidates that share no bearing with the largest total score: the S-D assignment problem as a
     set packing, ``max sum score_k x_k`` over binary ``x`` with every bearing in at most one chosen candidate,
     solved exactly (:func:`scipy.optimize.milp`). A greedy pick by score is not enough: where stations see two
@@ -560,6 +564,10 @@ def select_candidates(candidates: Sequence[Candidate], size: int) -> list[Candid
         Scores positive.
     size : int
         Number of bearings (pool indices ``0 .. size-1``).
+    margin : float
+        Above 0: a chosen candidate is returned only when the best packing without it scores at least this
+        much (log likelihood ratio) less; where another explanation of its bearings is about as likely (a
+        missed detection can make a ghost and an emitter equally good), the next scans decide.
 
     Returns
     -------
@@ -573,10 +581,11 @@ def select_candidates(candidates: Sequence[Candidate], size: int) -> list[Candid
 
     rows = [m for c in candidates for m in c.members]
     cols = [k for k, c in enumerate(candidates) for _ in c.members]
-    usage = coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(size, len(candidates)))
+    usage = LinearConstraint(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(size, len(candidates))), -np.inf,
+                             1.0)
     scores = np.array([c.score for c in candidates])
-    result = milp(-scores, constraints=LinearConstraint(usage, -np.inf, 1.0), integrality=np.ones(len(candidates)),
-                  bounds=Bounds(0.0, 1.0))
+    integral = np.ones(len(candidates))
+    result = milp(-scores, constraints=usage, integrality=integral, bounds=Bounds(0.0, 1.0))
     if result.x is None:  # no solution within HiGHS's limits: the greedy pick
         chosen, used = [], set()
         for cand in sorted(candidates, key=lambda c: -c.score):
@@ -584,7 +593,17 @@ def select_candidates(candidates: Sequence[Candidate], size: int) -> list[Candid
                 used.update(cand.members)
                 chosen.append(cand)
         return chosen
-    return sorted((c for c, x in zip(candidates, result.x) if x > 0.5), key=lambda c: -c.score)
+    chosen = np.flatnonzero(result.x > 0.5)
+    if margin > 0.0:
+        decided = []
+        for k in chosen.tolist():
+            upper = np.ones(len(candidates))
+            upper[k] = 0.0
+            other = milp(-scores, constraints=usage, integrality=integral, bounds=Bounds(0.0, upper))
+            if other.x is None or other.fun - result.fun >= margin:
+                decided.append(k)
+        chosen = np.array(decided, dtype=np.int64)
+    return sorted((candidates[k] for k in chosen.tolist()), key=lambda c: -c.score)
 
 
 def _new_track(track_id, cand: Candidate, members, config) -> MultiTrack:
