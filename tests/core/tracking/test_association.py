@@ -223,3 +223,18 @@ def test_simulated_scene_has_the_issue_shape():
         e1, e2 = multi_emitter_scene(variant).emitters[:2]
         gap = np.linalg.norm(e1.state_at(times)[:, :2] - e2.state_at(times)[:, :2], axis=1).min()
         assert 300.0 <= gap <= 2000.0
+
+
+def test_bearings_that_cannot_tell_two_tracks_apart_update_neither():
+    from core.tracking.association import _ambiguous
+
+    # Swapping the two bearings costs 1.1 more (log likelihood ratio): within the margin of 2, both unsure.
+    close = np.array([[-10.0, -9.5], [-9.4, -10.0]])
+    assert _ambiguous({0: 0, 1: 1}, close, 2.0) == {0, 1}
+    assert _ambiguous({0: 0, 1: 1}, close, 1.0) == set()
+    # Each bearing only in its own track's gate: decisive.
+    apart = np.array([[-10.0, np.inf], [np.inf, -10.0]])
+    assert _ambiguous({0: 0, 1: 1}, apart, 2.0) == set()
+    # A track left without a bearing that could take track 0's almost as well.
+    lone = np.array([[-10.0], [-9.0]])
+    assert _ambiguous({0: 0}, lone, 2.0) == {0, 1}
