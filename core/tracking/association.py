@@ -92,6 +92,8 @@ from core.tracking.network import (
 from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel
 from core.tracking.state import frozen_array
 
+#: Version of the :meth:`AssociationState.to_dict` layout.
+ASSOCIATION_STATE_FORMAT = 1
 #: A pair of bearings whose lines of sight are closer to parallel than this (rad) is not crossed.
 MIN_CROSSING_ANGLE_RAD = math.radians(2.0)
 #: Gauss-Newton iterations of a candidate's fit (each from the pair crossing, which is within a few
@@ -301,6 +303,56 @@ class AssociationState:
     last_time_s: float | None = None
     first_time_s: float | None = None
 
+    def to_dict(self) -> dict:
+        """Plain JSON-able data; exact inverse of :meth:`from_dict` (a service stores it)."""
+        return {"format": ASSOCIATION_STATE_FORMAT, "next_id": self.next_id, "last_time_s": self.last_time_s,
+                "first_time_s": self.first_time_s,
+                "tracks": [{"track": t.track.to_dict(), "frequency_hz": _float_or_none(t.frequency_hz),
+                            "frequency_count": t.frequency_count, "hits": list(t.hits), "last_hit_s": t.last_hit_s,
+                            "confirmed": t.confirmed, "started_s": t.started_s,
+                            "confirmed_s": _float_or_none(t.confirmed_s)} for t in self.tracks],
+                "pool": [{"report": o.report.to_dict(), "frequency_hz": _float_or_none(o.frequency_hz)}
+                         for o in self.pool]}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> AssociationState:
+        """Rebuild a state from :meth:`to_dict` output (after a JSON round trip).
+
+        Raises
+        ------
+        InvalidInput
+            When the data is not an association state of a known format.
+        """
+        if not isinstance(data, dict) or data.get("format") != ASSOCIATION_STATE_FORMAT:
+            raise InvalidInput(f"association state must be a mapping with format {ASSOCIATION_STATE_FORMAT}")
+        try:
+            tracks = tuple(MultiTrack(Track.from_dict(t["track"]), _nan_if_none(t["frequency_hz"]),
+                                      int(t["frequency_count"]), tuple(bool(h) for h in t["hits"]),
+                                      float(t["last_hit_s"]), bool(t["confirmed"]), float(t["started_s"]),
+                                      _nan_if_none(t["confirmed_s"])) for t in data["tracks"])
+            pool = tuple(Observation(Report.from_dict(o["report"]), _nan_if_none(o["frequency_hz"]))
+                         for o in data["pool"])
+            last, first = data["last_time_s"], data["first_time_s"]
+            return cls(tracks, pool, int(data["next_id"]), None if last is None else float(last),
+                       None if first is None else float(first))
+        except (KeyError, TypeError, ValueError) as error:
+            raise InvalidInput(f"association state is malformed: {error}") from None
+
+    def __eq__(self, other):
+        if not isinstance(other, AssociationState):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+    __hash__ = None
+
+
+def _float_or_none(value: float) -> float | None:
+    return None if math.isnan(value) else value
+
+
+def _nan_if_none(value) -> float:
+    return math.nan if value is None else float(value)
+
 
 class AssociationOutcome(NamedTuple):
     """What :func:`apply_observations` did.
@@ -388,6 +440,25 @@ def apply_observations(state: AssociationState, observations: Sequence[Observati
         last = time_s
     return AssociationOutcome(AssociationState(tuple(tracks), tuple(pool), next_id, last, first), len(accepted), late,
                               tuple(started), tuple(ended))
+
+
+def apply_reports_auto(state: AssociationState, reports: Sequence[Report], frequencies_hz: Sequence[float],
+                       config: AssociationConfig) -> AssociationOutcome:
+    """A network session's post under ``"association": "auto"``: each report split into its stations' bearings
+    (:func:`observations_from_report`, the report's ``frequency_hz`` on each, NaN when absent) and applied.
+
+    Raises
+    ------
+    InvalidInput
+        For the first report that is not bearings; ``loc`` starts with its index.
+    """
+    observations = []
+    for k, (report, frequency) in enumerate(zip(reports, frequencies_hz, strict=True)):
+        try:
+            observations.extend(observations_from_report(report, frequency))
+        except InvalidInput as error:
+            raise InvalidInput(error.message, (k,) + (error.loc or ())) from None
+    return apply_observations(state, observations, config)
 
 
 def _drop_ended(tracks, now_s, config):
@@ -957,6 +1028,20 @@ def _chi2_point(probability: float, dof: int) -> float:
     return _CHI2_CACHE[key]
 
 
-__all__ = ["AssociationConfig", "AssociationOutcome", "AssociationState", "Candidate", "MultiTrack", "Observation",
-           "apply_observations", "current_tracks", "find_candidates", "gate_costs", "new_association_state",
-           "observations_from_report", "status_of"]
+__all__ = [
+    "ASSOCIATION_STATE_FORMAT",
+    "AssociationConfig",
+    "AssociationOutcome",
+    "AssociationState",
+    "Candidate",
+    "MultiTrack",
+    "Observation",
+    "apply_observations",
+    "apply_reports_auto",
+    "current_tracks",
+    "find_candidates",
+    "gate_costs",
+    "new_association_state",
+    "observations_from_report",
+    "status_of",
+]

@@ -238,3 +238,44 @@ def test_bearings_that_cannot_tell_two_tracks_apart_update_neither():
     # A track left without a bearing that could take track 0's almost as well.
     lone = np.array([[-10.0], [-9.0]])
     assert _ambiguous({0: 0}, lone, 2.0) == {0, 1}
+
+
+def test_state_round_trips_through_json_and_gives_the_same_results():
+    import json
+
+    from core.tracking.association import AssociationState
+
+    run = simulate_multi(SCENE, np.random.default_rng(2))
+    observations = [o for o in run.observations if o.time_s < START_TIME_S + 40.0]
+    # Cut where the state holds tracks and unassigned bearings (the pool is empty most of the time).
+    state = new_association_state()
+    for half in range(len(observations)):
+        state = apply_observations(state, observations[half:half + 1], CONFIG).state
+        if state.tracks and state.pool and half > len(observations) // 3:
+            break
+    half += 1
+    assert state.tracks and state.pool
+    reloaded = AssociationState.from_dict(json.loads(json.dumps(state.to_dict())))
+    assert reloaded == state
+    straight = apply_observations(state, observations[half:], CONFIG).state
+    again = apply_observations(reloaded, observations[half:], CONFIG).state
+    assert straight.to_dict() == again.to_dict()
+    with pytest.raises(InvalidInput):
+        AssociationState.from_dict({"format": 99})
+
+
+def test_reports_split_into_bearings_for_auto_sessions():
+    from core.tracking.association import apply_reports_auto
+
+    rng = np.random.default_rng(4)
+    point = np.array([2e3, 1e3, 100.0])
+    reports = [bearing(s, point, START_TIME_S + second + 0.2 * s, rng, seq=10 * second + s).report
+               for second in range(3) for s in range(4)]
+    outcome = apply_reports_auto(new_association_state(), reports, [433.92e6] * len(reports), CONFIG)
+    assert outcome.applied == len(reports) and [t.id for t in outcome.state.tracks] == ["t1"]
+    assert outcome.state.tracks[0].frequency_hz == pytest.approx(433.92e6)
+    toa = Report(99, START_TIME_S + 5, "", ("a", "b"), POSITIONS[:2], ROTATIONS[:2], [TOA, TOA], [1e-4, 2e-4],
+                 [1e-8] * 2)
+    with pytest.raises(InvalidInput) as error:
+        apply_reports_auto(outcome.state, [reports[0], toa], [math.nan, math.nan], CONFIG)
+    assert error.value.loc == (1, "measurements", 0, "kind")
