@@ -163,6 +163,10 @@ def network_step_row(repeats: int = 9, steps: int = 400):
         "<= 0.1x Stone Soup and <= 100 us"
     if not committed("core/tracking/network.py"):
         return unavailable(number, what, target, "core/tracking/network.py has not landed in git yet")
+    try:
+        _stonesoup()
+    except ImportError:
+        return unavailable(number, what, target, "stonesoup is not installed (pip install -e '.[dev]')")
     scene = df_network_scene()
     run = simulate_network(scene, np.random.default_rng(1))
     reports = sorted((p.report for p in run.posted), key=lambda r: r.order_key)

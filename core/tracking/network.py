@@ -15,9 +15,10 @@ may move).
 
 The tracker (one per ``emitter_id``) is a constant-velocity filter on
 ``[east_m, north_m, up_m, east_mps, north_mps, up_mps]`` with white acceleration of power spectral density
-``accel_sigma_mps2**2`` (:mod:`core.tracking.motion`), updated with each report's measurements through the
-one measurement model (:func:`core.measurements.measure_point`) by an unscented update
-(:mod:`core.tracking.network_kernel`). A report's TOAs share one unknown emission time, which the update
+``accel_sigma_mps2**2`` (:mod:`core.tracking.motion`; the up axis may take its own,
+``vertical_accel_sigma_mps2``), updated with each report's measurements through the one measurement model
+(:func:`core.measurements.measure_point`) by an unscented update iterated on the posterior (cubature points
+over the position, ``linearisation_passes``; :mod:`core.tracking.network_kernel`). A report's TOAs share one unknown emission time, which the update
 eliminates exactly (differences with their full noise covariance); a lone TOA carries nothing and is
 reported, not used. With ``imm_accel_sigmas_mps2`` the track is an IMM over those acceleration levels
 (:mod:`core.tracking.imm`).
@@ -29,7 +30,8 @@ each component reweighted by its innovation density and pruned below 1e-3, the t
 moments; without a bearing, from the static fix (:func:`core.estimators.solve`) of the report's ranges and
 TOAs with its CRLB, or, when that fix leaves the height open (four TOAs from stations on the ground), as a
 Gaussian sum over heights of the fixes at known altitude. Velocity starts at zero with
-``velocity_prior_sigma_mps`` per component.
+``velocity_prior_sigma_mps`` per component (``vertical_velocity_prior_sigma_mps`` up). A sum whose components
+all lie within half their own standard deviations of its mean becomes one Gaussian.
 
 Status (computed against the newest applied report time, ``now``):
 

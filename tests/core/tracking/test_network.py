@@ -294,3 +294,23 @@ def test_bearings_across_south_wrap_and_the_track_stays_consistent():
         error = track.mean_enu[:3] - position
         errors.append(float(error @ np.linalg.solve(track.covariance_enu[:3, :3], error)))
     assert np.mean(errors) <= chi2.ppf(0.995, 3 * 20) / 20
+
+
+def test_one_report_from_two_stations_places_the_emitter_honestly():
+    """Bearings from two stations in one report: the start's sum along the first line of sight, updated with
+    the second, must be as uncertain as it is wrong (NEES of the first estimate over 100 emitters)."""
+    config = NetworkConfig(accel_sigma_mps2=0.2, velocity_prior_sigma_mps=30.0)
+    stations = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [30e3, 0.0, 0.0], [30e3, 0.0, 0.0]])
+    rotations, kinds, sigma = np.tile(np.eye(3), (4, 1, 1)), np.array([AZIMUTH, ELEVATION] * 2), math.radians(1.0)
+    nees = []
+    for r in range(100):
+        rng = np.random.default_rng(800 + r)
+        target = np.array([rng.uniform(5e3, 25e3), rng.uniform(10e3, 30e3), 0.0])
+        exact, _ = predict(target, 0.0, stations, rotations, kinds)
+        report = Report(0, 0.0, "e1", ("a", "a", "b", "b"), stations, rotations, kinds,
+                        exact + rng.normal(0.0, sigma, 4), [sigma] * 4)
+        track = apply_reports(new_network_state(config), [report], config).state.tracks[0]
+        error = track.mean_enu[:3] - target
+        nees.append(float(error @ np.linalg.solve(track.covariance_enu[:3, :3], error)))
+    lo, hi = chi2.ppf([0.005, 0.995], 3 * 100) / 100
+    assert lo <= np.mean(nees) <= hi
