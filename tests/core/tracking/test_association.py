@@ -279,3 +279,39 @@ def test_reports_split_into_bearings_for_auto_sessions():
     with pytest.raises(InvalidInput) as error:
         apply_reports_auto(outcome.state, [reports[0], toa], [math.nan, math.nan], CONFIG)
     assert error.value.loc == (1, "measurements", 0, "kind")
+
+
+def test_jpda_weights_by_hand():
+    from core.tracking.association import _jpda_weights
+
+    # One track, one bearing: beta = L / (L + (1 - P_D)).
+    beta, beta0 = _jpda_weights(np.array([[9.0]]), 0.1)
+    assert beta[0, 0] == pytest.approx(9.0 / 9.1) and beta0[0] == pytest.approx(0.1 / 9.1)
+    # Two tracks, two bearings, every pair gated: seven joint events, weights written out.
+    a, b, c, d, m = 8.0, 2.0, 1.0, 5.0, 0.1
+    total = m * m + a * m + b * m + c * m + d * m + a * d + b * c
+    beta, beta0 = _jpda_weights(np.array([[a, b], [c, d]]), m)
+    assert beta[0, 0] == pytest.approx((a * m + a * d) / total)
+    assert beta[0, 1] == pytest.approx((b * m + b * c) / total)
+    assert beta[1, 1] == pytest.approx((d * m + a * d) / total)
+    assert beta0[0] == pytest.approx((m * m + c * m + d * m) / total)
+    assert np.allclose(beta.sum(axis=1) + beta0, 1.0)
+    # A track gating nothing keeps beta_0 = 1.
+    beta, beta0 = _jpda_weights(np.array([[0.0, 0.0], [0.0, 3.0]]), m)
+    assert beta0[0] == 1.0 and beta[0].sum() == 0.0
+
+
+def test_gnn_is_still_available():
+    from dataclasses import replace as changed
+
+    rng = np.random.default_rng(8)
+    point = np.array([2e3, -3e3, 100.0])
+    config = changed(CONFIG, method="gnn")
+    observations = [bearing(s, point, START_TIME_S + second + 0.25 * s, rng, seq=10 * second + s)
+                    for second in range(6) for s in range(4)]
+    state = apply_observations(new_association_state(), observations, config).state
+    tracks = current_tracks(state, START_TIME_S + 6, config)
+    assert [t.status for t in tracks] == ["confirmed"]
+    assert np.linalg.norm(tracks[0].mean_enu[:2] - point[:2]) < 1000.0
+    with pytest.raises(InvalidInput):
+        AssociationConfig(method="mht")
