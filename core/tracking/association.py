@@ -588,6 +588,8 @@ def _scan(tracks, scan, config):
 #: Largest number of tracks in one JPDA cluster whose joint events are enumerated; larger ones fall back to
 #: the GNN assignment.
 JPDA_MAX_CLUSTER = 6
+#: A JPDA hypothesis (a bearing, or none) less probable than this is dropped.
+JPDA_NEGLIGIBLE = 1e-3
 
 
 def _jpda_weights(likelihood: np.ndarray, missed: float) -> tuple[np.ndarray, np.ndarray]:
@@ -660,14 +662,19 @@ def _scan_jpda(tracks, scan, cost, config):
     beta, beta0 = _jpda_weights(likelihood, 1.0 - config.detection_probability)
     out = []
     for i, t in enumerate(tracks):
-        options = [j for j in np.flatnonzero(beta[i] > 1e-6).tolist()]
-        if not options or t.track.stage == "imm":
+        # Hypotheses below JPDA_NEGLIGIBLE are dropped (the rest renormalised): an isolated track with one
+        # bearing deep in its gate is then updated as GNN would, at GNN's cost.
+        options = np.flatnonzero(beta[i] > JPDA_NEGLIGIBLE).tolist()
+        keep_missed = beta0[i] > JPDA_NEGLIGIBLE
+        if not options or t.track.stage == "imm" or (len(options) == 1 and not keep_missed):
             best = int(np.argmax(beta[i])) if options else -1
-            hit = options and beta[i, best] > 0.5
+            hit = bool(options) and beta[i, best] > 0.5
             out.append(_after_scan(t, scan[best] if hit else None, time_s, config))
             continue
-        predicted = predict_tracks(NetworkState(tracks=(t.track,)), time_s, config.network)[0]
-        weights, means, covs, updated = [beta0[i]], [predicted.mean_enu], [predicted.covariance_enu], []
+        weights, means, covs, updated = [], [], [], []
+        if keep_missed:
+            predicted = predict_tracks(NetworkState(tracks=(t.track,)), time_s, config.network)[0]
+            weights, means, covs = [beta0[i]], [predicted.mean_enu], [predicted.covariance_enu]
         for j in options:
             track, _ = advance_track(t.track, _labelled(scan[j].report, t.id), config.network)
             weights.append(beta[i, j])
@@ -679,7 +686,7 @@ def _scan_jpda(tracks, scan, cost, config):
         spread = np.array(means) - mean
         cov = np.einsum("k,kij->ij", weights, np.array(covs)) + np.einsum("k,ki,kj->ij", weights, spread, spread)
         cov = 0.5 * (cov + cov.T)
-        best = int(np.argmax(weights[1:]))
+        best = int(np.argmax(weights[1:] if keep_missed else weights))
         merged = replace(updated[best], mean_enu=frozen_array(mean), covariance_enu=frozen_array(cov),
                          weights=frozen_array([1.0]), means=frozen_array(mean[None]),
                          covariances=frozen_array(cov[None]))
