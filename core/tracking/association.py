@@ -489,7 +489,7 @@ def _frequency_ok(a: float, b: float, config: AssociationConfig) -> bool:
 
 
 def gate_costs(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config: AssociationConfig):
-    """The GNN costs of one scan's bearings against the tracks.
+    """The association costs of one scan's bearings against the tracks (JPDA and GNN).
 
     Returns
     -------
