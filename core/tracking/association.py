@@ -596,28 +596,29 @@ def _jpda_weights(likelihood: np.ndarray, missed: float) -> tuple[np.ndarray, np
     """Association probabilities of one scan: ``beta (T, B)`` and ``beta_0 (T,)`` (no bearing), by enumerating
     the feasible joint events of each cluster of tracks that share gated bearings. ``likelihood`` is each
     pair's ``P_D N / lambda`` (0 outside the gate); a track left without a bearing weighs ``missed``."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     count, size = likelihood.shape
     beta, beta0 = np.zeros((count, size)), np.ones(count)
     gated = likelihood > 0.0
-    seen = np.zeros(count, dtype=bool)
-    for start in range(count):
-        if seen[start] or not gated[start].any():
+    rows, cols = np.nonzero(gated)
+    if not rows.size:
+        return beta, beta0
+    # Clusters: the connected parts of the graph of tracks and bearings joined by their gates.
+    graph = coo_matrix((np.ones(rows.size), (rows, count + cols)), shape=(count + size, count + size))
+    labels = connected_components(graph, directed=False)[1][:count]
+    for label in np.unique(labels[np.unique(rows)]).tolist():
+        order = np.flatnonzero(labels == label).tolist()
+        if len(order) == 1:
+            # One track: its bearings or none, in closed form.
+            i = order[0]
+            total = missed + likelihood[i].sum()
+            beta[i], beta0[i] = likelihood[i] / total, missed / total
             continue
-        members, bearings, frontier = {start}, set(), [start]
-        while frontier:
-            i = frontier.pop()
-            for j in np.flatnonzero(gated[i]).tolist():
-                if j not in bearings:
-                    bearings.add(j)
-                    for k in np.flatnonzero(gated[:, j]).tolist():
-                        if k not in members:
-                            members.add(k)
-                            frontier.append(k)
-        order = sorted(members)
-        seen[order] = True
         if len(order) > JPDA_MAX_CLUSTER:
-            rows, cols = linear_sum_assignment(-np.log(np.where(gated[order], likelihood[order], 1e-300)))
-            for r, c in zip(rows, cols):
+            picked_tracks, picked = linear_sum_assignment(-np.log(np.where(gated[order], likelihood[order], 1e-300)))
+            for r, c in zip(picked_tracks, picked):
                 if gated[order[r], c]:
                     beta[order[r], c], beta0[order[r]] = 1.0, 0.0
             continue
