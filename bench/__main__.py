@@ -24,6 +24,7 @@ import numpy as np
 
 from bench import rows as bench_rows
 from bench.load import LoadGenerator
+from bench.multi_core import multi_scale_row
 from bench.network_core import network_step_row
 from bench.network_sessions import network_session_rows
 from bench.server import serve
@@ -142,6 +143,8 @@ def main(argv=None) -> int:
     if 9 in wanted:
         results.append(_guarded(9, "one network report step in core", "<= 0.1x Stone Soup, <= 100 us",
                                 network_step_row))
+    if 10 in wanted:
+        results.append(_guarded(10, "many emitters from unlabelled bearings", "real time", multi_scale_row))
     results = [r for item in results for r in (item if isinstance(item, list) else [item])]
     results.sort(key=lambda r: r.number)
 

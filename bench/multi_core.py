@@ -1,0 +1,97 @@
+"""Bench row 10: unlabelled bearings of a large network associated in real time on one core.
+
+20 ground emitters, 10 direction finders, each station scanning once a second and reporting every bearing it
+measured (detection probability 0.9, 5 % false bearings; :func:`core.simulation.multi_emitter.scale_scene`),
+fed scan by scan through :func:`core.tracking.association.apply_observations`. Measured: CPU seconds (this
+process, one thread) per simulated second, over the whole run (the start of every track included) and over
+its second half (steady state). Yardstick, same run: the labelled network session on the same scene's true
+bearings (each labelled with its emitter, :func:`core.tracking.network.apply_reports` one scan at a time),
+per bearing.
+"""
+
+from __future__ import annotations
+
+import itertools
+import time
+
+import numpy as np
+
+
+def _cpu_per_scan(scans, apply):
+    """CPU seconds of ``apply(scan)`` over ``scans`` in order, each scan's own."""
+    out = []
+    for scan in scans:
+        t = time.process_time()
+        apply(scan)
+        out.append(time.process_time() - t)
+    return np.array(out)
+
+
+def multi_scale_row(duration_s: float = 120.0, seed: int = 0):
+    """The row (module docstring)."""
+    from dataclasses import replace
+
+    from bench.rows import Row, committed, unavailable
+    from core.simulation.multi_emitter import scale_scene, simulate_multi
+    from core.tracking.association import (
+        apply_observations,
+        current_tracks,
+        new_association_state,
+    )
+    from core.tracking.network import apply_reports, new_network_state
+
+    number, what = 10, "20 emitters x 10 stations, unlabelled bearings, 1 scan/s each, one core"
+    target = "<= 1 s CPU per simulated s; per bearing <= 2x labelled"
+    if not committed("core/tracking/association.py"):
+        return unavailable(number, what, target, "core/tracking/association.py has not landed in git yet")
+    scene = scale_scene(20, 10, duration_s, seed)
+    run = simulate_multi(scene, np.random.default_rng(seed))
+    scans = [list(group) for _, group in itertools.groupby(run.observations, key=lambda o: (o.time_s, o.station_id))]
+    warm = simulate_multi(scale_scene(3, 4, 5.0, seed + 1), np.random.default_rng(seed + 1))
+    apply_observations(new_association_state(), warm.observations, scene.config)  # compile and warm
+
+    state = new_association_state()
+
+    def unlabelled(scan):
+        nonlocal state
+        state = apply_observations(state, scan, scene.config).state
+
+    cpu = _cpu_per_scan(scans, unlabelled)
+    times = np.array([scan[0].time_s for scan in scans])
+    half = times >= times[0] + duration_s / 2
+    bearings = np.array([len(scan) for scan in scans])
+    confirmed = sum(t.status == "confirmed" for t in current_tracks(state, times[-1], scene.config))
+
+    labelled_scans = [[replace(o.report, emitter_id=s) for o, s in zip(scan, sources) if s]
+                      for scan, sources in zip(scans, _sources_by_scan(run, scans))]
+    network_state = new_network_state(scene.config.network)
+
+    def labelled(scan):
+        nonlocal network_state
+        if scan:
+            network_state = apply_reports(network_state, scan, scene.config.network).state
+
+    labelled_cpu = _cpu_per_scan(labelled_scans, labelled)
+    true_bearings = np.array([len(scan) for scan in labelled_scans])
+    per_second = cpu.sum() / duration_s
+    steady = cpu[half].sum() / (duration_s / 2)
+    per_bearing_us = cpu[half].sum() / bearings[half].sum() * 1e6
+    labelled_us = labelled_cpu[half].sum() / true_bearings[half].sum() * 1e6
+    ratio = per_bearing_us / labelled_us
+    met = per_second <= 1.0 and ratio <= 2.0
+    verdict = "met" if met else f"missed: {per_second:.3f} s/s, {ratio:.2f}x labelled"
+    return Row(number, what, f"{per_second:.3f} s CPU per simulated s ({steady:.3f} steady; {per_bearing_us:,.0f} us "
+               "per bearing)", f"labelled session on the true bearings: {labelled_us:,.0f} us per bearing",
+               f"{ratio:.2f}x labelled per bearing", target, verdict,
+               [(f"core.simulation.multi_emitter.scale_scene(20, 10, {duration_s:g} s, seed {seed}): "
+                f"{int(bearings.sum()):,} bearings ({int(bearings.sum() - true_bearings.sum()):,} false) in "
+                f"{len(scans):,} scans through apply_observations one scan at a time; process CPU time over the "
+                f"whole run and over its second half (steady); {confirmed} confirmed tracks at the end. Yardstick: "
+                "core.tracking.network.apply_reports on the same true bearings labelled with their emitter, one "
+                "scan at a time, second half.")])
+
+
+def _sources_by_scan(run, scans):
+    """Each scan's observations' emitters (``""``: false), in the scans' order."""
+    sources = iter(run.sources)
+    return [[next(sources) for _ in scan] for scan in scans]
