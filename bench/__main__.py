@@ -76,7 +76,7 @@ def _guarded(number: int, what: str, target: str, run) -> bench_rows.Row | list:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short runs (2 s, 2,000 problems): a smoke test")
-    parser.add_argument("--rows", default="1,2,3,4,5,6,7,8,9,10", help="which rows to run (comma-separated)")
+    parser.add_argument("--rows", default="1,2,3,4,5,6,7,8,9,10,11", help="which rows to run (comma-separated)")
     parser.add_argument("--duration", type=float, default=None, help="seconds per load run (default 10)")
     parser.add_argument("--batch", type=int, default=None, help="problems in the batch row (default 10,000)")
     parser.add_argument("--output", type=Path, default=RESULTS)
@@ -143,8 +143,8 @@ def main(argv=None) -> int:
     if 9 in wanted:
         results.append(_guarded(9, "one network report step in core", "<= 0.1x Stone Soup, <= 100 us",
                                 network_step_row))
-    if 10 in wanted:
-        results.append(_guarded(10, "many emitters from unlabelled bearings", "real time", multi_scale_row))
+    if 11 in wanted:
+        results.append(_guarded(11, "many emitters from unlabelled bearings", "real time", multi_scale_row))
     results = [r for item in results for r in (item if isinstance(item, list) else [item])]
     results.sort(key=lambda r: r.number)
 

@@ -1,4 +1,4 @@
-"""Bench row 10: unlabelled bearings of a large network associated in real time on one core.
+"""Bench row 11: unlabelled bearings of a large network associated in real time on one core.
 
 20 ground emitters, 10 direction finders, each station scanning once a second and reporting every bearing it
 measured (detection probability 0.9, 5 % false bearings; :func:`core.simulation.multi_emitter.scale_scene`),
@@ -40,7 +40,7 @@ def multi_scale_row(duration_s: float = 120.0, seed: int = 0):
     )
     from core.tracking.network import apply_reports, new_network_state
 
-    number, what = 10, "20 emitters x 10 stations, unlabelled bearings, 1 scan/s each, one core"
+    number, what = 11, "20 emitters x 10 stations, unlabelled bearings, 1 scan/s each, one core"
     target = "<= 1 s CPU per simulated s; per bearing <= 2x labelled"
     if not committed("core/tracking/association.py"):
         return unavailable(number, what, target, "core/tracking/association.py has not landed in git yet")
