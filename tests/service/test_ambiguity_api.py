@@ -12,7 +12,12 @@ import numpy as np
 import pytest
 
 from core.simulation.measurements import true_values
-from tests.core.estimators.test_ambiguity import GROUND, SIGMA_RAD, SIGMA_TOA_S, ground_scene
+from tests.core.estimators.test_ambiguity import (
+    GROUND,
+    SIGMA_RAD,
+    SIGMA_TOA_S,
+    ground_scene,
+)
 from tests.service.test_fixes_api import assert_problem
 
 

@@ -16,7 +16,12 @@ import pytest
 
 from core.errors import LocalizationError
 from core.estimators import solve_batch
-from core.estimators.ml import DISTINCT_MAHALANOBIS2, DISTINCT_UNCONVERGED_MAHALANOBIS2, Fits, _rivals
+from core.estimators.ml import (
+    DISTINCT_MAHALANOBIS2,
+    DISTINCT_UNCONVERGED_MAHALANOBIS2,
+    Fits,
+    _rivals,
+)
 from core.problem import Bearing, GeodeticPoint, TimeOfArrival, build_problem
 from core.simulation.measurements import measure, true_values
 
