@@ -28,10 +28,13 @@ point may fit as well: a line of sight crosses a TDOA hyperboloid twice, or
 ranges, TOAs and azimuths from nearly coplanar stations fit a point and its
 mirror image through their plane. ML looks for one among the search's
 solutions and from the fix's mirror image (:func:`mirror_points`); a rival
-is a solution whose cost is within ``AMBIGUITY_COST`` of the fix, farther
-than one sigma of the fix's bound (``DISTINCT_MAHALANOBIS2``: nearer, the
-covariance covers both) and physically possible (a geodetic point more
-than 1 km below the ellipsoid is no solution; a point behind a bearing
+is itself a converged fit of the data (an iterate the cap stopped on its way
+is iterated further first, :func:`refine`, and is no rival unless that
+converges), whose cost is within ``AMBIGUITY_COST`` of the fix, farther than
+one sigma from the fix under the fix's bound and under its own
+(``DISTINCT_MAHALANOBIS2``: nearer, the covariance covers both; a refinement
+that converges onto the fix is the fix) and physically possible (a geodetic
+point more than 1 km below the ellipsoid is no solution; a point behind a bearing
 station never ties, its azimuth residual is near pi; a TOA's emission
 precedes its arrival by construction of the model). A tie is a
 :class:`~core.errors.AmbiguousGeometry` (422 ``ambiguous_geometry``) naming
@@ -670,10 +673,9 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None
     starts : ndarray, shape (B, 3)
         NaN rows where no candidate gave a regular solution.
     rival : ndarray, shape (B, 3)
-        The best of the other solutions that are distinct from the best (``DISTINCT_MAHALANOBIS2``) and whose
-        cost is within ``AMBIGUITY_COST`` of it (the second crossing of a line of sight with a hyperboloid,
-        the mirror of coplanar stations, when the measurements leave no degree of freedom to tell them
-        apart); NaN rows where none.
+        The lowest-cost rival of the best (:func:`_rivals`, after :func:`refine`): the second crossing of a
+        line of sight with a hyperboloid, the mirror of coplanar stations, when the measurements leave no
+        degree of freedom to tell them apart; NaN rows where none.
     """
     points = candidates(batch)
     if extra_enu_m is not None:
