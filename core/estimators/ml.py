@@ -28,10 +28,13 @@ point may fit as well: a line of sight crosses a TDOA hyperboloid twice, or
 ranges, TOAs and azimuths from nearly coplanar stations fit a point and its
 mirror image through their plane. ML looks for one among the search's
 solutions and from the fix's mirror image (:func:`mirror_points`); a rival
-is a solution whose cost is within ``AMBIGUITY_COST`` of the fix, farther
-than one sigma of the fix's bound (``DISTINCT_MAHALANOBIS2``: nearer, the
-covariance covers both) and physically possible (a geodetic point more
-than 1 km below the ellipsoid is no solution; a point behind a bearing
+is itself a converged fit of the data (an iterate the cap stopped on its way
+is iterated further first, :func:`refine`, and is no rival unless that
+converges), whose cost is within ``AMBIGUITY_COST`` of the fix, farther than
+one sigma from the fix under the fix's bound and under its own
+(``DISTINCT_MAHALANOBIS2``: nearer, the covariance covers both; a refinement
+that converges onto the fix is the fix) and physically possible (a geodetic
+point more than 1 km below the ellipsoid is no solution; a point behind a bearing
 station never ties, its azimuth residual is near pi; a TOA's emission
 precedes its arrival by construction of the model). A tie is a
 :class:`~core.errors.AmbiguousGeometry` (422 ``ambiguous_geometry``) naming
@@ -42,6 +45,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -491,12 +495,17 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
 
 #: A second solution whose cost is within this of the best (chi-square units) makes the fix ambiguous.
 AMBIGUITY_COST = 4.0
-#: ... when it is a converged solution farther from the best than this squared Mahalanobis distance (the
-#: best's CRLB): nearer, no measurement at the stated noise tells them apart and the covariance covers both.
+#: ... when it is a converged solution farther from the best than this squared Mahalanobis distance, under the
+#: best's CRLB and under its own: nearer, no measurement at the stated noise tells them apart and the covariance
+#: covers both.
 DISTINCT_MAHALANOBIS2 = 1.0
-#: An iterate that stopped before converging is a rival only farther than this (it may be still sliding
-#: down the best's own valley).
+#: Where the best is itself unconverged (the answer is flagged so), an unconverged iterate is a rival farther
+#: than this from it: neither is a solution, and the two may still be sliding down one valley.
 DISTINCT_UNCONVERGED_MAHALANOBIS2 = 25.0
+#: An unconverged candidate that might tie (cost within ``AMBIGUITY_COST`` of the best) goes on for this many
+#: more iterations before it is judged (:func:`refine`): an iterate the cap stopped in a crawling valley (a line
+#: of sight nearly tangent to a hyperbola) is no solution until it converges, and often converges onto the best.
+REFINE_ITERATIONS = 500
 #: Below this height above the ellipsoid (m) a point of a geodetic scene is inside the earth: no solution.
 MIN_ALTITUDE_M = -1000.0
 
@@ -518,15 +527,86 @@ def above_ground(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     return possible
 
 
-def _rivals(best_covariance_enu_m2, best_enu_m, best_cost, position_enu_m, cost, converged, eligible):
-    """Which solutions ``(K,)`` are rivals of their best: eligible (regular, possible), distinct
-    (``DISTINCT_MAHALANOBIS2``, or ``DISTINCT_UNCONVERGED_MAHALANOBIS2`` if not converged) and as good
-    (``AMBIGUITY_COST``)."""
-    apart = np.nan_to_num(position_enu_m - best_enu_m)
-    precision = np.linalg.pinv(best_covariance_enu_m2, rcond=1e-9, hermitian=True)
-    distance2 = np.einsum("ki,kij,kj->k", apart, precision, apart)
-    distinct = distance2 > np.where(converged, DISTINCT_MAHALANOBIS2, DISTINCT_UNCONVERGED_MAHALANOBIS2)
-    return eligible & distinct & (cost <= best_cost + AMBIGUITY_COST)
+class Fits(NamedTuple):
+    """ML fits of K problems with what the rival rule needs of each.
+
+    Attributes
+    ----------
+    position_enu_m : ndarray, shape (K, 3)
+    cost : ndarray, shape (K,)
+        ``inf`` where not ``regular``.
+    converged : ndarray of bool, shape (K,)
+    regular : ndarray of bool, shape (K,)
+        Finite, observable there and physically possible (:func:`above_ground`).
+    covariance_enu_m2 : ndarray, shape (K, 3, 3)
+        The CRLB at the fit.
+    """
+
+    position_enu_m: np.ndarray
+    cost: np.ndarray
+    converged: np.ndarray
+    regular: np.ndarray
+    covariance_enu_m2: np.ndarray
+
+
+def fit_from(batch: ProblemBatch, owners, starts_enu_m, options: SolveOptions, max_iterations: int) -> Fits:
+    """ML of problems ``owners`` ``(K,)`` of ``batch`` from starts ``(K, 3)``, with the rival rule's view of each
+    fit (:class:`Fits`); in chunks of about ``CHUNK_ENTRIES`` measurement slots (the expanded problems then take
+    megabytes, not gigabytes)."""
+    starts = np.asarray(starts_enu_m, dtype=float)
+    size = starts.shape[0]
+    position, cost = np.empty((size, 3)), np.full(size, np.inf)
+    converged, regular = np.zeros(size, dtype=bool), np.zeros(size, dtype=bool)
+    covariance = np.empty((size, 3, 3))
+    step = max(1, CHUNK_ENTRIES // max(batch.kinds.shape[1], 1))
+    for start in range(0, size, step):
+        part = slice(start, start + step)
+        expanded = batch.take(owners[part])
+        solution = levenberg_marquardt(expanded, starts[part], max_iterations, options.tolerance_m, _loss(options))
+        here = solution.position_enu_m
+        position[part], converged[part] = here, solution.converged
+        finite = np.all(np.isfinite(here), axis=-1)
+        information = batch_information(expanded, np.where(finite[:, None], here, 0.0))
+        regular[part] = finite & information.observable & above_ground(expanded, here)
+        covariance[part] = information.covariance_enu_m2
+        cost[part] = np.where(regular[part], solution.cost, np.inf)
+    return Fits(position, cost, converged, regular, covariance)
+
+
+def refine(batch: ProblemBatch, owners, fits: Fits, best_cost, options: SolveOptions) -> Fits:
+    """``fits`` (of problems ``owners`` ``(K,)`` of ``batch``) with every regular unconverged fit whose cost is
+    within ``AMBIGUITY_COST`` of ``best_cost`` ``(K,)`` iterated ``REFINE_ITERATIONS`` more: whether a candidate
+    is a solution of the data is known only where its iteration ends. A refinement replaces its fit only where
+    it converged to a regular point; the others stay as they were (an unconverged fit, judged as before)."""
+    again = np.flatnonzero(fits.regular & ~fits.converged & (fits.cost <= best_cost + AMBIGUITY_COST))
+    if not again.size:
+        return fits
+    more = fit_from(batch, owners[again], fits.position_enu_m[again], options, REFINE_ITERATIONS)
+    solved = more.converged & more.regular
+    out = Fits(*(np.array(field) for field in fits))
+    for name, field in zip(Fits._fields, more):
+        getattr(out, name)[again[solved]] = field[solved]
+    return out
+
+
+def _rivals(best: Fits, fits: Fits) -> np.ndarray:
+    """Which fits ``(K,)`` are rivals of their best (row for row): the one rule for every measurement mix.
+
+    A rival is itself a converged fit of the data (:func:`refine` has taken an unconverged candidate as far
+    as it goes), regular and physically possible, distinct from the best under the best's CRLB and under its
+    own (``DISTINCT_MAHALANOBIS2``: a candidate that converged onto the best is no rival) and as good
+    (``AMBIGUITY_COST``). Where the best is itself unconverged (its answer is flagged so), an unconverged
+    iterate farther than ``DISTINCT_UNCONVERGED_MAHALANOBIS2`` from it counts too: neither is known to be the
+    solution.
+    """
+    apart = np.nan_to_num(fits.position_enu_m - best.position_enu_m)
+    distance2 = []
+    for covariance in (best.covariance_enu_m2, fits.covariance_enu_m2):
+        precision = np.linalg.pinv(covariance, rcond=1e-9, hermitian=True)
+        distance2.append(np.einsum("ki,kij,kj->k", apart, precision, apart))
+    distinct = fits.converged & (np.minimum(*distance2) > DISTINCT_MAHALANOBIS2)
+    distinct |= ~best.converged & ~fits.converged & (distance2[0] > DISTINCT_UNCONVERGED_MAHALANOBIS2)
+    return fits.regular & distinct & (fits.cost <= best.cost + AMBIGUITY_COST)
 
 
 def mirror_applies(batch: ProblemBatch) -> np.ndarray:
@@ -557,6 +637,24 @@ def mirror_points(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     return positions_enu_m - 2.0 * height[:, None] * normal
 
 
+def _best_of(owners, cost):
+    """Per problem, its lowest-cost row among rows owned by ``owners`` ``(K,)`` (sorted or not).
+
+    Returns
+    -------
+    first : ndarray of int, shape (P,)
+        The lowest-cost row of each problem present.
+    best_cost : ndarray, shape (K,)
+        Each row's problem's lowest cost.
+    best_of : ndarray of int, shape (K,)
+        Each row's problem's lowest-cost row.
+    """
+    order = np.lexsort((cost, owners))
+    first = order[np.r_[True, owners[order][1:] != owners[order][:-1]]]
+    best_of = first[np.searchsorted(owners[first], owners)]
+    return first, cost[best_of], best_of
+
+
 def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None) -> tuple[np.ndarray, np.ndarray]:
     """Starts where no closed form applies: ML from every candidate of
     :func:`core.estimators.search.candidates` (and from ``extra_enu_m``, e.g. a fit already made), the
@@ -575,10 +673,9 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None
     starts : ndarray, shape (B, 3)
         NaN rows where no candidate gave a regular solution.
     rival : ndarray, shape (B, 3)
-        The best of the other solutions that are distinct from the best (``DISTINCT_MAHALANOBIS2``) and whose
-        cost is within ``AMBIGUITY_COST`` of it (the second crossing of a line of sight with a hyperboloid,
-        the mirror of coplanar stations, when the measurements leave no degree of freedom to tell them
-        apart); NaN rows where none.
+        The lowest-cost rival of the best (:func:`_rivals`, after :func:`refine`): the second crossing of a
+        line of sight with a hyperboloid, the mirror of coplanar stations, when the measurements leave no
+        degree of freedom to tell them apart; NaN rows where none.
     """
     points = candidates(batch)
     if extra_enu_m is not None:
@@ -591,28 +688,13 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None
     if not np.any(finite):
         return out, rival
     tried, flat = tried[finite], flat[finite]
-    position, cost = np.empty_like(flat), np.full(tried.size, np.inf)
-    converged, regular = np.zeros(tried.size, dtype=bool), np.zeros(tried.size, dtype=bool)
-    covariance = np.empty((tried.size, 3, 3))
-    loss = _loss(options)
-    step = max(1, CHUNK_ENTRIES // max(batch.kinds.shape[1], 1))  # memory: candidates x measurements
-    for start in range(0, tried.size, step):
-        part = slice(start, start + step)
-        expanded = batch.take(tried[part])
-        solution = levenberg_marquardt(expanded, flat[part], options.max_iterations, options.tolerance_m, loss)
-        here = solution.position_enu_m
-        position[part], converged[part] = here, solution.converged
-        finite = np.all(np.isfinite(here), axis=-1)
-        information = batch_information(expanded, np.where(finite[:, None], here, 0.0))
-        regular[part] = finite & information.observable & above_ground(expanded, here)
-        covariance[part] = information.covariance_enu_m2
-        cost[part] = np.where(regular[part], solution.cost, np.inf)
-    order = np.lexsort((cost, tried))
-    first = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
+    fits = fit_from(batch, tried, flat, options, options.max_iterations)
+    fits = refine(batch, tried, fits, _best_of(tried, fits.cost)[1], options)
+    position, cost = fits.position_enu_m, fits.cost
+    first, _, best_of = _best_of(tried, cost)
     good = np.isfinite(cost[first])
     out[tried[first][good]] = position[first][good]
-    best_of = first[np.searchsorted(tried[first], tried)]
-    close = _rivals(covariance[best_of], position[best_of], cost[best_of], position, cost, converged, regular)
+    close = _rivals(Fits(*(field[best_of] for field in fits)), fits)
     second = np.where(close, cost, np.inf)
     order = np.lexsort((second, tried))
     lowest = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
@@ -792,21 +874,20 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
         finite = np.all(np.isfinite(mirrored), axis=-1)
         check, mirrored = check[finite], mirrored[finite]
     if check.size:
-        part = batch.take(check)
-        image = iterate(part, mirrored, options)
-        position = image.position_enu_m
-        finite = np.all(np.isfinite(position), axis=-1)
-        information = batch_information(part, np.where(finite[:, None], position, 0.0))
-        at_fix = batch_information(part, solution.position_enu_m[check])
-        eligible = finite & information.observable & above_ground(part, position)
-        rival = _rivals(at_fix.covariance_enu_m2, solution.position_enu_m[check], solution.cost[check], position,
-                        image.cost, image.converged, eligible)
-        possible = above_ground(part, solution.position_enu_m[check])
+        images = fit_from(batch, check, mirrored, options, options.max_iterations)
+        images = refine(batch, check, images, solution.cost[check], options)
+        at_fix = batch_information(batch.take(check), solution.position_enu_m[check])
+        fix = Fits(solution.position_enu_m[check], solution.cost[check], solution.converged[check],
+                   np.ones(check.size, dtype=bool), at_fix.covariance_enu_m2)
+        rival = _rivals(fix, images)
+        possible = above_ground(batch.take(check), solution.position_enu_m[check])
         for j in np.flatnonzero(rival).tolist():
             b = int(check[j])
             if possible[j]:
-                warnings[b] = _ambiguous(batch, b, position[j], starts, names, failures, solution, options)
+                warnings[b] = _ambiguous(batch, b, images.position_enu_m[j], starts, names, failures, solution,
+                                         options)
                 continue
+            # The fix is underground and its image a converged fit: the image is the fix.
             starts[b], names[b] = mirrored[j], "mirror"
-            solution.put(b, image, j)
+            solution.put(b, iterate(batch.take([b]), images.position_enu_m[j][None], options), 0)
     return estimate_from(batch, starts, options, names, failures, solution, warnings)
