@@ -93,9 +93,9 @@ from core.tracking.network import (
     advance_track,
     predict_tracks,
     report_rows,
-    velocity_prior,
 )
 from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel
+from core.tracking.network_update import velocity_prior
 from core.tracking.state import frozen_array
 
 #: Version of the :meth:`AssociationState.to_dict` layout.
