@@ -226,18 +226,18 @@ def test_simulated_scene_has_the_issue_shape():
 
 
 def test_bearings_that_cannot_tell_two_tracks_apart_update_neither():
-    from core.tracking.association import _ambiguous
+    from core.tracking.scan_assignment import ambiguous_tracks
 
     # Swapping the two bearings costs 1.1 more (log likelihood ratio): within the margin of 2, both unsure.
     close = np.array([[-10.0, -9.5], [-9.4, -10.0]])
-    assert _ambiguous({0: 0, 1: 1}, close, 2.0) == {0, 1}
-    assert _ambiguous({0: 0, 1: 1}, close, 1.0) == set()
+    assert ambiguous_tracks({0: 0, 1: 1}, close, 2.0) == {0, 1}
+    assert ambiguous_tracks({0: 0, 1: 1}, close, 1.0) == set()
     # Each bearing only in its own track's gate: decisive.
     apart = np.array([[-10.0, np.inf], [np.inf, -10.0]])
-    assert _ambiguous({0: 0, 1: 1}, apart, 2.0) == set()
+    assert ambiguous_tracks({0: 0, 1: 1}, apart, 2.0) == set()
     # A track left without a bearing that could take track 0's almost as well.
     lone = np.array([[-10.0], [-9.0]])
-    assert _ambiguous({0: 0}, lone, 2.0) == {0, 1}
+    assert ambiguous_tracks({0: 0}, lone, 2.0) == {0, 1}
 
 
 def test_state_round_trips_through_json_and_gives_the_same_results():
@@ -282,22 +282,22 @@ def test_reports_split_into_bearings_for_auto_sessions():
 
 
 def test_jpda_weights_by_hand():
-    from core.tracking.association import _jpda_weights
+    from core.tracking.scan_assignment import jpda_weights
 
     # One track, one bearing: beta = L / (L + (1 - P_D)).
-    beta, beta0 = _jpda_weights(np.array([[9.0]]), 0.1)
+    beta, beta0 = jpda_weights(np.array([[9.0]]), 0.1)
     assert beta[0, 0] == pytest.approx(9.0 / 9.1) and beta0[0] == pytest.approx(0.1 / 9.1)
     # Two tracks, two bearings, every pair gated: seven joint events, weights written out.
     a, b, c, d, m = 8.0, 2.0, 1.0, 5.0, 0.1
     total = m * m + a * m + b * m + c * m + d * m + a * d + b * c
-    beta, beta0 = _jpda_weights(np.array([[a, b], [c, d]]), m)
+    beta, beta0 = jpda_weights(np.array([[a, b], [c, d]]), m)
     assert beta[0, 0] == pytest.approx((a * m + a * d) / total)
     assert beta[0, 1] == pytest.approx((b * m + b * c) / total)
     assert beta[1, 1] == pytest.approx((d * m + a * d) / total)
     assert beta0[0] == pytest.approx((m * m + c * m + d * m) / total)
     assert np.allclose(beta.sum(axis=1) + beta0, 1.0)
     # A track gating nothing keeps beta_0 = 1.
-    beta, beta0 = _jpda_weights(np.array([[0.0, 0.0], [0.0, 3.0]]), m)
+    beta, beta0 = jpda_weights(np.array([[0.0, 0.0], [0.0, 3.0]]), m)
     assert beta0[0] == 1.0 and beta[0].sum() == 0.0
 
 
