@@ -369,6 +369,49 @@ def lower_inverse_into(factor, inverse):
             inverse[i, j] = 0.0
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def whiten_into(factor, innovation, cross, rows, whitened):
+    """Whiten an innovation and its cross-covariance by the innovation covariance's lower Cholesky factor
+    ``L``: ``whitened = L^-1 innovation`` and ``cross <- L^-1 cross`` in place, by forward substitution in
+    index order. The Kalman update is then ``mean += cross^T whitened``, ``cov -= cross^T cross``.
+
+    Parameters
+    ----------
+    factor : ndarray, shape (R, R)
+        ``L`` (its first ``rows`` rows and columns are used).
+    innovation : ndarray, shape (R,)
+    cross : ndarray, shape (R, F)
+        The state-measurement cross-covariance, transposed; overwritten.
+    rows : int
+    whitened : ndarray, shape (R,)
+        Written.
+
+    Returns
+    -------
+    chi2 : float
+        ``innovation^T S^-1 innovation`` (the NIS).
+    half_log_det : float
+        ``log det(S) / 2``.
+    """
+    chi2 = 0.0
+    half_log_det = 0.0
+    f = cross.shape[1]
+    for r in range(rows):
+        pivot = factor[r, r]
+        total = innovation[r]
+        for q in range(r):
+            total -= factor[r, q] * whitened[q]
+        whitened[r] = total / pivot
+        chi2 += whitened[r] * whitened[r]
+        half_log_det += math.log(pivot)
+        for i in range(f):
+            total = cross[r, i]
+            for q in range(r):
+                total -= factor[r, q] * cross[q, i]
+            cross[r, i] = total / pivot
+    return chi2, half_log_det
+
+
 def cholesky_repaired(cov):
     """Cholesky factor of a covariance, repairing it when it is not positive definite.
 

@@ -35,7 +35,7 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
-from core.linalg import cholesky_into, lower_inverse_into
+from core.linalg import cholesky_into, lower_inverse_into, whiten_into
 from core.measurements import AZIMUTH, TOA, measure_point
 
 #: Outcome of :func:`network_ukf_kernel` per state: updated; the predicted position covariance, the
@@ -226,21 +226,7 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
             if not cholesky_into(innovation_cov, innovation_chol):
                 outcome = INNOVATION_NOT_PD
                 break
-            chi2 = 0.0
-            half_log_det = 0.0
-            for r in range(size):
-                pivot = innovation_chol[r, r]
-                total = innovation[r]
-                for q in range(r):
-                    total -= innovation_chol[r, q] * t[q]
-                t[r] = total / pivot
-                chi2 += t[r] * t[r]
-                half_log_det += math.log(pivot)
-                for i in range(f):
-                    total = v[r, i]
-                    for q in range(r):
-                        total -= innovation_chol[r, q] * v[q, i]
-                    v[r, i] = total / pivot
+            chi2, half_log_det = whiten_into(innovation_chol, innovation, v, size, t)
             if iteration == 0:
                 # The predictive density of the report (NIS, likelihood): the prior's own regression.
                 nis[b] = chi2

@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
-from core.linalg import cholesky_into, lower_inverse_into, symmetrized
+from core.linalg import cholesky_into, lower_inverse_into, symmetrized, whiten_into
 from core.measurements import AZIMUTH, ELEVATION, RANGE, azimuth_rate_point, measure_point
 
 PI = math.pi
@@ -461,21 +461,7 @@ def joint_ukf_kernel(means, covs, transition, noises, predict, n_pulses, interva
         if not cholesky_into(innovation_cov, innovation_chol):
             status[b] = INNOVATION_NOT_PD
             continue
-        chi2 = 0.0
-        half_log_det = 0.0
-        for r in range(rows):
-            pivot = innovation_chol[r, r]
-            total = innovation[r]
-            for q in range(r):
-                total -= innovation_chol[r, q] * t[q]
-            t[r] = total / pivot
-            chi2 += t[r] * t[r]
-            half_log_det += math.log(pivot)
-            for i in range(f):
-                total = v[r, i]
-                for q in range(r):
-                    total -= innovation_chol[r, q] * v[q, i]
-                v[r, i] = total / pivot
+        chi2, half_log_det = whiten_into(innovation_chol, innovation, v, rows, t)
         nis[b] = chi2
         log_det[b] = 2.0 * half_log_det
         finite = True
