@@ -229,10 +229,7 @@ def _add_distance_curvature(x, stations, kinds, count, gradient_w, residual, axe
         curvature[0, 2] -= factor * u0 * u2
         curvature[1, 2] -= factor * u1 * u2
     curvature[1, 0], curvature[2, 0], curvature[2, 1] = curvature[0, 1], curvature[0, 2], curvature[1, 2]
-    trial = np.empty((4, 4))
-    for i in range(4):
-        for j in range(4):
-            trial[i, j] = information[i, j]
+    added = np.zeros((3, 3))  # the curvature in the local parameters, on the free ones
     for i in range(3):
         if not free[i]:
             continue
@@ -246,7 +243,11 @@ def _add_distance_curvature(x, stations, kinds, count, gradient_w, residual, axe
                         term += axes[i, k] * curvature[k, n] * axes[j, n]
             else:
                 term = curvature[i, j]
-            trial[i, j] += term
+            added[i, j] = term
+    trial = information.copy()
+    for i in range(3):
+        for j in range(3):
+            trial[i, j] += added[i, j]
     # Positive definite (Cholesky succeeds): take it.
     for k in range(4):
         pivot = trial[k, k]
@@ -262,19 +263,8 @@ def _add_distance_curvature(x, stations, kinds, count, gradient_w, residual, axe
                 total -= trial[i, n] * trial[k, n]
             trial[i, k] = total / pivot
     for i in range(3):
-        if not free[i]:
-            continue
         for j in range(3):
-            if not free[j]:
-                continue
-            term = 0.0
-            if constrained:
-                for k in range(3):
-                    for n in range(3):
-                        term += axes[i, k] * curvature[k, n] * axes[j, n]
-            else:
-                term = curvature[i, j]
-            information[i, j] += term
+            information[i, j] += added[i, j]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
