@@ -370,6 +370,32 @@ def lower_inverse_into(factor, inverse):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def linear_predict_into(mean, cov, transition, noise, point, work):
+    """A Gaussian through a linear motion model, in place: ``mean <- F mean``, ``cov <- F cov F^T + Q`` (the
+    lower triangle computed, then mirrored, so the result stays exactly symmetric). ``mean`` ``(n,)``,
+    ``cov``, ``transition``, ``noise`` ``(n, n)``; ``point`` ``(n,)`` and ``work`` ``(n, n)`` are scratch."""
+    f = mean.shape[0]
+    for i in range(f):
+        total = 0.0
+        for k in range(f):
+            total += transition[i, k] * mean[k]
+        point[i] = total
+        for j in range(f):
+            total = 0.0
+            for k in range(f):
+                total += transition[i, k] * cov[k, j]
+            work[i, j] = total
+    for i in range(f):
+        mean[i] = point[i]
+        for j in range(i + 1):
+            total = noise[i, j]
+            for k in range(f):
+                total += work[i, k] * transition[j, k]
+            cov[i, j] = total
+            cov[j, i] = total
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def whiten_into(factor, innovation, cross, rows, whitened):
     """Whiten an innovation and its cross-covariance by the innovation covariance's lower Cholesky factor
     ``L``: ``whitened = L^-1 innovation`` and ``cross <- L^-1 cross`` in place, by forward substitution in

@@ -35,7 +35,7 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
-from core.linalg import cholesky_into, lower_inverse_into, whiten_into
+from core.linalg import cholesky_into, linear_predict_into, lower_inverse_into, whiten_into
 from core.measurements import AZIMUTH, TOA, measure_point
 
 #: Outcome of :func:`network_ukf_kernel` per state: updated; the predicted position covariance, the
@@ -48,31 +48,6 @@ STATE_SIZE = 6
 MAX_PASS_STEP = 3.0
 #: A pass that moves the estimate by less than this (same units) ends the passes.
 PASS_TOLERANCE = 1e-3
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _predict_one(mean, cov, transition, noise, point, work):
-    """``mean <- F mean``, ``cov <- F cov F^T + Q`` in place (lower triangle computed, mirrored); ``point``
-    ``(6,)`` and ``work`` ``(6, 6)`` are scratch."""
-    f = mean.shape[0]
-    for i in range(f):
-        total = 0.0
-        for k in range(f):
-            total += transition[i, k] * mean[k]
-        point[i] = total
-        for j in range(f):
-            total = 0.0
-            for k in range(f):
-                total += transition[i, k] * cov[k, j]
-            work[i, j] = total
-    for i in range(f):
-        mean[i] = point[i]
-        for j in range(i + 1):
-            total = noise[i, j]
-            for k in range(f):
-                total += work[i, k] * transition[j, k]
-            cov[i, j] = total
-            cov[j, i] = total
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -152,7 +127,7 @@ def network_ukf_kernel(means, covs, transition, noises, predict, stations_enu_m,
     for b in range(count):
         mean, cov, new_mean, new_cov = means[b], covs[b], new_means[b], new_covs[b]
         if predict:
-            _predict_one(mean, cov, transition, noises[b], point, work)
+            linear_predict_into(mean, cov, transition, noises[b], point, work)
         for i in range(f):
             around[i] = mean[i]
             for j in range(f):
@@ -282,4 +257,4 @@ def predict_kernel(means, covs, transition, noises):
     point = np.empty(STATE_SIZE)
     work = np.empty((STATE_SIZE, STATE_SIZE))
     for b in range(means.shape[0]):
-        _predict_one(means[b], covs[b], transition, noises[b], point, work)
+        linear_predict_into(means[b], covs[b], transition, noises[b], point, work)

@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
-from core.linalg import cholesky_into, lower_inverse_into, symmetrized, whiten_into
+from core.linalg import cholesky_into, linear_predict_into, lower_inverse_into, symmetrized, whiten_into
 from core.measurements import AZIMUTH, ELEVATION, RANGE, azimuth_rate_point, measure_point
 
 PI = math.pi
@@ -405,24 +405,7 @@ def joint_ukf_kernel(means, covs, transition, noises, predict, n_pulses, interva
     for b in range(count):
         mean, cov, new_mean, new_cov = means[b], covs[b], new_means[b], new_covs[b]
         if predict:
-            for i in range(f):
-                total = 0.0
-                for k in range(f):
-                    total += transition[i, k] * mean[k]
-                point[i] = total
-                for j in range(f):
-                    total = 0.0
-                    for k in range(f):
-                        total += transition[i, k] * cov[k, j]
-                    work[i, j] = total
-            for i in range(f):
-                mean[i] = point[i]
-                for j in range(i + 1):
-                    total = noises[b, i, j]
-                    for k in range(f):
-                        total += work[i, k] * transition[j, k]
-                    cov[i, j] = total
-                    cov[j, i] = total
+            linear_predict_into(mean, cov, transition, noises[b], point, work)
         if not cholesky_into(cov, chol):
             status[b] = PREDICTED_NOT_PD
             continue
