@@ -108,16 +108,22 @@ class Epoch(Strict):
                                      "differences are used; keep it small enough that float64 resolves sigma_toa_s)")
 
 
+def seq_increasing(items: list, field: str, what: str) -> None:
+    """A posted batch lists its items (epochs or reports) in increasing ``seq`` order: the order the client
+    sends them, which makes ``seq`` the session's idempotency high-water mark."""
+    for i in range(1, len(items)):
+        if items[i].seq <= items[i - 1].seq:
+            raise ValueError(f"{field}[{i}].seq must be above {field}[{i - 1}].seq (a batch lists {what} in "
+                             "increasing seq order)")
+
+
 class MeasurementBatch(Strict):
     measurements: list[Epoch] = Field(min_length=1, max_length=MAX_EPOCHS_PER_POST,
                                       description="epochs in increasing seq order")
 
     @model_validator(mode="after")
     def _seq_increasing(self):
-        for i in range(1, len(self.measurements)):
-            if self.measurements[i].seq <= self.measurements[i - 1].seq:
-                raise ValueError(f"measurements[{i}].seq must be above measurements[{i - 1}].seq "
-                                 "(a batch lists epochs in increasing seq order)")
+        seq_increasing(self.measurements, "measurements", "epochs")
         return self
 
 
@@ -295,10 +301,7 @@ class ReportBatch(Strict):
 
     @model_validator(mode="after")
     def _seq_increasing(self):
-        for i in range(1, len(self.reports)):
-            if self.reports[i].seq <= self.reports[i - 1].seq:
-                raise ValueError(f"reports[{i}].seq must be above reports[{i - 1}].seq (a batch lists reports in "
-                                 "increasing seq order)")
+        seq_increasing(self.reports, "reports", "reports")
         return self
 
 

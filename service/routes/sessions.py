@@ -115,6 +115,18 @@ async def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
                                                                 at_time_s))
 
 
+async def _apply(request: Request, store: GuardedStore, owner: str, session_id: str, change, count: int, apply,
+                 too_long: str):
+    """Apply a posted change (epochs or reports) to its session: a batch of more than ``INLINE_EPOCHS`` items
+    is prepared first in the CPU pool, under the request's deadline and cancellation, so that the store's
+    atomic apply only checks and writes; ``too_long`` is the advice when that preparation runs out of time."""
+    record = None
+    if count > sessions.INLINE_EPOCHS:
+        record = await store.run(sessions.get, owner, session_id)
+        await watched(request, in_pool(None, lambda should_stop: change.prepare(record, should_stop)), too_long)
+    return await store.run(apply, owner, session_id, change, record)
+
+
 @router.post("/{session_id}/measurements", operation_id="sessions-post-measurements",
              summary="Apply a batch of epochs (duplicates by seq are acknowledged and skipped)",
              response_model=schemas.MeasurementResult,
@@ -127,12 +139,8 @@ async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, ow
                       if_match: IfMatchDoc = None,
                       ) -> JsonResponse:
     change = sessions.MeasurementsChange(batch, parsed_headers(request).if_match, store.now)
-    record = None
-    if len(batch.measurements) > sessions.INLINE_EPOCHS:
-        record = await store.run(sessions.get, owner, session_id)
-        await watched(request, in_pool(None, lambda should_stop: change.prepare(record, should_stop)),
-                      "post fewer epochs at a time")
-    outcome = await store.run(sessions.post_measurements, owner, session_id, change, record)
+    outcome = await _apply(request, store, owner, session_id, change, len(batch.measurements),
+                           sessions.post_measurements, "post fewer epochs at a time")
     metrics = request.app.state.metrics
     metrics.count("session_updates_total", 1 if outcome.applied else 0)
     metrics.count("session_epochs_applied_total", outcome.applied)
@@ -162,12 +170,8 @@ async def post_reports(session_id: str, batch: schemas.ReportBatch, owner: Owner
                        if_match: IfMatchDoc = None,
                        ) -> JsonResponse:
     change = network_sessions.ReportsChange(batch, parsed_headers(request).if_match, store.now)
-    record = None
-    if len(batch.reports) > sessions.INLINE_EPOCHS:
-        record = await store.run(sessions.get, owner, session_id)
-        await watched(request, in_pool(None, lambda should_stop: change.prepare(record, should_stop)),
-                      "post fewer reports at a time")
-    outcome = await store.run(sessions.post_reports, owner, session_id, change, record)
+    outcome = await _apply(request, store, owner, session_id, change, len(batch.reports), sessions.post_reports,
+                           "post fewer reports at a time")
     metrics = request.app.state.metrics
     metrics.count("session_report_posts_total", 1 if outcome.applied else 0)
     metrics.count("session_reports_applied_total", outcome.applied)
