@@ -9,6 +9,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import httpx
@@ -170,3 +171,35 @@ def reference_run(epochs: list[dict], batch_size: int, **create_changes) -> dict
             response = client.post(f"/v1/sessions/{session_id}/measurements", json={"measurements": batch})
             assert response.status_code == 200, response.text
         return client.get(f"/v1/sessions/{session_id}").json()
+
+
+def post_batch(client: httpx.Client, base: str, session_id: str, route: str, batch: list[dict]) -> dict:
+    """POST one batch to a session's ``route`` (``"measurements"`` or ``"reports"``); it must answer 200."""
+    response = client.post(f"{base}/v1/sessions/{session_id}/{route}", json={route: batch})
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def post_from_clients(servers: list, session_id: str, route: str, stream: list[list[dict]], clients: int = 4,
+                      join_timeout_s: float = 120.0) -> tuple[list[dict], list[str]]:
+    """Each of ``clients`` threads posts every batch of ``stream``, the servers taken in turn: every batch
+    arrives ``clients`` times, concurrently, so exactly one post of each may apply it.
+
+    Returns the answers and the errors the threads met.
+    """
+    results, failures = [], []
+
+    def run(i: int):
+        try:
+            with httpx.Client(timeout=60.0) as own:
+                for j, batch in enumerate(stream):
+                    results.append(post_batch(own, servers[(i + j) % len(servers)].url, session_id, route, batch))
+        except Exception as error:  # reported to the caller
+            failures.append(repr(error))
+
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(clients)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=join_timeout_s)
+    return results, failures

@@ -5,7 +5,6 @@ nothing."""
 from __future__ import annotations
 
 import sqlite3
-import threading
 
 import httpx
 import numpy as np
@@ -16,7 +15,7 @@ from core.simulation.network import SCENES, simulate_network
 from service.app import create_app
 from service.settings import Settings
 
-from .helpers import Server, batches
+from .helpers import Server, batches, post_batch, post_from_clients
 from .network_scenes import api_report, create_body
 
 BATCH = 10
@@ -38,11 +37,6 @@ def reference(reports) -> dict:
         return client.get(f"/v1/sessions/{session_id}").json()
 
 
-def _post(client: httpx.Client, base: str, session_id: str, batch: list[dict]) -> dict:
-    response = client.post(f"{base}/v1/sessions/{session_id}/reports", json={"reports": batch})
-    assert response.status_code == 200, response.text
-    return response.json()
-
 
 def _filter_view(body: dict) -> dict:
     return {k: body[k] for k in ("last_seq", "last_time_s", "updates", "tracks", "stations", "ended_tracks")}
@@ -55,13 +49,13 @@ def test_acknowledged_reports_survive_sigkill_and_the_restart_continues_exactly(
         with Server(store, tmp_path / "uvicorn.log") as server:
             session_id = client.post(f"{server.url}/v1/sessions", json=create_body(SCENE)).json()["id"]
             for batch in batches(reports[:half], BATCH):
-                acknowledged = _post(client, server.url, session_id, batch)
+                acknowledged = post_batch(client, server.url, session_id, "reports", batch)
             server.kill()
         with Server(store, tmp_path / "uvicorn.log") as server:
             restored = client.get(f"{server.url}/v1/sessions/{session_id}").json()
             assert restored == {k: v for k, v in acknowledged.items() if k not in ("applied", "duplicates", "late")}
             for batch in batches(reports[half:], BATCH):
-                _post(client, server.url, session_id, batch)
+                post_batch(client, server.url, session_id, "reports", batch)
             final = client.get(f"{server.url}/v1/sessions/{session_id}").json()
     assert _filter_view(final) == _filter_view(reference)
 
@@ -76,21 +70,7 @@ def test_concurrent_clients_apply_every_report_exactly_once(request, tmp_path, r
         with httpx.Client(timeout=30.0) as client:
             session_id = client.post(f"{servers[0].url}/v1/sessions", json=create_body(SCENE)).json()["id"]
         stream = batches(reports, BATCH)
-        results, failures = [], []
-
-        def run(i: int):
-            try:
-                with httpx.Client(timeout=60.0) as own:
-                    for j, batch in enumerate(stream):
-                        results.append(_post(own, servers[(i + j) % processes].url, session_id, batch))
-            except Exception as error:  # reported below
-                failures.append(repr(error))
-
-        threads = [threading.Thread(target=run, args=(i,)) for i in range(4)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(timeout=180)
+        results, failures = post_from_clients(servers, session_id, "reports", stream, join_timeout_s=180)
         assert failures == []
         assert sum(r["applied"] for r in results) == len(reports)
         assert sum(r["duplicates"] for r in results) == 3 * len(reports)

@@ -7,7 +7,8 @@ import threading
 import httpx
 import pytest
 
-from .helpers import Server, api_epochs, assert_close_bodies, batches, create_body, paper_track, reference_run
+from .helpers import (Server, api_epochs, assert_close_bodies, batches, create_body, paper_track, post_batch,
+                      post_from_clients, reference_run)
 
 BATCH = 10
 
@@ -22,11 +23,6 @@ def reference(epochs) -> dict:
     return reference_run(epochs, BATCH)
 
 
-def _post(client: httpx.Client, base: str, session_id: str, batch: list[dict]) -> dict:
-    response = client.post(f"{base}/v1/sessions/{session_id}/measurements", json={"measurements": batch})
-    assert response.status_code == 200, response.text
-    return response.json()
-
 
 def test_acknowledged_epochs_survive_sigkill(tmp_path, epochs, reference):
     store = f"sqlite:///{tmp_path}/s.db"
@@ -34,7 +30,7 @@ def test_acknowledged_epochs_survive_sigkill(tmp_path, epochs, reference):
         with Server(store, tmp_path / "uvicorn.log") as server:
             session_id = client.post(f"{server.url}/v1/sessions", json=create_body()).json()["id"]
             for batch in batches(epochs[:100], BATCH):
-                acknowledged = _post(client, server.url, session_id, batch)
+                acknowledged = post_batch(client, server.url, session_id, "measurements", batch)
             server.kill()
         assert acknowledged["updates"] == 100
         with Server(store, tmp_path / "uvicorn.log") as server:
@@ -43,7 +39,7 @@ def test_acknowledged_epochs_survive_sigkill(tmp_path, epochs, reference):
             assert {k: v for k, v in restored.items()} == {k: v for k, v in acknowledged.items()
                                                            if k not in ("applied", "duplicates")}
             for batch in batches(epochs[100:], BATCH):
-                _post(client, server.url, session_id, batch)
+                post_batch(client, server.url, session_id, "measurements", batch)
             final = client.get(f"{server.url}/v1/sessions/{session_id}").json()
     assert final["updates"] == 200
     assert_close_bodies(final, reference, rtol=1e-9)
@@ -62,7 +58,7 @@ def test_a_kill_in_the_middle_of_traffic_loses_nothing_acknowledged(tmp_path, ep
             with httpx.Client(timeout=30.0) as own:
                 for batch in batches(epochs, 2):
                     try:
-                        body = _post(own, server.url, session_id, batch)
+                        body = post_batch(own, server.url, session_id, "measurements", batch)
                     except httpx.HTTPError:
                         return  # the kill: this post's fate is unknown
                     acknowledged_seq.append(body["last_seq"])
@@ -81,7 +77,7 @@ def test_a_kill_in_the_middle_of_traffic_loses_nothing_acknowledged(tmp_path, ep
             assert restored["updates"] == restored["last_seq"]
             resume = acknowledged_seq[-1]  # what the client knows; anything after may or may not have landed
             for batch in batches(epochs[resume:], BATCH):
-                _post(client, server.url, session_id, batch)
+                post_batch(client, server.url, session_id, "measurements", batch)
             final = client.get(f"{server.url}/v1/sessions/{session_id}").json()
     assert final["updates"] == 200
     assert_close_bodies(final, reference, rtol=1e-9)
@@ -101,21 +97,7 @@ def test_concurrent_clients_apply_every_epoch_exactly_once(request, tmp_path, ep
         with httpx.Client(timeout=30.0) as client:
             session_id = client.post(f"{servers[0].url}/v1/sessions", json=create_body()).json()["id"]
         stream = batches(epochs, BATCH)
-        results, failures = [], []
-
-        def run(i: int):
-            try:
-                with httpx.Client(timeout=60.0) as own:
-                    for j, batch in enumerate(stream):
-                        results.append(_post(own, servers[(i + j) % processes].url, session_id, batch))
-            except Exception as error:  # reported below
-                failures.append(repr(error))
-
-        threads = [threading.Thread(target=run, args=(i,)) for i in range(4)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join(timeout=120)
+        results, failures = post_from_clients(servers, session_id, "measurements", stream, join_timeout_s=120)
         assert failures == []
         assert len(results) == 4 * len(stream)
         assert sum(r["applied"] for r in results) == len(epochs)
