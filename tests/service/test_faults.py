@@ -24,7 +24,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from tests.service.conftest import STATIONS_300KM, TARGET
-from tests.service.sessions.helpers import REPO, create_body, free_port
+from tests.service.sessions.helpers import REPO, create_body, free_port, wait_until_answers
 
 pytestmark = pytest.mark.slow  # real processes and timed faults: ~3 min together
 
@@ -43,16 +43,8 @@ class App:
                  "--log-level", "warning", "--no-access-log", "--timeout-graceful-shutdown", "2"],
                 cwd=REPO, env=environment, stdout=log, stderr=subprocess.STDOUT)
         self.url = f"http://127.0.0.1:{self.port}"
-        deadline = time.monotonic() + 180  # a bound on a hang, not a speed
-        while time.monotonic() < deadline:
-            assert self.process.poll() is None, self.log.read_text()[-3000:]
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.05)  # polling a starting process
-        raise RuntimeError(f"the app did not start: {self.log.read_text()[-3000:]}")
+        if not wait_until_answers(self.process, f"{self.url}/healthz", 180):
+            raise RuntimeError(f"the app did not start: {self.log.read_text()[-3000:]}")
 
     def stop(self) -> None:
         if self.process.poll() is None:

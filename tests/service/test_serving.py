@@ -18,7 +18,7 @@ import orjson
 import pytest
 
 from tests.service.conftest import STATIONS_300KM, TARGET
-from tests.service.sessions.helpers import REPO, free_port
+from tests.service.sessions.helpers import REPO, free_port, wait_until_answers
 
 pytestmark = pytest.mark.slow  # real processes
 
@@ -37,16 +37,8 @@ class Served:
             self.process = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
                                              "--port", str(self.port)],
                                             cwd=REPO, env=environment, stdout=log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 120  # a cold numba cache compiles first
-        while time.monotonic() < deadline:
-            assert self.process.poll() is None, self.log.read_text()[-3000:]
-            try:
-                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
-                    return
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.05)  # polling a starting process
-        raise RuntimeError(f"the server did not start: {self.log.read_text()[-3000:]}")
+        if not wait_until_answers(self.process, f"{self.url}/healthz", 120):
+            raise RuntimeError(f"the server did not start: {self.log.read_text()[-3000:]}")
 
     def stop(self) -> None:
         if self.process.poll() is None:

@@ -100,6 +100,22 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def wait_until_answers(process: subprocess.Popen, url: str, timeout_s: float) -> bool:
+    """Poll ``url`` of a starting server ``process`` until it answers 200 (True), or the process exits or
+    ``timeout_s`` passes (False): a bound on a hang, not a speed."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if process.poll() is not None:
+            return False
+        try:
+            if httpx.get(url, timeout=1.0).status_code == 200:
+                return True
+        except httpx.HTTPError:
+            pass
+        time.sleep(0.05)
+    return False
+
+
 class Server:
     """A real ``uvicorn service.main:app`` process on a free loopback port."""
 
@@ -132,17 +148,7 @@ class Server:
         raise RuntimeError(f"uvicorn did not start; log:\n{self.log_path.read_text()[-4000:]}")
 
     def _wait_ready(self, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.process.poll() is not None:
-                return False
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=1.0).status_code == 200:
-                    return True
-            except httpx.HTTPError:
-                pass
-            time.sleep(0.05)  # polling a starting process: bounded by timeout_s
-        return False
+        return wait_until_answers(self.process, f"{self.url}/readyz", timeout_s)
 
     def kill(self) -> None:
         """SIGKILL: no shutdown hook runs, nothing is flushed on the way out."""
