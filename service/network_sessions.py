@@ -27,8 +27,8 @@ from core.error_summary import error_summary
 from core.errors import LocalizationError
 from core.measurements import Kind
 from core.problem import CommonFrame, GeodeticPoint, build_problem
-from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_reports, new_network_state,
-                                   predict_tracks, validate_report)
+from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_reports, in_track_axes,
+                                   new_network_state, predict_tracks, validate_report)
 from service import schemas as fix_schemas
 from service import session_schemas as schemas
 from service.problems import ApiError, api_loc
@@ -326,12 +326,7 @@ def _track_body(track, frame: CommonFrame) -> dict:
     from service.translate import error_dict
 
     mean = np.asarray(track.mean_enu, dtype=float)
-    covariance = np.asarray(track.covariance_enu, dtype=float)
-    axes = frame.local_axes(mean[:3])
-    turn = np.zeros((6, 6))
-    turn[:3, :3] = turn[3:, 3:] = axes
-    at_track = turn @ covariance @ turn.T
-    at_track = 0.5 * (at_track + at_track.T)
+    velocity_enu_mps, at_track = in_track_axes(track, frame)
     position = None
     if frame.is_geodetic:
         lat, lon, alt = frame.to_geodetic(mean[:3])
@@ -342,7 +337,7 @@ def _track_body(track, frame: CommonFrame) -> dict:
         "time_s": float(track.time_s),
         "position": position,
         "position_local": {"east_m": float(mean[0]), "north_m": float(mean[1]), "up_m": float(mean[2])},
-        "velocity_enu_mps": (axes @ mean[3:]).tolist(),
+        "velocity_enu_mps": velocity_enu_mps.tolist(),
         "covariance_enu": at_track.tolist(),
         "error": error_dict(error_summary(at_track[None, :3, :3]), np.array([math.nan])),
         "updates": int(track.updates),

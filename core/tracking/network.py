@@ -65,6 +65,7 @@ from typing import NamedTuple, Sequence
 import numpy as np
 
 from core.errors import InvalidInput
+from core.linalg import symmetrized
 from core.measurements import AZIMUTH, ELEVATION, KIND_NAMES, RANGE, TOA, Kind
 from core.tracking.network_types import (
     NetworkConfig,
@@ -348,3 +349,29 @@ def _gathered(gathered: dict) -> tuple:
 __all__ = ["NETWORK_WARNING_CODES", "ApplyOutcome", "HistoryEntry", "Kind", "NetworkConfig", "NetworkState",
            "Report", "ReportRows", "Track", "advance_track", "apply_reports", "new_network_state",
            "predict_tracks", "report_rows", "validate_report", "with_status"]
+
+
+def in_track_axes(track: Track, frame) -> tuple[np.ndarray, np.ndarray]:
+    """A track's velocity and covariance in the east/north/up axes at its own position.
+
+    The common frame's axes are those at its origin; away from it they turn (meridian convergence, the
+    earth's curvature), so a track's sigma up and course are read in its own axes, as a fix's are.
+
+    Parameters
+    ----------
+    track : Track
+    frame : core.problem_frame.CommonFrame
+        The session's frame (:meth:`~core.problem_frame.CommonFrame.local_axes` gives the rotation).
+
+    Returns
+    -------
+    velocity_enu_mps : ndarray, shape (3,)
+    covariance_enu : ndarray, shape (6, 6)
+        ``[east_m, north_m, up_m, east_mps, north_mps, up_mps]`` at the track, symmetric.
+    """
+    mean = np.asarray(track.mean_enu, dtype=float)
+    axes = frame.local_axes(mean[:3])
+    turn = np.zeros((6, 6))
+    turn[:3, :3] = turn[3:, 3:] = axes
+    return axes @ mean[3:], symmetrized(turn @ np.asarray(track.covariance_enu, dtype=float) @ turn.T)
+
