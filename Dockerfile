@@ -28,7 +28,7 @@ COPY service ./service
 # The runtime needs no installer: pip and setuptools leave the venv once it is complete and checked; nor
 # numpy's and scipy's own test suites (about 50 MB).
 RUN /opt/venv/bin/pip install --no-deps . && /opt/venv/bin/pip check \
-    && (cd / && /opt/venv/bin/python -c "import service.translate; service.translate.compile_kernels()") \
+    && (cd / && /opt/venv/bin/python -c "from service.fixes.pipeline import compile_kernels; compile_kernels()") \
     && find /opt/venv/lib/python3*/site-packages/numpy /opt/venv/lib/python3*/site-packages/scipy \
         -type d -name tests -prune -exec rm -rf {} + \
     && (/opt/venv/bin/pip uninstall --yes --quiet setuptools wheel || true) \

@@ -17,7 +17,7 @@ $(BIN)/python:
 # The filter hides only setuptools' notice that an editable install is one (printed on every `pip install -e`).
 $(STAMP): $(BIN)/python pyproject.toml
 	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/python -m pip install --quiet -e '.[dev]'
-	$(BIN)/python -c "import service.translate; service.translate.compile_kernels()"
+	$(BIN)/python -c "from service.fixes.pipeline import compile_kernels; compile_kernels()"
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -3,7 +3,7 @@
 The echo route is the yardstick for the single-fix row: the fix route's shape
 with a solve that costs nothing. Like ``POST /v1/fixes`` it is an ``async``
 route behind the same middleware that decodes the body as the fix route does
-(:func:`service.wire.decode_fix`, else orjson), checks the owner, hands the
+(:func:`service.fixes.decode.decode_fix`, else orjson), checks the owner, hands the
 body to a one-thread executor and waits for it there (as the coalescer's
 drain does), then answers with the body's JSON; the worker only returns the
 body. ``POST /bench/echo_inline`` does the same without the hop to the
@@ -23,7 +23,7 @@ from starlette.responses import Response
 from service.app import create_app
 from service.deps import get_owner, parse_json
 from service.settings import Settings
-from service.wire import decode_fix
+from service.fixes.decode import decode_fix
 
 
 def create_bench_app(settings: Settings | None = None) -> FastAPI:

@@ -20,7 +20,7 @@ import numpy as np
 from bench.scenarios import SIGMA_DEG, four_station_requests
 from core.estimators import SolveOptions
 from core.estimators.base import get_estimator
-from service.translate import read_fix_requests
+from service.fixes.read import read_fix_requests
 
 
 def _median_s(run, repeats: int) -> float:

@@ -15,7 +15,7 @@ import numpy as np
 
 from bench.scenarios import four_station_requests
 from core.estimators import solve_many
-from service.translate import read_fix_requests
+from service.fixes.read import read_fix_requests
 
 
 def single_fix_us(count: int = 300, warm: int = 30) -> float:

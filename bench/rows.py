@@ -75,8 +75,9 @@ def _single_phase_times(count: int = 300) -> dict[str, float]:
     from core.estimators import solve_many
     from service.deps import parse_json
     from service.responses import JsonResponse
-    from service.translate import fix_bodies, read_fix_requests
-    from service.wire import decode_fix
+    from service.fixes.write import fix_bodies
+    from service.fixes.read import read_fix_requests
+    from service.fixes.decode import decode_fix
 
     bodies = [orjson.dumps(b) for b in four_station_requests(count, np.random.default_rng(12))]
     error_summary(np.eye(3))  # its interpolation tables are built once per process, on first use: not per fix
@@ -114,7 +115,7 @@ def _thread_hop_times(count: int = 300, rounds: int = 3) -> dict[str, float]:
     import asyncio
     from concurrent.futures import ThreadPoolExecutor
 
-    from service.translate import fix_results
+    from service.fixes.pipeline import fix_results
 
     bodies = four_station_requests(count, np.random.default_rng(14))
     cpu: list[float] = []
@@ -232,7 +233,7 @@ def core_single_row(count: int = 300, rounds: int = 5) -> Row:
     """
     from core.error_summary import error_summary
     from core.estimators import solve_many
-    from service.translate import read_fix_requests
+    from service.fixes.read import read_fix_requests
 
     requests = four_station_requests(count, np.random.default_rng(13))
     error_summary(np.eye(3))
@@ -265,8 +266,9 @@ def _phase_times(problems: list) -> dict[str, float]:
     """Where a batch's server time goes, phase by phase, measured in this process (GC paused as the route does)."""
     from core.estimators import solve_many
     from service.responses import JsonResponse
-    from service.translate import fix_bodies, read_fix_requests
-    from service.wire import decode_batch
+    from service.fixes.write import fix_bodies
+    from service.fixes.read import read_fix_requests
+    from service.fixes.decode import decode_batch
 
     raw = orjson.dumps({"problems": problems})
     times: dict[str, float] = {}
@@ -304,7 +306,7 @@ CLOSED_FORMS = ("weighted_eove", "eove", "los_intersection", "ple3d", "ws3d", "a
 def batch_row(url: str, size: int, method: str = "ml", repeats: int = 3) -> tuple[Row, float, list]:
     """Row 2: one POST of ``size`` four-station problems for ``method``, to the last byte of the answer."""
     from core.estimators import MAX_WORKERS, SolveOptions, solve_many
-    from service.translate import read_fix_requests
+    from service.fixes.read import read_fix_requests
 
     target = 25_000 if method == "ml" else 20_000
     problems = four_station_requests(size, np.random.default_rng(22), method=method)
@@ -363,7 +365,7 @@ def scipy_row(problems: list, rounds: int = 10) -> Row:
     from core.estimators import MAX_WORKERS, SolveOptions, solve_many
     from core.estimators.starting_points import initial_positions
     from core.measurements import Kind
-    from service.translate import read_fix_requests
+    from service.fixes.read import read_fix_requests
 
     batch = read_fix_requests(problems).batch
     starts, _, _ = initial_positions(batch)

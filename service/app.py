@@ -16,9 +16,10 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service import logs, openapi, problems, tak, translate, web
+from service import logs, openapi, problems, tak, web
 from service import kernel_cache
 from service.coalesce import Coalescer
+from service.fixes.pipeline import compile_kernels
 from service.metrics import InFlight, Metrics
 from service.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
@@ -70,7 +71,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.fix_coalescer = Coalescer(app.state.stopping, metrics, settings.max_fix_cost)
         app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
         await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, kernel_cache.load_kernels,
-                                                         translate.compile_kernels)
+                                                         compile_kernels)
         try:
             await store.run(lambda backend: None)  # open now when we can; a store that is down opens later
         except StoreError as error:

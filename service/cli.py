@@ -219,7 +219,7 @@ def _evaluate_fixes(data, out, title, scheduler, bar):
     from core.errors import LocalizationError
     from service import schemas
     from service.reports import write_evaluation
-    from service.translate import crlb_problem, evaluation_body
+    from service.planning import crlb_problem, evaluation_body
 
     request = schemas.EvaluationRequest.model_validate(data)
     try:
@@ -271,7 +271,7 @@ def _run_map(args) -> int:
     from service import schemas
     from service.problems import ApiError
     from service.reports import ProgressBar
-    from service.translate import coverage_renderings, grid_of_request
+    from service.planning import coverage_renderings, grid_of_request
 
     path = pathlib.Path(args.grid)
     try:

@@ -3,7 +3,7 @@
 ``POST /v1/fixes`` hands its decoded body to the app's :class:`Coalescer`.
 One drain at a time takes *everything queued at that moment* (there is no
 waiting window: a lone request on an idle service is solved at once, alone)
-and runs :func:`service.translate.fix_results` on the drained bodies on its own
+and runs :func:`service.fixes.pipeline.fix_results` on the drained bodies on its own
 worker thread: exactly what ``POST /v1/fixes/batch`` does with its problems,
 so a single fix is slot 0 of a batch of one, and fixes that arrived together
 share one batched read, solve and write. Requests that arrive while a drain
@@ -28,7 +28,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 from core.parallel import Stopped
-from service.translate import fix_results
+from service.fixes.pipeline import fix_results
 
 
 def _never() -> bool:

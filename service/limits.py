@@ -32,7 +32,7 @@ exclusion may take (:func:`exclusion_solves`): its refits run the method again, 
 from __future__ import annotations
 
 from service.problems import ApiError
-from service.wire import measurement_count, requested_method, requests_exclusion
+from service.fixes.decode import measurement_count, requested_method, requests_exclusion
 
 #: The key of pydantic's validation context (``model_validate(..., context=...)``) that carries the app's
 #: ``max_fix_cost`` to :class:`service.schemas.FixRequest`'s cost check (:func:`fix_cost_context`).

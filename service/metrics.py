@@ -188,7 +188,7 @@ class Metrics:
         Parameters
         ----------
         methods : list of str, length N
-            The method of each result (``service.translate.fix_results``' ``methods_run``); a name that is
+            The method of each result (``service.fixes.pipeline.fix_results``' ``methods_run``); a name that is
             no method is counted as ``invalid``.
         results : list of dict, length N
             ``{"ok": True, ...}`` or ``{"ok": False, "error": problem body}``.

@@ -2,7 +2,7 @@
 
 A report's stations and measurements become core arrays the way a fix request's do: the same schema models
 (:class:`service.schemas.Station` and the measurement models), the same converters
-(:func:`service.translate.to_point`, :func:`service.translate.to_measurement`) and the same placement in the
+(:func:`service.convert.to_point`, :func:`service.convert.to_measurement`) and the same placement in the
 common frame (:func:`core.problem.build_problem`), with the session's origin fixed at creation so that every
 report lands in one frame. The tracker itself is core's (:mod:`core.tracking.network`): pure
 ``(state, reports) -> state``; this module decides what reports are, which are duplicates, and what the
@@ -83,7 +83,7 @@ def network_config(request: dict | schemas.NetworkSessionCreate) -> NetworkConfi
 def _origin(request: schemas.NetworkSessionCreate) -> GeodeticPoint | None:
     """The session's frame origin, fixed for its life: the given one, else (wgs84) the create stations' centroid
     on the ellipsoid, as a fix places its frame, else None (a flat local plane)."""
-    from service.translate import to_point
+    from service.convert import to_point
 
     if request.origin is not None:
         return to_point(request.origin)
@@ -138,7 +138,7 @@ def core_report(report: schemas.Report, index: int, registry: dict, frame: str, 
         422 with the field path: a station position in the wrong frame or given twice, an unknown station, a
         moving station without its position, a lone TOA, a value core refuses.
     """
-    from service.translate import to_measurement, to_point
+    from service.convert import to_measurement, to_point
 
     where = ("reports", index)
     wanted = fix_schemas.GeodeticPosition if frame == "wgs84" else fix_schemas.LocalPosition
@@ -323,7 +323,7 @@ class ReportsChange:
 
 def _track_body(track, frame: CommonFrame) -> dict:
     """One core track as the API's track JSON, its errors in the east/north/up axes at the track."""
-    from service.translate import error_dict
+    from service.convert import error_dict
 
     mean = np.asarray(track.mean_enu, dtype=float)
     velocity_enu_mps, at_track = in_track_axes(track, frame)

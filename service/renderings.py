@@ -1,6 +1,6 @@
 """Map-ready renderings of fixes and session states: Cursor-on-Target 2.0 events and GeoJSON.
 
-Both are built from the response bodies (the dicts of :mod:`service.translate`
+Both are built from the response bodies (the dicts of :mod:`service.fixes.write`
 and :func:`service.sessions.state_body`), so a rendering says exactly what the
 JSON says. Errors are in the east/north/up axes at the rendered point itself
 (a fix body's ``covariance_enu_m2`` already is; a session's ``covariance_enu``

@@ -1,10 +1,10 @@
 """Many independent fixes in one request: the throughput path (API.md ``POST /v1/fixes/batch``).
 
-The problems go through :func:`~service.translate.fix_results`, the same
+The problems go through :func:`~service.fixes.pipeline.fix_results`, the same
 read, solve and write as ``POST /v1/fixes``; a problem's error stays in its
 slot; the solve stops between parts at the request deadline, when the
 client goes away or when the server stops (:mod:`service.watch`: 503
-``deadline_exceeded``). The body is decoded here (:mod:`service.wire`), not by the framework, and the
+``deadline_exceeded``). The body is decoded here (:mod:`service.fixes.decode`), not by the framework, and the
 cyclic garbage collector is paused while the request's million small objects
 are made and dropped (it would otherwise rescan them over and over: about
 five times the work of the parse itself).
@@ -26,9 +26,9 @@ from service.deps import OwnerDep, parse_json, request_id
 from service.limits import check_batch, fix_cost_context
 from service.renderings import batch_geojson
 from service.responses import JsonResponse
-from service.translate import fix_results
+from service.fixes.pipeline import fix_results
 from service.watch import in_pool, watched
-from service.wire import decode_batch
+from service.fixes.decode import decode_batch
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
@@ -89,7 +89,7 @@ def _problems(raw: bytes, max_fix_cost: int | None) -> tuple[list, list]:
     """The ``problems`` list and ``formats`` of a batch body; 400/422 as for any body when it is not one
     (a problem over ``max_fix_cost``, the app's limit, among the errors).
 
-    The problems are :class:`service.wire.FixBody` structs when every one decodes as such, else parsed JSON.
+    The problems are :class:`service.fixes.decode.FixBody` structs when every one decodes as such, else parsed JSON.
     """
     problems = decode_batch(raw)
     if problems is not None and 0 < len(problems) <= MAX_PROBLEMS:

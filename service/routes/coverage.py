@@ -2,7 +2,7 @@
 
 The grid is priced before anything is computed (``service.limits``: 422
 ``over_limit`` above ``max_grid_cost``); the cells are then computed in
-chunks (:func:`service.translate.coverage_renderings`) on the app's CPU pool, or on the
+chunks (:func:`service.planning.coverage_renderings`) on the app's CPU pool, or on the
 Dask cluster of ``dask_scheduler``, and stop at the request deadline, on
 disconnect and at shutdown like an evaluation (:func:`service.watch.watched`).
 
@@ -30,7 +30,7 @@ from service.deps import OwnerDep
 from service.headers import MediaRange
 from service.problems import ApiError
 from service.responses import JsonResponse
-from service.translate import coverage_renderings, grid_of_request
+from service.planning import coverage_renderings, grid_of_request
 from service.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])

@@ -20,7 +20,7 @@ from service import network_sessions, schemas, session_schemas
 from service.deps import OwnerDep
 from service.limits import check_evaluation, method_weight
 from service.responses import JsonResponse
-from service.translate import crlb_problem, evaluation_body
+from service.planning import crlb_problem, evaluation_body
 from service.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["evaluations"])

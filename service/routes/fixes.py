@@ -1,9 +1,9 @@
 """Fixes and planning bounds.
 
-``POST /v1/fixes`` hands its decoded body (:mod:`service.wire`) to the app's
+``POST /v1/fixes`` hands its decoded body (:mod:`service.fixes.decode`) to the app's
 :class:`~service.coalesce.Coalescer`, which solves every fix queued at that
 moment as one batch on a worker thread, through the same
-:func:`~service.translate.fix_results` as ``POST /v1/fixes/batch``: a single
+:func:`~service.fixes.pipeline.fix_results` as ``POST /v1/fixes/batch``: a single
 fix is a batch of one. Both wait under :func:`service.watch.watched`: 503
 ``deadline_exceeded`` past ``request_deadline_s``, and the solve stops between
 parts once its clients are gone.
@@ -20,9 +20,9 @@ from service.deps import OwnerDep, get_owner, json_request_body, parse_json, req
 from service.problems import MEDIA_TYPE
 from service.renderings import problem_renderings
 from service.responses import JsonResponse
-from service.translate import crlb_response
+from service.planning import crlb_response
 from service.watch import watched
-from service.wire import decode_fix
+from service.fixes.decode import decode_fix
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 

@@ -1,4 +1,4 @@
-"""``service.translate.compile_kernels`` (run at install, image build and in the lifespan) compiles every kernel
+"""``service.fixes.pipeline.compile_kernels`` (run at install, image build and in the lifespan) compiles every kernel
 a fix or a session step can reach, the core's and the service's, with the argument types the estimators,
 filters and the reader and writer pass, so that no request pays numba's compilation (seconds). Checked in a
 fresh process: after it, a varied workload adds no compiled signature anywhere."""
@@ -28,7 +28,7 @@ _WORKLOAD = textwrap.dedent('''
                     out[f"{module.__name__}.{name}"] = len(value.signatures)
         return out
 
-    from service.translate import compile_kernels
+    from service.fixes.pipeline import compile_kernels
     compile_kernels()
     before = signatures()
 
@@ -70,8 +70,8 @@ _WORKLOAD = textwrap.dedent('''
         state = new_state(config)
         for epoch in track.epochs:
             state = step(state, epoch, config)
-    from service.translate import fix_results
-    from service.wire import decode_batch
+    from service.fixes.pipeline import fix_results
+    from service.fixes.decode import decode_batch
     rng = np.random.default_rng(9)
     bodies = [{"frame": "wgs84", "method": method, "formats": formats,
                "stations": [{"id": sid, "position": {"lat_deg": 33.8 + 0.2 * k, "lon_deg": 108.1 - 0.1 * k}}

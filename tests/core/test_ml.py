@@ -399,7 +399,7 @@ def test_a_robust_fit_of_clean_bearings_stops_at_its_minimum(loss):
     from bench.scenarios import four_station_requests
     from core.estimators.ml import levenberg_marquardt
     from core.estimators.starting_points import initial_positions
-    from service.translate import read_fix_requests
+    from service.fixes.read import read_fix_requests
 
     batch = read_fix_requests(four_station_requests(2000, np.random.default_rng(22))).batch
     starts, _, _ = initial_positions(batch)

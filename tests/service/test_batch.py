@@ -13,7 +13,7 @@ import pytest
 from core import geodesy
 from core.estimators import REGISTRY
 from service import schemas
-from service.translate import READ_FIELDS
+from service.fixes.rules import READ_FIELDS
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request, look_angles_deg
 
 REL = 1e-9  # batch and single fixes agree to this relative precision
@@ -222,16 +222,16 @@ def test_a_malformed_problem_fails_only_its_slot(client):
 
 
 def test_a_bug_in_one_problem_fails_only_its_slot(client, monkeypatch):
-    from service import translate
+    from service.fixes import pipeline
 
-    real = translate.iter_solutions
+    real = pipeline.iter_solutions
 
     def buggy(batch, methods, options, should_stop=None, **kwargs):
         if any(o.max_iterations == 17 for o in options):
             raise ZeroDivisionError("a bug")
         return real(batch, methods, options, should_stop, **kwargs)
 
-    monkeypatch.setattr(translate, "iter_solutions", buggy)
+    monkeypatch.setattr(pipeline, "iter_solutions", buggy)
     good = _noisy(bearing_request(STATIONS_300KM, TARGET), 43)
     poisoned = copy.deepcopy(good) | {"options": {"max_iterations": 17}}
     response = client.post("/v1/fixes/batch", json={"problems": [good, poisoned, good]},
@@ -308,19 +308,19 @@ def test_parts_on_worker_threads_give_the_same_bodies(client, monkeypatch):
 
 def test_a_batch_read_in_chunks_while_earlier_chunks_solve_gives_the_same_bytes(client, monkeypatch):
     # More problems than one read chunk: each chunk is read while those before it solve on the threads.
-    from service import translate
+    from service.fixes import pipeline
 
     problems = mixed_batch()
     same_id = {"x-request-id": "chunks"}
     whole = client.post("/v1/fixes/batch", json={"problems": problems}, headers=same_id)
-    monkeypatch.setattr(translate, "PART_PROBLEMS", 3)
+    monkeypatch.setattr(pipeline, "PART_PROBLEMS", 3)
     chunked = client.post("/v1/fixes/batch", json={"problems": problems}, headers=same_id)
     assert chunked.status_code == whole.status_code == 200
     assert chunked.content == whole.content
 
 
 def test_the_reader_knows_every_validator_of_the_request_schema():
-    """translate's reader re-implements these checks; a new one must be taught to it (or it must reject)."""
+    """The lean reader (service.fixes.read) re-implements these checks; a new one must be taught to it (or it must reject)."""
     known = {("FixRequest", "_stations_match_frame"), ("FixRequest", "_within_cost"),
              ("BearingMeasurement", "_elevation_sigma")}
     found = {(m.__name__, name) for m in READ_FIELDS for kind in ("model_validators", "field_validators")
@@ -394,7 +394,7 @@ def test_a_fix_is_the_same_bytes_when_a_larger_problem_pads_it(mix):
     lines or pairs is added in order (numpy's pairwise sums over eight or more terms round differently once
     zeros are appended)."""
     from service.responses import dumps
-    from service.translate import fix_results
+    from service.fixes.pipeline import fix_results
 
     def body(result):
         out = result.get("fix") or {k: v for k, v in result["error"].items() if k not in ("request_id", "instance")}
@@ -419,7 +419,7 @@ _PADDING_PROBE = """
 import copy, json, resource
 import numpy as np
 from bench.scenarios import four_station_requests
-from service.translate import fix_results
+from service.fixes.pipeline import fix_results
 
 def peak_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

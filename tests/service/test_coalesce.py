@@ -6,10 +6,10 @@ import asyncio
 import copy
 import threading
 
-from service import translate
+from service.fixes import pipeline
 from service.coalesce import Coalescer
 from service.responses import dumps
-from service.translate import fix_results
+from service.fixes.pipeline import fix_results
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.test_batch import _noisy, _subset, assert_close, mixed_batch
 
@@ -100,7 +100,7 @@ def test_an_idle_service_solves_a_lone_request_at_once():
 
 def _poisoned_core(monkeypatch, shared_too: bool = False) -> None:
     """A core that raises (a bug) on a problem whose max_iterations is 17, and on any batch if ``shared_too``."""
-    real = translate.iter_solutions
+    real = pipeline.iter_solutions
 
     def buggy(batch, methods, options, should_stop=None, **kwargs):
         if shared_too and batch.size > 1:
@@ -109,7 +109,7 @@ def _poisoned_core(monkeypatch, shared_too: bool = False) -> None:
             raise ZeroDivisionError("a bug in this problem")
         return real(batch, methods, options, should_stop, **kwargs)
 
-    monkeypatch.setattr(translate, "iter_solutions", buggy)
+    monkeypatch.setattr(pipeline, "iter_solutions", buggy)
 
 
 def _good_and_poisoned() -> tuple[dict, dict]:

@@ -16,7 +16,7 @@ from PIL import Image
 
 from service import maps, schemas
 from service.routes.coverage import KMZ, PNG, TIFF
-from service.translate import grid_of_request
+from service.planning import grid_of_request
 from tests.service.test_crlb_grid import _grid_across, geodetic_request, local_request
 
 KML_SCHEMA = etree.XMLSchema(etree.parse(str(pathlib.Path(__file__).parent / "data" / "kml-2.2-subset.xsd")))

@@ -36,7 +36,7 @@ def test_an_azimuth_only_method_without_altitude_points_at_constraints_altitude_
     import numpy as np
 
     from bench.scenarios import four_station_requests
-    from service.translate import fix_results
+    from service.fixes.pipeline import fix_results
 
     (result,) = fix_results(four_station_requests(1, np.random.default_rng(3), method="tls", with_altitude=False))
     assert not result["ok"]

@@ -15,7 +15,7 @@ import pytest
 from core import geodesy
 from core.crlb import information_at
 from service import schemas
-from service.translate import to_problem
+from service.convert import to_problem
 from tests.service.conftest import STATIONS_300KM, bearing_request
 
 #: About 400 km north-east of the stations' centroid (34.8 N, 110.3 E).

@@ -12,7 +12,8 @@ import tracemalloc
 import orjson
 import pytest
 
-from service import cli, logs, translate
+from service import cli, logs
+from service.fixes import pipeline
 from service.auth import identify
 from service.headers import parse_authorization
 from service.middleware import TokenBucket
@@ -261,16 +262,16 @@ def test_log_lines_are_json_with_time_level_and_request_id_and_no_measurements(c
 
 
 def test_the_shared_solve_logs_the_exception_its_fallback_absorbs(monkeypatch, captured_logs):
-    real = translate.iter_solutions
+    real = pipeline.iter_solutions
 
     def broken_when_shared(batch, methods, options, should_stop=None, **kwargs):
         if batch.size > 1:
             raise RuntimeError("the batched path broke")
         return real(batch, methods, options, should_stop, **kwargs)
 
-    monkeypatch.setattr(translate, "iter_solutions", broken_when_shared)
+    monkeypatch.setattr(pipeline, "iter_solutions", broken_when_shared)
     body = bearing_request(STATIONS_300KM, TARGET)
-    solved = translate.fix_results([body, body], ["a", "b"])
+    solved = pipeline.fix_results([body, body], ["a", "b"])
     assert all(result["ok"] for result in solved)
     errors = [line for line in captured_logs() if line["level"] == "error"]
     assert errors and "the batched path broke" in errors[0]["exception"]

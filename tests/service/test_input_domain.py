@@ -215,7 +215,7 @@ def test_max_fix_cost_limits_a_fix_and_each_batch_problem(make_client):
 def test_the_fix_cost_limit_is_passed_to_validation_as_an_argument():
     from pydantic import ValidationError
 
-    from service import translate
+    from service.fixes.read import read_fix_requests
     from service.limits import fix_cost_context
 
     body = _fix()  # 4 stations x 4 bearings = 16
@@ -223,8 +223,8 @@ def test_the_fix_cost_limit_is_passed_to_validation_as_an_argument():
     schemas.FixRequest.model_validate(body, context=fix_cost_context(16))
     with pytest.raises(ValidationError, match="over the limit max_fix_cost = 15"):
         schemas.FixRequest.model_validate(body, context=fix_cost_context(15))
-    assert translate.read_fix_requests([body], 16).errors == {}
-    refused = translate.read_fix_requests([body], 15)
+    assert read_fix_requests([body], 16).errors == {}
+    refused = read_fix_requests([body], 15)
     assert refused.batch is None and "max_fix_cost = 15" in refused.errors[0]["detail"]
 
 

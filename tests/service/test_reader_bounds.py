@@ -10,7 +10,7 @@ import math
 import pytest
 
 from service import schemas
-from service.translate import read_fix_requests
+from service.fixes.read import read_fix_requests
 from tests.service.test_extreme_values import _with
 
 BASE = {

@@ -7,7 +7,7 @@ import orjson
 
 from bench.scenarios import four_station_requests
 from service.responses import JsonObject, dumps
-from service.translate import fix_results
+from service.fixes.pipeline import fix_results
 
 
 def test_a_json_object_is_written_as_its_bytes_and_reads_as_their_fields():
@@ -29,15 +29,15 @@ def test_a_fix_reads_as_the_body_it_writes():
 
 
 def test_the_templates_of_large_fixes_are_not_kept():
-    from service import translate
+    from service.fixes import write
     from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 
     small = bearing_request(STATIONS_300KM, TARGET)
     large = bearing_request(STATIONS_300KM, TARGET)
     large["measurements"] = large["measurements"] * 12  # each bearing an azimuth and an elevation residual
     residuals = 2 * len(large["measurements"])
-    assert residuals > translate._KEPT_RESIDUALS
-    translate._kept_template.cache_clear()
+    assert residuals > write._KEPT_RESIDUALS
+    write._kept_template.cache_clear()
     results = fix_results([small, large])
     assert all(r["ok"] for r in results) and len(results[1]["fix"]["residuals"]) == residuals
-    assert translate._kept_template.cache_info().currsize == 1
+    assert write._kept_template.cache_info().currsize == 1

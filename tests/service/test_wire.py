@@ -21,10 +21,13 @@ import numpy as np
 import orjson
 import pytest
 
-from service import schemas, translate, wire
+from service import schemas
+from service.fixes import decode as wire
+from service.fixes import read as reader
 from service.deps import parse_json
 from service.responses import dumps
-from service.translate import READ_FIELDS, fix_results
+from service.fixes.rules import READ_FIELDS
+from service.fixes.pipeline import fix_results
 from tests.service.test_batch import assert_close
 
 FULL = {
@@ -145,7 +148,7 @@ def test_many_bodies_decode_and_the_reader_takes_the_valid_ones(mutations):
     are type errors, which do not decode, but hundreds of bodies do."""
     decoded = [wire.decode_fix(json.dumps(body).encode()) for body in mutations]
     assert sum(d is not None for d in decoded) > 400
-    read = translate._read([d for d in decoded if d is not None])
+    read = reader._read([d for d in decoded if d is not None])
     assert len(read[0]) > 50
 
 

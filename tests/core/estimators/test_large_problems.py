@@ -16,7 +16,7 @@ from bench.scenarios import four_station_requests, largest_fix_request
 from core import estimators
 from core.estimators.base import EstimatorSpec
 from core.estimators.search import SEARCH_PAIRS, candidates
-from service.translate import read_fix_requests
+from service.fixes.read import read_fix_requests
 
 
 def test_a_part_holds_at_most_part_pairs_or_one_problem(monkeypatch):

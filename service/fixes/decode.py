@@ -4,7 +4,7 @@ msgspec decodes a body into these structs in one C pass: JSON types checked
 (strict as the schema: a boolean or a string is not a number, an integer is
 a float, no null where the schema has none), unknown fields refused, no dict
 per object. What these types do not say (bounds, lengths, the frame's
-position kind, station references) :func:`service.translate.read_fix_requests`
+position kind, station references) :func:`service.fixes.read.read_fix_requests`
 checks in bulk. When a body (or one problem of a batch) does not decode, it
 is parsed as plain JSON and each problem's dicts are converted to these
 structs (:func:`as_fix_body`); a problem that does not convert either, or
@@ -14,7 +14,7 @@ read through the schema (:mod:`service.schemas`), which words its error.
 Absent fields are ``UNSET`` (``None`` where the schema's default is null), so
 the schema's defaults stay the only ones. A problem the reader refuses goes to
 the schema as the dicts it was decoded from (:func:`as_builtins`).
-``service.translate.READ_FIELDS`` lists these fields per schema model, and a
+``service.fixes.rules.READ_FIELDS`` lists these fields per schema model, and a
 test holds them to the models.
 
 Why msgspec (a well-kept C extension) rather than orjson's dicts and a walk
