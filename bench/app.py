@@ -22,8 +22,8 @@ from starlette.responses import Response
 
 from service.app import create_app
 from service.deps import get_owner, parse_json
-from service.settings import Settings
 from service.fixes.decode import decode_fix
+from service.settings import Settings
 
 
 def create_bench_app(settings: Settings | None = None) -> FastAPI:

@@ -74,10 +74,10 @@ def _single_phase_times(count: int = 300) -> dict[str, float]:
     from core.error_summary import error_summary
     from core.estimators import solve_many
     from service.deps import parse_json
-    from service.responses import JsonResponse
-    from service.fixes.write import fix_bodies
-    from service.fixes.read import read_fix_requests
     from service.fixes.decode import decode_fix
+    from service.fixes.read import read_fix_requests
+    from service.fixes.write import fix_bodies
+    from service.responses import JsonResponse
 
     bodies = [orjson.dumps(b) for b in four_station_requests(count, np.random.default_rng(12))]
     error_summary(np.eye(3))  # its interpolation tables are built once per process, on first use: not per fix
@@ -265,10 +265,10 @@ def core_single_row(count: int = 300, rounds: int = 5) -> Row:
 def _phase_times(problems: list) -> dict[str, float]:
     """Where a batch's server time goes, phase by phase, measured in this process (GC paused as the route does)."""
     from core.estimators import solve_many
-    from service.responses import JsonResponse
-    from service.fixes.write import fix_bodies
-    from service.fixes.read import read_fix_requests
     from service.fixes.decode import decode_batch
+    from service.fixes.read import read_fix_requests
+    from service.fixes.write import fix_bodies
+    from service.responses import JsonResponse
 
     raw = orjson.dumps({"problems": problems})
     times: dict[str, float] = {}

@@ -1,8 +1,9 @@
 """Map-ready renderings of fixes and session states: Cursor-on-Target 2.0 events and GeoJSON.
 
-Both are built from the response bodies (the dicts of :mod:`service.fixes.write`
-and :func:`service.sessions.state_body`), so a rendering says exactly what the
-JSON says. Errors are in the east/north/up axes at the rendered point itself
+Both are built from the fields of the response bodies (a fix's as
+:func:`service.fixes.write.fix_bodies` writes them, from the solved batch's
+numbers; a session's from :func:`service.sessions.state_body`), so a rendering
+says exactly what the JSON says. Errors are in the east/north/up axes at the rendered point itself
 (a fix body's ``covariance_enu_m2`` already is; a session's ``covariance_enu``
 is turned from the observer's axes to the emitter's):
 

@@ -22,13 +22,24 @@ from core.problem_batch_build import build_problem_batch
 from service import schemas
 from service.convert import to_options, to_problem
 from service.fixes import decode
-from service.fixes.rules import (_ALTITUDE, _AZ, _COORDINATE_BOUNDS, _DEFAULT_OPTIONS, _DEFAULT_SOLVE, _EAST, _EL,
-                                 _FORMATS, _FRAME, _ITERATIONS, _LAT, _LON, _ALT, _LOSS_SCALE, _LOSSES, _MEASUREMENTS_MAX,
-                                 _METHOD, _METHODS, _NAN3, _NORTH, _OUTLIERS, _RG, _SIGMA_BOUNDS, _STATION_ID_MAX,
-                                 _TOA, _TOLERANCE, _UP, _VALUE_BOUNDS, _VARIANTS)
+from service.fixes.rules import (AZ, CHOICES, COORDINATE_BOUNDS, DEFAULT_OPTIONS, DEFAULT_SOLVE, EL, FRAME, METHOD,
+                                 RG, RULES, SIGMA_BOUNDS, TOA, VALUE_BOUNDS)
 from service.limits import fix_cost_context, fix_within_limit
 from service.problems import localization_problem, problem_body, validation_errors
 from service.renderings import Renderings, of_request
+
+# The rules the reader applies, each from the one table (service.fixes.rules).
+_FixRequest, _Options = schemas.FixRequest, schemas.Options
+_LAT, _LON, _ALT = (RULES[schemas.GeodeticPosition, name] for name in ("lat_deg", "lon_deg", "alt_m"))
+_EAST, _NORTH, _UP = (RULES[schemas.LocalPosition, name] for name in ("east_m", "north_m", "up_m"))
+_STATIONS, _MEASUREMENTS = RULES[_FixRequest, "stations"], RULES[_FixRequest, "measurements"]
+_FORMATS_LENGTH, _STATION_ID = RULES[_FixRequest, "formats"], RULES[schemas.Station, "id"]
+_ITERATIONS, _TOLERANCE, _LOSS_SCALE = (RULES[_Options, name] for name in ("max_iterations", "tolerance_m",
+                                                                             "loss_scale"))
+_ALTITUDE = RULES[schemas.Constraints, "altitude_m"]
+_FRAMES, _METHODS, _FORMATS = (CHOICES[_FixRequest, name] for name in ("frame", "method", "formats"))
+_VARIANTS, _OUTLIERS, _LOSSES = (CHOICES[_Options, name] for name in ("variant", "outliers", "loss"))
+_NAN3 = (math.nan, math.nan, math.nan)
 
 
 class _Reject(Exception):
@@ -37,7 +48,7 @@ class _Reject(Exception):
 
 def _number(value, bounds) -> float:
     """A decoded float within its closed bounds (NaN, which only a non-JSON ``NaN`` literal gives, is not)."""
-    if not bounds[0] <= value <= bounds[1]:
+    if not bounds.low <= value <= bounds.high:
         raise _Reject
     return value
 
@@ -68,23 +79,76 @@ def _position(position: decode.Position, geodetic: bool) -> tuple[float, float, 
 #: The renderings of a request that asks for none (one object shared by all such requests).
 _PLAIN = Renderings()
 
+#: The columns of a frame row (:attr:`_Settings.frame`, nine numbers, NaN where not given): geodetic (1 or 0),
+#: origin ``(lat_rad, lon_rad, alt_m)``, the known altitude_m, the initial guess in core coordinates and whether
+#: that guess is geodetic (1 or 0).
+_GEODETIC, _ORIGIN, _ALTITUDE_M, _GUESS, _GUESS_GEODETIC = 0, slice(1, 4), 4, slice(5, 8), 8
 
-def _problem_settings(body: decode.FixBody, frame: str, method: str) -> tuple:
-    """The frame row, method, options and renderings of a body with more than stations and measurements
-    (``_Reject`` if unusual). The frame row is nine numbers: geodetic (1 or 0), origin ``(lat_rad, lon_rad,
-    alt_m)``, known altitude_m, initial guess (core coordinates) and whether that guess is geodetic (1 or 0);
-    NaN where not given."""
+
+class _Settings(typing.NamedTuple):
+    """What a body says besides its stations and measurements."""
+
+    #: Nine numbers, one row of the batch's frame table (its columns: ``_GEODETIC`` ... ``_GUESS_GEODETIC``).
+    frame: tuple
+    method: str
+    options: SolveOptions
+    renderings: Renderings
+
+
+#: The columns of a scalar measurement's structure row in :class:`_Columns`.
+_KIND, _STATION, _BEARING, _SOURCE = range(4)
+
+
+class _Columns(typing.NamedTuple):
+    """Structure checks and raw columns of the bodies the lean reader takes (the numbers are checked later, in
+    bulk), and the slots of those it leaves to the schema.
+
+    Attributes
+    ----------
+    accepted : list of int
+        Request index of each body read.
+    settings : list of _Settings
+    station_counts, measurement_counts : list of int
+        Per body read; a measurement count counts scalar measurements (a bearing with an elevation is two).
+    station_ids : list of tuple of str
+    coordinates : list of float
+        Station positions, API units, three per station, flattened (a missing height is 0).
+    scalars : list of int
+        The scalar measurements' structure, four per measurement (kind code, station index, bearing index or
+        -1, request measurement index), flattened.
+    readings : list of float
+        Their values, API units, two per measurement (value, sigma), flattened; a missing azimuth sigma is NaN.
+    frames : list of float
+        The frame rows of the settings, nine per body, flattened.
+    rest : list of int
+        Request index of each body left to the schema.
+    """
+
+    accepted: list
+    settings: list
+    station_counts: list
+    measurement_counts: list
+    station_ids: list
+    coordinates: list
+    scalars: list
+    readings: list
+    frames: list
+    rest: list
+
+
+def _problem_settings(body: decode.FixBody, frame: str, method: str) -> _Settings:
+    """The settings of a body with more than stations and measurements (``_Reject`` if unusual)."""
     geodetic = frame == "wgs84"
     origin = _NAN3 if body.origin is None else _position(body.origin, True)
     options = body.options
-    solve, guess, guess_geodetic = _DEFAULT_SOLVE, _NAN3, False
+    solve, guess, guess_geodetic = DEFAULT_SOLVE, _NAN3, False
     if options is not UNSET:
-        default = _DEFAULT_OPTIONS
+        default = DEFAULT_OPTIONS
         iterations = default.max_iterations if options.max_iterations is UNSET else options.max_iterations
         outliers = default.outliers if options.outliers is UNSET else options.outliers
         absolute_sigma = default.absolute_sigma if options.absolute_sigma is UNSET else options.absolute_sigma
         loss = default.loss if options.loss is UNSET else options.loss
-        if not _ITERATIONS[0] <= iterations <= _ITERATIONS[1] or outliers not in _OUTLIERS or loss not in _LOSSES \
+        if not _ITERATIONS.low <= iterations <= _ITERATIONS.high or outliers not in _OUTLIERS or loss not in _LOSSES \
                 or options.variant is not None and options.variant not in _VARIANTS:
             raise _Reject
         solve = SolveOptions(iterations,
@@ -103,45 +167,28 @@ def _problem_settings(body: decode.FixBody, frame: str, method: str) -> tuple:
     if body.constraints is not None and body.constraints.altitude_m is not None:
         altitude = _number(body.constraints.altitude_m, _ALTITUDE)
     formats = body.formats
-    if formats is not UNSET and (len(formats) > 2 or any(f not in _FORMATS for f in formats)):
+    if formats is not UNSET and (not _FORMATS_LENGTH.low <= len(formats) <= _FORMATS_LENGTH.high
+                                 or any(f not in _FORMATS for f in formats)):
         raise _Reject
-    return ((float(geodetic), *origin, altitude, *guess, float(guess_geodetic)), method, solve,
-            Renderings(formats) if formats else _PLAIN)
+    return _Settings((float(geodetic), *origin, altitude, *guess, float(guess_geodetic)), method, solve,
+                     Renderings(formats) if formats else _PLAIN)
 
 
 #: The settings of a body with only frame, method, stations and measurements (see :func:`_problem_settings`).
-_PLAIN_SETTINGS = {(frame, method): ((float(frame == "wgs84"), *_NAN3, math.nan, *_NAN3, 0.0), method, _DEFAULT_SOLVE,
-                                     _PLAIN)
-                   for frame in ("wgs84", "local") for method in _METHODS}
+_PLAIN_SETTINGS = {(frame, method): _Settings((float(frame == "wgs84"), *_NAN3, math.nan, *_NAN3, 0.0), method,
+                                               DEFAULT_SOLVE, _PLAIN)
+                   for frame in _FRAMES for method in _METHODS}
 
 
-def _read(bodies: list, max_fix_cost: int | None = None):
-    """Structure checks and raw columns of the problems that decode as :class:`service.fixes.decode.FixBody` and look
-    plainly valid (the numbers are checked later, in bulk).
-
-    Returns
-    -------
-    accepted : list of int
-    settings : list of tuple
-        Per problem: frame row, method, options and renderings (see :func:`_problem_settings`).
-    station_counts, measurement_counts : list of int
-    station_ids : list of tuple of str
-    coordinates : list of float
-        Station positions, API units, three per station, flattened (a missing height is 0).
-    scalars : list of int
-        The scalar measurements' structure, four per measurement (kind, station, bearing, source),
-        flattened.
-    readings : list of float
-        Their values, API units, two per measurement (value, sigma), flattened; a missing azimuth
-        sigma is NaN.
-    frames : list of float
-        The frame rows of the settings, nine per problem, flattened.
-    rest : list of int
-    """
+def _read(bodies: list, max_fix_cost: int | None = None) -> _Columns:
+    """Structure checks and raw columns of the bodies that decode as :class:`service.fixes.decode.FixBody` and
+    look plainly valid (see :class:`_Columns`)."""
     accepted, settings, station_counts, measurement_counts, station_ids = [], [], [], [], []
     coordinates, scalars, readings, frames, rest = [], [], [], [], []
     add_coordinates, add_scalar, add_reading = coordinates.extend, scalars.extend, readings.extend
-    id_max, unset, nan, plain, coordinates_of = _STATION_ID_MAX, UNSET, math.nan, _PLAIN_SETTINGS, _coordinates
+    unset, nan, plain, coordinates_of = UNSET, math.nan, _PLAIN_SETTINGS, _coordinates
+    stations_min, stations_max, id_min, id_max = *_STATIONS, *_STATION_ID
+    measurements_min, measurements_max = _MEASUREMENTS
     Bearing, Range = decode.Bearing, decode.Range
     for slot, raw in enumerate(bodies):
         body = decode.as_fix_body(raw)
@@ -150,30 +197,30 @@ def _read(bodies: list, max_fix_cost: int | None = None):
             continue
         n_coordinates, n_scalars, n_readings = len(coordinates), len(scalars), len(readings)
         try:
-            frame = _FRAME if body.frame is unset else body.frame
-            method = _METHOD if body.method is unset else body.method
+            frame = FRAME if body.frame is unset else body.frame
+            method = METHOD if body.method is unset else body.method
             if body.origin is None and body.options is unset and body.constraints is None and body.formats is unset:
                 setting = plain.get((frame, method))
                 if setting is None:
                     raise _Reject
-            elif frame in ("wgs84", "local") and method in _METHODS:
+            elif frame in _FRAMES and method in _METHODS:
                 setting = _problem_settings(body, frame, method)
             else:
                 raise _Reject
             geodetic = frame == "wgs84"
             stations = body.stations
-            if not 0 < len(stations) <= 256:
+            if not stations_min <= len(stations) <= stations_max:
                 raise _Reject
             ids: dict[str, int] = {}
             for station in stations:
                 sid, position = station.id, station.position
-                if not 0 < len(sid) <= id_max or sid in ids:
+                if not id_min <= len(sid) <= id_max or sid in ids:
                     raise _Reject
                 ids[sid] = len(ids)
                 add_coordinates(coordinates_of(position, geodetic))
             measurements = body.measurements
-            if not 0 < len(measurements) <= _MEASUREMENTS_MAX or \
-                    not fix_within_limit(len(ids), len(measurements), method, setting[2].outliers == "exclude",
+            if not measurements_min <= len(measurements) <= measurements_max or \
+                    not fix_within_limit(len(ids), len(measurements), method, setting.options.outliers == "exclude",
                                          max_fix_cost):
                 raise _Reject
             n_bearings = 0
@@ -192,19 +239,19 @@ def _read(bodies: list, max_fix_cost: int | None = None):
                     if elevation is not None:
                         if sigma_elevation is None:
                             raise _Reject
-                        add_scalar((_AZ, station, n_bearings, i, _EL, station, n_bearings, i))
+                        add_scalar((AZ, station, n_bearings, i, EL, station, n_bearings, i))
                         add_reading((m.azimuth_deg, sigma_azimuth, elevation, sigma_elevation))
                     elif sigma_elevation is not None:
                         raise _Reject
                     else:
-                        add_scalar((_AZ, station, n_bearings, i))
+                        add_scalar((AZ, station, n_bearings, i))
                         add_reading((m.azimuth_deg, sigma_azimuth))
                     n_bearings += 1
                 elif kind is Range:
-                    add_scalar((_RG, station, -1, i))
+                    add_scalar((RG, station, -1, i))
                     add_reading((m.range_m, m.sigma_m))
                 else:
-                    add_scalar((_TOA, station, -1, i))
+                    add_scalar((TOA, station, -1, i))
                     add_reading((m.toa_s, m.sigma_s))
         except _Reject:
             del coordinates[n_coordinates:], scalars[n_scalars:], readings[n_readings:]
@@ -212,12 +259,12 @@ def _read(bodies: list, max_fix_cost: int | None = None):
             continue
         accepted.append(slot)
         settings.append(setting)
-        frames.extend(setting[0])
+        frames.extend(setting.frame)
         station_counts.append(len(ids))
         station_ids.append(tuple(ids))
         measurement_counts.append((len(scalars) - n_scalars) // 4)
-    return (accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings,
-            frames, rest)
+    return _Columns(accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars,
+                    readings, frames, rest)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -232,7 +279,7 @@ def _checked_core_units(coordinates, station_counts, frames, scalars, readings, 
         ``(lat_deg, lon_deg, alt_m)`` where the frame is geodetic, else ``(east_m, north_m, up_m)``. Set to core
         units: latitude and longitude in radians.
     frames : ndarray, shape (B, 9)
-        The problems' frame rows (see :func:`_problem_settings`): the first number is 1 for a geodetic frame.
+        The problems' frame rows (columns ``_GEODETIC`` ... ``_GUESS_GEODETIC``): the first number is 1 for a geodetic frame.
     scalars : ndarray of int, shape (T, 4)
         The scalar measurements' structure (kind code first), ``measurement_counts`` ``(B,)`` consecutive rows
         per problem.
@@ -265,9 +312,9 @@ def _checked_core_units(coordinates, station_counts, frames, scalars, readings, 
         for _ in range(measurement_counts[b]):
             k, value, sigma = scalars[scalar, 0], readings[scalar, 0], readings[scalar, 1]
             if not (value_bounds[k, 0] <= value <= value_bounds[k, 1] and (
-                    sigma_bounds[k, 0] <= sigma <= sigma_bounds[k, 1] or (k == _AZ and math.isnan(sigma)))):
+                    sigma_bounds[k, 0] <= sigma <= sigma_bounds[k, 1] or (k == AZ and math.isnan(sigma)))):
                 bad[b] = True
-            if k == _AZ or k == _EL:
+            if k == AZ or k == EL:
                 readings[scalar, 0], readings[scalar, 1] = math.radians(value), math.radians(sigma)
             scalar += 1
     return np.count_nonzero(bad)
@@ -312,20 +359,20 @@ def read_fix_requests(bodies: list, max_fix_cost: int | None = None) -> FixReque
     ``max_fix_cost`` (the app's limit; None: no limit) takes the schema's road,
     which words its 422.
     """
-    (accepted, settings, station_counts, measurement_counts, station_ids, coordinates, scalars, readings, frames,
-     rest) = _read(bodies, max_fix_cost)
+    read = _read(bodies, max_fix_cost)
+    accepted, settings, station_ids, rest = read.accepted, read.settings, read.station_ids, read.rest
     errors: dict[int, dict] = {}
     lean = None
     if accepted:
-        station_counts = np.array(station_counts, dtype=np.intp)
-        measurement_counts = np.array(measurement_counts, dtype=np.intp)
-        frames = np.array(frames, dtype=float).reshape(-1, 9)
-        coords = np.array(coordinates, dtype=float).reshape(-1, 3)
-        table = np.array(scalars, dtype=np.intp).reshape(-1, 4)
-        reading = np.array(readings, dtype=float).reshape(-1, 2)
+        station_counts = np.array(read.station_counts, dtype=np.intp)
+        measurement_counts = np.array(read.measurement_counts, dtype=np.intp)
+        frames = np.array(read.frames, dtype=float).reshape(-1, 9)
+        coords = np.array(read.coordinates, dtype=float).reshape(-1, 3)
+        table = np.array(read.scalars, dtype=np.intp).reshape(-1, 4)
+        reading = np.array(read.readings, dtype=float).reshape(-1, 2)
         bad = np.empty(len(accepted), dtype=bool)
         if _checked_core_units(coords, station_counts, frames, table, reading, measurement_counts,
-                               _COORDINATE_BOUNDS, _VALUE_BOUNDS, _SIGMA_BOUNDS, bad):
+                               COORDINATE_BOUNDS, VALUE_BOUNDS, SIGMA_BOUNDS, bad):
             rest = sorted(rest + [accepted[i] for i in np.flatnonzero(bad)])
             keep = np.flatnonzero(~bad)
             station_keep, scalar_keep = ~bad.repeat(station_counts), ~bad.repeat(measurement_counts)
@@ -340,23 +387,23 @@ def read_fix_requests(bodies: list, max_fix_cost: int | None = None) -> FixReque
                 station_counts=station_counts,
                 station_ids=station_ids,
                 station_coordinates=coords,
-                geodetic_stations=frames[:, 0],
-                origin=frames[:, 1:4],
+                geodetic_stations=frames[:, _GEODETIC],
+                origin=frames[:, _ORIGIN],
                 measurement_counts=measurement_counts,
-                kinds=table[:, 0],
-                station_index=table[:, 1],
+                kinds=table[:, _KIND],
+                station_index=table[:, _STATION],
                 values=reading[:, 0],
                 sigmas=reading[:, 1],
-                bearing_index=table[:, 2],
-                source_index=table[:, 3],
-                altitude_m=frames[:, 4],
-                initial_guess=frames[:, 5:8],
-                geodetic_guess=frames[:, 8],
+                bearing_index=table[:, _BEARING],
+                source_index=table[:, _SOURCE],
+                altitude_m=frames[:, _ALTITUDE_M],
+                initial_guess=frames[:, _GUESS],
+                geodetic_guess=frames[:, _GUESS_GEODETIC],
             )
     slots = list(accepted)
-    methods = [s[1] for s in settings]
-    options = [s[2] for s in settings]
-    formats = [s[3] for s in settings]
+    methods = [s.method for s in settings]
+    options = [s.options for s in settings]
+    formats = [s.renderings for s in settings]
     built: list[Problem] = []
     for slot in rest:
         try:

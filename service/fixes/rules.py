@@ -1,5 +1,14 @@
-"""The request's fields and rules as the lean reader (:mod:`service.fixes.read`) applies them, taken from the
-schema (:mod:`service.schemas`): one place for each rule."""
+"""The request's fields and the rules the lean reader (:mod:`service.fixes.read`) applies to them: one table.
+
+Each rule is written once, in the schema (:mod:`service.schemas`); this
+module reads the schema's rules into the tables the reader checks: the
+bounds of each number, string length and list length (:data:`RULES`), the
+closed sets of names (:data:`CHOICES`), the defaults, and the rules that span
+fields (:data:`VALIDATORS`, which the reader re-implements). Tests hold the
+tables to the schema: a constrained field, a set of names or a validator
+added to a request model fails them until it is listed here (and read), or
+its body is left to the schema (:data:`SCHEMA_ONLY`).
+"""
 
 from __future__ import annotations
 
@@ -13,11 +22,37 @@ from core.measurements import Kind
 from service import schemas
 from service.fixes import decode
 
-_AZ, _EL, _RG, _TOA = int(Kind.AZIMUTH), int(Kind.ELEVATION), int(Kind.RANGE), int(Kind.TOA)
 
-#: The fields the reader handles, per request model: the :mod:`service.fixes.decode` structs' fields (and ``type``, their
-#: tag). A test holds each set against the model's own fields, so a field added to the schema fails it until the
-#: reader handles the field.
+class Bounds(typing.NamedTuple):
+    """The closed interval ``[low, high]`` a field accepts: a number's value, or a string's or a list's length."""
+
+    low: float
+    high: float
+
+
+def schema_bounds(model, name: str) -> Bounds:
+    """A field's bounds as the schema gives them: a number's as the closed interval of the floats it accepts
+    (an open end, ``gt`` or ``lt``, moves one float inwards), or a string's or a list's length."""
+    low, high = -math.inf, math.inf
+    for rule in model.model_fields[name].metadata:
+        if getattr(rule, "ge", None) is not None:
+            low = float(rule.ge)
+        if getattr(rule, "gt", None) is not None:
+            low = math.nextafter(float(rule.gt), math.inf)
+        if getattr(rule, "le", None) is not None:
+            high = float(rule.le)
+        if getattr(rule, "lt", None) is not None:
+            high = math.nextafter(float(rule.lt), -math.inf)
+        if getattr(rule, "min_length", None) is not None:
+            low = rule.min_length
+        if getattr(rule, "max_length", None) is not None:
+            high = rule.max_length
+    return Bounds(low, high)
+
+
+#: The fields the reader handles, per request model: the :mod:`service.fixes.decode` structs' fields (and
+#: ``type``, their tag). A test holds each set against the model's own fields, so a field added to the schema
+#: fails it until the reader handles the field.
 READ_FIELDS = {
     # A body with observed_at or cot options is read through the schema (they shape only its renderings).
     schemas.FixRequest: frozenset(decode.FixBody.__struct_fields__) | {"observed_at", "cot"},
@@ -31,59 +66,85 @@ READ_FIELDS = {
     schemas.Options: frozenset(decode.Options.__struct_fields__),
     schemas.Constraints: frozenset(decode.Constraints.__struct_fields__),
 }
-_FORMATS = frozenset(typing.get_args(schemas.Format))
-_METHODS = schemas.METHODS
-_FRAME = schemas.FixRequest.model_fields["frame"].default
-_METHOD = schemas.FixRequest.model_fields["method"].default
-_DEFAULT_OPTIONS = schemas.Options()
-_VARIANTS = frozenset(typing.get_args(schemas.Variant))
-_OUTLIERS = frozenset(typing.get_args(schemas.Options.model_fields["outliers"].annotation))
-_LOSSES = frozenset(typing.get_args(schemas.Options.model_fields["loss"].annotation))
-_DEFAULT_SOLVE = SolveOptions(_DEFAULT_OPTIONS.max_iterations, _DEFAULT_OPTIONS.tolerance_m, _DEFAULT_OPTIONS.variant,
-                              _DEFAULT_OPTIONS.outliers, _DEFAULT_OPTIONS.absolute_sigma, _DEFAULT_OPTIONS.loss,
-                              _DEFAULT_OPTIONS.loss_scale)
-_NAN3 = (math.nan, math.nan, math.nan)
+
+#: Fields the reader leaves to the schema: a body that holds one is validated and read by the schema.
+SCHEMA_ONLY = frozenset({(schemas.FixRequest, "observed_at"), (schemas.FixRequest, "cot")})
+
+#: Every bounded field the reader checks, by (schema model, field name): its bounds, read from the schema.
+RULES = {(model, name): schema_bounds(model, name) for model, name in (
+    (schemas.FixRequest, "stations"),
+    (schemas.FixRequest, "measurements"),
+    (schemas.FixRequest, "formats"),
+    (schemas.Station, "id"),
+    (schemas.GeodeticPosition, "lat_deg"),
+    (schemas.GeodeticPosition, "lon_deg"),
+    (schemas.GeodeticPosition, "alt_m"),
+    (schemas.LocalPosition, "east_m"),
+    (schemas.LocalPosition, "north_m"),
+    (schemas.LocalPosition, "up_m"),
+    (schemas.BearingMeasurement, "station_id"),
+    (schemas.BearingMeasurement, "azimuth_deg"),
+    (schemas.BearingMeasurement, "elevation_deg"),
+    (schemas.BearingMeasurement, "sigma_azimuth_deg"),
+    (schemas.BearingMeasurement, "sigma_elevation_deg"),
+    (schemas.RangeMeasurement, "station_id"),
+    (schemas.RangeMeasurement, "range_m"),
+    (schemas.RangeMeasurement, "sigma_m"),
+    (schemas.ToaMeasurement, "station_id"),
+    (schemas.ToaMeasurement, "toa_s"),
+    (schemas.ToaMeasurement, "sigma_s"),
+    (schemas.Options, "max_iterations"),
+    (schemas.Options, "tolerance_m"),
+    (schemas.Options, "loss_scale"),
+    (schemas.Constraints, "altitude_m"),
+)}
 
 
-def _bounds(model, name: str) -> tuple[float, float]:
-    """A float field's bounds as the closed interval ``[low, high]`` of the floats its schema accepts (an open
-    end, ``gt`` or ``lt``, moves one float inwards)."""
-    low, high = -math.inf, math.inf
-    for rule in model.model_fields[name].metadata:
-        if getattr(rule, "ge", None) is not None:
-            low = float(rule.ge)
-        if getattr(rule, "gt", None) is not None:
-            low = math.nextafter(float(rule.gt), math.inf)
-        if getattr(rule, "le", None) is not None:
-            high = float(rule.le)
-        if getattr(rule, "lt", None) is not None:
-            high = math.nextafter(float(rule.lt), -math.inf)
-    return low, high
+def _names(annotation) -> frozenset:
+    """The names a ``Literal`` (or a list or an optional of one) allows."""
+    found = set()
+    for arg in typing.get_args(annotation):
+        if isinstance(arg, str):
+            found.add(arg)
+        else:
+            found |= _names(arg)
+    return frozenset(found)
 
 
-_LAT = _bounds(schemas.GeodeticPosition, "lat_deg")
-_LON = _bounds(schemas.GeodeticPosition, "lon_deg")
-_ALT = _bounds(schemas.GeodeticPosition, "alt_m")
-_EAST = _bounds(schemas.LocalPosition, "east_m")
-_NORTH = _bounds(schemas.LocalPosition, "north_m")
-_UP = _bounds(schemas.LocalPosition, "up_m")
-_AZIMUTH = _bounds(schemas.BearingMeasurement, "azimuth_deg")
-_ELEVATION = _bounds(schemas.BearingMeasurement, "elevation_deg")
-_SIGMA_AZIMUTH = _bounds(schemas.BearingMeasurement, "sigma_azimuth_deg")
-_SIGMA_ELEVATION = _bounds(schemas.BearingMeasurement, "sigma_elevation_deg")
-_RANGE = _bounds(schemas.RangeMeasurement, "range_m")
-_SIGMA_RANGE = _bounds(schemas.RangeMeasurement, "sigma_m")
-_TOA_S = _bounds(schemas.ToaMeasurement, "toa_s")
-_SIGMA_TOA = _bounds(schemas.ToaMeasurement, "sigma_s")
-_TOLERANCE = _bounds(schemas.Options, "tolerance_m")
-_ITERATIONS = _bounds(schemas.Options, "max_iterations")
-_LOSS_SCALE = _bounds(schemas.Options, "loss_scale")
-_ALTITUDE = _bounds(schemas.Constraints, "altitude_m")
-#: The bounds above as tables for the bulk checks: per frame (local, geodetic) and coordinate, and per kind code.
-_COORDINATE_BOUNDS = np.array([[_EAST, _NORTH, _UP], [_LAT, _LON, _ALT]], dtype=float)
-_VALUE_BOUNDS = np.array([{_AZ: _AZIMUTH, _EL: _ELEVATION, _RG: _RANGE, _TOA: _TOA_S}[k] for k in range(4)])
-_SIGMA_BOUNDS = np.array([{_AZ: _SIGMA_AZIMUTH, _EL: _SIGMA_ELEVATION, _RG: _SIGMA_RANGE, _TOA: _SIGMA_TOA}[k]
-                          for k in range(4)])
-_MEASUREMENTS_MAX = schemas.MAX_FIX_MEASUREMENTS
-_STATION_ID_MAX = next(rule.max_length for rule in schemas.Station.model_fields["id"].metadata
-                       if getattr(rule, "max_length", None) is not None)
+#: Every field of closed names the reader checks, by (schema model, field name): the names, read from the schema.
+CHOICES = {(model, name): _names(model.model_fields[name].annotation) for model, name in (
+    (schemas.FixRequest, "frame"),
+    (schemas.FixRequest, "method"),
+    (schemas.FixRequest, "formats"),
+    (schemas.Options, "variant"),
+    (schemas.Options, "outliers"),
+    (schemas.Options, "loss"),
+    (schemas.BearingMeasurement, "type"),
+    (schemas.RangeMeasurement, "type"),
+    (schemas.ToaMeasurement, "type"),
+)}
+
+#: The schema's rules that span fields (validators, by model name and method name), each re-implemented by the
+#: reader: frame and station positions agree, the body is within the fix cost limit, an elevation has a sigma.
+VALIDATORS = frozenset({("FixRequest", "_stations_match_frame"), ("FixRequest", "_within_cost"),
+                        ("BearingMeasurement", "_elevation_sigma")})
+
+FRAME = schemas.FixRequest.model_fields["frame"].default
+METHOD = schemas.FixRequest.model_fields["method"].default
+DEFAULT_OPTIONS = schemas.Options()
+DEFAULT_SOLVE = SolveOptions(DEFAULT_OPTIONS.max_iterations, DEFAULT_OPTIONS.tolerance_m, DEFAULT_OPTIONS.variant,
+                             DEFAULT_OPTIONS.outliers, DEFAULT_OPTIONS.absolute_sigma, DEFAULT_OPTIONS.loss,
+                             DEFAULT_OPTIONS.loss_scale)
+
+AZ, EL, RG, TOA = int(Kind.AZIMUTH), int(Kind.ELEVATION), int(Kind.RANGE), int(Kind.TOA)
+_GEODETIC = [RULES[schemas.GeodeticPosition, name] for name in ("lat_deg", "lon_deg", "alt_m")]
+_LOCAL = [RULES[schemas.LocalPosition, name] for name in ("east_m", "north_m", "up_m")]
+#: The bounds as tables for the bulk checks: per frame (local, geodetic) and coordinate ``(2, 3, 2)``, and per
+#: measurement kind code ``(4, 2)``: a value's and a sigma's.
+COORDINATE_BOUNDS = np.array([_LOCAL, _GEODETIC], dtype=float)
+_VALUES = {AZ: ("BearingMeasurement", "azimuth_deg", "sigma_azimuth_deg"),
+           EL: ("BearingMeasurement", "elevation_deg", "sigma_elevation_deg"),
+           RG: ("RangeMeasurement", "range_m", "sigma_m"),
+           TOA: ("ToaMeasurement", "toa_s", "sigma_s")}
+VALUE_BOUNDS = np.array([RULES[getattr(schemas, _VALUES[k][0]), _VALUES[k][1]] for k in range(4)], dtype=float)
+SIGMA_BOUNDS = np.array([RULES[getattr(schemas, _VALUES[k][0]), _VALUES[k][2]] for k in range(4)], dtype=float)

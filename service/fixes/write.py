@@ -361,8 +361,8 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     stations, components and flags, the frame, stages...) share a template
     (:func:`_fix_template`); every body is then its template's pieces and
     its values' text in turn, written by one compiled loop per template: no
-    Python object per value. A fix asking for renderings is read back from
-    its text to make them.
+    Python object per value. A fix's renderings are made from the same
+    numbers (:func:`_rendered_fields`) and appended to its text.
 
     Parameters
     ----------
@@ -436,11 +436,51 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
             continue
         wanted = formats[b]
         if wanted:
-            body = orjson.loads(text)
-            if "geojson" in wanted:
-                body["geojson"] = fix_geojson(body, wanted)
-            if "cot" in wanted:
-                body["cot"] = fix_cot(body, wanted)
-            text = orjson.dumps(body)
+            text = _with_renderings(text, _rendered_fields(numbers[b], fixes.method, fixes.covariance_source,
+                                                           bool(batch.geodetic[b])), wanted)
         out.append({"ok": True, "fix": JsonObject(text, known)})
     return out
+
+
+#: Where each block of a fix's numbers (:func:`_fix_numbers`) starts, before the residuals' two blocks.
+_POSITION, _COVARIANCE, _ERROR = 0, 3, 21
+#: The ``error`` block's fields, in the body's order (the last three are its ``ellipse95``).
+_ERROR_FIELDS = ("cep50_m", "sep50_m", "vertical_sigma_m", "gdop", "sqrt_trace_m")
+_ELLIPSE_FIELDS = ("semi_major_m", "semi_minor_m", "orientation_deg")
+
+
+def _rendered_fields(numbers: np.ndarray, method: str, source: str, geodetic: bool) -> dict:
+    """The fields of a fix body its renderings read (:func:`service.renderings.fix_geojson`,
+    :func:`service.renderings.fix_cot`), from the fix's row of :func:`_fix_numbers`: the very numbers its text
+    holds (and, as there, a number that is not finite is null).
+
+    Parameters
+    ----------
+    numbers : ndarray, shape (50 + 2 M,)
+    method, source : str
+        The fix's ``method`` and ``covariance_source``.
+    geodetic : bool
+        Whether the fix has a ``position`` on the earth.
+    """
+    width = (numbers.size - 50) // 2
+    values = [v if math.isfinite(v) else None for v in numbers.tolist()]
+    error = dict(zip(_ERROR_FIELDS, values[_ERROR:_ERROR + 5]))
+    error["ellipse95"] = dict(zip(_ELLIPSE_FIELDS, values[_ERROR + 5:_ERROR + 8]))
+    covariance = values[_COVARIANCE:_COVARIANCE + 9]
+    fields = {"method": method, "covariance_source": source, "error": error,
+              "covariance_enu_m2": [covariance[0:3], covariance[3:6], covariance[6:9]]}
+    if geodetic:
+        at = _ERROR + 8 + 2 * width + 3  # after the residuals and the fit: the geodetic position
+        fields["position"] = dict(zip(("lat_deg", "lon_deg", "alt_m"), values[at:at + 3]))
+    return fields
+
+
+def _with_renderings(text: bytes, fields: dict, wanted) -> bytes:
+    """A fix body's text with the renderings ``wanted`` asks for (a :class:`service.renderings.Renderings`)
+    appended as its last members, ``geojson`` then ``cot``."""
+    members = b""
+    if "geojson" in wanted:
+        members += b',"geojson":' + orjson.dumps(fix_geojson(fields, wanted))
+    if "cot" in wanted:
+        members += b',"cot":' + orjson.dumps(fix_cot(fields, wanted))
+    return text[:-1] + members + b"}"

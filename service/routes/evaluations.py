@@ -19,8 +19,8 @@ from pydantic import Discriminator, Tag
 from service import network_sessions, schemas, session_schemas
 from service.deps import OwnerDep
 from service.limits import check_evaluation, method_weight
-from service.responses import JsonResponse
 from service.planning import crlb_problem, evaluation_body
+from service.responses import JsonResponse
 from service.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["evaluations"])

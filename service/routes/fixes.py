@@ -17,12 +17,12 @@ from starlette.responses import Response
 
 from service import schemas, tak
 from service.deps import OwnerDep, get_owner, json_request_body, parse_json, request_id
+from service.fixes.decode import decode_fix
+from service.planning import crlb_response
 from service.problems import MEDIA_TYPE
 from service.renderings import problem_renderings
 from service.responses import JsonResponse
-from service.planning import crlb_response
 from service.watch import watched
-from service.fixes.decode import decode_fix
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 

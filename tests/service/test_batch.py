@@ -13,7 +13,7 @@ import pytest
 from core import geodesy
 from core.estimators import REGISTRY
 from service import schemas
-from service.fixes.rules import READ_FIELDS
+from service.fixes.rules import READ_FIELDS, VALIDATORS
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request, look_angles_deg
 
 REL = 1e-9  # batch and single fixes agree to this relative precision
@@ -320,12 +320,11 @@ def test_a_batch_read_in_chunks_while_earlier_chunks_solve_gives_the_same_bytes(
 
 
 def test_the_reader_knows_every_validator_of_the_request_schema():
-    """The lean reader (service.fixes.read) re-implements these checks; a new one must be taught to it (or it must reject)."""
-    known = {("FixRequest", "_stations_match_frame"), ("FixRequest", "_within_cost"),
-             ("BearingMeasurement", "_elevation_sigma")}
+    """The lean reader re-implements the schema's validators (service.fixes.rules.VALIDATORS); a new one fails
+    here until the reader is taught it (or rejects what it cannot check)."""
     found = {(m.__name__, name) for m in READ_FIELDS for kind in ("model_validators", "field_validators")
              for name in getattr(m.__pydantic_decorators__, kind)}
-    assert found == known
+    assert found == VALIDATORS
 
 
 def test_the_reader_handles_every_field_of_every_request_model():

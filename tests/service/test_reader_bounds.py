@@ -6,11 +6,13 @@ from __future__ import annotations
 
 import copy
 import math
+import typing
 
 import pytest
 
 from service import schemas
 from service.fixes.read import read_fix_requests
+from service.fixes.rules import CHOICES, READ_FIELDS, RULES, SCHEMA_ONLY
 from tests.service.test_extreme_values import _with
 
 BASE = {
@@ -28,6 +30,8 @@ BASE = {
 LOCAL = {**copy.deepcopy(BASE), "frame": "local",
          "stations": [{"id": "a", "position": {"east_m": 0.0, "north_m": 0.0, "up_m": 0.0}},
                       {"id": "b", "position": {"east_m": 9e3, "north_m": 2e3, "up_m": 10.0}}]}
+OPTIONS = {**copy.deepcopy(BASE), "options": {"tolerance_m": 1e-3, "loss_scale": 1.0},
+           "constraints": {"altitude_m": 100.0}}
 #: (request, path to the value, schema model, field)
 FIELDS = [
     (BASE, ("stations", 0, "position", "lat_deg"), schemas.GeodeticPosition, "lat_deg"),
@@ -44,6 +48,9 @@ FIELDS = [
     (BASE, ("measurements", 1, "sigma_m"), schemas.RangeMeasurement, "sigma_m"),
     (BASE, ("measurements", 2, "toa_s"), schemas.ToaMeasurement, "toa_s"),
     (BASE, ("measurements", 2, "sigma_s"), schemas.ToaMeasurement, "sigma_s"),
+    (OPTIONS, ("options", "tolerance_m"), schemas.Options, "tolerance_m"),
+    (OPTIONS, ("options", "loss_scale"), schemas.Options, "loss_scale"),
+    (OPTIONS, ("constraints", "altitude_m"), schemas.Constraints, "altitude_m"),
 ]
 
 
@@ -70,3 +77,62 @@ def test_each_bound_is_held_to_the_last_float(request_body, path, model, field):
         assert 1 in read.errors, f"{field} = {outside!r} is outside the schema's bound but was read"
         assert read.errors[1]["status"] == 422
         assert [tuple(e["loc"]) for e in read.errors[1]["errors"]] == [path], read.errors[1]
+
+
+#: The integer bounds, which the float probes above cannot hold: each is held at its ends here.
+INTEGER_FIELDS = [(OPTIONS, ("options", "max_iterations"), schemas.Options, "max_iterations")]
+
+
+def test_a_body_one_past_an_integer_bound_gets_the_schemas_error():
+    for request_body, path, model, field in INTEGER_FIELDS:
+        low, high = RULES[model, field]
+        values = [int(low), int(high), int(low) - 1, int(high) + 1]
+        read = read_fix_requests([_with(request_body, path, value) for value in values])
+        assert 0 not in read.errors and 1 not in read.errors, field
+        for slot in (2, 3):
+            assert [tuple(e["loc"]) for e in read.errors[slot]["errors"]] == [path], read.errors[slot]
+
+
+def _bounded(model, name) -> bool:
+    return any(getattr(rule, attr, None) is not None for rule in model.model_fields[name].metadata
+               for attr in ("ge", "gt", "le", "lt", "min_length", "max_length", "pattern"))
+
+
+def _has_names(annotation) -> bool:
+    return typing.get_origin(annotation) is typing.Literal or any(_has_names(a) for a in typing.get_args(annotation))
+
+
+def test_every_rule_of_a_field_the_reader_reads_is_in_its_table():
+    """A bound, a pattern or a closed set of names added to a request field fails here until the reader's one
+    table (``service.fixes.rules``) lists it, or the reader leaves bodies with that field to the schema; and every
+    number the table bounds is probed at its ends above."""
+    left_to_schema = {model for (owner, name) in SCHEMA_ONLY
+                      for model in _models(owner.model_fields[name].annotation)}
+    for model, fields in READ_FIELDS.items():
+        if model in left_to_schema:
+            continue
+        for name in fields:
+            if (model, name) in SCHEMA_ONLY:
+                continue
+            if _bounded(model, name):
+                assert (model, name) in RULES, f"{model.__name__}.{name} has a bound the reader's RULES lack"
+                assert not any(getattr(rule, "pattern", None) for rule in model.model_fields[name].metadata), \
+                    f"{model.__name__}.{name}: the reader checks no pattern; leave the field to the schema"
+            if _has_names(model.model_fields[name].annotation):
+                assert (model, name) in CHOICES, f"{model.__name__}.{name} names choices the reader's CHOICES lack"
+    probed = {(model, field) for *_, model, field in FIELDS + INTEGER_FIELDS}
+    numbers = {(model, name) for model, name in RULES if _is_number(model.model_fields[name].annotation)}
+    assert numbers <= probed, numbers - probed
+
+
+def _is_number(annotation) -> bool:
+    return annotation in (float, int) or set(typing.get_args(annotation)) in ({float, type(None)}, {int, type(None)})
+
+
+def _models(annotation):
+    from pydantic import BaseModel
+
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        yield annotation
+    for arg in typing.get_args(annotation):
+        yield from _models(arg)
