@@ -41,3 +41,34 @@ def test_the_templates_of_large_fixes_are_not_kept():
     results = fix_results([small, large])
     assert all(r["ok"] for r in results) and len(results[1]["fix"]["residuals"]) == residuals
     assert write._kept_template.cache_info().currsize == 1
+
+
+def test_the_writer_writes_every_field_of_the_fix_response_schema():
+    """A field added to a fix's response models fails here until the writer (service.fixes.write) writes it."""
+    from service import schemas
+
+    requests = [{**r, "formats": ["geojson", "cot"]} for r in four_station_requests(2, np.random.default_rng(6))] + [
+        four_station_requests(1, np.random.default_rng(7), with_range=True, method="angle_range")[0],
+        four_station_requests(1, np.random.default_rng(8), method="taylor_wls")[0]]
+    for m in requests[3]["measurements"]:
+        m.pop("sigma_azimuth_deg", None)  # taylor_wls then estimates each bearing's error
+    fixes = [r["fix"] for r in fix_results(requests) if r["ok"]]
+    assert len(fixes) == len(requests)
+    models = {None: schemas.FixResponse, "error": schemas.ErrorSummary, "ellipse95": schemas.Ellipse,
+              "fit": schemas.Fit, "residuals": schemas.Residual, "position": schemas.GeodeticPositionResult,
+              "position_local": schemas.LocalPositionResult, "stages": schemas.Stages}
+    written: dict = {name: set() for name in models}
+
+    def walk(name, value):
+        if name in models and isinstance(value, dict):
+            written[name] |= set(value)
+            for key, inner in value.items():
+                walk(key, inner)
+        elif name in models and isinstance(value, list):
+            for item in value:
+                walk(name, item)
+
+    for fix in fixes:
+        walk(None, orjson.loads(dumps(fix)))
+    for name, model in models.items():
+        assert written[name] == set(model.model_fields), (model.__name__, set(model.model_fields) ^ written[name])
