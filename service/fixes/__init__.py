@@ -1,7 +1,7 @@
 """Fix requests, single or batched: one road, :func:`service.fixes.pipeline.fix_results`.
 
-decode (:mod:`~service.fixes.decode`) -> read into one core batch (:mod:`~service.fixes.read`, under the rules of
-:mod:`~service.fixes.rules`) -> solve (:func:`core.estimators.iter_solutions`) -> write
-(:mod:`~service.fixes.write`). This package imports nothing itself, so that importing one step loads only what that
-step needs.
+decode (:mod:`~service.fixes.decode`) -> read into one core batch (:mod:`~service.fixes.read`, under the rules
+of :mod:`~service.fixes.rules`) -> solve (:func:`core.estimators.iter_solutions`) -> summarise
+(:func:`core.fix_summary.summarise_fixes`) -> write (:mod:`~service.fixes.write`). This package imports
+nothing itself, so that importing one step loads only what that step needs.
 """

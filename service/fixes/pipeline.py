@@ -1,4 +1,4 @@
-"""The fix road, top to bottom: decode, read into one core batch, solve, write.
+"""The fix road, top to bottom: decode, read into one core batch, solve, summarise, write.
 
 :func:`fix_results` is its one entry point, called by ``POST /v1/fixes`` (through
 :class:`service.coalesce.Coalescer`) and ``POST /v1/fixes/batch``:
@@ -6,8 +6,10 @@
 1. decode: the routes decode bodies into typed structs (:mod:`service.fixes.decode`);
 2. read: :func:`service.fixes.read.read_fix_requests` reads them into one core batch under the
    request's rules (:mod:`service.fixes.rules`);
-3. solve: :func:`core.estimators.iter_solutions` solves it part by part, error summaries included;
-4. write: :func:`service.fixes.write.fix_bodies` writes every fix body from the batch's arrays.
+3. solve: :func:`core.estimators.iter_solutions` solves it part by part;
+4. summarise and write: :func:`service.fixes.write.fix_bodies` has the core summarise each part's fixes
+   (:func:`core.fix_summary.summarise_fixes`: in the axes at each fix, on the earth, with their error figures)
+   and writes every fix body, and its renderings, from those arrays.
 
 Responses are plain dicts and JSON texts (serialised by orjson) rather than
 re-validated models: the schema documents them and the tests check that
