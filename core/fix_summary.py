@@ -46,9 +46,27 @@ class FixSummary(typing.NamedTuple):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _placed(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, geodetic, origin_ecef_m, rotation):
-    """The fixes placed on the earth and their matrices in the axes at each fix: the first six fields of
-    :class:`FixSummary`."""
+def summary_kernel(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, geodetic, origin_ecef_m, rotation, circle,
+                   sphere):
+    """:func:`summarise_fixes` on arrays, for compiled callers (which call it directly, without a dispatch).
+
+    Parameters
+    ----------
+    ok, geodetic : ndarray of bool, shape (B,)
+        Solved fixes (the others' position and covariance are zeros); frames that touch the earth.
+    position_enu_m, covariance_enu_m2, crlb_enu_m2 : ndarray, shape (B, 3), (B, 3, 3), (B, 3, 3)
+        In the common frame.
+    origin_ecef_m, rotation : ndarray, shape (B, 3), (B, 3, 3)
+        Each frame's placement (:meth:`core.problem_batch.ProblemBatch.frame_placements`).
+    circle, sphere : ndarray
+        :func:`core.error_summary.radius50_tables`.
+
+    Returns
+    -------
+    tuple
+        The first six fields of :class:`FixSummary`, then the error figures: CEP50, SEP50, vertical sigma,
+        ``sqrt(trace)``, the 95 % ellipse's semi-axes and its orientation (rad), each ``(B,)``.
+    """
     size = ok.size
     position, covariance, crlb = np.zeros((size, 3)), np.zeros((size, 3, 3)), crlb_enu_m2.copy()
     geodetic_position, ecef_position, covariance_ecef = np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3, 3))
@@ -65,18 +83,21 @@ def _placed(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, geodetic, origin
         if ok[b] and geodetic[b]:
             geodesy.covariance_to_point(covariance_enu_m2[b], lat, lon, r, turn, covariance[b])
             geodesy.covariance_to_point(crlb_enu_m2[b], lat, lon, r, turn, crlb[b])
-    return position, covariance, crlb, geodetic_position, ecef_position, covariance_ecef
+    _, _, orientation, cep, sep, vertical, root_trace, semi_major, semi_minor, _ = summaries_kernel(
+        covariance, circle, sphere, True)
+    return (position, covariance, crlb, geodetic_position, ecef_position, covariance_ecef, cep, sep, vertical,
+            root_trace, semi_major, semi_minor, orientation)
 
 
 def summarise_fixes(fixes) -> FixSummary:
     """Summarise a :class:`core.estimators.FixBatch` (see :class:`FixSummary`)."""
     c = np.ascontiguousarray
     batch = fixes.problems
-    position, covariance, crlb, geodetic_position, ecef_position, covariance_ecef = _placed(
+    (position, covariance, crlb, geodetic_position, ecef_position, covariance_ecef, cep, sep, vertical, root_trace,
+     semi_major, semi_minor, orientation) = summary_kernel(
         c(fixes.ok, dtype=bool), c(fixes.position_enu_m, dtype=float), c(fixes.covariance_enu_m2, dtype=float),
-        c(fixes.crlb_enu_m2, dtype=float), c(batch.geodetic, dtype=bool), *batch.frame_placements())
-    _, _, orientation, cep, sep, vertical, root_trace, semi_major, semi_minor, _ = summaries_kernel(
-        covariance, *radius50_tables(), True)
+        c(fixes.crlb_enu_m2, dtype=float), c(batch.geodetic, dtype=bool), *batch.frame_placements(),
+        *radius50_tables())
     error = ErrorSummary(cep50_m=cep, sep50_m=sep, vertical_sigma_m=vertical, gdop_m=root_trace,
                          ellipse_semi_major_m=semi_major, ellipse_semi_minor_m=semi_minor,
                          ellipse_orientation_rad=orientation)

@@ -2,6 +2,6 @@
 
 decode (:mod:`~service.fixes.decode`) -> read into one core batch (:mod:`~service.fixes.read`, under the rules
 of :mod:`~service.fixes.rules`) -> solve (:func:`core.estimators.iter_solutions`) -> summarise
-(:func:`core.fix_summary.summarise_fixes`) -> write (:mod:`~service.fixes.write`). This package imports
+(:mod:`core.fix_summary`) -> write (:mod:`~service.fixes.write`). This package imports
 nothing itself, so that importing one step loads only what that step needs.
 """

@@ -8,7 +8,7 @@
    request's rules (:mod:`service.fixes.rules`);
 3. solve: :func:`core.estimators.iter_solutions` solves it part by part;
 4. summarise and write: :func:`service.fixes.write.fix_bodies` has the core summarise each part's fixes
-   (:func:`core.fix_summary.summarise_fixes`: in the axes at each fix, on the earth, with their error figures)
+   (:func:`core.fix_summary.summary_kernel`: in the axes at each fix, on the earth, with their error figures)
    and writes every fix body, and its renderings, from those arrays.
 
 Responses are plain dicts and JSON texts (serialised by orjson) rather than

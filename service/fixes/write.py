@@ -16,7 +16,8 @@ import numpy as np
 import orjson
 
 from core.estimators import FixBatch
-from core.fix_summary import summarise_fixes
+from core.error_summary import radius50_tables
+from core.fix_summary import summary_kernel
 from core.measurements import KIND_NAMES, Kind
 from service.problems import localization_problem
 from service.renderings import fix_cot, fix_geojson
@@ -277,42 +278,45 @@ def _warning_texts(warnings_per_fix) -> list[bytes]:
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fix_numbers(position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, cep, sep, vertical, root_trace, semi_major,
-                 semi_minor, orientation_rad, residuals, normalized, kinds, chi2, p_value, sigma_scale,
-                 position_geodetic, position_ecef_m, covariance_ecef_m2, coarse_enu_m):
-    """Every number of each fix body, in :data:`_BLOCKS` order (the first eleven blocks) and API units, in one
-    pass over a :class:`core.fix_summary.FixSummary` and the fixes' own figures.
+def _fix_numbers(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, residuals, normalized, kinds, chi2,
+                 p_value, sigma_scale, coarse_enu_m, geodetic, origin_ecef_m, rotation, circle, sphere):
+    """Every number of each fix body, in :data:`_BLOCKS` order (the first eleven blocks) and API units: the
+    fixes summarised by the core (:func:`core.fix_summary.summary_kernel`: positions on the earth, covariances
+    in the axes at each fix, error figures) and laid out, in one compiled call.
 
     Parameters
     ----------
+    ok : ndarray of bool, shape (B,)
+        Fixes whose position and covariance are written (zeros for the others).
     position_enu_m, covariance_enu_m2, crlb_enu_m2 : ndarray, shape (B, 3), (B, 3, 3), (B, 3, 3)
+        In the common frame.
     gdop, chi2, p_value, sigma_scale : ndarray, shape (B,)
-    cep, sep, vertical, root_trace, semi_major, semi_minor, orientation_rad : ndarray, shape (B,)
-        The error summary's figures.
     residuals, normalized : ndarray, shape (B, M)
         Residuals in model units (angles in radians: written in degrees).
     kinds : ndarray of int8, shape (B, M)
-    position_geodetic, position_ecef_m : ndarray, shape (B, 3)
-        ``(lat_rad, lon_rad, alt_m)`` (written in degrees) and ``(x, y, z)``.
-    covariance_ecef_m2 : ndarray, shape (B, 3, 3)
     coarse_enu_m : ndarray, shape (B, 3)
         NaN where no coarse stage ran (written as 0).
+    geodetic, origin_ecef_m, rotation, circle, sphere
+        As :func:`core.fix_summary.summary_kernel` takes them.
 
     Returns
     -------
     ndarray, shape (B, 50 + 2 M)
     """
+    (position, covariance, crlb, position_geodetic, position_ecef_m, covariance_ecef, cep, sep, vertical,
+     root_trace, semi_major, semi_minor, orientation) = summary_kernel(
+        ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, geodetic, origin_ecef_m, rotation, circle, sphere)
     size, width = residuals.shape
     out = np.empty((size, 50 + 2 * width))
     to_degrees = 180.0 / math.pi
     for b in range(size):
         row = out[b]
-        row[0:3] = position_enu_m[b]
-        row[3:12] = covariance_enu_m2[b].ravel()
-        row[12:21] = crlb_enu_m2[b].ravel()
+        row[0:3] = position[b]
+        row[3:12] = covariance[b].ravel()
+        row[12:21] = crlb[b].ravel()
         row[21], row[22], row[23], row[24] = cep[b], sep[b], vertical[b], gdop[b]
         row[25], row[26], row[27] = root_trace[b], semi_major[b], semi_minor[b]
-        row[28] = orientation_rad[b] * to_degrees
+        row[28] = orientation[b] * to_degrees
         k = 29
         for m in range(width):
             angle = kinds[b, m] == _AZ or kinds[b, m] == _EL
@@ -323,7 +327,7 @@ def _fix_numbers(position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, cep, sep,
         row[k + 3], row[k + 4] = position_geodetic[b, 0] * to_degrees, position_geodetic[b, 1] * to_degrees
         row[k + 5] = position_geodetic[b, 2]
         row[k + 6], row[k + 7], row[k + 8] = position_ecef_m[b, 0], position_ecef_m[b, 1], position_ecef_m[b, 2]
-        row[k + 9:k + 18] = covariance_ecef_m2[b].ravel()
+        row[k + 9:k + 18] = covariance_ecef[b].ravel()
         for i in range(3):
             coarse = coarse_enu_m[b, i]
             row[k + 18 + i] = 0.0 if math.isnan(coarse) else min(max(coarse, -_MAX), _MAX)
@@ -333,8 +337,8 @@ def _fix_numbers(position_enu_m, covariance_enu_m2, crlb_enu_m2, gdop, cep, sep,
 def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
     """Response bodies of a :class:`core.estimators.FixBatch`: a fix body, or the problem body of its error.
 
-    The fixes are summarised once, over the batch
-    (:func:`core.fix_summary.summarise_fixes`: error summaries, geodetic
+    The fixes are summarised by the core once, over the batch
+    (:func:`core.fix_summary.summary_kernel`: error summaries, geodetic
     positions, ECEF covariances), their numbers laid out in API units, and so does writing their numbers as
     JSON text (one orjson call). Fixes of one structure (the residuals'
     stations, components and flags, the frame, stages...) share a template
@@ -362,17 +366,11 @@ def fix_bodies(fixes: FixBatch, formats) -> list[dict]:
 
     # The text of every value and where it is, columns by block in _BLOCKS' order: the numbers, then the
     # warnings and the bearing errors (one text each per fix).
-    summary = summarise_fixes(fixes)
-    error = summary.error
-    floats = [np.ascontiguousarray(a, dtype=float) for a in (
-        fixes.gdop, fixes.residuals, fixes.normalized_residuals, fixes.chi2, fixes.p_value, fixes.sigma_scale, coarse)]
-    gdop, residuals, normalized, chi2, p_value, sigma_scale, coarse_enu_m = floats
-    numbers = _fix_numbers(
-        summary.position_enu_m, summary.covariance_enu_m2, summary.crlb_enu_m2, gdop, error.cep50_m, error.sep50_m,
-        error.vertical_sigma_m, error.gdop_m, error.ellipse_semi_major_m, error.ellipse_semi_minor_m,
-        error.ellipse_orientation_rad, residuals, normalized, np.ascontiguousarray(batch.kinds, dtype=np.int8), chi2,
-        p_value, sigma_scale, summary.position_geodetic, summary.position_ecef_m, summary.covariance_ecef_m2,
-        coarse_enu_m)
+    numbers = _fix_numbers(ok, *(np.ascontiguousarray(a, dtype=float) for a in (
+        fixes.position_enu_m, fixes.covariance_enu_m2, fixes.crlb_enu_m2, fixes.gdop, fixes.residuals,
+        fixes.normalized_residuals)), np.ascontiguousarray(batch.kinds, dtype=np.int8),
+        *(np.ascontiguousarray(a, dtype=float) for a in (fixes.chi2, fixes.p_value, fixes.sigma_scale, coarse)),
+        np.ascontiguousarray(batch.geodetic, dtype=bool), *batch.frame_placements(), *radius50_tables())
     value_texts = _warning_texts(fixes.warnings) + bearing_errors
     values = np.frombuffer(orjson.dumps(numbers.ravel(), option=_NUMPY) + b"".join(value_texts), dtype=np.uint8)
     text_lengths = np.fromiter(map(len, value_texts), dtype=np.int64, count=len(value_texts))
