@@ -12,7 +12,9 @@ and ``current``, the settled state with the younger reports (``pending``, kept i
 adds its accepted reports to ``pending``, moves those now older than the window into ``settled``, and re-runs
 ``pending`` from ``settled``: a report that arrived out of order within the window is processed in its time
 order, and the tracks equal those of the same reports posted in time order. A scan (one station's bearings at
-one time) is never split between the two, since the cut is by time.
+one time) is never split between the two, since the cut is by time. Ids are core's (``t1``, ``t2``, ... in start
+order, never reused): a track keeps its id while it lives; only one that started within the window can be
+decided again (and numbered again) when a late report lands before its start.
 
 Record layout: ``state["auto"] = {"settled", "current"}`` (:meth:`AssociationState.to_dict`),
 ``"pending"`` (``[{"report": Report.to_dict(), "frequency_hz": float or None}]`` in time order) and
@@ -32,15 +34,8 @@ from dataclasses import replace
 from typing import NamedTuple
 
 from core.errors import LocalizationError
-from core.tracking.association import (
-    AssociationConfig,
-    AssociationState,
-    apply_reports_auto,
-    current_tracks,
-    new_association_state,
-    observations_from_report,
-    status_of,
-)
+from core.tracking.association import (AssociationConfig, AssociationState, apply_reports_auto, current_tracks,
+                                       new_association_state, observations_from_report, status_of)
 from core.tracking.network import NetworkConfig, Report, Track, validate_report
 from service import session_schemas as schemas
 from service.problems import ApiError

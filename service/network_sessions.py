@@ -336,11 +336,14 @@ class ReportsChange:
     def _auto(self, record: SessionRecord, fresh, core_reports: list[Report], registry: dict) -> SessionRecord:
         """An auto session's post (:mod:`service.association_sessions`)."""
         request = record.config["request"]
-        outcome = association_sessions.apply_post(
-            record.state["auto"], [(r, math.nan if f.frequency_hz is None else f.frequency_hz)
-                                   for r, f in zip(core_reports, fresh)],
-            request["reorder_window_s"], association_config(request),
-            {e["id"] for e in record.state.get("ended", ())})
+        try:
+            outcome = association_sessions.apply_post(
+                record.state["auto"], [(r, math.nan if f.frequency_hz is None else f.frequency_hz)
+                                       for r, f in zip(core_reports, fresh)],
+                request["reorder_window_s"], association_config(request),
+                {e["id"] for e in record.state.get("ended", ())})
+        except LocalizationError as error:
+            raise _problem(422, error.code, f"{error.message}; nothing of this post was applied") from error
         self.applied, self.late, self.state = outcome.applied, outcome.late, outcome.current
         self.ended = [{**e, "version": record.version + 1} for e in outcome.ended]
         warnings = association_sessions.late_warnings(self.late, request["reorder_window_s"])

@@ -294,7 +294,8 @@ class NetworkSessionCreate(Strict):
     reorder_window_s: float = Field(2.0, ge=0.0, le=3600.0,
                                     description="a report up to this much older than the newest applied one is "
                                                 "still applied in time order; older ones are counted as late "
-                                                "and not applied")
+                                                "and not applied (auto: every post re-runs the association "
+                                                "over the window's reports, so a long window costs time)")
     coast_after_s: float = Field(10.0, gt=0.0, le=1e6, description="a track without a report for longer than "
                                                                    "this is coasting (predicted only; auto: a "
                                                                    "confirmed track without a bearing)")
