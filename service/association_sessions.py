@@ -170,6 +170,8 @@ def apply_post(auto: dict, reports: list[tuple[Report, float]], window_s: float,
             continue
         accepted.append((report, frequency))
         newest = report.time_s if newest is None else max(newest, report.time_s)
+    if not accepted:  # all late: the session is as it was
+        return AutoOutcome(auto, AssociationState.from_dict(auto["current"]), 0, late, [])
     pending = sorted([(Report.from_dict(p["report"]), _nan_if_none(p["frequency_hz"])) for p in auto["pending"]]
                      + accepted, key=_time_order)
     cut = newest - window_s if newest is not None else -math.inf
