@@ -8,16 +8,15 @@ report lands in one frame. The tracker itself is core's (:mod:`core.tracking.net
 ``(state, reports) -> state``; this module decides what reports are, which are duplicates, and what the
 stored record becomes, as :mod:`service.sessions` does for paper-001 sessions.
 
-The record's ``state`` holds the core state (``NetworkState.to_dict``), the station registry (the latest
-known position of every station), the tracks that ended lately and the last post's warnings.
+The record's ``state`` holds the core state (``NetworkState.to_dict``; a session with ``"association": "auto"``
+has the association's instead, :mod:`service.association_sessions`), the station registry (the latest known
+position of every station), the tracks that ended lately and the last post's warnings.
 """
 
 from __future__ import annotations
 
 import math
-import uuid
 from dataclasses import replace
-from datetime import datetime, timedelta, timezone
 from typing import Callable
 
 import numpy as np
@@ -29,8 +28,10 @@ from core.measurements import Kind
 from core.problem import CommonFrame, GeodeticPoint, build_problem
 from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_reports, in_track_axes,
                                    new_network_state, predict_tracks, validate_report)
+from service import association_sessions
 from service import schemas as fix_schemas
 from service import session_schemas as schemas
+from service.network_renderings import ended_cot, geojson, track_cot
 from service.problems import ApiError, api_loc
 from service.session_records import cot_options, etag, if_match_accepts, timestamp
 from service.stores import SessionRecord
@@ -95,19 +96,28 @@ def _origin(request: schemas.NetworkSessionCreate) -> GeodeticPoint | None:
     return GeodeticPoint(float(lat0), float(lon0), 0.0)
 
 
+def association_config(request: dict | schemas.NetworkSessionCreate):
+    """An auto session's :class:`core.tracking.association.AssociationConfig` (422 with the field path)."""
+    if isinstance(request, dict):
+        request = schemas.NetworkSessionCreate.model_validate(request)
+    return association_sessions.association_config(request, network_config(request))
+
+
 def initial(request: schemas.NetworkSessionCreate) -> tuple[dict, dict]:
-    """The record ``config`` and ``state`` of a new network session (422 for what is not served)."""
-    if request.association == "auto":
-        raise _problem(422, "not_implemented", "association 'auto' is not implemented yet: label each report with "
-                                               "its emitter_id and create the session with association "
-                                               "'labelled'", ("association",))
+    """The record ``config`` and ``state`` of a new network session (422 with the field path for bad settings)."""
     config = network_config(request)
+    association_sessions.refuse_settings(request)
+    if request.association == "auto":
+        association_config(request)
+        tracker = {"auto": association_sessions.initial_state()}
+    else:
+        tracker = {"core": new_network_state(config).to_dict()}
     origin = _origin(request)
     stations = {s.id: {"position": s.position.model_dump(mode="json"), "moving": s.moving, "time_s": None}
                 for s in request.stations}
     return ({"request": request.model_dump(mode="json"), "network": True,
              "origin": None if origin is None else [origin.lat_rad, origin.lon_rad, origin.alt_m]},
-            {"core": new_network_state(config).to_dict(), "stations": stations, "ended": [], "warnings": []})
+            {**tracker, "stations": stations, "ended": [], "warnings": []})
 
 
 def _frame(record: SessionRecord) -> CommonFrame:
@@ -117,8 +127,8 @@ def _frame(record: SessionRecord) -> CommonFrame:
 
 # -- reports -> core ----------------------------------------------------------------------------------------------
 
-def core_report(report: schemas.Report, index: int, registry: dict, frame: str, origin: GeodeticPoint | None
-                ) -> Report:
+def core_report(report: schemas.Report, index: int, registry: dict, frame: str, origin: GeodeticPoint | None,
+                check: Callable[[Report], object] = validate_report) -> Report:
     """One API report as a core :class:`Report` in the session's frame.
 
     Parameters
@@ -131,6 +141,9 @@ def core_report(report: schemas.Report, index: int, registry: dict, frame: str, 
     frame : str
         ``"wgs84"`` or ``"local"``: which positions the report's stations must give.
     origin : GeodeticPoint or None
+    check : callable
+        Core's check of the report (its errors' paths become the request's): :func:`validate_report`, or an auto
+        session's :func:`service.association_sessions.check_bearings`.
 
     Raises
     ------
@@ -193,7 +206,7 @@ def core_report(report: schemas.Report, index: int, registry: dict, frame: str, 
                   stations_enu_m=problem.stations_enu_m[rows], rotations=problem.station_rotations[rows],
                   kinds=problem.kinds.copy(), values=values, sigmas=problem.sigmas.copy())
     try:
-        validate_report(core)
+        check(core)
     except LocalizationError as error:
         raise _problem(422, error.code, f"reports[{index}]: {error.message}",
                        (*where, *_core_loc(error.loc or (), problem.source_index))) from error
@@ -288,12 +301,18 @@ class ReportsChange:
         if not fresh:
             return None
         request = record.config["request"]
+        auto = association_sessions.is_auto(request)
         registry = {sid: dict(entry) for sid, entry in record.state["stations"].items()}
         origin = _frame(record).origin
         core_reports = []
         for i, report in enumerate(fresh, start=first_new):
-            core_reports.append(core_report(report, i, registry, request["frame"], origin))
+            if auto:
+                association_sessions.check_report(report, i)
+            core_reports.append(core_report(report, i, registry, request["frame"], origin,
+                                            association_sessions.check_bearings if auto else validate_report))
             _register(registry, report)
+        if auto:
+            return self._auto(record, fresh, core_reports, registry)
         config = network_config(request)
         before = NetworkState.from_dict(record.state["core"])
         try:
@@ -310,10 +329,32 @@ class ReportsChange:
         self.ended = [{"id": t.id, "time_s": float(t.time_s), "version": version}
                       for t in before.tracks if t.id not in now_ids]
         ended = (record.state.get("ended", []) + self.ended)[-ENDED_KEPT:]
-        last_time = outcome.state.last_time_s
-        now = self.clock()
         state = {"core": outcome.state.to_dict(), "stations": registry, "ended": ended,
                  "warnings": _warnings(outcome.warnings) if self.applied else record.state.get("warnings", [])}
+        return self._written(record, state, fresh, outcome.state.last_time_s)
+
+    def _auto(self, record: SessionRecord, fresh, core_reports: list[Report], registry: dict) -> SessionRecord:
+        """An auto session's post (:mod:`service.association_sessions`)."""
+        request = record.config["request"]
+        try:
+            outcome = association_sessions.apply_post(
+                record.state["auto"], [(r, math.nan if f.frequency_hz is None else f.frequency_hz)
+                                       for r, f in zip(core_reports, fresh)],
+                request["reorder_window_s"], association_config(request),
+                {e["id"] for e in record.state.get("ended", ())})
+        except LocalizationError as error:
+            raise _problem(422, error.code, f"{error.message}; nothing of this post was applied") from error
+        self.applied, self.late, self.state = outcome.applied, outcome.late, outcome.current
+        self.ended = [{**e, "version": record.version + 1} for e in outcome.ended]
+        warnings = association_sessions.late_warnings(self.late, request["reorder_window_s"])
+        state = {"auto": outcome.auto, "stations": registry,
+                 "ended": (record.state.get("ended", []) + self.ended)[-ENDED_KEPT:],
+                 "warnings": warnings if self.applied else record.state.get("warnings", [])}
+        return self._written(record, state, fresh, outcome.auto["newest_s"])
+
+    def _written(self, record: SessionRecord, state: dict, fresh, last_time: float | None) -> SessionRecord:
+        """The record after a post that took ``fresh`` reports (the duplicates left out)."""
+        now = self.clock()
         return replace(record, state=state, last_seq=fresh[-1].seq,
                        last_time_s=None if last_time is None else float(last_time),
                        updates=record.updates + self.applied, updated_at=now, expires_at=now + record.ttl_s)
@@ -346,15 +387,26 @@ def _track_body(track, frame: CommonFrame) -> dict:
     }
 
 
-def state_body(record: SessionRecord, at_time_s: float | None = None, state: NetworkState | None = None) -> dict:
-    """The response body of a network session (``NetworkSessionState``); ``at_time_s``: every track predicted to
-    that time; ``state``: the record's core state when the caller has it already (else read from the record)."""
-
+def _tracks(record: SessionRecord, at_time_s: float | None, state) -> tuple:
+    """The session's core tracks (each at its own time, or predicted to ``at_time_s``) with their status."""
     request = record.config["request"]
+    if association_sessions.is_auto(request):
+        if state is None:
+            state = association_sessions.current(record.state["auto"])
+        return association_sessions.tracks(state, association_config(request), at_time_s)
     if state is None:
         state = NetworkState.from_dict(record.state["core"])
+    return state.tracks if at_time_s is None else predict_tracks(state, at_time_s, network_config(request))
+
+
+def state_body(record: SessionRecord, at_time_s: float | None = None, state=None) -> dict:
+    """The response body of a network session (``NetworkSessionState``); ``at_time_s``: every track predicted to
+    that time; ``state``: the record's core state (``NetworkState``, or an auto session's ``AssociationState``)
+    when the caller has it already (else read from the record)."""
+
+    request = record.config["request"]
     frame = _frame(record)
-    tracks = state.tracks if at_time_s is None else predict_tracks(state, at_time_s, network_config(request))
+    tracks = _tracks(record, at_time_s, state)
     origin = frame.origin
     body = {
         "id": record.id,
@@ -364,6 +416,7 @@ def state_body(record: SessionRecord, at_time_s: float | None = None, state: Net
         "origin": None if origin is None else {"lat_deg": math.degrees(origin.lat_rad),
                                                "lon_deg": math.degrees(origin.lon_rad), "alt_m": origin.alt_m},
         "association": request["association"],
+        "association_config": association_sessions.settings_body(request),
         "reorder_window_s": request["reorder_window_s"],
         "stations": [{"id": sid, **entry} for sid, entry in record.state["stations"].items()],
         "last_seq": record.last_seq,
@@ -382,110 +435,7 @@ def state_body(record: SessionRecord, at_time_s: float | None = None, state: Net
     return body
 
 
-# -- renderings: one CoT track event per track, GeoJSON of every track -------------------------------------------
-
-def track_uid(session_id: str, track_id: str, cot=None) -> str:
-    """A track's CoT uid: the session's ``cot.uid`` for its single emitter, ``uid-<track>`` otherwise."""
-    from service.renderings import UID_PREFIX
-
-    if cot is not None and cot.uid:
-        return cot.uid if track_id == schemas.DEFAULT_EMITTER_ID else f"{cot.uid}-{track_id}"
-    return f"{UID_PREFIX}session-{session_id}-{track_id}"
-
-
-def _course(velocity_enu_mps) -> tuple[float, float]:
-    v = velocity_enu_mps
-    return math.degrees(math.atan2(v[0], v[1])) % 360.0, math.hypot(v[0], v[1])
-
-
-def track_callsign(track_id: str, cot=None) -> str:
-    """A track's CoT callsign: the session's ``cot.callsign`` for its single emitter, ``callsign-<track>`` for
-    the others; without one, the track id (a label a map can show, unlike the uid)."""
-    callsign = getattr(cot, "callsign", None)
-    if callsign:
-        return callsign if track_id == schemas.DEFAULT_EMITTER_ID else f"{callsign}-{track_id}"
-    return track_id
-
-
-def track_cot(body: dict, track: dict, cot=None) -> str | None:
-    """One track as a CoT 2.0 track event (how m-p, course and speed, :func:`track_callsign`); None in a flat
-    local frame. ``time`` and ``start`` are the session's ``updated_at``."""
-    from xml.sax.saxutils import quoteattr
-
-    from service import renderings
-
-    if track["position"] is None:
-        return None
-    covariance = np.asarray(track["covariance_enu"], dtype=float)[:3, :3]
-    course, speed = _course(track["velocity_enu_mps"])
-    _, axes = renderings._ellipse_enu(covariance)
-    start = datetime.fromisoformat(body["updated_at"].replace("Z", "+00:00"))
-    detail = (f'<track course="{renderings._decimal(course, 2)}" speed="{renderings._decimal(speed, 3)}"/>'
-              f'<passive_locator session={quoteattr(body["id"])} model={quoteattr(body["model"])} '
-              f'status={quoteattr(track["status"])} version="{body["version"]}" updates="{track["updates"]}"/>')
-    return renderings._event(track_uid(body["id"], track["id"], cot),
-                             cot.type if cot is not None else renderings.DEFAULT_TYPE, renderings.HOW_TRACK, start,
-                             cot.stale_s if cot is not None else renderings.DEFAULT_STALE_S, track["position"],
-                             covariance, axes, detail, track_callsign(track["id"], cot))
-
-
-def ended_cot(session_id: str, track_id: str, cot=None, now: datetime | None = None) -> str:
-    """A CoT delete event (type ``t-x-d-d``, a link to the track's uid, ``__forcedelete``): the track ended."""
-    from xml.sax.saxutils import quoteattr
-
-    from service.renderings import DEFAULT_TYPE, utc_timestamp
-
-    start = now or datetime.now(timezone.utc)
-    stamp = utc_timestamp(start)
-    return (f'<event version="2.0" uid="{uuid.uuid4()}" type="t-x-d-d" how="h-g-i-g-o" time="{stamp}" '
-            f'start="{stamp}" stale="{utc_timestamp(start + timedelta(seconds=20))}">'
-            '<point lat="0" lon="0" hae="0" ce="9999999" le="9999999"/>'
-            f'<detail><link uid={quoteattr(track_uid(session_id, track_id, cot))} relation="none" '
-            f'type={quoteattr(cot.type if cot is not None else DEFAULT_TYPE)}/><__forcedelete/></detail></event>')
-
-
-#: A track's course line in GeoJSON: where it goes in this many seconds at its velocity.
-COURSE_LINE_S = 60.0
-
-
-def _course_line(position: dict, velocity_enu_mps) -> dict | None:
-    """A LineString from a track's point along its horizontal velocity for :data:`COURSE_LINE_S` (the end placed
-    in the point's tangent plane, converted exactly); None when it would cross the antimeridian."""
-    from service.renderings import _lon180
-
-    step = np.array([velocity_enu_mps[0], velocity_enu_mps[1], 0.0]) * COURSE_LINE_S
-    lat, lon, _ = geodesy.enu_to_geodetic(step, math.radians(position["lat_deg"]),
-                                            math.radians(position["lon_deg"]), position["alt_m"])
-    start = [_lon180(position["lon_deg"]), position["lat_deg"]]
-    end = [_lon180(math.degrees(float(lon))), math.degrees(float(lat))]
-    if abs(end[0] - start[0]) > 180.0:
-        return None
-    return {"type": "LineString", "coordinates": [start, end]}
-
-
-def geojson(body: dict, cot=None) -> dict:
-    """Every track's point (id, status, course, speed, time), its 95 % ellipse and its course line (where it
-    goes in :data:`COURSE_LINE_S` at its velocity), as one FeatureCollection."""
-    from service import renderings
-
-    features = []
-    for track in body["tracks"]:
-        if track["position"] is None:
-            continue
-        covariance = np.asarray(track["covariance_enu"], dtype=float)[:3, :3]
-        course, speed = _course(track["velocity_enu_mps"])
-        properties = {"kind": "track", "id": track["id"], "session": body["id"],
-                      "uid": track_uid(body["id"], track["id"], cot), "status": track["status"],
-                      "time_s": track["time_s"], "time": body["updated_at"], "course_deg": course,
-                      "speed_mps": speed, "version": body["version"]}
-        features.extend(renderings._features(track["position"], covariance, properties))
-        line = _course_line(track["position"], track["velocity_enu_mps"])
-        if line is not None:
-            features.append({"type": "Feature", "geometry": line,
-                             "properties": {"kind": "course", "id": track["id"], "course_deg": course,
-                                            "speed_mps": speed, "seconds": COURSE_LINE_S}})
-    return {"type": "FeatureCollection", "features": features}
-
+# -- renderings (:mod:`service.network_renderings`) --------------------------------------------------------
 
 def rendered_state(record: SessionRecord, formats=(), at_time_s: float | None = None) -> dict:
     """:func:`state_body` with the renderings ``formats`` asks for (``"cot"``, ``"geojson"``)."""
@@ -494,7 +444,7 @@ def rendered_state(record: SessionRecord, formats=(), at_time_s: float | None = 
     cot = cot_options(record)
     if "cot" in formats:
         for track in body["tracks"]:
-            track["cot"] = track_cot(body, track, cot)
+            track["cot"] = track_cot(body, track, cot) if association_sessions.on_map(body, track) else None
     if "geojson" in formats:
         body["geojson"] = geojson(body, cot)
     return body
@@ -504,7 +454,8 @@ def tak_events(record: SessionRecord, body: dict, ended: list[dict]) -> list[str
     """The TAK feed's events of a post: one CoT track event per track, and a delete event per ended track."""
 
     cot = cot_options(record)
-    events = [event for track in body["tracks"] if (event := track_cot(body, track, cot)) is not None]
+    events = [event for track in body["tracks"]
+              if association_sessions.on_map(body, track) and (event := track_cot(body, track, cot)) is not None]
     if record.config["request"]["frame"] == "wgs84" or record.config["origin"] is not None:
         events += [ended_cot(record.id, e["id"], cot) for e in ended]
     return events

@@ -13,6 +13,7 @@ from typing import Annotated, Literal, Union
 from pydantic import BaseModel, Discriminator, Field, Tag, model_validator
 
 from core.tracking import WARNING_CODES as TRACKING_WARNING_CODES
+from core.tracking.association_types import AssociationConfig
 from core.tracking.network import NETWORK_WARNING_CODES
 from service.schemas import (MAX_ABS_TIME_S, MAX_FIX_MEASUREMENTS, MAX_RANGE_M, MIN_SIGMA_DEG, MIN_SIGMA_S, CotOptions,
                              ErrorSummary, FeatureCollection, GeodeticPosition, GeodeticPositionResult, LocalPosition,
@@ -226,6 +227,47 @@ class TrackStart(Strict):
                                                                   "velocity_sigma_mps")
 
 
+#: The association's defaults are core's (:class:`core.tracking.association_types.AssociationConfig`).
+_ASSOCIATION = AssociationConfig()
+
+
+class AssociationSettings(Strict):
+    """How an ``"auto"`` session decides which bearings are one emitter's and manages its tracks (the rules:
+    :mod:`core.tracking.association`). Every field defaults to core's setting."""
+
+    method: Literal["jpda", "gnn"] = Field(_ASSOCIATION.method, description="jpda: each track weighs every "
+                                                                            "bearing in its gate by its "
+                                                                            "probability (two emitters passing "
+                                                                            "close by keep their tracks); gnn: "
+                                                                            "each bearing to at most one track, "
+                                                                            "the likeliest pairing of a scan")
+    detection_probability: float = Field(_ASSOCIATION.detection_probability, gt=0.0, lt=1.0,
+                                         description="probability that a station measures a bearing of an "
+                                                     "emitter in one scan")
+    false_density_per_rad2: float = Field(_ASSOCIATION.false_density_per_rad2, gt=0.0, le=1e6,
+                                          description="false bearings (multipath, noise) per scan per rad^2 of "
+                                                      "azimuth and elevation (per rad for bearings without "
+                                                      "elevation)")
+    gate_probability: float = Field(_ASSOCIATION.gate_probability, ge=0.5, le=0.999999,
+                                    description="chi-square probability of a track's gate: a bearing outside it "
+                                                "is not that track's")
+    confirm_hits: int = Field(_ASSOCIATION.confirm_hits, ge=1, le=100,
+                              description="M of M-of-N: a tentative track is confirmed once M of its last N scans "
+                                          "gave it a bearing, and dropped as soon as it no longer can; at most "
+                                          "confirm_window")
+    confirm_window: int = Field(_ASSOCIATION.confirm_window, ge=1, le=100, description="N of M-of-N: scans (one "
+                                                                                       "station's bearings at one "
+                                                                                       "time) counted")
+    frequency_tolerance_hz: float = Field(_ASSOCIATION.frequency_tolerance_hz, gt=0.0, le=1e12,
+                                          description="two bearings whose frequency_hz differ by more are never "
+                                                      "one emitter's (a bearing without frequency_hz passes)")
+    range_min_m: float = Field(_ASSOCIATION.range_min_m, gt=0.0, le=MAX_RANGE_M,
+                               description="a track starts where three or more stations' bearings cross; a "
+                                           "crossing nearer than this to a station is not a candidate")
+    range_max_m: float = Field(_ASSOCIATION.range_max_m, gt=0.0, le=MAX_RANGE_M,
+                               description="... nor one farther than this (above range_min_m)")
+
+
 class NetworkSessionCreate(Strict):
     frame: Literal["wgs84", "local"] = "wgs84"
     origin: GeodeticPosition | None = Field(None, description="the session's common frame's tangent point; "
@@ -242,14 +284,21 @@ class NetworkSessionCreate(Strict):
     start: TrackStart = Field(default_factory=TrackStart)
     association: Literal["labelled", "auto"] = Field(
         "labelled", description="labelled: each report names its emitter (emitter_id; absent = the session's "
-                                f"single emitter, track id {DEFAULT_EMITTER_ID!r}). auto is reserved: answered "
-                                "422 not_implemented")
+                                f"single emitter, track id {DEFAULT_EMITTER_ID!r}). auto: reports are bearings "
+                                "with no emitter_id (any number of emitters; frequency_hz helps); the service "
+                                "associates them, starts a track where three or more stations' bearings cross, "
+                                "confirms it M of N, and ends it after end_after_s without a bearing "
+                                "(association_config)")
+    association_config: AssociationSettings | None = Field(
+        None, description="with association auto only: its settings (absent: core's defaults)")
     reorder_window_s: float = Field(2.0, ge=0.0, le=3600.0,
                                     description="a report up to this much older than the newest applied one is "
                                                 "still applied in time order; older ones are counted as late "
-                                                "and not applied")
+                                                "and not applied (auto: every post re-runs the association "
+                                                "over the window's reports, so a long window costs time)")
     coast_after_s: float = Field(10.0, gt=0.0, le=1e6, description="a track without a report for longer than "
-                                                                   "this is coasting (predicted only)")
+                                                                   "this is coasting (predicted only; auto: a "
+                                                                   "confirmed track without a bearing)")
     end_after_s: float = Field(60.0, gt=0.0, le=1e7, description="a track without a report for longer than this "
                                                                  "ends: it leaves tracks (the event stream and the "
                                                                  "TAK feed say so); above coast_after_s and "
@@ -281,11 +330,17 @@ class Report(Strict):
                                                    "acknowledged and not applied")
     time_s: float = Field(ge=-MAX_ABS_TIME_S, le=MAX_ABS_TIME_S,
                           description="when the measurements were taken, on the session's clock")
-    emitter_id: EmitterId | None = Field(None, description="the emitter (track id); absent = the session's single "
-                                                           f"emitter, {DEFAULT_EMITTER_ID!r}")
-    frequency_hz: float | None = Field(None, gt=0.0, le=1e13, description="optional signal feature (kept for "
-                                                                          "association; unused by labelled "
-                                                                          "sessions)")
+    emitter_id: EmitterId | None = Field(None, description="labelled sessions: the emitter (track id); absent = "
+                                                           f"the session's single emitter, {DEFAULT_EMITTER_ID!r}. "
+                                                           "An auto session refuses it (422 at the report's "
+                                                           "emitter_id: the service decides which reports belong "
+                                                           "together)")
+    frequency_hz: float | None = Field(None, gt=0.0, le=1e13, description="the signal's frequency. auto: a "
+                                                                          "frequency gate (bearings more than "
+                                                                          "association_config."
+                                                                          "frequency_tolerance_hz apart are "
+                                                                          "never one emitter's; absent: no "
+                                                                          "gate); unused by labelled sessions")
     stations: list[Station] = Field(default_factory=list, max_length=256,
                                     description="positions at time_s of moving stations, and new stations "
                                                 "(in the session's frame)")
@@ -313,10 +368,12 @@ class NetworkStationState(BaseModel):
 
 
 class NetworkTrack(BaseModel):
-    id: str = Field(description="the emitter_id")
+    id: str = Field(description="labelled: the emitter_id; auto: the service's id (t1, t2, ... in start order, "
+                                "never reused, the same while the track lives)")
     status: Literal["tentative", "confirmed", "coasting"] = Field(
         description="tentative: the reports so far do not determine the position well (e.g. one platform that "
-                    "has not manoeuvred); confirmed; coasting: not reported lately, predicted only")
+                    "has not manoeuvred; auto: not yet confirmed M of N); confirmed; coasting: not reported "
+                    "lately, predicted only")
     time_s: float = Field(description="the time of the estimate")
     position: GeodeticPositionResult | None = Field(description="when the session's frame is geodetic")
     position_local: LocalPositionResult = Field(description="in the session's local frame, or ENU metres at "
@@ -330,7 +387,8 @@ class NetworkTrack(BaseModel):
                                                 + codes_in_use(NETWORK_WARNING_CODES))
     cot: str | None = Field(None, description="with ?formats=cot: the track as a CoT 2.0 track event (how m-p, "
                                               "track course and speed, contact callsign, ce/le one-sigma; null "
-                                              "in a flat local frame)")
+                                              "in a flat local frame, and in an auto session for a tentative "
+                                              "track: a map shows no track before it is confirmed)")
     mode_probabilities: list[float] | None = Field(None, description="with process_noise.imm_accel_sigmas_mps2, "
                                                                      "once the track is one Gaussian: the "
                                                                      "probability of each level, in their order")
@@ -359,8 +417,14 @@ class NetworkSessionState(BaseModel):
     last_seq: int | None = Field(description="highest seq seen; null before the first")
     last_time_s: float | None = Field(description="newest report time applied")
     updates: int = Field(description="reports applied")
-    tracks: list[NetworkTrack] = Field(description="one per emitter (or, with at_time_s, predicted to that time)")
-    ended_tracks: list[EndedTrack] = Field(description="the latest tracks that ended (coasted out), newest last")
+    association_config: AssociationSettings | None = Field(None, description="auto: the association's settings "
+                                                                             "in use; null for labelled")
+    tracks: list[NetworkTrack] = Field(description="one per emitter (auto: every track, tentative ones too, with "
+                                                   "its status), each at its own time (or, with at_time_s, "
+                                                   "predicted to that time)")
+    ended_tracks: list[EndedTrack] = Field(description="the latest tracks that ended (coasted out), newest last "
+                                                       "(auto: confirmed tracks; a tentative one that fails M of "
+                                                       "N leaves tracks unannounced, it was never on a map)")
     at_time_s: float | None = Field(None, description="with ?at_time_s=: the time the tracks were predicted to "
                                                       "(constant velocity, IMM-mixed; a track already newer is "
                                                       "given as it is)")
@@ -372,7 +436,8 @@ class NetworkSessionState(BaseModel):
     ttl_s: float = Field(description="idle lifetime (as created)")
     geojson: FeatureCollection | None = Field(None, description="with ?formats=geojson: every track's point "
                                                                 "(course, speed), its 95 % ellipse and its "
-                                                                "course line (60 s at its velocity)")
+                                                                "course line (60 s at its velocity); an auto "
+                                                                "session's tentative tracks left out")
 
 
 class ReportResult(NetworkSessionState):

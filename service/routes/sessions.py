@@ -162,7 +162,9 @@ async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, ow
                         422: {"model": Problem, "description": "invalid values, with the field path "
                                                                "(reports, i, ...): unknown_station, "
                                                                "station_position_missing, toa_without_partner, "
-                                                               "invalid_input; wrong_session_kind for a paper-001 "
+                                                               "invalid_input (in an auto session also an "
+                                                               "emitter_id, or a measurement that is not a "
+                                                               "bearing); wrong_session_kind for a paper-001 "
                                                                "session; nothing of the post was applied"},
                         **_UNAVAILABLE})
 async def post_reports(session_id: str, batch: schemas.ReportBatch, owner: OwnerDep, store: StoreDep,

@@ -29,7 +29,8 @@ def test_the_readme_examples_answer(client):
         ("POST", "/v1/fixes"), ("POST", "/v1/fixes/batch"), ("POST", "/v1/crlb"), ("POST", "/v1/crlb/grid"),
         ("POST", "/v1/evaluations"),
         ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$ID/measurements"), ("GET", "/v1/sessions/$ID"),
-        ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$NID/reports"), ("GET", "/v1/sessions/$NID")]
+        ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$NID/reports"), ("GET", "/v1/sessions/$NID"),
+        ("POST", "/v1/sessions"), ("POST", "/v1/sessions/$AID/reports"), ("GET", "/v1/sessions/$AID")]
     ids = {}
     for method, path, body in requests:
         for name, session_id in ids.items():
@@ -37,11 +38,16 @@ def test_the_readme_examples_answer(client):
         response = client.request(method, path, content=body, headers={"content-type": "application/json"})
         assert response.status_code in (200, 201), (path, response.text)
         answer = response.json()
+        auto = answer.get("association") == "auto"
         if path == "/v1/sessions":
-            ids["NID" if "stations" in answer else "ID"] = answer["id"]
+            ids["AID" if auto else "NID" if "stations" in answer else "ID"] = answer["id"]
         if path.endswith("/reports"):
-            assert (answer["applied"], answer["duplicates"], answer["late"]) == (6, 0, 0)
-        if "formats=cot" in path and "tracks" in answer:
+            assert (answer["applied"], answer["duplicates"], answer["late"]) == (18 if auto else 6, 0, 0)
+        if "formats=cot" in path and "tracks" in answer and auto:
+            # two emitters, two confirmed tracks, one CoT uid each
+            assert [t["status"] for t in answer["tracks"]] == ["confirmed", "confirmed"]
+            assert sorted(t["cot"].split('uid="')[1].split('"')[0] for t in answer["tracks"]) == ["net-t1", "net-t2"]
+        elif "formats=cot" in path and "tracks" in answer:
             (track,) = answer["tracks"]
             assert track["cot"].startswith("<event") and 'uid="vehicle-1"' in track["cot"]
             assert answer["geojson"]["type"] == "FeatureCollection" and answer["geojson"]["features"]

@@ -93,13 +93,6 @@ def test_create_refuses_duplicate_station_ids_and_positions_of_the_wrong_frame(c
     assert response.status_code == 422 and "LocalPosition" in response.json()["detail"]
 
 
-def test_auto_association_is_a_clear_not_implemented(client):
-    response = client.post("/v1/sessions", json=create_body(association="auto"))
-    assert response.status_code == 422
-    problem = response.json()
-    assert problem["code"] == "not_implemented" and problem["errors"][0]["loc"] == ["association"]
-
-
 def test_reports_are_applied_and_the_state_lists_the_track(client):
     session = create(client)
     response = post(client, session["id"], df_reports(12))
