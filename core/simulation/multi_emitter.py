@@ -24,6 +24,7 @@ import numpy as np
 
 from core.angles import line_of_sight_enu, station_to_common
 from core.measurements import AZIMUTH, ELEVATION, predict
+from core.parallel import Stopped
 from core.simulation.network import (
     START_TIME_S,
     NetworkStation,
@@ -165,6 +166,13 @@ def truth_at(scenario: MultiEmitterScenario, time_s: float) -> tuple[tuple[str, 
     elapsed = time_s - START_TIME_S
     live = [e for e in scenario.emitters if e.active(elapsed)]
     return tuple(e.id for e in live), np.array([e.state_at(elapsed) for e in live]).reshape(len(live), 6)
+
+
+def expected_bearings(scenario: MultiEmitterScenario) -> float:
+    """Bearings a run of the scene holds on average: per scan, each emitter on the air detected with
+    ``detection_probability``, and the false share on top (:func:`simulate_multi`)."""
+    per_true = scenario.detection_probability / (1.0 - scenario.false_fraction)
+    return sum(len(truth_at(scenario, time_s)[0]) for time_s, _ in scan_times(scenario)) * per_true
 
 
 def simulate_multi(scenario: MultiEmitterScenario, rng: np.random.Generator) -> MultiRun:
@@ -389,11 +397,21 @@ def correspondences(ids, truths, tracks, estimates, previous: dict, cutoff: floa
 
 
 def evaluate_multi(scenario: MultiEmitterScenario, trials: int, seed: int = 0,
-                   config: AssociationConfig | None = None) -> MultiEvaluation:
+                   config: AssociationConfig | None = None, should_stop=None) -> MultiEvaluation:
     """Seeded Monte Carlo (trial ``r`` draws from ``seed + r``) of the tracker and the baseline on the same
-    bearings (module docstring)."""
-    results = [run_multi_trial(scenario, simulate_multi(scenario, np.random.default_rng(seed + r)), config)
-               for r in range(trials)]
+    bearings (module docstring).
+
+    Parameters
+    ----------
+    should_stop : callable returning bool, optional
+        Asked before each trial (a request's deadline or cancellation); True raises
+        :class:`core.parallel.Stopped`.
+    """
+    results = []
+    for r in range(trials):
+        if should_stop is not None and should_stop():
+            raise Stopped(f"stopped after {r} of {trials} trials")
+        results.append(run_multi_trial(scenario, simulate_multi(scenario, np.random.default_rng(seed + r)), config))
     parts = np.mean([r["parts"].mean(axis=0) for r in results], axis=0)
     base_parts = np.mean([r["baseline_parts"].mean(axis=0) for r in results], axis=0)
     per_trial = np.array([r["gospa"].mean() for r in results])
