@@ -23,7 +23,7 @@ from core.angles import wrap_to_pi
 from core.measurements import AZIMUTH, predict
 from core.tracking.association_types import COARSE_SIGMAS, AssociationConfig, MultiTrack, Observation, frequency_ok
 from core.tracking.network import NetworkState, predict_tracks
-from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel
+from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_pairs
 from core.tracking.network_types import Report
 from core.tracking.network_update import (
     advance_track,
@@ -79,7 +79,8 @@ def gate_costs(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config
 
 def scan_gate(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config: AssociationConfig) -> ScanGate:
     """The gate of one scan's bearings against the tracks: costs, NIS and each gated pair's update
-    (:class:`ScanGate`). Each track is predicted once per scan; each bearing's pairs are one kernel call."""
+    (:class:`ScanGate`). Each track is predicted once per scan, and the pairs the coarse screen leaves are
+    updated in one kernel call."""
     count, size = len(tracks), len(scan)
     cost = np.full((count, size), np.inf)
     nis_out = np.full((count, size), np.inf)
@@ -97,30 +98,40 @@ def scan_gate(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config:
     all_means, all_covs = predicted_moments([tracks[i].track for i in needed.tolist()], time_s, config.network)
     for k, i in enumerate(needed.tolist()):
         out.predicted[i] = (all_means[k], all_covs[k])
-    eye = np.eye(STATE_SIZE)
     passes = config.network.linearisation_passes
     log_pd_over_lambda = math.log(config.detection_probability / config.false_density_per_rad2)
-    for j, obs in enumerate(scan):
-        local = np.flatnonzero(near[needed, j])
-        if not local.size:
-            continue
-        report = obs.report
-        rows = report_rows(report)
-        out.rows[j] = rows
+    pair_local, pair_bearing = np.nonzero(near[needed])
+    # One kernel call per group of bearings that share their station, frame and kinds (a scan is one
+    # station's: one group, unless some bearings lack an elevation).
+    groups: dict[tuple, list[int]] = {}
+    for j in np.unique(pair_bearing).tolist():
+        report = scan[j].report
+        out.rows[j] = report_rows(report)
+        key = (report.kinds.tobytes(), report.stations_enu_m.tobytes(), report.rotations.tobytes())
+        groups.setdefault(key, []).append(j)
+    for members in groups.values():
+        first = scan[members[0]].report
+        rows = out.rows[members[0]]
+        at = np.full(size, -1)
+        at[members] = np.arange(len(members))
+        picked = at[pair_bearing] >= 0
+        local, bearings = pair_local[picked], pair_bearing[picked]
+        values = np.array([out.rows[j].values for j in members])[at[bearings]]
+        variances = np.array([out.rows[j].variances for j in members])[at[bearings]]
+        count_pairs = local.size
+        new_means, new_covs = np.empty((count_pairs, STATE_SIZE)), np.empty((count_pairs, STATE_SIZE, STATE_SIZE))
+        nis, log_det = np.empty(count_pairs), np.empty(count_pairs)
+        status = np.empty(count_pairs, dtype=np.int64)
+        network_ukf_pairs(all_means, all_covs, local.astype(np.int64), first.stations_enu_m, first.rotations,
+                          first.kinds, values, variances, rows.rows, passes, new_means, new_covs, nis, log_det,
+                          status)
         dof = rows.rows.size
-        means, covs = np.ascontiguousarray(all_means[local]), np.ascontiguousarray(all_covs[local])
-        noises = np.zeros_like(covs)
-        new_means, new_covs = np.empty_like(means), np.empty_like(covs)
-        nis, log_det, status = np.empty(local.size), np.empty(local.size), np.empty(local.size, dtype=np.int64)
-        network_ukf_kernel(means, covs, eye, noises, False, report.stations_enu_m, report.rotations, report.kinds,
-                           rows.values, rows.variances, rows.rows, rows.toa_reference, passes, new_means, new_covs,
-                           nis, log_det, status)
-        gate = chi2_point(config.gate_probability, dof)
-        for k, i in enumerate(needed[local].tolist()):
-            if status[k] != UPDATED or not nis[k] <= gate:
-                continue
+        gated = (status == UPDATED) & (nis <= chi2_point(config.gate_probability, dof))
+        costs = 0.5 * (nis + log_det + dof * math.log(2.0 * math.pi)) - log_pd_over_lambda
+        for k in np.flatnonzero(gated).tolist():
+            i, j = int(needed[local[k]]), int(bearings[k])
             nis_out[i, j] = nis[k]
-            cost[i, j] = 0.5 * (nis[k] + log_det[k] + dof * math.log(2.0 * math.pi)) - log_pd_over_lambda
+            cost[i, j] = costs[k]
             out.updates[i, j] = (new_means[k], new_covs[k], float(nis[k]), float(log_det[k]), int(status[k]))
     return out
 
