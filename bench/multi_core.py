@@ -126,7 +126,7 @@ def multi_hour_row(duration_s: float = 3600.0, chunk_s: float = 60.0, seed: int 
     state = new_association_state()
     apply_s, round_trip_s, bearings = [], [], []
     start = schedule[0][0]
-    for k in range(int(math.ceil(duration_s / chunk_s))):
+    for k in range(math.ceil(duration_s / chunk_s)):
         scans = [(t, i) for t, i in schedule if start + k * chunk_s <= t < start + (k + 1) * chunk_s]
         if not scans:
             continue

@@ -33,7 +33,7 @@ def multi_evaluation_cost(spec: session_schemas.MultiEmitterEvaluationSpec) -> i
     """``trials x expected bearings x`` :data:`MULTI_EVALUATION_UNITS_PER_BEARING`."""
     from core.simulation.multi_emitter import expected_bearings
 
-    return int(math.ceil(spec.trials * expected_bearings(multi_scene(spec)) * MULTI_EVALUATION_UNITS_PER_BEARING))
+    return math.ceil(spec.trials * expected_bearings(multi_scene(spec)) * MULTI_EVALUATION_UNITS_PER_BEARING)
 
 
 def check_multi_evaluation(spec: session_schemas.MultiEmitterEvaluationSpec, limit: int) -> None:
