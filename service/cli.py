@@ -3,7 +3,8 @@
 - ``serve [--host H] [--port P] [--workers N] [--log-level L]``: the HTTP service.
 - ``evaluate SCENARIO.json [--out DIR] [--scheduler tcp://host:8786]``: a Monte Carlo evaluation with a
   progress bar, written as Markdown, JSON and a PNG of the RMSE against the bound. The file is either the
-  body of ``POST /v1/evaluations`` (fix methods, or ``{"network": {...}}``: the network tracker on a scene) or
+  body of ``POST /v1/evaluations`` (fix methods, ``{"network": {...}}``: the network tracker on a scene, or
+  ``{"multi_emitter": {...}}``: the multi-emitter tracker on unlabelled bearings, by GOSPA) or
   ``{"tracking": {...}}``, a session-filter evaluation against the posterior CRLB (see ``evaluate --help``).
 - ``reproduce [--quick] [--out DIR] [--scheduler ...]``: the five papers' scenarios, ``papers.md`` with
   each table beside the paper's claim; exit status 1 when an asserted claim fails.
@@ -126,7 +127,13 @@ posterior CRLB of the scenario's own model.
 A network-tracker evaluation file (the body of POST /v1/evaluations with "network"):
   {"network": {"scene": "df_network", "trials": 20, "seed": 0}}
 scene: df_network | toa_network | airborne_df; optional process_noise and reorder_window_s over the scene's
-tracker settings. The report gives the position RMSE and NEES per epoch beside the posterior CRLB."""
+tracker settings. The report gives the position RMSE and NEES per epoch beside the posterior CRLB.
+
+A multi-emitter evaluation file (the body of POST /v1/evaluations with "multi_emitter"):
+  {"multi_emitter": {"variant": 0, "trials": 5, "seed": 1}}
+variant: 0 the base scene, others held-out variants of it; optional duration_s (10-300). The report gives
+mean GOSPA and its localisation, missed and false parts beside the intersection + DBSCAN baseline's,
+confirmation delays, false confirmed tracks and identity switches per run."""
 
 
 def _add_tools(commands) -> None:
@@ -137,7 +144,8 @@ def _add_tools(commands) -> None:
                                    description="Monte Carlo RMSE of methods (or of a session filter) against the "
                                                "bound; writes evaluation.md, evaluation.json and rmse.png.",
                                    epilog=TRACKING_HELP, formatter_class=argparse.RawDescriptionHelpFormatter)
-    evaluate.add_argument("scenario", help="a POST /v1/evaluations body (fixes or {\"network\": ...}), or a "
+    evaluate.add_argument("scenario", help="a POST /v1/evaluations body (fixes, {\"network\": ...} or "
+                                           "{\"multi_emitter\": ...}), or a "
                                            "{\"tracking\": ...} file (below)")
     evaluate.add_argument("--out", default=None, help="report directory (default reports/<scenario name>)")
     evaluate.add_argument("--scheduler", default=None, help=scheduler_help)
@@ -202,6 +210,8 @@ def _run_evaluate(args) -> int:
                 written = _evaluate_tracking(data["tracking"], out, path.stem, scheduler, bar)
             elif isinstance(data, dict) and "network" in data:
                 written = _evaluate_network(data, out, path.stem)
+            elif isinstance(data, dict) and "multi_emitter" in data:
+                written = _evaluate_multi(data, out, path.stem)
             else:
                 written = _evaluate_fixes(data, out, path.stem, scheduler, bar)
     except ValidationError as error:
@@ -259,6 +269,15 @@ def _evaluate_network(data, out, title):
     except ApiError as error:
         raise ValueError(error.detail) from None
     return write_network_evaluation(body, out, title)
+
+
+def _evaluate_multi(data, out, title):
+    from service.multi_evaluation import multi_evaluation_body
+    from service.reports import write_multi_evaluation
+    from service.session_schemas import MultiEmitterEvaluationRequest
+
+    request = MultiEmitterEvaluationRequest.model_validate(data)
+    return write_multi_evaluation(multi_evaluation_body(request.multi_emitter), out, title)
 
 
 def _run_map(args) -> int:

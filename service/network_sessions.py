@@ -488,9 +488,9 @@ def check_network_evaluation(spec: schemas.NetworkEvaluationSpec, limit: int) ->
                          f"{spec.trials} trials of the {spec.scene} scene")
 
 
-def network_evaluation(spec: schemas.NetworkEvaluationSpec):
+def network_evaluation(spec: schemas.NetworkEvaluationSpec, should_stop=None):
     """Run core's Monte Carlo of a network scene (:func:`core.simulation.network.evaluate_network`) with the
-    request's tracker settings over the scene's."""
+    request's tracker settings over the scene's; ``should_stop`` is asked between trials."""
     from core.simulation.network import SCENES, evaluate_network
 
     scene = SCENES[spec.scene]()
@@ -509,7 +509,7 @@ def network_evaluation(spec: schemas.NetworkEvaluationSpec):
             config = replace(config, **changes)
         except LocalizationError as error:
             raise _problem(422, error.code, error.message, ("network", *api_loc(error.loc or ()))) from error
-    return evaluate_network(scene, spec.trials, spec.seed, config)
+    return evaluate_network(scene, spec.trials, spec.seed, config, should_stop=should_stop)
 
 
 def _finite_list(values) -> list:
@@ -520,9 +520,9 @@ def _finite(value) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def network_evaluation_body(spec: schemas.NetworkEvaluationSpec) -> dict:
+def network_evaluation_body(spec: schemas.NetworkEvaluationSpec, should_stop=None) -> dict:
     """The response body of a network evaluation (``NetworkEvaluationResponse``)."""
-    result = network_evaluation(spec)
+    result = network_evaluation(spec, should_stop)
     return {
         "scene": spec.scene, "trials": spec.trials, "seed": spec.seed,
         "converged_after_s": float(result.converged_after_s), "rmse_over_pcrb": _finite(result.rmse_over_pcrb),

@@ -47,7 +47,8 @@ _TITLES = {
 
 #: Tokens pydantic inserts in error locations that are not field names.
 _LOC_NOISE = {"body", "bearing", "range", "toa", "geodetic", "local", "function-after", "tagged-union",
-              "observer_session", "network_session", "fix_evaluation", "network_evaluation"}
+              "observer_session", "network_session", "fix_evaluation", "network_evaluation",
+              "multi_emitter_evaluation"}
 
 
 class ApiError(Exception):

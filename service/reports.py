@@ -165,6 +165,30 @@ def write_network_evaluation(body: dict, directory: pathlib.Path, title: str,
     return paths
 
 
+def write_multi_evaluation(body: dict, directory: pathlib.Path, title: str) -> list[pathlib.Path]:
+    """A multi-emitter evaluation's report (``body`` as ``POST /v1/evaluations`` answers a ``multi_emitter``
+    request) in ``directory``: GOSPA and its parts for the tracker and the baseline, and per run the
+    confirmation delays, false confirmed tracks and identity switches."""
+    directory.mkdir(parents=True, exist_ok=True)
+    parts = [[name, _num(p["gospa_m"]), _num(p["localisation_m2"], 0), _num(p["missed_m2"], 0), _num(p["false_m2"], 0)]
+             for name, p in (("tracker", body["tracker"]), ("intersections + DBSCAN", body["baseline"]))]
+    runs = [[str(body["seed"] + r), _num(body["tracker"]["gospa_per_trial_m"][r]),
+             _num(body["baseline"]["gospa_per_trial_m"][r]),
+             ", ".join(f"{e} {_num(d)}" for e, d in zip(body["emitters"], body["confirm_delay_s"][r])),
+             str(body["false_tracks"][r]), str(body["identity_switches"][r])] for r in range(body["trials"])]
+    text = [f"# Multi-emitter evaluation: {title}", "",
+            f"Scene {body['scene']} variant {body['variant']}, {body['duration_s']:g} s, {body['trials']} trials "
+            f"(seeds {body['seed']} + r); GOSPA with c = {body['gospa_cutoff_m']:g} m, p = 2, on east-north, "
+            f"once a second. Tracker / baseline: {_num(body['gospa_over_baseline'], 3)}.", "",
+            markdown_table(["", "mean GOSPA (m)", "localisation (m^2)", "missed (m^2)", "false (m^2)"], parts), "",
+            markdown_table(["seed", "tracker GOSPA (m)", "baseline GOSPA (m)", "confirmation delay (s; - never)",
+                            "false confirmed tracks", "identity switches"], runs), ""]
+    paths = [directory / "evaluation.md", directory / "evaluation.json"]
+    paths[0].write_text("\n".join(text))
+    paths[1].write_text(json.dumps(_plain(body), indent=2, sort_keys=True) + "\n")
+    return paths
+
+
 def _num(value, digits: int = 1) -> str:
     if value is None:
         return "-"

@@ -519,3 +519,48 @@ class NetworkEvaluationResponse(BaseModel):
                                                       "position NEES over the trials")
     late_reports: int = Field(description="reports counted late (older than the reorder window), over all trials")
     epochs: NetworkEpochs = Field(description="per evaluation epoch, every list in time order")
+
+
+class MultiEmitterEvaluationSpec(Strict):
+    variant: int = Field(0, ge=0, le=10_000, description="the multi-emitter scene: 0 the base scene (four direction "
+                                                         "finders, four ground emitters, two of them on one "
+                                                         "frequency passing within 1.5 km); any other number a "
+                                                         "held-out variant drawn from it (speeds, headings, where "
+                                                         "and when the pair meets)")
+    trials: int = Field(5, ge=1, le=200, description="Monte Carlo runs (run r draws from seed + r)")
+    seed: int = Field(0, ge=0, le=2**32)
+    duration_s: float | None = Field(None, ge=10.0, le=300.0, description="seconds simulated from the scene's "
+                                                                          "start (default: all of its 300)")
+
+
+class MultiEmitterEvaluationRequest(Strict):
+    multi_emitter: MultiEmitterEvaluationSpec
+
+
+class GospaParts(BaseModel):
+    gospa_m: float = Field(description="mean over epochs and trials of GOSPA (c = gospa_cutoff_m, p = 2, alpha = 2, "
+                                       "east-north)")
+    localisation_m2: float = Field(description="mean of GOSPA^2's part from assigned pairs (m^2)")
+    missed_m2: float = Field(description="mean of GOSPA^2's part from missed emitters, c^2 / 2 each (m^2)")
+    false_m2: float = Field(description="mean of GOSPA^2's part from false estimates, c^2 / 2 each (m^2)")
+    gospa_per_trial_m: list[float] = Field(description="each trial's mean over its epochs")
+
+
+class MultiEmitterEvaluationResponse(BaseModel):
+    scene: str = Field(description="the scene evaluated")
+    variant: int = Field(description="its variant")
+    trials: int = Field(description="Monte Carlo runs")
+    seed: int = Field(description="run r drew from seed + r")
+    duration_s: float = Field(description="seconds simulated")
+    gospa_cutoff_m: float = Field(description="GOSPA's c: an error beyond it counts as a miss and a false estimate")
+    tracker: GospaParts = Field(description="the association tracker's confirmed tracks, scored once a second")
+    baseline: GospaParts = Field(description="pairwise bearing intersections clustered with DBSCAN on the same "
+                                             "bearings, scored at the same epochs")
+    gospa_over_baseline: float | None = Field(description="tracker's mean GOSPA / the baseline's")
+    emitters: list[str] = Field(description="the scene's emitter ids, the order of confirm_delay_s's rows")
+    confirm_delay_s: list[list[float | None]] = Field(
+        description="per trial, per emitter: seconds from its first detection to the first epoch a confirmed "
+                    "track is assigned to it (null: never; 0 for an emitter never detected)")
+    false_tracks: list[int] = Field(description="per trial: confirmed tracks assigned to no emitter at most of the "
+                                                "epochs they were reported")
+    identity_switches: list[int] = Field(description="per trial: changes of the track that stands for an emitter")

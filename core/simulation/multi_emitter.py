@@ -24,6 +24,7 @@ import numpy as np
 
 from core.angles import line_of_sight_enu, station_to_common
 from core.measurements import AZIMUTH, ELEVATION, predict
+from core.parallel import Stopped
 from core.simulation.network import (
     START_TIME_S,
     NetworkStation,
@@ -167,8 +168,16 @@ def truth_at(scenario: MultiEmitterScenario, time_s: float) -> tuple[tuple[str, 
     return tuple(e.id for e in live), np.array([e.state_at(elapsed) for e in live]).reshape(len(live), 6)
 
 
-def simulate_multi(scenario: MultiEmitterScenario, rng: np.random.Generator) -> MultiRun:
-    """One run's bearings (module docstring)."""
+def expected_bearings(scenario: MultiEmitterScenario) -> float:
+    """Bearings a run of the scene holds on average: per scan, each emitter on the air detected with
+    ``detection_probability``, and the false share on top (:func:`simulate_multi`)."""
+    per_true = scenario.detection_probability / (1.0 - scenario.false_fraction)
+    return sum(len(truth_at(scenario, time_s)[0]) for time_s, _ in scan_times(scenario)) * per_true
+
+
+def simulate_multi(scenario: MultiEmitterScenario, rng: np.random.Generator, scans=None) -> MultiRun:
+    """One run's bearings (module docstring); ``scans`` (``(time_s, station index)`` pairs, default every
+    :func:`scan_times`) draws only those, so that a long run can be drawn a part at a time with one ``rng``."""
     positions, rotations = station_frame(scenario)
     kinds = np.array([AZIMUTH, ELEVATION])
     observations, sources, first = [], [], {}
@@ -176,7 +185,7 @@ def simulate_multi(scenario: MultiEmitterScenario, rng: np.random.Generator) -> 
     low, high = scenario.false_elevation_rad
     pd = scenario.detection_probability
     false_per_true = scenario.false_fraction / (1.0 - scenario.false_fraction)
-    for time_s, i in scan_times(scenario):
+    for time_s, i in scan_times(scenario) if scans is None else scans:
         station = scenario.stations[i]
         sigmas = np.array([station.sigma_azimuth_rad, station.sigma_elevation_rad])
         ids, states = truth_at(scenario, time_s)
@@ -293,8 +302,18 @@ class MultiEvaluation:
                 "mean_identity_switches": float(np.mean(self.identity_switches))}
 
 
-def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: AssociationConfig | None = None):
+def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: AssociationConfig | None = None,
+                    tracker=None):
     """Feed one run's bearings scan by scan and score every epoch (once a second, after the bearings up to it).
+
+    Parameters
+    ----------
+    tracker : callable, optional
+        ``tracker(observations, time_s)``: takes the bearings that arrived since its last call (possibly none)
+        and returns the confirmed tracks at ``time_s`` (each with an ``id`` and a ``mean_enu`` whose first two
+        entries are east and north). Default: :func:`core.tracking.association.apply_observations` with
+        ``config``, the tracks :func:`core.tracking.association.current_tracks` calls ``confirmed``. A
+        yardstick tracker is scored through the same epochs and measures.
 
     Returns
     -------
@@ -305,7 +324,7 @@ def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: Assoc
     config = config or scenario.config
     count = int(scenario.duration_s / scenario.scan_interval_s)
     epochs = START_TIME_S + scenario.scan_interval_s * np.arange(1, count + 1)
-    state = new_association_state()
+    tracker = tracker or _association_tracker(config)
     observations = run.observations
     cursor = 0
     cutoff = scenario.gospa_cutoff_m
@@ -318,9 +337,7 @@ def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: Assoc
         start = cursor
         while cursor < len(observations) and observations[cursor].time_s <= t:
             cursor += 1
-        if cursor > start:
-            state = apply_observations(state, observations[start:cursor], config).state
-        tracks = [tr for tr in current_tracks(state, t, config) if tr.status == "confirmed"]
+        tracks = tracker(observations[start:cursor], t)
         ids, truths = truth_at(scenario, t)
         estimates = np.array([tr.mean_enu[:2] for tr in tracks]).reshape(-1, 2)
         score = gospa(estimates, truths[:, :2], cutoff)
@@ -345,6 +362,19 @@ def run_multi_trial(scenario: MultiEmitterScenario, run: MultiRun, config: Assoc
     return {"gospa": np.array(distances), "parts": np.array(parts), "baseline_gospa": np.array(base_distances),
             "baseline_parts": np.array(base_parts), "confirm_delay_s": delays, "false_tracks": false_tracks,
             "identity_switches": switches}
+
+
+def _association_tracker(config: AssociationConfig):
+    """:func:`run_multi_trial`'s default tracker: the association's confirmed tracks."""
+    state = new_association_state()
+
+    def step(observations, time_s: float):
+        nonlocal state
+        if observations:
+            state = apply_observations(state, observations, config).state
+        return [tr for tr in current_tracks(state, time_s, config) if tr.status == "confirmed"]
+
+    return step
 
 
 def correspondences(ids, truths, tracks, estimates, previous: dict, cutoff: float) -> dict:
@@ -389,11 +419,21 @@ def correspondences(ids, truths, tracks, estimates, previous: dict, cutoff: floa
 
 
 def evaluate_multi(scenario: MultiEmitterScenario, trials: int, seed: int = 0,
-                   config: AssociationConfig | None = None) -> MultiEvaluation:
+                   config: AssociationConfig | None = None, should_stop=None) -> MultiEvaluation:
     """Seeded Monte Carlo (trial ``r`` draws from ``seed + r``) of the tracker and the baseline on the same
-    bearings (module docstring)."""
-    results = [run_multi_trial(scenario, simulate_multi(scenario, np.random.default_rng(seed + r)), config)
-               for r in range(trials)]
+    bearings (module docstring).
+
+    Parameters
+    ----------
+    should_stop : callable returning bool, optional
+        Asked before each trial (a request's deadline or cancellation); True raises
+        :class:`core.parallel.Stopped`.
+    """
+    results = []
+    for r in range(trials):
+        if should_stop is not None and should_stop():
+            raise Stopped(f"stopped after {r} of {trials} trials")
+        results.append(run_multi_trial(scenario, simulate_multi(scenario, np.random.default_rng(seed + r)), config))
     parts = np.mean([r["parts"].mean(axis=0) for r in results], axis=0)
     base_parts = np.mean([r["baseline_parts"].mean(axis=0) for r in results], axis=0)
     per_trial = np.array([r["gospa"].mean() for r in results])

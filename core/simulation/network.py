@@ -23,6 +23,7 @@ from scipy.stats import chi2
 
 from core import geodesy
 from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, predict
+from core.parallel import Stopped
 from core.tracking.motion import transition
 from core.tracking.network import NetworkConfig, Report, apply_reports, new_network_state, predict_tracks
 from core.tracking.network_bound import network_pcrb
@@ -434,11 +435,13 @@ def nees(errors, covariances) -> np.ndarray:
 
 
 def evaluate_network(scenario: NetworkScenario, trials: int, seed: int = 0,
-                     config: NetworkConfig | None = None) -> NetworkEvaluation:
+                     config: NetworkConfig | None = None, should_stop=None) -> NetworkEvaluation:
     """Seeded Monte Carlo of the network tracker on a scene (trial ``r`` draws from ``seed + r``).
 
     Each trial posts its reports one at a time as they arrive and reads the track, predicted, at every
     epoch; the bound is :func:`core.tracking.network_bound.network_pcrb` over the trials' truths.
+    ``should_stop`` (optional, a request's deadline or cancellation) is asked before each trial; True raises
+    :class:`core.parallel.Stopped`.
     """
     config = config or scenario.config
     epochs = epoch_times(scenario)
@@ -450,6 +453,8 @@ def evaluate_network(scenario: NetworkScenario, trials: int, seed: int = 0,
     late = 0
     report_truths = []
     for r in range(trials):
+        if should_stop is not None and should_stop():
+            raise Stopped(f"stopped after {r} of {trials} trials")
         run = simulate_network(scenario, np.random.default_rng(seed + r))
         estimates[r], covariances[r], statuses, trial_late = run_trial(scenario, run, config)
         late += trial_late

@@ -15,10 +15,12 @@ Public API (pure functions; the state is an immutable value)::
 at one time. Within a scan a track takes at most one bearing and a bearing feeds at most one track.
 
 **Gating** on the predicted measurement and its innovation covariance, computed by the network tracker's own
-update kernel (:func:`core.tracking.network_kernel.network_ukf_kernel`, one pass: the unscented transform of
-the track's predicted position through :func:`core.measurements.measure_point`), so the gate and the update
-share one measurement model. A pair passes when its NIS is inside the chi-square ``gate_probability`` point
-and, when both carry a frequency, the frequencies differ by at most ``frequency_tolerance_hz``.
+update kernel (:func:`core.tracking.network_kernel.network_ukf_kernel`: the unscented transform of the track's
+predicted position through :func:`core.measurements.measure_point`; the NIS is its first pass's), so the gate
+and the update share one measurement model, and the update the kernel makes of a gated pair is the one the
+track takes if it gets that bearing (each track is predicted once per scan, each pair updated once). A pair
+passes when its NIS is inside the chi-square ``gate_probability`` point and, when both carry a frequency, the
+frequencies differ by at most ``frequency_tolerance_hz``.
 
 **Assignment: JPDA (chosen by measurement), or global nearest neighbour.** Each gated pair's likelihood ratio
 against a false bearing is ``P_D N(z; z_hat, S) / lambda`` (``lambda`` the false-bearing density per

@@ -258,3 +258,35 @@ def predict_kernel(means, covs, transition, noises):
     work = np.empty((STATE_SIZE, STATE_SIZE))
     for b in range(means.shape[0]):
         linear_predict_into(means[b], covs[b], transition, noises[b], point, work)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def network_ukf_pairs(means, covs, states, stations_enu_m, rotations, kinds, values, variances, rows, passes,
+                      new_means, new_covs, nis, log_det, status):
+    """:func:`network_ukf_kernel` without prediction for ``K`` pairs of a state and a report, the reports
+    sharing their stations and kinds (one station's bearings of one time), without TOA rows: pair ``k`` updates
+    ``means[states[k]]`` with ``values[k]`` (exactly as its own call would).
+
+    Parameters
+    ----------
+    means : ndarray, shape (C, 6)
+    covs : ndarray, shape (C, 6, 6)
+        At the reports' time.
+    states : ndarray of int, shape (K,)
+    stations_enu_m, rotations, kinds, rows, passes
+        As :func:`network_ukf_kernel`'s, shared by the reports.
+    values, variances : ndarray, shape (K, M)
+        Each pair's report.
+    new_means : ndarray, shape (K, 6)
+    new_covs : ndarray, shape (K, 6, 6)
+    nis, log_det : ndarray, shape (K,)
+    status : ndarray of int, shape (K,)
+        Written, per pair.
+    """
+    transition = np.eye(STATE_SIZE)
+    noises = np.zeros((1, STATE_SIZE, STATE_SIZE))
+    for k in range(states.size):
+        i = states[k]
+        network_ukf_kernel(means[i:i + 1], covs[i:i + 1], transition, noises, False, stations_enu_m, rotations, kinds,
+                           values[k], variances[k], rows, -1, passes, new_means[k:k + 1], new_covs[k:k + 1],
+                           nis[k:k + 1], log_det[k:k + 1], status[k:k + 1])

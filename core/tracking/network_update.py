@@ -115,11 +115,47 @@ def advance_track(track: Track | None, report: Report, config: NetworkConfig) ->
     phi, noises = motion_model(config, dt, levels)
     new_means, new_covs, nis, log_det, status = _update(means, covs, phi, noises, dt > 0.0, report, rows,
                                                         config.linearisation_passes)
+    return _updated(track, report, rows, weights, means, covs, new_means, new_covs, nis, log_det, status, config,
+                    warnings)
+
+
+def updated_track(track: Track, report: Report, rows: ReportRows, predicted_mean, predicted_cov, new_mean, new_cov,
+                  nis: float, log_det: float, status: int, config: NetworkConfig,
+                  track_id: str | None = None) -> Track:
+    """The track after one report whose update the caller has already run: what :func:`advance_track` returns
+    for a ``single``-stage track (no IMM) from the same kernel outputs.
+
+    Parameters
+    ----------
+    track : Track
+        Stage ``single``, at most ``config.end_after_s`` before the report.
+    report : Report
+    rows : ReportRows
+        :func:`report_rows` of the report.
+    predicted_mean : ndarray, shape (6,)
+    predicted_cov : ndarray, shape (6, 6)
+        The track predicted to the report's time (:func:`predicted_track`).
+    new_mean, new_cov, nis, log_det, status
+        :func:`core.tracking.network_kernel.network_ukf_kernel`'s outputs for that prediction and the report,
+        with ``config.linearisation_passes`` passes.
+    track_id : str, optional
+        The id of the returned track (default ``report.emitter_id``).
+    """
+    if track.stage != "single" or config.imm_accel_sigmas_mps2:
+        raise ValueError("updated_track takes a single-stage track without IMM")
+    return _updated(track, report, rows, np.ones(1), np.asarray(predicted_mean)[None],
+                    np.asarray(predicted_cov)[None], np.asarray(new_mean)[None], np.asarray(new_cov)[None],
+                    np.array([nis]), np.array([log_det]), np.array([status]), config, rows.warnings, track_id)[0]
+
+
+def _updated(track, report, rows, weights, means, covs, new_means, new_covs, nis, log_det, status, config, warnings,
+             track_id=None):
+    """:func:`advance_track` after its update: ``means``, ``covs`` predicted, ``new_*`` the kernel's output."""
     dof = rows.rows.size
     ok = status == UPDATED
     if not ok.any() or (track.stage != "mixture" and not ok.all()):
         warnings += (("numerical_failure", f"report seq {report.seq}: the update failed; the track was predicted"),)
-        return _finish(track, report, weights, means, covs, np.nan, dof, config, warnings)
+        return _finish(track, report, weights, means, covs, np.nan, dof, config, warnings, track_id=track_id)
     if weights.size == 1:
         weights = np.ones(1)
     else:
@@ -133,7 +169,8 @@ def advance_track(track: Track | None, report: Report, config: NetworkConfig) ->
     if combined_nis > chi2_point(_CHI2_OUTLIER, dof):
         warnings += (("innovation_outlier", f"report seq {report.seq}: NIS {combined_nis:.1f} on {dof} degrees "
                                             "of freedom"),)
-    return _finish(track, report, weights, new_means, new_covs, combined_nis, dof, config, warnings)
+    return _finish(track, report, weights, new_means, new_covs, combined_nis, dof, config, warnings,
+                   track_id=track_id)
 
 
 def _update(means, covs, phi, noises, predict: bool, report: Report, rows: ReportRows, passes: int):
@@ -147,8 +184,9 @@ def _update(means, covs, phi, noises, predict: bool, report: Report, rows: Repor
 
 
 def _finish(track: Track | None, report: Report, weights, means, covs, nis: float, dof: int, config: NetworkConfig,
-            warnings: tuple, stage: str | None = None) -> tuple[Track, tuple]:
-    """The track after a report: stage change (a mixture collapsed to one), moments, confirmation."""
+            warnings: tuple, stage: str | None = None, track_id: str | None = None) -> tuple[Track, tuple]:
+    """The track after a report: stage change (a mixture collapsed to one), moments, confirmation; its id
+    ``track_id``, by default the report's emitter."""
     stage = stage or track.stage
     if stage == "mixture" and weights.size == 1:
         stage = "single"
@@ -169,7 +207,7 @@ def _finish(track: Track | None, report: Report, weights, means, covs, nis: floa
                      and math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0))
                      <= config.confirm_relative_sigma * reference_range_m)
     updates = 1 if track is None else track.updates + 1
-    out = Track(report.emitter_id, "confirmed" if confirmed else "tentative", report.time_s, freeze(mean),
+    out = Track(report.emitter_id if track_id is None else track_id, "confirmed" if confirmed else "tentative", report.time_s, freeze(mean),
                 freeze(cov), updates, warnings, stage, freeze(np.asarray(weights, dtype=float)),
                 freeze(np.asarray(means, dtype=float)), freeze(np.asarray(covs, dtype=float)), agreeing,
                 bool(confirmed), reference_range_m)
@@ -349,6 +387,30 @@ def predicted_track(track: Track, time_s: float, config: NetworkConfig) -> Track
                    warnings=())
 
 
+def predicted_moments(tracks, time_s: float, config: NetworkConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The means ``(T, 6)`` and covariances ``(T, 6, 6)`` of tracks predicted to ``time_s``: each
+    :func:`predicted_track`'s ``mean_enu`` and ``covariance_enu`` (a track not older than ``time_s`` as it is),
+    the single-Gaussian tracks that share an interval predicted in one kernel call."""
+    count = len(tracks)
+    means, covs = np.empty((count, STATE_SIZE)), np.empty((count, STATE_SIZE, STATE_SIZE))
+    groups: dict[float, list[int]] = {}
+    for k, track in enumerate(tracks):
+        if not time_s > track.time_s:
+            means[k], covs[k] = track.mean_enu, track.covariance_enu
+        elif track.stage == "single" and track.weights.size == 1:
+            groups.setdefault(time_s - track.time_s, []).append(k)
+        else:
+            predicted = predicted_track(track, time_s, config)
+            means[k], covs[k] = predicted.mean_enu, predicted.covariance_enu
+    for dt, members in groups.items():
+        phi, noise = motion_model(config, dt, (config.accel_sigma_mps2,))
+        group_means = np.array([tracks[k].means[0] for k in members])
+        group_covs = np.array([tracks[k].covariances[0] for k in members])
+        predict_kernel(group_means, group_covs, phi, np.repeat(noise, len(members), axis=0))
+        means[members], covs[members] = group_means, group_covs
+    return means, covs
+
+
 @functools.lru_cache(maxsize=64)
 def chi2_point(probability: float, dof: int) -> float:
     """The chi-square quantile at ``probability`` on ``dof`` degrees of freedom, cached: the one gate and
@@ -356,5 +418,5 @@ def chi2_point(probability: float, dof: int) -> float:
     return float(chi2.ppf(probability, dof))
 
 
-__all__ = ["MERGE_DISTANCE", "ReportRows", "advance_track", "chi2_point", "motion_model", "predicted_track",
-           "report_rows", "velocity_prior"]
+__all__ = ["MERGE_DISTANCE", "ReportRows", "advance_track", "chi2_point", "motion_model", "predicted_moments", "predicted_track",
+           "report_rows", "updated_track", "velocity_prior"]

@@ -14,6 +14,7 @@ import copy
 import math
 from collections.abc import Sequence
 from dataclasses import replace
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
@@ -22,14 +23,45 @@ from core.angles import wrap_to_pi
 from core.measurements import AZIMUTH, predict
 from core.tracking.association_types import COARSE_SIGMAS, AssociationConfig, MultiTrack, Observation, frequency_ok
 from core.tracking.network import NetworkState, predict_tracks
-from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_kernel
+from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_pairs
 from core.tracking.network_types import Report
-from core.tracking.network_update import advance_track, chi2_point, report_rows
+from core.tracking.network_update import (
+    advance_track,
+    chi2_point,
+    predicted_moments,
+    report_rows,
+    updated_track,
+)
 from core.tracking.state import frozen_array
 
 #: With this many tracks or more, a scan's pairs are screened (:func:`_coarse_gate`) before the exact gate;
 #: with fewer, the screen costs more than the exact gate it saves.
 COARSE_FROM_TRACKS = 8
+
+
+class ScanGate(NamedTuple):
+    """One scan's gate (:func:`scan_gate`): the costs, and the update each gated pair would make.
+
+    Attributes
+    ----------
+    cost : ndarray, shape (T, B)
+        ``-log`` likelihood ratio of each pair (track's bearing against a false one); ``inf`` outside the gate.
+    nis : ndarray, shape (T, B)
+    rows : list of ReportRows
+        Each bearing's :func:`core.tracking.network_update.report_rows` (None for one no track may take).
+    predicted : dict
+        Track index -> its mean ``(6,)`` and covariance ``(6, 6)`` predicted to the scan's time.
+    updates : dict
+        ``(track, bearing)`` -> the kernel's updated mean, covariance, NIS, ``log det S`` and status, with the
+        network tracker's ``linearisation_passes``: the update :func:`core.tracking.network_update.advance_track`
+        would make, reused for a gated pair (:func:`core.tracking.network_update.updated_track`).
+    """
+
+    cost: np.ndarray
+    nis: np.ndarray
+    rows: list
+    predicted: dict
+    updates: dict
 
 
 def gate_costs(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config: AssociationConfig):
@@ -41,11 +73,20 @@ def gate_costs(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config
         ``-log`` likelihood ratio of each pair (track's bearing against a false one); ``inf`` outside the gate.
     nis : ndarray, shape (T, B)
     """
+    gate = scan_gate(tracks, scan, config)
+    return gate.cost, gate.nis
+
+
+def scan_gate(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config: AssociationConfig) -> ScanGate:
+    """The gate of one scan's bearings against the tracks: costs, NIS and each gated pair's update
+    (:class:`ScanGate`). Each track is predicted once per scan, and the pairs the coarse screen leaves are
+    updated in one kernel call."""
     count, size = len(tracks), len(scan)
     cost = np.full((count, size), np.inf)
     nis_out = np.full((count, size), np.inf)
+    out = ScanGate(cost, nis_out, [None] * size, {}, {})
     if not count or not size:
-        return cost, nis_out
+        return out
     time_s = scan[0].time_s
     if count >= COARSE_FROM_TRACKS:
         near = _coarse_gate(tracks, scan, config)
@@ -53,33 +94,46 @@ def gate_costs(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config
         near = np.array([[frequency_ok(t.frequency_hz, o.frequency_hz, config) for o in scan] for t in tracks])
     needed = np.flatnonzero(near.any(axis=1))
     if not needed.size:
-        return cost, nis_out
-    predicted = predict_tracks(NetworkState(tracks=tuple(tracks[i].track for i in needed)), time_s, config.network)
-    all_means = np.array([p.mean_enu for p in predicted])
-    all_covs = np.array([p.covariance_enu for p in predicted])
-    eye = np.eye(STATE_SIZE)
+        return out
+    all_means, all_covs = predicted_moments([tracks[i].track for i in needed.tolist()], time_s, config.network)
+    for k, i in enumerate(needed.tolist()):
+        out.predicted[i] = (all_means[k], all_covs[k])
+    passes = config.network.linearisation_passes
     log_pd_over_lambda = math.log(config.detection_probability / config.false_density_per_rad2)
-    for j, obs in enumerate(scan):
-        local = np.flatnonzero(near[needed, j])
-        if not local.size:
-            continue
-        report = obs.report
-        rows = report_rows(report)
+    pair_local, pair_bearing = np.nonzero(near[needed])
+    # One kernel call per group of bearings that share their station, frame and kinds (a scan is one
+    # station's: one group, unless some bearings lack an elevation).
+    groups: dict[tuple, list[int]] = {}
+    for j in np.unique(pair_bearing).tolist():
+        report = scan[j].report
+        out.rows[j] = report_rows(report)
+        key = (report.kinds.tobytes(), report.stations_enu_m.tobytes(), report.rotations.tobytes())
+        groups.setdefault(key, []).append(j)
+    for members in groups.values():
+        first = scan[members[0]].report
+        rows = out.rows[members[0]]
+        at = np.full(size, -1)
+        at[members] = np.arange(len(members))
+        picked = at[pair_bearing] >= 0
+        local, bearings = pair_local[picked], pair_bearing[picked]
+        values = np.array([out.rows[j].values for j in members])[at[bearings]]
+        variances = np.array([out.rows[j].variances for j in members])[at[bearings]]
+        count_pairs = local.size
+        new_means, new_covs = np.empty((count_pairs, STATE_SIZE)), np.empty((count_pairs, STATE_SIZE, STATE_SIZE))
+        nis, log_det = np.empty(count_pairs), np.empty(count_pairs)
+        status = np.empty(count_pairs, dtype=np.int64)
+        network_ukf_pairs(all_means, all_covs, local.astype(np.int64), first.stations_enu_m, first.rotations,
+                          first.kinds, values, variances, rows.rows, passes, new_means, new_covs, nis, log_det,
+                          status)
         dof = rows.rows.size
-        means, covs = np.ascontiguousarray(all_means[local]), np.ascontiguousarray(all_covs[local])
-        noises = np.zeros_like(covs)
-        new_means, new_covs = np.empty_like(means), np.empty_like(covs)
-        nis, log_det, status = np.empty(local.size), np.empty(local.size), np.empty(local.size, dtype=np.int64)
-        network_ukf_kernel(means, covs, eye, noises, False, report.stations_enu_m, report.rotations, report.kinds,
-                           rows.values, rows.variances, rows.rows, rows.toa_reference, 1, new_means, new_covs, nis,
-                           log_det, status)
-        gate = chi2_point(config.gate_probability, dof)
-        for k, i in enumerate(needed[local].tolist()):
-            if status[k] != UPDATED or not nis[k] <= gate:
-                continue
+        gated = (status == UPDATED) & (nis <= chi2_point(config.gate_probability, dof))
+        costs = 0.5 * (nis + log_det + dof * math.log(2.0 * math.pi)) - log_pd_over_lambda
+        for k in np.flatnonzero(gated).tolist():
+            i, j = int(needed[local[k]]), int(bearings[k])
             nis_out[i, j] = nis[k]
-            cost[i, j] = 0.5 * (nis[k] + log_det[k] + dof * math.log(2.0 * math.pi)) - log_pd_over_lambda
-    return cost, nis_out
+            cost[i, j] = costs[k]
+            out.updates[i, j] = (new_means[k], new_covs[k], float(nis[k]), float(log_det[k]), int(status[k]))
+    return out
 
 
 def _coarse_gate(tracks: Sequence[MultiTrack], scan: Sequence[Observation], config: AssociationConfig) -> np.ndarray:
@@ -130,17 +184,20 @@ def assign_scan(tracks: list[MultiTrack], scan: Sequence[Observation],
     """
     time_s = scan[0].time_s
     pairs = {}
+    gate = None
     if tracks:
-        cost, _ = gate_costs(tracks, scan, config)
+        gate = scan_gate(tracks, scan, config)
+        cost = gate.cost
         if config.method == "jpda":
-            return _scan_jpda(tracks, scan, cost, config)
+            return _scan_jpda(tracks, scan, gate, config)
         usable = np.minimum(np.where(np.isfinite(cost), cost, 0.0), 0.0)
         if usable.any():
             rows, cols = linear_sum_assignment(usable)
             pairs = {int(i): int(j) for i, j in zip(rows, cols) if cost[i, j] < 0.0}
     unsure = (ambiguous_tracks(pairs, cost, config.ambiguity_margin) if pairs and config.ambiguity_margin > 0.0
               else set())
-    out = [_after_scan(t, None if pairs.get(i) is None else scan[pairs[i]], time_s, config, i in unsure)
+    out = [_after_scan(t, None if pairs.get(i) is None else scan[pairs[i]], time_s, config, i in unsure,
+                       _update_of(gate, i, pairs.get(i)))
            for i, t in enumerate(tracks)]
     taken = set(pairs.values())
     return [t for t in out if t is not None], [o for j, o in enumerate(scan) if j not in taken]
@@ -166,17 +223,19 @@ def jpda_weights(likelihood: np.ndarray, missed: float) -> tuple[np.ndarray, np.
     rows, cols = np.nonzero(gated)
     if not rows.size:
         return beta, beta0
+    # A track whose gated bearings no other track gates is a cluster of its own: its bearings or none, in
+    # closed form, for all such tracks at once (the common case: emitters apart).
+    shared = gated.sum(axis=0) > 1
+    alone = gated.any(axis=1) & ~(gated & shared[None, :]).any(axis=1)
+    total = missed + likelihood[alone].sum(axis=1)
+    beta[alone], beta0[alone] = likelihood[alone] / total[:, None], missed / total
+    if alone.sum() == np.unique(rows).size:
+        return beta, beta0
     # Clusters: the connected parts of the graph of tracks and bearings joined by their gates.
     graph = coo_matrix((np.ones(rows.size), (rows, count + cols)), shape=(count + size, count + size))
     labels = connected_components(graph, directed=False)[1][:count]
-    for label in np.unique(labels[np.unique(rows)]).tolist():
+    for label in np.unique(labels[np.unique(rows[~alone[rows]])]).tolist():
         order = np.flatnonzero(labels == label).tolist()
-        if len(order) == 1:
-            # One track: its bearings or none, in closed form.
-            i = order[0]
-            total = missed + likelihood[i].sum()
-            beta[i], beta0[i] = likelihood[i] / total, missed / total
-            continue
         if len(order) > JPDA_MAX_CLUSTER:
             picked_tracks, picked = linear_sum_assignment(-np.log(np.where(gated[order], likelihood[order], 1e-300)))
             for r, c in zip(picked_tracks, picked):
@@ -214,12 +273,13 @@ def _joint_events(order: list, gated: np.ndarray, likelihood: np.ndarray, missed
     return acc, acc0, total
 
 
-def _scan_jpda(tracks, scan, cost, config):
+def _scan_jpda(tracks, scan, gate: ScanGate, config):
     """JPDA in place of GNN: each track updated with every gated bearing of the scan and left as predicted,
     the hypotheses merged by their association probabilities (the Gaussian sum's moments; for a linear model
     this is the PDA update); a hit when the track's bearing probability is above one half; a bearing whose
     probability of belonging to any track is below one half goes to the start pool."""
     time_s = scan[0].time_s
+    cost = gate.cost
     likelihood = np.where(np.isfinite(cost), np.exp(-np.where(np.isfinite(cost), cost, 0.0)), 0.0)
     beta, beta0 = jpda_weights(likelihood, 1.0 - config.detection_probability)
     out = []
@@ -231,14 +291,18 @@ def _scan_jpda(tracks, scan, cost, config):
         if not options or t.track.stage == "imm" or (len(options) == 1 and not keep_missed):
             best = int(np.argmax(beta[i])) if options else -1
             hit = bool(options) and beta[i, best] > 0.5
-            out.append(_after_scan(t, scan[best] if hit else None, time_s, config))
+            out.append(_after_scan(t, scan[best] if hit else None, time_s, config,
+                                   update=_update_of(gate, i, best if hit else None)))
             continue
         weights, means, covs, updated = [], [], [], []
         if keep_missed:
-            predicted = predict_tracks(NetworkState(tracks=(t.track,)), time_s, config.network)[0]
-            weights, means, covs = [beta0[i]], [predicted.mean_enu], [predicted.covariance_enu]
+            if i in gate.predicted:
+                weights, means, covs = [beta0[i]], [gate.predicted[i][0]], [gate.predicted[i][1]]
+            else:
+                predicted = predict_tracks(NetworkState(tracks=(t.track,)), time_s, config.network)[0]
+                weights, means, covs = [beta0[i]], [predicted.mean_enu], [predicted.covariance_enu]
         for j in options:
-            track, _ = advance_track(t.track, _labelled(scan[j].report, t.id), config.network)
+            track = _updated(t, scan[j], _update_of(gate, i, j), config)
             weights.append(beta[i, j])
             means.append(track.mean_enu)
             covs.append(track.covariance_enu)
@@ -283,10 +347,29 @@ def ambiguous_tracks(pairs: dict, cost: np.ndarray, margin: float) -> set:
     return out
 
 
+def _update_of(gate: ScanGate | None, track: int, bearing: int | None):
+    """The gate's update of a pair, with what :func:`core.tracking.network_update.updated_track` needs; None
+    when the pair has none."""
+    if gate is None or bearing is None or (track, bearing) not in gate.updates:
+        return None
+    return gate.rows[bearing], gate.predicted[track], gate.updates[track, bearing]
+
+
+def _updated(track: MultiTrack, obs: Observation, update, config: AssociationConfig):
+    """The filter of ``track`` after ``obs``: the gate's update when it has one for a ``single``-stage track
+    (the same kernel call :func:`core.tracking.network_update.advance_track` would make), else that function."""
+    if update is not None and track.track.stage == "single" and not config.network.imm_accel_sigmas_mps2:
+        rows, (mean, cov), (new_mean, new_cov, nis, log_det, status) = update
+        return updated_track(track.track, obs.report, rows, mean, cov, new_mean, new_cov, nis, log_det, status,
+                             config.network, track.id)
+    return advance_track(track.track, _labelled(obs.report, track.id), config.network)[0]
+
+
 def _after_scan(track: MultiTrack, obs: Observation | None, time_s: float, config: AssociationConfig,
-                unsure: bool = False):
+                unsure: bool = False, update=None):
     """A track after one scan (None: deleted as a tentative track that can no longer confirm). With ``unsure``
-    the bearing counts as a hit but does not update the track (:func:`ambiguous_tracks`)."""
+    the bearing counts as a hit but does not update the track (:func:`ambiguous_tracks`). ``update`` is the
+    gate's for the pair (:func:`_update_of`), if any."""
     hits = (track.hits + (obs is not None,))[-config.confirm_window:]
     if obs is None:
         if not track.confirmed and hits.count(False) > config.confirm_window - config.confirm_hits:
@@ -298,7 +381,7 @@ def _after_scan(track: MultiTrack, obs: Observation | None, time_s: float, confi
     if unsure:
         return MultiTrack(track.track, track.frequency_hz, track.frequency_count, hits, time_s, confirmed,
                           track.started_s, confirmed_s)
-    updated, _ = advance_track(track.track, _labelled(obs.report, track.id), config.network)
+    updated = _updated(track, obs, update, config)
     frequency, count = track.frequency_hz, track.frequency_count
     if math.isfinite(obs.frequency_hz):
         count += 1
@@ -314,5 +397,5 @@ def _labelled(report: Report, track_id: str) -> Report:
     return out
 
 
-__all__ = ["COARSE_FROM_TRACKS", "JPDA_MAX_CLUSTER", "JPDA_NEGLIGIBLE", "ambiguous_tracks", "gate_costs",
-           "assign_scan", "jpda_weights"]
+__all__ = ["COARSE_FROM_TRACKS", "JPDA_MAX_CLUSTER", "JPDA_NEGLIGIBLE", "ScanGate", "ambiguous_tracks", "gate_costs",
+           "assign_scan", "jpda_weights", "scan_gate"]

@@ -6,7 +6,8 @@ on the app's CPU pool (never the threads or the loop that serve the probes),
 in chunks of trials that each ask whether to stop (:mod:`service.watch`): at
 the request deadline (503 ``deadline_exceeded``), when the client
 disconnects, or when the server shuts down. A stopped evaluation stops using
-the CPU within one chunk.
+the CPU within one chunk (for the network and multi-emitter scenes, one
+trial).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from typing import Annotated, Union
 from fastapi import APIRouter, Request
 from pydantic import Discriminator, Tag
 
-from service import network_sessions, schemas, session_schemas
+from service import multi_evaluation, network_sessions, schemas, session_schemas
 from service.deps import OwnerDep
 from service.limits import check_evaluation, method_weight
 from service.planning import crlb_problem, evaluation_body
@@ -30,23 +31,36 @@ CHUNK_UNITS = 2000
 
 
 def _evaluation_kind(value) -> str:
-    """A body with ``network`` evaluates the network tracker on a scene; any other, fix methods."""
+    """A body with ``network`` evaluates the network tracker on a scene, one with ``multi_emitter`` the
+    association tracker on unlabelled bearings; any other, fix methods."""
     if isinstance(value, dict):
-        return "network_evaluation" if "network" in value and "scenario" not in value else "fix_evaluation"
-    return "network_evaluation" if isinstance(value, session_schemas.NetworkEvaluationRequest) else "fix_evaluation"
+        if "scenario" not in value:
+            if "network" in value:
+                return "network_evaluation"
+            if "multi_emitter" in value:
+                return "multi_emitter_evaluation"
+        return "fix_evaluation"
+    if isinstance(value, session_schemas.NetworkEvaluationRequest):
+        return "network_evaluation"
+    if isinstance(value, session_schemas.MultiEmitterEvaluationRequest):
+        return "multi_emitter_evaluation"
+    return "fix_evaluation"
 
 
 AnyEvaluationRequest = Annotated[
     Union[Annotated[schemas.EvaluationRequest, Tag("fix_evaluation")],
-          Annotated[session_schemas.NetworkEvaluationRequest, Tag("network_evaluation")]],
+          Annotated[session_schemas.NetworkEvaluationRequest, Tag("network_evaluation")],
+          Annotated[session_schemas.MultiEmitterEvaluationRequest, Tag("multi_emitter_evaluation")]],
     Discriminator(_evaluation_kind),
 ]
 
 
 @router.post("/evaluations", operation_id="evaluations-create",
-             summary="Monte Carlo RMSE, bias, efficiency and NEES of methods for a scenario, or of the network "
-                     "tracker on a scene (per epoch, against the posterior CRLB)",
-             response_model=Union[schemas.EvaluationResponse, session_schemas.NetworkEvaluationResponse],
+             summary="Monte Carlo RMSE, bias, efficiency and NEES of methods for a scenario, of the network "
+                     "tracker on a scene (per epoch, against the posterior CRLB), or GOSPA of the multi-emitter "
+                     "tracker on unlabelled bearings next to an intersection + DBSCAN baseline",
+             response_model=Union[schemas.EvaluationResponse, session_schemas.NetworkEvaluationResponse,
+                                  session_schemas.MultiEmitterEvaluationResponse],
              responses={422: {"model": schemas.Problem,
                               "description": "invalid scenario, or over max_evaluation_cost (code over_limit)"},
                         503: {"model": schemas.Problem,
@@ -57,8 +71,17 @@ async def create_evaluation(request: AnyEvaluationRequest, owner: OwnerDep, http
         spec = request.network
         network_sessions.check_network_evaluation(spec, settings.max_evaluation_cost)
         body = await watched(http, in_pool(http.app.state.cpu_pool,
-                                           lambda should_stop: network_sessions.network_evaluation_body(spec)),
+                                           lambda should_stop: network_sessions.network_evaluation_body(
+                                               spec, should_stop)),
                              "ask for fewer trials")
+        return JsonResponse(body)
+    if isinstance(request, session_schemas.MultiEmitterEvaluationRequest):
+        spec = request.multi_emitter
+        multi_evaluation.check_multi_evaluation(spec, settings.max_evaluation_cost)
+        body = await watched(http, in_pool(http.app.state.cpu_pool,
+                                           lambda should_stop: multi_evaluation.multi_evaluation_body(
+                                               spec, should_stop)),
+                             "ask for fewer trials or a shorter duration_s")
         return JsonResponse(body)
     problem, target = crlb_problem(request.scenario)
     methods = list(dict.fromkeys(request.methods))
