@@ -25,6 +25,7 @@ import numpy as np
 from bench import rows as bench_rows
 from bench.load import LoadGenerator
 from bench.multi_core import multi_hour_row, multi_scale_row
+from bench.multi_stonesoup import stonesoup_gospa_row
 from bench.network_core import network_step_row
 from bench.network_sessions import network_session_rows
 from bench.server import serve
@@ -76,7 +77,7 @@ def _guarded(number: int, what: str, target: str, run) -> bench_rows.Row | list:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="short runs (2 s, 2,000 problems): a smoke test")
-    parser.add_argument("--rows", default="1,2,3,4,5,6,7,8,9,10,11,12", help="which rows to run (comma-separated)")
+    parser.add_argument("--rows", default="1,2,3,4,5,6,7,8,9,10,11,12,13", help="which rows to run (comma-separated)")
     parser.add_argument("--duration", type=float, default=None, help="seconds per load run (default 10)")
     parser.add_argument("--batch", type=int, default=None, help="problems in the batch row (default 10,000)")
     parser.add_argument("--output", type=Path, default=RESULTS)
@@ -149,6 +150,10 @@ def main(argv=None) -> int:
         print("row 12: an hour of unlabelled bearings, one post a minute, in core ...", flush=True)
         results.append(_guarded(12, "an hour of unlabelled bearings, a post a minute", "within the deadline",
                                 lambda: multi_hour_row(300.0 if args.quick else 3600.0)))
+    if 13 in wanted:
+        print("row 13: multi-emitter GOSPA against a Stone Soup GNN tracker ...", flush=True)
+        results.append(_guarded(13, "multi-emitter GOSPA against Stone Soup GNN", "<= 1x Stone Soup GNN",
+                                lambda: stonesoup_gospa_row(variants=(0, 6) if args.quick else tuple(range(8)))))
     results = [r for item in results for r in (item if isinstance(item, list) else [item])]
     results.sort(key=lambda r: r.number)
 

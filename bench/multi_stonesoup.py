@@ -1,4 +1,4 @@
-"""A Stone Soup global-nearest-neighbour tracker on the multi-emitter scene's unlabelled bearings (a yardstick).
+"""A Stone Soup global-nearest-neighbour tracker on the multi-emitter scene's unlabelled bearings (a yardstick, bench row 13).
 
 The association tracker (:mod:`core.tracking.association`) and this one see the same bearings and are scored
 by the same epochs and GOSPA (:func:`core.simulation.multi_emitter.run_multi_trial`). The choices, made to
@@ -157,3 +157,28 @@ def stonesoup_gospa(scenario, trials: int, seed: int) -> np.ndarray:
     return np.array([run_multi_trial(scenario, simulate_multi(scenario, np.random.default_rng(seed + r)),
                                      tracker=StoneSoupGnn(scenario.config))["gospa"].mean()
                      for r in range(trials)])
+
+
+def stonesoup_gospa_row(variants=tuple(range(8)), trials: int = 1, seed: int = 40):
+    """Bench row 13: mean GOSPA of the association tracker against this Stone Soup GNN tracker on the same runs
+    of every variant of :func:`core.simulation.multi_emitter.multi_emitter_scene` (paired: each run's GOSPA the
+    mean over its epochs, both trackers on the same bearings)."""
+    from bench.rows import Row
+    from core.simulation.multi_emitter import evaluate_multi, multi_emitter_scene
+
+    ours, theirs = [], []
+    for variant in variants:
+        scene = multi_emitter_scene(variant)
+        ours.extend(evaluate_multi(scene, trials, seed).gospa_per_trial.tolist())
+        theirs.extend(stonesoup_gospa(scene, trials, seed).tolist())
+    ours, theirs = np.array(ours), np.array(theirs)
+    wins = int(np.sum(ours <= theirs))
+    return Row(13, f"multi-emitter scene, variants {variants[0]}-{variants[-1]}, {trials} run(s) each, seed {seed}: "
+                   "mean GOSPA of the confirmed tracks",
+               f"{ours.mean():.1f} m (median {np.median(ours):.1f} m)",
+               f"Stone Soup GNN {theirs.mean():.1f} m (median {np.median(theirs):.1f} m)",
+               f"{ours.mean() / theirs.mean():.2f}x", "<= 1x Stone Soup GNN",
+               "met" if ours.mean() <= theirs.mean() else "missed",
+               notes=[f"per run, ours / Stone Soup (m): "
+                      + ", ".join(f"{a:.0f}/{b:.0f}" for a, b in zip(ours, theirs))
+                      + f"; ours lower or equal on {wins} of {len(ours)} runs"])
