@@ -32,7 +32,7 @@ from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_re
 from service import schemas as fix_schemas
 from service import session_schemas as schemas
 from service.problems import ApiError, api_loc
-from service.session_records import cot_options, etag, if_match_accepts, timestamp
+from service.session_records import cot_options, decoded_states, etag, if_match_accepts, timestamp
 from service.stores import SessionRecord
 
 #: Ended tracks a record remembers (for the event stream and the state's ``ended_tracks``).
@@ -46,6 +46,16 @@ def _problem(status: int, code: str, detail: str, loc=None) -> ApiError:
 
 def is_network(record: SessionRecord) -> bool:
     return "network" in record.config
+
+
+def core_state(record: SessionRecord) -> NetworkState:
+    """The record's core state, decoded (read it through :data:`service.session_records.decoded_states`)."""
+    return NetworkState.from_dict(record.state["core"])
+
+
+def core_config(record: SessionRecord) -> NetworkConfig:
+    """The session's tracker settings (fixed for its life: ``decoded_states.get(..., fixed=True)``)."""
+    return network_config(record.config["request"])
 
 
 # -- creation ---------------------------------------------------------------------------------------------------
@@ -294,8 +304,8 @@ class ReportsChange:
         for i, report in enumerate(fresh, start=first_new):
             core_reports.append(core_report(report, i, registry, request["frame"], origin))
             _register(registry, report)
-        config = network_config(request)
-        before = NetworkState.from_dict(record.state["core"])
+        config = decoded_states.get(record, core_config, fixed=True)
+        before = decoded_states.get(record, core_state)
         try:
             outcome = apply_reports(before, core_reports, config)
         except LocalizationError as error:
@@ -352,7 +362,7 @@ def state_body(record: SessionRecord, at_time_s: float | None = None, state: Net
 
     request = record.config["request"]
     if state is None:
-        state = NetworkState.from_dict(record.state["core"])
+        state = decoded_states.get(record, core_state)
     frame = _frame(record)
     tracks = state.tracks if at_time_s is None else predict_tracks(state, at_time_s, network_config(request))
     origin = frame.origin
