@@ -16,7 +16,8 @@ Every store keeps the records this process read or wrote last
 whichever process or replica wrote it, since every write is a
 compare-and-set that bumps it; so a read asks the backend for the version
 alone, and fetches and decodes the whole record only when the cached one is
-not at that version.
+not at that version; and an update changes the cached record without even
+that read, its compare-and-set being the check.
 """
 
 from __future__ import annotations
@@ -152,6 +153,11 @@ class RecordCache:
             self._records.move_to_end(session_id)
             return record
 
+    def latest(self, session_id: str) -> SessionRecord | None:
+        """The cached record of the session, whatever version the backend is at now."""
+        with self._lock:
+            return self._records.get(session_id)
+
     def put(self, record: SessionRecord) -> None:
         """Keep ``record`` (a version as stored: read, or written and committed), unless an older one."""
         if self.size <= 0:
@@ -263,12 +269,18 @@ class SessionStore(ABC):
         fresh record when another write came first, so it must depend only
         on its argument.
 
+        The first attempt changes the record as this process last read or
+        wrote it (or ``read``), without reading the backend: the write's
+        compare-and-set finds out when another process has moved the session
+        on since. A change that raises or writes nothing is not written, so
+        then one version read decides: the error or the record stands when
+        the record was current, else the change is made again on the latest.
+
         Parameters
         ----------
         read : SessionRecord, optional
             The owner's session as the caller read it: the first attempt
-            writes over it without reading it again, unless it has expired
-            since (and reads again when the session moved on).
+            changes it, unless it has expired since.
 
         Returns
         -------
@@ -277,12 +289,25 @@ class SessionStore(ABC):
             returned None); None when the session does not exist for this owner.
         """
         for attempt in range(self.max_attempts):
-            fresh = attempt > 0 or read is None or not read.expires_at > self.now()
-            record = self.get(owner, session_id) if fresh else read
+            record = None
+            if attempt == 0:
+                record = read if read is not None else self.cache.latest(session_id)
+                if record is not None and (record.owner != owner or not record.expires_at > self.now()):
+                    record = None
+            unverified = record is not None
             if record is None:
-                return None
-            new = change(record)
+                record = self.get(owner, session_id)
+                if record is None:
+                    return None
+            try:
+                new = change(record)
+            except Exception:
+                if unverified and self._version(session_id) != record.version:
+                    continue  # decided on a record another process has moved on from: decide on the latest
+                raise
             if new is None:
+                if unverified and self._version(session_id) != record.version:
+                    continue
                 return record
             new = next_version(record, new)
             if self._swap(session_id, record.version, new):

@@ -10,6 +10,7 @@ import threading
 from contextlib import contextmanager
 
 import numpy as np
+import pytest
 from fastapi.testclient import TestClient
 
 from core.simulation.network import SCENES, simulate_network
@@ -38,6 +39,34 @@ def test_a_write_through_another_instance_is_seen_by_a_read_and_an_update(store_
     assert (second.get("alice", "0001").version, second.get("alice", "0001").state["n"]) == (3, 2)
     second.delete("alice", "0001")
     assert first.get("alice", "0001") is None
+    for s in (first, second):
+        s.close()
+
+
+def test_an_update_decided_on_a_record_another_instance_moved_on_from_is_decided_again(store_url, clock):
+    """An update starts from the cached record without reading the backend: a change that refuses it (as a
+    stale If-Match would) or writes nothing is decided again on the latest record, not answered from the
+    cache; a session the other instance deleted is gone."""
+    first, second = open_store(store_url, clock=clock), open_store(store_url, clock=clock)
+    first.create(make_record("0001", now=clock()))
+    second.update("alice", "0001", bump)  # the first's cache still holds version 1
+    seen = []
+
+    def only_at_version_2(record):
+        seen.append(record.version)
+        if record.version != 2:
+            raise ValueError(f"precondition: at version {record.version}")
+        return bump(record)
+
+    assert first.update("alice", "0001", only_at_version_2).version == 3
+    assert seen == [1, 2]
+    second.update("alice", "0001", bump)
+    unchanged = first.update("alice", "0001", lambda record: None)
+    assert (unchanged.version, unchanged.state["n"]) == (4, 3)
+    with pytest.raises(ValueError):  # on the current record, the change's own refusal stands
+        first.update("alice", "0001", only_at_version_2)
+    second.delete("alice", "0001")
+    assert first.update("alice", "0001", bump) is None
     for s in (first, second):
         s.close()
 
