@@ -31,6 +31,9 @@ HEARTBEAT_S = 15.0
 class LocalBus:
     """Publish to subscribers in this process (thread-safe: posts run on worker threads)."""
 
+    #: Whether :meth:`publish` may block (then the routes call it off the event loop).
+    blocking = False
+
     def __init__(self, metrics=None):
         self.metrics = metrics
         self._lock = threading.Lock()
@@ -114,6 +117,8 @@ class Subscription:
 class RedisBus:
     """Redis pub/sub: posts publish with the store's own client; each stream listens on its own connection."""
 
+    blocking = True
+
     def __init__(self, store, url: str, metrics=None):
         self.store, self.metrics = store, metrics
         from service.stores.redis import split_url
@@ -168,6 +173,18 @@ def bus(app):
             LocalBus(app.state.metrics)
         app.state.event_bus = found
     return found
+
+
+async def publish(app, session_id: str, version: int) -> None:
+    """Publish a session's new version on the app's bus: on a worker thread when that may block (Redis), else
+    here (the in-process bus only schedules wake-ups, cheaper than the hop to a thread)."""
+    found = bus(app)
+    if found.blocking:
+        from starlette.concurrency import run_in_threadpool
+
+        await run_in_threadpool(found.publish, session_id, version)
+    else:
+        found.publish(session_id, version)
 
 
 def sse(event: str, data: bytes, event_id: int | None = None) -> bytes:

@@ -33,7 +33,7 @@ from service import schemas as fix_schemas
 from service import session_schemas as schemas
 from service.network_renderings import ended_cot, geojson, track_cot
 from service.problems import ApiError, api_loc
-from service.session_records import cot_options, etag, if_match_accepts, timestamp
+from service.session_records import cot_options, decoded_states, etag, if_match_accepts, timestamp
 from service.stores import SessionRecord
 
 #: Ended tracks a record remembers (for the event stream and the state's ``ended_tracks``).
@@ -47,6 +47,16 @@ def _problem(status: int, code: str, detail: str, loc=None) -> ApiError:
 
 def is_network(record: SessionRecord) -> bool:
     return "network" in record.config
+
+
+def core_state(record: SessionRecord) -> NetworkState:
+    """The record's core state, decoded (read it through :data:`service.session_records.decoded_states`)."""
+    return NetworkState.from_dict(record.state["core"])
+
+
+def core_config(record: SessionRecord) -> NetworkConfig:
+    """The session's tracker settings (fixed for its life: ``decoded_states.get(..., fixed=True)``)."""
+    return network_config(record.config["request"])
 
 
 # -- creation ---------------------------------------------------------------------------------------------------
@@ -313,8 +323,8 @@ class ReportsChange:
             _register(registry, report)
         if auto:
             return self._auto(record, fresh, core_reports, registry)
-        config = network_config(request)
-        before = NetworkState.from_dict(record.state["core"])
+        config = decoded_states.get(record, core_config, fixed=True)
+        before = decoded_states.get(record, core_state)
         try:
             outcome = apply_reports(before, core_reports, config)
         except LocalizationError as error:
@@ -395,7 +405,7 @@ def _tracks(record: SessionRecord, at_time_s: float | None, state) -> tuple:
             state = association_sessions.current(record.state["auto"])
         return association_sessions.tracks(state, association_config(request), at_time_s)
     if state is None:
-        state = NetworkState.from_dict(record.state["core"])
+        state = decoded_states.get(record, core_state)
     return state.tracks if at_time_s is None else predict_tracks(state, at_time_s, network_config(request))
 
 

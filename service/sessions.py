@@ -34,7 +34,7 @@ from core.tracking import TrackerConfig, TrackState, new_state, step_many
 from service import network_sessions
 from service import session_schemas as schemas
 from service.problems import ApiError
-from service.session_records import cot_options, etag, if_match_accepts, timestamp
+from service.session_records import cot_options, decoded_states, etag, if_match_accepts, timestamp
 from service.stores import SessionRecord, SessionStore
 
 _SESSION_ID = re.compile(r"[0-9a-f]{32}")
@@ -106,6 +106,17 @@ def tracker_epoch(epoch: schemas.Epoch) -> TrackerEpoch:
     )
 
 
+def track_state(record: SessionRecord) -> TrackState:
+    """A paper-001 session's filter state, decoded (use it through :data:`service.session_records.decoded_states`)."""
+    return TrackState.from_dict(record.state)
+
+
+def track_config(record: SessionRecord) -> TrackerConfig:
+    """A paper-001 session's filter settings (fixed at creation: use it through
+    :data:`service.session_records.decoded_states` with ``fixed=True``)."""
+    return TrackerConfig.from_dict(record.config["tracker"])
+
+
 def _observer(record: SessionRecord) -> dict:
     return record.config["request"]["observer"]["position"]
 
@@ -115,7 +126,7 @@ def state_body(record: SessionRecord) -> dict:
     if network_sessions.is_network(record):
         return network_sessions.state_body(record)
     request = record.config["request"]
-    state = TrackState.from_dict(record.state)
+    state = decoded_states.get(record, track_state)
     observer = _observer(record)
     body = {
         "id": record.id,
@@ -275,18 +286,20 @@ class MeasurementsChange:
                  clock: Callable[[], float]):
         self.batch, self.if_match, self.clock = batch, if_match, clock
         self.applied = self.duplicates = 0
+        #: The filter state of the record the change made (None when it wrote nothing).
+        self.state: TrackState | None = None
         self._prepared: tuple | None = None
 
     def prepare(self, record: SessionRecord, should_stop=None) -> None:
         """Decide the change for ``record`` now (``should_stop`` is asked every :data:`STOP_CHECK_EPOCHS`
         epochs)."""
         new = self._change(record, should_stop)
-        self._prepared = (record.id, record.version, new, self.applied, self.duplicates)
+        self._prepared = (record.id, record.version, new, self.applied, self.duplicates, self.state)
 
     def __call__(self, record: SessionRecord) -> SessionRecord | None:
         prepared = self._prepared
         if prepared is not None and prepared[:2] == (record.id, record.version):
-            new, self.applied, self.duplicates = prepared[2:]
+            new, self.applied, self.duplicates, self.state = prepared[2:]
             return new
         return self._change(record, None)
 
@@ -303,7 +316,7 @@ class MeasurementsChange:
             while first_new < len(batch.measurements) and batch.measurements[first_new].seq <= record.last_seq:
                 first_new += 1
         fresh = batch.measurements[first_new:]
-        self.applied, self.duplicates = len(fresh), first_new
+        self.applied, self.duplicates, self.state = len(fresh), first_new, None
         previous_time, previous_seq = record.last_time_s, record.last_seq
         for i, epoch in enumerate(fresh, start=first_new):
             if previous_time is not None and not epoch.time_s > previous_time:
@@ -314,7 +327,7 @@ class MeasurementsChange:
             previous_time, previous_seq = epoch.time_s, epoch.seq
         if not fresh:
             return None
-        config = TrackerConfig.from_dict(record.config["tracker"])
+        config = decoded_states.get(record, track_config, fixed=True)
         current = [first_new]
 
         def epochs():
@@ -325,7 +338,7 @@ class MeasurementsChange:
                 yield tracker_epoch(epoch)
 
         try:
-            state = step_many(TrackState.from_dict(record.state), epochs(), config)
+            state = step_many(decoded_states.get(record, track_state), epochs(), config)
         except LocalizationError as error:
             i = current[0]
             field = _EPOCH_FIELD.get(error.loc[0]) if error.loc else None
@@ -333,6 +346,7 @@ class MeasurementsChange:
             raise _problem(422, error.code, f"measurements[{i}] (seq {batch.measurements[i].seq}): {error.message}; "
                                             "nothing of this post was applied", loc) from error
         now = self.clock()
+        self.state = state
         return replace(record, state=state.to_dict(), last_seq=fresh[-1].seq, last_time_s=fresh[-1].time_s,
                        updates=record.updates + len(fresh), updated_at=now, expires_at=now + record.ttl_s)
 
@@ -344,6 +358,8 @@ def post_measurements(store: SessionStore, owner: str, session_id: str, change: 
     record = store.update(owner, session_id, change, read) if _SESSION_ID.fullmatch(session_id) else None
     if record is None:
         raise not_found(session_id)
+    if change.state is not None:  # what the write made, committed: the next post of this session starts from it
+        decoded_states.remember(record, track_state, change.state)
     return PostOutcome(record, change.applied, change.duplicates)
 
 
@@ -364,4 +380,6 @@ def post_reports(store: SessionStore, owner: str, session_id: str, change: netwo
     record = store.update(owner, session_id, change, read) if _SESSION_ID.fullmatch(session_id) else None
     if record is None:
         raise not_found(session_id)
+    if change.state is not None:  # what the write made, committed: the next post of this session starts from it
+        decoded_states.remember(record, network_sessions.core_state, change.state)
     return ReportsOutcome(record, change.applied, change.duplicates, change.late, change.ended, change.state)

@@ -234,12 +234,22 @@ class Track:
         return self.weights.tolist() if self.stage == "imm" else None
 
     def to_dict(self) -> dict:
-        return {"id": self.id, "status": self.status, "time_s": self.time_s, "mean_enu": self.mean_enu.tolist(),
-                "covariance_enu": self.covariance_enu.tolist(), "updates": self.updates,
-                "warnings": [list(w) for w in self.warnings], "stage": self.stage, "weights": self.weights.tolist(),
-                "means": self.means.tolist(), "covariances": self.covariances.tolist(), "agreeing": self.agreeing,
-                "confirmed": self.confirmed,
-                "reference_range_m": None if math.isinf(self.reference_range_m) else self.reference_range_m}
+        """Plain JSON-able data; exact inverse of :meth:`from_dict`.
+
+        Made once per track and shared by every later call (read it, never change it): a track is an
+        immutable value (frozen arrays), and a state's history repeats most of its tracks from one post to
+        the next, so a state's :meth:`~core.tracking.network.NetworkState.to_dict` converts only its new ones.
+        """
+        made = self.__dict__.get("_as_dict")
+        if made is None:
+            made = {"id": self.id, "status": self.status, "time_s": self.time_s, "mean_enu": self.mean_enu.tolist(),
+                    "covariance_enu": self.covariance_enu.tolist(), "updates": self.updates,
+                    "warnings": [list(w) for w in self.warnings], "stage": self.stage,
+                    "weights": self.weights.tolist(), "means": self.means.tolist(),
+                    "covariances": self.covariances.tolist(), "agreeing": self.agreeing, "confirmed": self.confirmed,
+                    "reference_range_m": None if math.isinf(self.reference_range_m) else self.reference_range_m}
+            object.__setattr__(self, "_as_dict", made)
+        return made
 
     @classmethod
     def from_dict(cls, data: dict) -> "Track":

@@ -7,7 +7,6 @@ from typing import Annotated
 
 import orjson
 from fastapi import APIRouter, Depends, Header, Query, Request
-from starlette.concurrency import run_in_threadpool
 from starlette.responses import Response, StreamingResponse
 
 from service import events, network_sessions, sessions, tak
@@ -147,7 +146,7 @@ async def post_measurements(session_id: str, batch: schemas.MeasurementBatch, ow
     metrics.count("session_epochs_duplicate_total", outcome.duplicates)
     body = {**sessions.state_body(outcome.record), "applied": outcome.applied, "duplicates": outcome.duplicates}
     if outcome.applied:
-        await run_in_threadpool(events.bus(request.app).publish, session_id, outcome.record.version)
+        await events.publish(request.app, session_id, outcome.record.version)
         metrics.count("events_published_total")
         tak.push_session(request.app, body, sessions.cot_options(outcome.record))
     return _state_response(outcome.record, body=body)
@@ -182,7 +181,7 @@ async def post_reports(session_id: str, batch: schemas.ReportBatch, owner: Owner
     body = {**network_sessions.state_body(outcome.record, state=outcome.state), "applied": outcome.applied,
             "duplicates": outcome.duplicates, "late": outcome.late}
     if outcome.applied or outcome.ended:
-        await run_in_threadpool(events.bus(request.app).publish, session_id, outcome.record.version)
+        await events.publish(request.app, session_id, outcome.record.version)
         metrics.count("events_published_total")
         if tak.feed(request.app) is not None:
             for event in network_sessions.tak_events(outcome.record, body, outcome.ended):
@@ -194,7 +193,7 @@ async def post_reports(session_id: str, batch: schemas.ReportBatch, owner: Owner
                response_class=Response, responses={**_NOT_FOUND, **_UNAVAILABLE})
 async def delete_session(session_id: str, owner: OwnerDep, store: StoreDep, request: Request) -> Response:
     await store.run(sessions.delete, owner, session_id)
-    await run_in_threadpool(events.bus(request.app).publish, session_id, 0)
+    await events.publish(request.app, session_id, 0)
     return Response(status_code=204)
 
 

@@ -10,11 +10,21 @@ same way: read, change outside any lock, then write only if the session is
 still at the version read (compare-and-set), else read and change again.
 A slow change (a post of 10,000 epochs) thus holds no lock that writes to
 other sessions wait for.
+
+Every store keeps the records this process read or wrote last
+(:class:`RecordCache`): a version names one record for the session's life,
+whichever process or replica wrote it, since every write is a
+compare-and-set that bumps it; so a read asks the backend for the version
+alone, and fetches and decodes the whole record only when the cached one is
+not at that version; and an update changes the cached record without even
+that read, its compare-and-set being the check.
 """
 
 from __future__ import annotations
 
+import collections
 import random
+import threading
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, fields, replace
@@ -116,6 +126,56 @@ class SessionRecord:
         return self.expires_at <= now
 
 
+class RecordCache:
+    """The last records of this process's reads and writes, one per session id, validated by version.
+
+    Records are values: whoever gets one from a store must not change it
+    (:func:`dataclasses.replace` makes the next one), since the same object
+    is handed to every later reader of that version.
+
+    Parameters
+    ----------
+    size : int
+        Sessions kept (least recently used dropped first); 0 keeps none.
+    """
+
+    def __init__(self, size: int = 128):
+        self.size = size
+        self._records: collections.OrderedDict[str, SessionRecord] = collections.OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, session_id: str, version: int) -> SessionRecord | None:
+        """The cached record of the session when it is at ``version``, else None."""
+        with self._lock:
+            record = self._records.get(session_id)
+            if record is None or record.version != version:
+                return None
+            self._records.move_to_end(session_id)
+            return record
+
+    def latest(self, session_id: str) -> SessionRecord | None:
+        """The cached record of the session, whatever version the backend is at now."""
+        with self._lock:
+            return self._records.get(session_id)
+
+    def put(self, record: SessionRecord) -> None:
+        """Keep ``record`` (a version as stored: read, or written and committed), unless an older one."""
+        if self.size <= 0:
+            return
+        with self._lock:
+            known = self._records.get(record.id)
+            if known is not None and known.version > record.version:
+                return
+            self._records[record.id] = record
+            self._records.move_to_end(record.id)
+            while len(self._records) > self.size:
+                self._records.popitem(last=False)
+
+    def drop(self, session_id: str) -> None:
+        with self._lock:
+            self._records.pop(session_id, None)
+
+
 #: ``change(record) -> new record | None``: what :meth:`SessionStore.update` applies.
 Change = Callable[[SessionRecord], "SessionRecord | None"]
 
@@ -132,23 +192,56 @@ class SessionStore(ABC):
         ``"sqlite"`` or ``"redis"``, reported by ``/readyz``.
     clock : callable returning float
         Unix seconds; injectable so that tests can expire sessions without sleeping.
+    cache : RecordCache
+        The records of this store's last reads and writes (``cached_records`` sessions).
     """
 
     kind: str
 
-    def __init__(self, clock: Clock | None = None):
+    def __init__(self, clock: Clock | None = None, cached_records: int = 128):
         self.clock: Clock = clock or time.time
+        self.cache = RecordCache(cached_records)
 
     def now(self) -> float:
         return self.clock()
 
-    @abstractmethod
     def create(self, record: SessionRecord) -> None:
         """Store a new record (its id must be new)."""
+        self._insert(record)
+        self.cache.put(record)
 
-    @abstractmethod
     def get(self, owner: str, session_id: str) -> SessionRecord | None:
         """The owner's live session, or None."""
+        record = self._current(session_id)
+        if record is None or record.owner != owner or record.expired(self.now()):
+            return None
+        return record
+
+    def _current(self, session_id: str) -> SessionRecord | None:
+        """The session's stored record, whoever owns it and live or not: the cached one while the backend is
+        still at its version, else the backend's (cached from now on)."""
+        version = self._version(session_id)
+        if version is None:
+            self.cache.drop(session_id)
+            return None
+        record = self.cache.get(session_id, version)
+        if record is None:
+            record = self._load(session_id)
+            if record is not None:
+                self.cache.put(record)
+        return record
+
+    @abstractmethod
+    def _insert(self, record: SessionRecord) -> None:
+        """Write a new record (ValueError or the backend's integrity error when its id exists)."""
+
+    @abstractmethod
+    def _version(self, session_id: str) -> int | None:
+        """The stored version of the session (None when there is none): one small read."""
+
+    @abstractmethod
+    def _load(self, session_id: str) -> SessionRecord | None:
+        """The stored record of the session, whoever owns it and live or not."""
 
     @abstractmethod
     def page(self, owner: str, limit: int, after: str | None = None) -> tuple[list[SessionRecord], bool]:
@@ -176,12 +269,18 @@ class SessionStore(ABC):
         fresh record when another write came first, so it must depend only
         on its argument.
 
+        The first attempt changes the record as this process last read or
+        wrote it (or ``read``), without reading the backend: the write's
+        compare-and-set finds out when another process has moved the session
+        on since. A change that raises or writes nothing is not written, so
+        then one version read decides: the error or the record stands when
+        the record was current, else the change is made again on the latest.
+
         Parameters
         ----------
         read : SessionRecord, optional
             The owner's session as the caller read it: the first attempt
-            writes over it without reading it again, unless it has expired
-            since (and reads again when the session moved on).
+            changes it, unless it has expired since.
 
         Returns
         -------
@@ -190,15 +289,29 @@ class SessionStore(ABC):
             returned None); None when the session does not exist for this owner.
         """
         for attempt in range(self.max_attempts):
-            fresh = attempt > 0 or read is None or not read.expires_at > self.now()
-            record = self.get(owner, session_id) if fresh else read
+            record = None
+            if attempt == 0:
+                record = read if read is not None else self.cache.latest(session_id)
+                if record is not None and (record.owner != owner or not record.expires_at > self.now()):
+                    record = None
+            unverified = record is not None
             if record is None:
-                return None
-            new = change(record)
+                record = self.get(owner, session_id)
+                if record is None:
+                    return None
+            try:
+                new = change(record)
+            except Exception:
+                if unverified and self._version(session_id) != record.version:
+                    continue  # decided on a record another process has moved on from: decide on the latest
+                raise
             if new is None:
+                if unverified and self._version(session_id) != record.version:
+                    continue
                 return record
             new = next_version(record, new)
             if self._swap(session_id, record.version, new):
+                self.cache.put(new)
                 return new
             time.sleep(random.uniform(0.0, min(0.05, 0.0005 * 2**attempt)))
         raise StoreBusy(f"session {session_id} is being updated by many clients at once; retry")
@@ -207,9 +320,15 @@ class SessionStore(ABC):
     def _swap(self, session_id: str, version: int, new: SessionRecord) -> bool:
         """Write ``new`` if the session is still at ``version``; whether it was written."""
 
-    @abstractmethod
     def delete(self, owner: str, session_id: str) -> bool:
         """Remove the owner's session; False when there was none."""
+        removed = self._remove(owner, session_id)
+        self.cache.drop(session_id)
+        return removed
+
+    @abstractmethod
+    def _remove(self, owner: str, session_id: str) -> bool:
+        """Remove the owner's live session from the backend; False when there was none."""
 
     @abstractmethod
     def ping(self) -> None:

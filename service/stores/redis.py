@@ -114,20 +114,19 @@ class RedisStore(SessionStore):
     def _ttl_ms(self, record: SessionRecord) -> int:
         return max(1, math.ceil((record.expires_at - self.now()) * 1000.0))
 
-    def create(self, record: SessionRecord) -> None:
+    def _insert(self, record: SessionRecord) -> None:
         created = self._create(keys=[self._session_key(record.id), self._owner_key(record.owner)],
                                args=[record.version, record.to_json(), self._ttl_ms(record), record.id])
         if not created:
             raise ValueError(f"session {record.id!r} exists")
 
-    def get(self, owner: str, session_id: str) -> SessionRecord | None:
+    def _version(self, session_id: str) -> int | None:
+        found = self.client.hget(self._session_key(session_id), "v")
+        return None if found is None else int(found)
+
+    def _load(self, session_id: str) -> SessionRecord | None:
         raw = self.client.hget(self._session_key(session_id), "r")
-        if raw is None:
-            return None
-        record = SessionRecord.from_json(raw)
-        if record.owner != owner or record.expired(self.now()):
-            return None
-        return record
+        return None if raw is None else SessionRecord.from_json(raw)
 
     def page(self, owner: str, limit: int, after: str | None = None) -> tuple[list[SessionRecord], bool]:
         owner_key = self._owner_key(owner)
@@ -161,7 +160,7 @@ class RedisStore(SessionStore):
         return bool(self._compare_and_set(keys=[self._session_key(session_id)],
                                           args=[version, new.version, new.to_json(), self._ttl_ms(new)]))
 
-    def delete(self, owner: str, session_id: str) -> bool:
+    def _remove(self, owner: str, session_id: str) -> bool:
         keys = [self._session_key(session_id), self._owner_key(owner)]
         for _ in range(self.max_attempts):
             record = self.get(owner, session_id)

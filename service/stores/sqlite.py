@@ -12,14 +12,20 @@ the change runs outside any lock, and the write is an ``UPDATE ... WHERE
 version = ?`` inside ``BEGIN IMMEDIATE`` (the database's write lock, held
 for that statement and its fsync only). With load-change-save all inside
 the lock, a post of 10,000 epochs (0.6 s of filter steps) would make the
-writes of other sessions wait past the 0.5 s busy timeout (measured: 1,082
-of 1,161 posts of six streaming clients answered 503). Writers are serialised
-across processes sharing the file (waiting up to ``busy_timeout_s``);
-readers are not blocked (WAL). Within one process the writers first queue
-on a lock of the store's: SQLite's own wait is a sleep with growing backoff,
-under which a writer among eight busy threads could lose the race for 0.5 s
-and answer 503 while the file was never contended for that long (measured:
-42 of about 3,500 posts at 8 clients).
+writes of other sessions wait past the 0.5 s busy timeout. Writers are
+serialised across processes sharing the file (waiting up to
+``busy_timeout_s``); readers are not blocked (WAL).
+
+Group commit: within one process, writes that arrive while a transaction
+is being written queue (in arrival order, rather than in SQLite's own
+backoff sleeps, under which a writer among eight busy threads could lose
+the race past the busy timeout while the file was never held that long),
+and the first of them, once the transaction ends, writes every one queued
+in one transaction: one fsync for all of them. Each write keeps its own
+outcome (a savepoint each: one that fails, a taken id say, is rolled back
+alone), and is acknowledged to its caller only after that ``COMMIT`` and
+the file check below; when the ``COMMIT`` fails, every write of the group
+fails with it and none was applied.
 Each thread has its own connection; ``:memory:`` (one database per
 connection) uses a single connection behind a lock instead.
 
@@ -39,6 +45,7 @@ names.
 from __future__ import annotations
 
 import collections
+import copy
 import math
 import os
 import pathlib
@@ -46,7 +53,7 @@ import sqlite3
 import threading
 import time
 from contextlib import contextmanager
-from typing import Iterator, NamedTuple
+from typing import Any, Callable, Iterator, NamedTuple, TypeVar
 
 from service.stores.base import Clock, SessionRecord, SessionStore, StoreBusy
 
@@ -62,6 +69,8 @@ CREATE INDEX IF NOT EXISTS sessions_by_owner ON sessions (owner, id);
 CREATE INDEX IF NOT EXISTS sessions_by_expiry ON sessions (expires_at);
 CREATE TABLE IF NOT EXISTS readiness (id INTEGER PRIMARY KEY, checked_at REAL NOT NULL);
 """
+
+T = TypeVar("T")
 
 
 class StoreMoved(sqlite3.OperationalError):
@@ -111,16 +120,13 @@ class SqliteStore(SessionStore):
         self._connections: list[sqlite3.Connection] = []
         self._registry_lock = threading.Lock()
         self._memory_lock = threading.RLock()
-        self._writer = _Turns()
+        self._turns = _Turns()
         #: The database file and its WAL (None where the filesystem kept SQLite out of WAL mode) as opened; None
         #: until the schema's write has made them, and in memory.
         self._identity: tuple[FileIdentity, FileIdentity | None] | None = None
         self._shared: sqlite3.Connection | None = self._connect() if self.memory else None
+        self._commit(lambda db: [db.execute(statement) for statement in _SCHEMA.split(";") if statement.strip()])
         with self._db() as db:
-            with self._write(db):
-                for statement in _SCHEMA.split(";"):
-                    if statement.strip():
-                        db.execute(statement)
             wal = db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
         if not self.memory:
             self._identity = (FileIdentity.of(self.path), FileIdentity.of(self.path + "-wal") if wal else None)
@@ -190,16 +196,25 @@ class SqliteStore(SessionStore):
             return None
         return record
 
-    def create(self, record: SessionRecord) -> None:
-        with self._db() as db, self._write(db):
-            db.execute("DELETE FROM sessions WHERE expires_at <= ?", (self.now(),))
-            db.execute("INSERT INTO sessions (id, owner, version, expires_at, record) VALUES (?, ?, ?, ?, ?)",
-                       (record.id, record.owner, record.version, record.expires_at, record.to_json()))
+    def _insert(self, record: SessionRecord) -> None:
+        text, now = record.to_json(), self.now()
 
-    def get(self, owner: str, session_id: str) -> SessionRecord | None:
+        def insert(db: sqlite3.Connection) -> None:
+            db.execute("DELETE FROM sessions WHERE expires_at <= ?", (now,))
+            db.execute("INSERT INTO sessions (id, owner, version, expires_at, record) VALUES (?, ?, ?, ?, ?)",
+                       (record.id, record.owner, record.version, record.expires_at, text))
+
+        self._commit(insert)
+
+    def _version(self, session_id: str) -> int | None:
+        with self._db() as db:
+            row = db.execute("SELECT version FROM sessions WHERE id = ?", (session_id,)).fetchone()
+        return None if row is None else row[0]
+
+    def _load(self, session_id: str) -> SessionRecord | None:
         with self._db() as db:
             row = db.execute("SELECT record FROM sessions WHERE id = ?", (session_id,)).fetchone()
-        return self._live(row, owner, self.now())
+        return None if row is None else SessionRecord.from_json(row[0])
 
     def page(self, owner: str, limit: int, after: str | None = None) -> tuple[list[SessionRecord], bool]:
         with self._db() as db:
@@ -211,19 +226,26 @@ class SqliteStore(SessionStore):
 
     def _swap(self, session_id: str, version: int, new: SessionRecord) -> bool:
         text = new.to_json()
-        with self._db() as db, self._write(db):
+
+        def swap(db: sqlite3.Connection) -> bool:
             written = db.execute(
                 "UPDATE sessions SET version = ?, expires_at = ?, record = ? WHERE id = ? AND version = ?",
                 (new.version, new.expires_at, text, session_id, version))
             return written.rowcount == 1
 
-    def delete(self, owner: str, session_id: str) -> bool:
-        with self._db() as db, self._write(db):
+        return self._commit(swap)
+
+    def _remove(self, owner: str, session_id: str) -> bool:
+        now = self.now()
+
+        def remove(db: sqlite3.Connection) -> bool:
             row = db.execute("SELECT record FROM sessions WHERE id = ?", (session_id,)).fetchone()
-            if self._live(row, owner, self.now()) is None:
+            if self._live(row, owner, now) is None:
                 return False
             db.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
             return True
+
+        return self._commit(remove)
 
     def ping(self) -> None:
         with self._db() as db:
@@ -243,9 +265,10 @@ class SqliteStore(SessionStore):
         sqlite3.DatabaseError
             When the write fails, the path names another file (:class:`StoreMoved`) or the check finds damage.
         """
+        checked_at = self.now()
+        self._commit(lambda db: db.execute("INSERT OR REPLACE INTO readiness (id, checked_at) VALUES (1, ?)",
+                                           (checked_at,)))
         with self._db() as db:
-            with self._write(db):
-                db.execute("INSERT OR REPLACE INTO readiness (id, checked_at) VALUES (1, ?)", (self.now(),))
             now = time.monotonic()
             if now - self._integrity_checked_at >= self.integrity_interval_s:
                 verdict = [row[0] for row in db.execute("PRAGMA quick_check").fetchall()]
@@ -255,31 +278,87 @@ class SqliteStore(SessionStore):
 
     @contextmanager
     def _write(self, db: sqlite3.Connection) -> Iterator[None]:
-        """``BEGIN IMMEDIATE`` ... ``COMMIT``, rolled back on any exception, one writer of this process at a time.
+        """``BEGIN IMMEDIATE`` ... ``COMMIT`` of the caller's statements alone, rolled back on any exception,
+        in its turn among this process's writers (the schema's write, and tests that hold the lock).
 
         The write lock is taken before the first read, so a read-modify-write
         cannot interleave with another writer's (no lost update, no upgrade
         deadlock). Waiting longer than the busy timeout, for this process's
         writers or for another process's lock, is a 503.
         """
-        if not self._writer.acquire(timeout=self.busy_timeout_s):
-            raise _busy()
+        turn = _Write(None)
+        self._turns.enter(turn, self.busy_timeout_s)
         try:
-            try:
-                db.execute("BEGIN IMMEDIATE")
-            except sqlite3.OperationalError as error:
-                if "locked" in str(error) or "busy" in str(error):
-                    raise _busy() from error
-                raise
+            self._begin(db)
             try:
                 yield
+                db.execute("COMMIT")
             except BaseException:
-                db.execute("ROLLBACK")
+                if db.in_transaction:
+                    db.execute("ROLLBACK")
                 raise
-            db.execute("COMMIT")
             self._verify_in_place()  # after COMMIT: a removal while it ran is seen before anyone is answered
         finally:
-            self._writer.release()
+            self._turns.leave(())
+
+    def _commit(self, work: Callable[[sqlite3.Connection], T]) -> T:
+        """``work(db)`` in a transaction shared with the other writes of this process queued meanwhile; its
+        result once that transaction is committed (and the file checked), or its error.
+
+        Raises
+        ------
+        StoreBusy
+            When this write waited longer than the busy timeout for its turn, or for another process's lock.
+        sqlite3.Error
+            What ``work`` raised (its savepoint rolled back, the others' writes kept), or what the
+            ``BEGIN``, ``COMMIT`` or the file check raised (nothing of the group applied or acknowledged).
+        """
+        mine = _Write(work)
+        if not self._turns.enter(mine, self.busy_timeout_s):
+            return mine.outcome()  # written in another's group
+        group = [mine]
+        try:
+            group += self._turns.take()
+            with self._db() as db:
+                self._write_group(db, group)
+        finally:
+            self._turns.leave(group[1:])
+        return mine.outcome()
+
+    def _begin(self, db: sqlite3.Connection) -> None:
+        try:
+            db.execute("BEGIN IMMEDIATE")
+        except sqlite3.OperationalError as error:
+            if "locked" in str(error) or "busy" in str(error):
+                raise _busy() from error
+            raise
+
+    def _write_group(self, db: sqlite3.Connection, group: list["_Write"]) -> None:
+        """Every write of ``group`` in one transaction, each behind its own savepoint. A write's outcome is
+        set only once the transaction's fate is known: on any failure of the transaction itself, each write
+        gets that error (copied: each caller raises its own)."""
+        outcomes: list[tuple[Any, Exception | None]] = []
+        try:
+            self._begin(db)
+            try:
+                for write in group:
+                    db.execute("SAVEPOINT one_write")
+                    try:
+                        outcomes.append((write.work(db), None))
+                    except Exception as error:  # this write's own failure: the others go on
+                        db.execute("ROLLBACK TO one_write")
+                        outcomes.append((None, error))
+                    db.execute("RELEASE one_write")
+                db.execute("COMMIT")
+            except BaseException:
+                if db.in_transaction:
+                    db.execute("ROLLBACK")
+                raise
+            self._verify_in_place()  # after COMMIT: a removal while it ran is seen before anyone is answered
+        except Exception as error:
+            outcomes = [(None, error if k == 0 else _copied(error)) for k in range(len(group))]
+        for write, (result, error) in zip(group, outcomes):
+            write.result, write.error, write.settled = result, error, True
 
     def close(self) -> None:
         with self._registry_lock:
@@ -288,41 +367,93 @@ class SqliteStore(SessionStore):
             db.close()
 
 
-class _Turns:
-    """A lock that serves its waiters in arrival order: a release hands it to the longest waiter.
+class _Write:
+    """One write waiting for its transaction: ``work(db)`` (None: a caller's own :meth:`SqliteStore._write`),
+    then its result or error."""
 
-    A writer's wait is then bounded by the writers ahead of it, whatever the
-    thread scheduling. A plain ``threading.Lock`` (no order) also ended the
-    503s of 8 session clients, with a longer tail: p99 42 and 67 ms against
-    34 and 35 ms, two runs each at one epoch per post.
+    __slots__ = ("work", "result", "error", "settled", "written", "wake")
+
+    def __init__(self, work: Callable[[sqlite3.Connection], Any] | None):
+        self.work, self.result, self.error = work, None, None
+        #: Whether its transaction's fate set ``result`` or ``error``; whether a writer's turn ended with it.
+        self.settled = self.written = False
+        self.wake = threading.Event()
+
+    def outcome(self):
+        if not self.settled:  # the writer that took it was interrupted before the transaction's end
+            raise sqlite3.OperationalError("the write was interrupted before its commit; it was not applied")
+        if self.error is not None:
+            raise self.error
+        return self.result
+
+
+class _Turns:
+    """The writers of one process: one writes at a time, the others wait in arrival order.
+
+    A release hands the turn to the longest waiter, so a writer's wait is
+    bounded by the writers ahead of it, whatever the thread scheduling; and
+    the writer whose turn it is takes every grouped write waiting
+    (:meth:`take`) into its transaction, so those are done when it releases
+    and wait no longer.
     """
 
     def __init__(self) -> None:
         self._mutex = threading.Lock()
         self._held = False
-        self._queue: collections.deque[threading.Event] = collections.deque()
+        self._queue: collections.deque[_Write] = collections.deque()
 
-    def acquire(self, timeout: float) -> bool:
+    def enter(self, write: _Write, timeout: float) -> bool:
+        """Wait for ``write``'s turn: True when it is (the caller writes, then calls :meth:`leave`), False when
+        another writer wrote it in its group meanwhile.
+
+        Raises
+        ------
+        StoreBusy
+            When ``timeout`` seconds passed and no writer has taken it.
+        """
         with self._mutex:
             if not self._held:
                 self._held = True
                 return True
-            turn = threading.Event()
-            self._queue.append(turn)
-        if turn.wait(timeout):
-            return True
-        with self._mutex:
-            if turn.is_set():  # handed over as the wait timed out
-                return True
-            self._queue.remove(turn)
-            return False
+            self._queue.append(write)
+        if not write.wake.wait(timeout):
+            with self._mutex:
+                if write in self._queue:
+                    self._queue.remove(write)
+                    raise _busy()
+            write.wake.wait()  # in a group being written, or handed the turn as the wait timed out
+        return not write.written
 
-    def release(self) -> None:
+    def take(self) -> list[_Write]:
+        """The grouped writes waiting (in order), out of the queue: the caller writes them in its transaction."""
+        with self._mutex:
+            taken = [w for w in self._queue if w.work is not None]
+            if taken:
+                self._queue = collections.deque(w for w in self._queue if w.work is None)
+        return taken
+
+    def leave(self, written) -> None:
+        """End the caller's turn: the writes it took are done (their callers wake with their outcome), and the
+        longest waiter, if any, has the next turn."""
+        for write in written:
+            write.written = True
+            write.wake.set()
         with self._mutex:
             if self._queue:
-                self._queue.popleft().set()
+                self._queue.popleft().wake.set()
             else:
                 self._held = False
+
+
+def _copied(error: Exception) -> Exception:
+    """A copy of ``error`` for another thread to raise (one instance raised in several threads would share
+    and grow one traceback), chained to it."""
+    try:
+        twin = copy.copy(error)
+    except Exception:  # an exception that cannot be copied: raise the one instance
+        return error
+    twin.__cause__ = error
+    return twin
 
 
 def _busy() -> StoreBusy:
