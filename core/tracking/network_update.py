@@ -137,6 +137,12 @@ def advance_track(track: Track | None, report: Report, config: NetworkConfig) ->
 
 
 def _update(means, covs, phi, noises, predict: bool, report: Report, rows: ReportRows, passes: int):
+    """Predict and update each component (:func:`core.tracking.network_kernel.network_ukf_kernel`); ``passes``
+    linearisations for a report with bearings, one for a report of ranges and TOAs alone: these bend over
+    the prior far less than a bearing across an unknown range, and passes at a posterior moved by the
+    report's own noise only add that noise (four TOA stations lose a few per cent of RMSE to them)."""
+    if not np.isin(report.kinds[rows.rows], (AZIMUTH, ELEVATION)).any():
+        passes = 1
     count = means.shape[0]
     new_means, new_covs = np.empty((count, STATE_SIZE)), np.empty((count, STATE_SIZE, STATE_SIZE))
     nis, log_det, status = np.empty(count), np.empty(count), np.empty(count, dtype=np.int64)
