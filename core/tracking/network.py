@@ -37,7 +37,7 @@ all lie within half their own standard deviations of its mean becomes one Gaussi
 Status (computed against the newest applied report time, ``now``):
 
 - ``tentative``: until confirmed;
-- ``confirmed``: once, and from then on, the track is one Gaussian (or IMM), its position covariance is
+- ``confirmed``: once, and from then on, the track's position covariance (a Gaussian sum's moments) is
   bounded (the largest standard deviation at most ``confirm_relative_sigma`` of the distance to the nearest
   station that reported it last) and the last ``confirm_updates`` updates each agreed with the prediction
   (NIS inside its chi-square 99 % point);

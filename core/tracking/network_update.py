@@ -171,7 +171,9 @@ def _finish(track: Track | None, report: Report, weights, means, covs, nis: floa
         confirmed, reference_range_m = True, track.reference_range_m
     else:
         reference_range_m = float(np.linalg.norm(report.stations_enu_m - mean[:3], axis=1).min())
-        confirmed = (stage != "mixture" and agreeing >= config.confirm_updates
+        # A Gaussian sum is judged by its moments: one along a line of sight is far wider than the bound
+        # below, while one over altitude (four TOA stations) may place the emitter to it and stay a sum.
+        confirmed = (agreeing >= config.confirm_updates
                      and math.sqrt(max(np.linalg.eigvalsh(cov[:3, :3])[-1], 0.0))
                      <= config.confirm_relative_sigma * reference_range_m)
     updates = 1 if track is None else track.updates + 1

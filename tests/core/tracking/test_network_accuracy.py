@@ -70,6 +70,9 @@ def test_four_toa_stations_track_an_aircraft_at_each_truths_bound_with_an_honest
     evaluation = evaluate_network(toa_network_scene(variant, station_count=4), trials, seed=37_000 + variant)
     after = evaluation.times_s >= START_TIME_S + evaluation.converged_after_s
     assert np.all(evaluation.tracked_fraction[after] == 1.0)
+    # Still a Gaussian sum over altitude, and placed: confirmed once its height's standard deviation is
+    # inside confirm_relative_sigma of the nearest station's distance (a low aircraft's may take a minute more).
+    assert evaluation.confirmed_fraction[-1] == 1.0
     lo, hi = evaluation.nees_interval_99
     assert lo <= evaluation.nees_after <= hi, evaluation.summary()
     errors = evaluation.estimates_enu[:, after, 2] - evaluation.truths_enu[:, after, 2]
