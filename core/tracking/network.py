@@ -18,7 +18,8 @@ The tracker (one per ``emitter_id``) is a constant-velocity filter on
 ``accel_sigma_mps2**2`` (:mod:`core.tracking.motion`; the up axis may take its own,
 ``vertical_accel_sigma_mps2``), updated with each report's measurements through the one measurement model
 (:func:`core.measurements.measure_point`) by an unscented update iterated on the posterior (cubature points
-over the position, ``linearisation_passes``; :mod:`core.tracking.network_kernel`). A report's TOAs share one unknown emission time, which the update
+over the position, ``linearisation_passes`` for a report with bearings, one without;
+:mod:`core.tracking.network_kernel`). A report's TOAs share one unknown emission time, which the update
 eliminates exactly (differences with their full noise covariance); a lone TOA carries nothing and is
 reported, not used. With ``imm_accel_sigmas_mps2`` the track is an IMM over those acceleration levels
 (:mod:`core.tracking.imm`).
@@ -36,7 +37,7 @@ all lie within half their own standard deviations of its mean becomes one Gaussi
 Status (computed against the newest applied report time, ``now``):
 
 - ``tentative``: until confirmed;
-- ``confirmed``: once, and from then on, the track is one Gaussian (or IMM), its position covariance is
+- ``confirmed``: once, and from then on, the track's position covariance (a Gaussian sum's moments) is
   bounded (the largest standard deviation at most ``confirm_relative_sigma`` of the distance to the nearest
   station that reported it last) and the last ``confirm_updates`` updates each agreed with the prediction
   (NIS inside its chi-square 99 % point);

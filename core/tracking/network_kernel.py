@@ -14,7 +14,8 @@ the statistical linear regression of the measurement on the position, ``z ~ A p 
 ``cov(e) = P_zz - A P_pp A^T``, is taken over the cubature points of the current posterior (the prior in the
 first pass, which is the plain unscented update) and the prior is updated with that linear model; each pass
 linearises where the posterior lies. Where the prior is wide against the measurement's curvature (a range
-learnt from bearings) this is what reaches the bound; where it is narrow the passes agree with the first. A
+learnt from bearings) this is what reaches the bound; where it is narrow the passes agree with the first
+(the caller, :mod:`core.tracking.network_update`, gives a report without bearings one pass). A
 pass that moves the estimate by more than :data:`MAX_PASS_STEP` standard deviations of the last posterior
 has jumped to another solution of the measurement and is not taken; the NIS and the likelihood are the
 first pass's (the report's predictive density).

@@ -49,8 +49,8 @@ class NetworkConfig:
     coast_after_s, end_after_s : float
         Without a report for longer than these, a track is ``coasting``, then ended.
     linearisation_passes : int
-        Passes of the iterated posterior linearisation of each update (1: the plain unscented update; see
-        :mod:`core.tracking.network_kernel`).
+        Passes of the iterated posterior linearisation of each update with bearings (1: the plain unscented
+        update; see :mod:`core.tracking.network_kernel`); a report of ranges and TOAs alone takes one.
     start_altitudes_m : tuple of 2 floats
         Heights (the common frame's up, m) a track started from ranges and TOAs alone may be at, when its first
         fix does not place it in height (:mod:`core.tracking.network_update`).

@@ -13,8 +13,9 @@ from core.errors import InvalidInput
 from core.measurements import AZIMUTH, ELEVATION, RANGE, TOA, Kind, predict
 from core.problem import LocalPoint, TimeOfArrival, Bearing, build_problem
 from core.crlb import information_at
-from core.simulation.network import (START_TIME_S, df_network_scene, simulate_network, station_frame,
-                                     toa_network_scene)
+from core.parallel import Stopped
+from core.simulation.network import (START_TIME_S, df_network_scene, evaluate_network, simulate_network,
+                                     station_frame, toa_network_scene)
 from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_reports, new_network_state,
                                    predict_tracks, validate_report)
 from core.tracking.network_bound import network_pcrb
@@ -104,6 +105,25 @@ def _toa_run(offset_s=0.0):
         reports = [Report(r.seq, r.time_s, r.emitter_id, r.station_ids, r.stations_enu_m, r.rotations, r.kinds,
                           r.values + offset_s, r.sigmas) for r in reports]
     return scene, reports
+
+
+def test_the_four_station_toa_scene_leaves_out_the_middle_station():
+    assert [s.id for s in toa_network_scene(station_count=4).stations] == ["toa-a", "toa-b", "toa-c", "toa-d"]
+    assert len(toa_network_scene(2).stations) == 5
+    with pytest.raises(ValueError):
+        toa_network_scene(station_count=3)
+
+
+def test_an_evaluation_stops_between_trials_when_asked():
+    asked = []
+
+    def should_stop():
+        asked.append(True)
+        return len(asked) > 2
+
+    with pytest.raises(Stopped):
+        evaluate_network(toa_network_scene(duration_s=5.0), 10, should_stop=should_stop)
+    assert len(asked) == 3  # two trials ran; the third was not started
 
 
 def test_toa_elimination_ignores_the_clock_epoch():

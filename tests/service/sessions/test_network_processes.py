@@ -13,10 +13,10 @@ from fastapi.testclient import TestClient
 
 from core.simulation.network import SCENES, simulate_network
 from service.app import create_app
+from service.scene_requests import api_report, create_body
 from service.settings import Settings
 
 from .helpers import Server, batches, post_batch, post_from_clients
-from .network_scenes import api_report, create_body
 
 BATCH = 10
 SCENE = SCENES["df_network"](duration_s=60.0)
