@@ -397,7 +397,7 @@ def test_a_robust_fit_of_clean_bearings_stops_at_its_minimum(loss):
     # machine epsilon); the Jacobi scaling then came from that vanishing diagonal, the damped steps stayed
     # metres long, and LM stopped short of the minimum (cost 0.2-0.6 above it on this scene).
     from bench.scenarios import four_station_requests
-    from core.estimators.ml import levenberg_marquardt
+    from core.estimators.lm import levenberg_marquardt
     from core.estimators.starting_points import initial_positions
     from service.translate import read_fix_requests
 
