@@ -76,12 +76,17 @@ def _masks_kernel(n_measurements, kinds, used, sigmas, altitude_m):
     ``used`` is ``(B, M)``, or ``(0, 0)`` for every present measurement.
     """
     size, width = kinds.shape
-    present = np.zeros((size, width), dtype=np.bool_)
+    # Planes of one array each (present and valid; has_toa, constrained and lacks_sigma): a kernel's returned
+    # arrays are boxed one by one, a cost per array that a small batch feels.
+    measured = np.zeros((2, size, width), dtype=np.bool_)
+    present, valid = measured[0], measured[1]
     for b in range(size):
         present[b, :n_measurements[b]] = True
-    valid = present.copy() if used.shape[0] == 0 else present & used
-    has_toa, constrained = np.zeros(size, dtype=np.bool_), np.empty(size, dtype=np.bool_)
-    lacks_sigma, kind_counts = np.zeros(size, dtype=np.bool_), np.zeros((size, 4), dtype=np.int64)
+        for m in range(width):
+            valid[b, m] = present[b, m] and (used.shape[0] == 0 or used[b, m])
+    facts = np.zeros((3, size), dtype=np.bool_)
+    has_toa, constrained, lacks_sigma = facts[0], facts[1], facts[2]
+    kind_counts = np.zeros((size, 4), dtype=np.int64)
     dof = np.empty(size, dtype=np.int64)
     for b in range(size):
         constrained[b] = not math.isnan(altitude_m[b])
@@ -93,7 +98,7 @@ def _masks_kernel(n_measurements, kinds, used, sigmas, altitude_m):
                 lacks_sigma[b] |= math.isnan(sigmas[b, m])
                 known += 1 if math.isfinite(sigmas[b, m]) else 0
         dof[b] = known - (2 if constrained[b] else 3) - (1 if has_toa[b] else 0)
-    return present, valid, has_toa, constrained, lacks_sigma, kind_counts, dof
+    return measured, facts, kind_counts, dof
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -110,7 +115,10 @@ def _geometry_kernel(valid, kinds, station_index, values, sigmas, bearing_index,
             rotations[b, m] = station_rotations[b, s]
     model_values, weights = _model_kernel(kinds, values, sigmas, valid)
     is_line, elevation, sigma_elevation = _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas)
-    return model_values, weights, stations, rotations, is_line, elevation, sigma_elevation
+    # One array of the four (B, M) planes: each returned array is boxed on its own (see _masks_kernel).
+    planes = np.empty((4, size, width))
+    planes[0], planes[1], planes[2], planes[3] = model_values, weights, elevation, sigma_elevation
+    return planes, stations, rotations, is_line
 
 
 class _Masks(NamedTuple):
@@ -135,6 +143,20 @@ class _Geometry(NamedTuple):
     is_line: np.ndarray
     elevation_rad: np.ndarray
     sigma_elevation_rad: np.ndarray
+
+
+class KernelInputs(NamedTuple):
+    """A batch's own arrays as the compiled kernels take them (C-contiguous, their dtypes), converted once per
+    batch rather than once per kernel call (:attr:`ProblemBatch.kernel_inputs`)."""
+
+    kinds: np.ndarray
+    n_measurements: np.ndarray
+    values: np.ndarray
+    sigmas: np.ndarray
+    altitude_m: np.ndarray
+    has_toa: np.ndarray
+    geodetic: np.ndarray
+    source_index: np.ndarray
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -206,19 +228,32 @@ class ProblemBatch:
         first use, read-only."""
         used = np.zeros((0, 0), dtype=np.bool_) if self.used is None else np.ascontiguousarray(self.used)
         c = np.ascontiguousarray
-        return _Masks(*map(_frozen, _masks_kernel(
+        measured, facts, kind_counts, dof = map(_frozen, _masks_kernel(
             c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used, c(self.sigmas, dtype=float),
-            c(self.altitude_m, dtype=float))))
+            c(self.altitude_m, dtype=float)))
+        return _Masks(*measured, *facts, kind_counts, dof)  # views of frozen arrays are read-only too
 
     @cached_property
     def _geometry(self) -> _Geometry:
         """The model values, weights, measurement stations and lines of sight (:func:`_geometry_kernel`):
         computed together on first use (a batch that is only split into parts never needs them), read-only."""
         c = np.ascontiguousarray
-        return _Geometry(*map(_frozen, _geometry_kernel(
+        planes, stations, rotations, is_line = map(_frozen, _geometry_kernel(
             self.valid, c(self.kinds, dtype=np.int8), c(self.station_index, dtype=np.intp),
             c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.bearing_index, dtype=np.intp),
-            c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float))))
+            c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float)))
+        model_values, weights, elevation, sigma_elevation = planes  # views of a frozen array are read-only too
+        return _Geometry(model_values, weights, stations, rotations, is_line, elevation, sigma_elevation)
+
+    @cached_property
+    def kernel_inputs(self) -> KernelInputs:
+        """``kinds`` (int64), ``n_measurements`` and ``source_index`` (int64), ``values``, ``sigmas`` and
+        ``altitude_m`` (float), ``has_toa`` and ``geodetic`` (bool), C-contiguous: computed once."""
+        c = np.ascontiguousarray
+        return KernelInputs(c(self.kinds, dtype=np.int64), c(self.n_measurements, dtype=np.int64),
+                            c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.altitude_m, dtype=float),
+                            c(self.has_toa, dtype=np.bool_), c(self.geodetic, dtype=np.bool_),
+                            c(self.source_index, dtype=np.int64))
 
     @property
     def present(self) -> np.ndarray:

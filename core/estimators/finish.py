@@ -71,6 +71,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         position[failed] = batch.stations_enu_m[failed, 0] + [0.0, 0.0, 1.0]
 
     stations, rotations = batch.measurement_stations()
+    arrays = batch.kernel_inputs
     sigmas = batch.sigmas if estimates.sigmas is None else np.where(batch.present, estimates.sigmas, np.nan)
     bias = estimates.bias_m
     is_line, elevation, _ = batch.lines_of_sight()
@@ -79,17 +80,19 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     present, valid = batch.present, batch.valid
     excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
-    (raw, normalized, studentized, chi2, crlb, covariance, min_eigenvalue, robust_factor, behind, zenith, spread, dof,
-     p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags, isolated) = fix_kernel(
+    measured, bounds, seen_lines, scalars, counts, isolated = fix_kernel(
         position, np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
-        bias is not None, np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
-        np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.values, dtype=float),
-        np.ascontiguousarray(sigmas, dtype=float), np.asarray(batch.n_measurements, dtype=np.int64),
-        np.ascontiguousarray(valid), np.ascontiguousarray(excluded), np.asarray(batch.altitude_m, dtype=float),
-        np.asarray(batch.has_toa, dtype=np.bool_), np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef,
-        origin_rotation, -1 if loss is None else loss_code(loss[0]), 1.0 if loss is None else float(loss[1]) ** 2,
-        is_line, elevation, np.ascontiguousarray(converged, dtype=np.bool_),
-        np.ascontiguousarray(batch.source_index, dtype=np.int64))
+        bias is not None, stations, rotations, arrays.kinds, arrays.values,
+        arrays.sigmas if estimates.sigmas is None else np.ascontiguousarray(sigmas, dtype=float),
+        arrays.n_measurements, valid, np.ascontiguousarray(excluded), arrays.altitude_m, arrays.has_toa,
+        arrays.geodetic, origin_ecef, origin_rotation, -1 if loss is None else loss_code(loss[0]),
+        1.0 if loss is None else float(loss[1]) ** 2, is_line, elevation,
+        np.ascontiguousarray(converged, dtype=np.bool_), arrays.source_index)
+    raw, normalized, studentized, robust_factor = measured
+    crlb, covariance = bounds
+    behind, zenith = seen_lines
+    chi2, min_eigenvalue, spread, p_dof, plain_scale, sigma_scale, worst_value, gdop = scalars
+    dof, worst, flags = counts
     p_value = chdtrc(p_dof, chi2)
     if loss is None:
         robust_factor = None
@@ -123,7 +126,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         inefficient = np.zeros(size, dtype=bool)
     own = estimates.warnings or [()] * size
     warnings: list[tuple[FixWarning, ...]] = [tuple(w) for w in own]
-    rows = np.flatnonzero(flagged & ~failed)
+    rows = (flagged & ~failed).nonzero()[0]
     if rows.size:
         if (flags & UNUSED).any():
             unused = present & ~valid & ~excluded
@@ -186,7 +189,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         warnings[b] = tuple(found)
 
     coarse = estimates.coarse_position_enu_m
-    return FixBatch(
+    return FixBatch.of(
         method=method,
         problems=batch,
         errors=errors,

@@ -205,12 +205,18 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
     line of sight whether the fix is behind its station or at its zenith, the lines' smallest spread, and whether
     the fix ran off (``RUNAWAY_SIGMA_RATIO``)."""
     size, width = kinds.shape
-    raw, normalized, studentized = np.zeros((size, width)), np.zeros((size, width)), np.zeros((size, width))
+    # The per-measurement numbers, the bounds and the line-of-sight facts are planes of one array each: a
+    # kernel's returned arrays are boxed one by one, a cost per array that a small batch feels.
+    measured = np.zeros((4, size, width))
+    raw, normalized, studentized, robust_factor = measured[0], measured[1], measured[2], measured[3]
+    robust_factor[:] = 1.0
     chi2, known_count = np.zeros(size), np.zeros(size, dtype=np.int64)
-    crlb, covariance = np.empty((size, 3, 3)), np.empty((size, 3, 3))
-    smallest, robust_factor, robust_cost = np.empty(size), np.ones((size, width)), np.zeros(size)
+    bounds = np.empty((2, size, 3, 3))
+    crlb, covariance = bounds[0], bounds[1]
+    smallest, robust_cost = np.empty(size), np.zeros(size)
     sigma_ref, spread = np.empty(size), np.full(size, np.pi / 2)
-    behind, zenith = np.zeros((size, width), dtype=np.bool_), np.zeros((size, width), dtype=np.bool_)
+    seen_lines = np.zeros((2, size, width), dtype=np.bool_)
+    behind, zenith = seen_lines[0], seen_lines[1]
     runaway = np.zeros(size, dtype=np.bool_)
     separation, room = np.full(size, np.inf), np.ones(width)
     weights, model_values = np.empty(width), np.empty(width)
@@ -334,7 +340,8 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
                         dot = abs(seen[i, 0] * seen[j, 0] + seen[i, 1] * seen[j, 1] + seen[i, 2] * seen[j, 2])
                         cosine = min(cosine, dot)
             spread[b] = math.acos(cosine)
-    return (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
+    return (measured, bounds, seen_lines, raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest,
+            robust_factor, robust_cost,
             sigma_ref, behind, zenith, spread, runaway, separation)
 
 
@@ -391,25 +398,43 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
 def fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
                 n_measurements, valid, excluded, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss,
                 c2, is_line, elevation_rad, converged, source_index):
-    """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call: the residuals, chi-square, CRLB,
-    covariance (made symmetric), smallest eigenvalue, loss factors and line-of-sight facts,
-    then the degrees of freedom (also as floats, NaN where there are none: the p-value's), sigma scales, worst
-    measurement, GDOP and verdict bits (``excluded`` ``(B, M)``: measurements outlier exclusion set aside;
-    ``converged`` ``(B,)``: the estimator's)."""
-    (raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest, robust_factor, robust_cost,
-     sigma_ref, behind, zenith, spread, runaway, separation) = _finish_kernel(
+    """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call, in six arrays (views of them unpack
+    the rest, :func:`core.estimators.finish.finish`).
+
+    Returns
+    -------
+    measured : ndarray, shape (4, B, M)
+        The residuals (problem units), normalized and studentized residuals, and the loss's weight factors.
+    bounds : ndarray, shape (2, B, 3, 3)
+        The CRLB and the covariance (made symmetric).
+    seen_lines : ndarray of bool, shape (2, B, M)
+        Per line of sight, whether the fix is behind its station, and at its zenith.
+    scalars : ndarray, shape (8, B)
+        Chi-square, the smallest unit-diagonal information eigenvalue, the lines' smallest spread, the degrees
+        of freedom as floats (NaN where there are none: the p-value's), the plain and the reported sigma scale,
+        the worst measurement's studentized residual, and GDOP.
+    counts : ndarray of int, shape (3, B)
+        The degrees of freedom, the worst measurement and the verdict bits.
+    isolated : ndarray of bool, shape (B,)
+
+    ``excluded`` ``(B, M)``: measurements outlier exclusion set aside; ``converged`` ``(B,)``: the estimator's.
+    """
+    (measured, bounds, seen_lines, raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest,
+     robust_factor, robust_cost, sigma_ref, behind, zenith, spread, runaway, separation) = _finish_kernel(
         positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas, n_measurements, valid,
         altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2, is_line, elevation_rad, source_index)
     dof, plain_scale, sigma_scale, worst, worst_value, flags, isolated = _verdicts_kernel(
         studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith, runaway,
         is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0, converged, separation)
     size = dof.size
-    p_dof, gdop = np.empty(size), np.empty(size)
+    scalars, counts = np.empty((8, size)), np.empty((3, size), dtype=np.int64)
     for b in range(size):
-        p_dof[b] = dof[b] if dof[b] > 0 else np.nan
-        gdop[b] = gdop_point(crlb[b], sigma_ref[b])
         for i in range(3):
             for j in range(i):
                 covariance[b, i, j] = covariance[b, j, i] = 0.5 * (covariance[b, i, j] + covariance[b, j, i])
-    return (raw, normalized, studentized, chi2, crlb, covariance, smallest, robust_factor, behind, zenith, spread, dof,
-            p_dof, plain_scale, sigma_scale, worst, worst_value, gdop, flags, isolated)
+        scalars[0, b], scalars[1, b], scalars[2, b] = chi2[b], smallest[b], spread[b]
+        scalars[3, b] = dof[b] if dof[b] > 0 else np.nan
+        scalars[4, b], scalars[5, b], scalars[6, b] = plain_scale[b], sigma_scale[b], worst_value[b]
+        scalars[7, b] = gdop_point(crlb[b], sigma_ref[b])
+        counts[0, b], counts[1, b], counts[2, b] = dof[b], worst[b], flags[b]
+    return measured, bounds, seen_lines, scalars, counts, isolated

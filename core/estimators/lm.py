@@ -379,13 +379,11 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     """
     stations, rotations = batch.measurement_stations()
     origin_ecef, origin_rotation = batch.frame_placements()
-    out = _lm_kernel(np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
-                     np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.model_values()),
-                     np.ascontiguousarray(batch.weights()),
-                     np.ascontiguousarray(start_enu_m, dtype=float), np.asarray(batch.altitude_m, dtype=float),
-                     np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef, origin_rotation,
-                     np.asarray(batch.has_toa, dtype=np.bool_), loss_code(loss[0]), float(loss[1]) ** 2,
-                     int(max_iterations), float(tolerance_m))
+    arrays = batch.kernel_inputs
+    out = _lm_kernel(stations, rotations, arrays.kinds, batch.model_values(), batch.weights(),
+                     np.ascontiguousarray(start_enu_m, dtype=float), arrays.altitude_m, arrays.geodetic, origin_ecef,
+                     origin_rotation, arrays.has_toa, loss_code(loss[0]), float(loss[1]) ** 2, int(max_iterations),
+                     float(tolerance_m))
     return Solution(*out)
 
 

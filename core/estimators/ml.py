@@ -32,10 +32,11 @@ from scipy.special import chdtrc
 from core.crlb import batch_information
 from core.errors import LocalizationError
 from core.estimators.base import SolveOptions, register
-from core.estimators.lm import Solution, iterate, loss_of
-from core.estimators.loss import REDESCENDING
+from core.estimators.lm import Solution, _lm_kernel, iterate, loss_of
+from core.estimators.loss import REDESCENDING, loss_code
+from core.estimators.orthogonal_vector import SOLVED, _orthogonal_kernel
 from core.estimators.result import Estimates
-from core.estimators.starting_points import initial_positions
+from core.estimators.starting_points import START_PASSES, initial_positions
 from core.estimators.ties import (Fits, above_ground, ambiguous, fit_from, mirror_applies, mirror_points, refine,
                                   rivals, searched_starts)
 from core.measurements import AZIMUTH, ELEVATION, ahead_point, predict, residuals
@@ -86,6 +87,8 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
         details=[{"start": name} if name is not None else {} for name in start_names],
     )
 
+
+#: A fit from the closed-form start whose chi-square has a p-value below this is retried from the search
 #: (unless :func:`one_basin` says no other basin is there to find).
 IMPLAUSIBLE_P = 1e-9
 
@@ -127,11 +130,53 @@ def one_basin(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     """
     stations, rotations = batch.measurement_stations()
     is_line, elevation, _ = batch.lines_of_sight()
-    return _one_basin_kernel(np.ascontiguousarray(positions_enu_m, dtype=float),
-                             np.ascontiguousarray(stations, dtype=float), np.ascontiguousarray(rotations, dtype=float),
-                             np.ascontiguousarray(batch.kinds, dtype=np.int64), np.ascontiguousarray(batch.valid),
-                             is_line, np.ascontiguousarray(batch.values, dtype=float), elevation,
-                             np.asarray(batch.n_measurements, dtype=np.int64))
+    arrays = batch.kernel_inputs
+    return _one_basin_kernel(np.ascontiguousarray(positions_enu_m, dtype=float), stations, rotations, arrays.kinds,
+                             batch.valid, is_line, arrays.values, elevation, arrays.n_measurements)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _eove_fit_kernel(is_line, values, elevation_rad, sigma_elevation_rad, sigmas, stations_enu_m, rotations,
+                     altitude_m, geodetic, origin_ecef_m, origin_rotation, passes, kinds, model_values, weights,
+                     has_toa, loss, c2, max_iterations, tolerance_m, kind_counts, initial_guess_enu_m):
+    """Every problem's weighted-EOVE start (the orthogonal kernel as :func:`initial_positions` runs it: both
+    normals, first-order weights) and ML's iteration from it (the LM kernel as :func:`iterate` runs it), in one
+    call; ``solved`` False, and no fits, where some problem is not started so: it has no azimuth
+    (``kind_counts`` ``(B, 4)``), an initial guess (a row of ``initial_guess_enu_m`` ``(B, 3)`` not NaN), or no
+    solution of its rows."""
+    for b in range(kind_counts.shape[0]):
+        if kind_counts[b, AZIMUTH] == 0 or not math.isnan(initial_guess_enu_m[b, 0]):
+            return (np.empty((0, 3)), False, np.empty((0, 3)), np.empty(0), np.zeros(0, dtype=np.int64),
+                    np.zeros(0, dtype=np.bool_), np.empty(0))
+    _, _, _, starts, status, _ = _orthogonal_kernel(is_line, values, elevation_rad, sigma_elevation_rad, sigmas,
+                                                    stations_enu_m, rotations, True, True, altitude_m, geodetic,
+                                                    origin_ecef_m, origin_rotation, True, passes)
+    for b in range(status.size):
+        if status[b] != SOLVED:
+            return (starts, False, np.empty((0, 3)), np.empty(0), np.zeros(0, dtype=np.int64),
+                    np.zeros(0, dtype=np.bool_), np.empty(0))
+    position, bias, iterations, converged, cost = _lm_kernel(
+        stations_enu_m, rotations, kinds, model_values, weights, starts, altitude_m, geodetic, origin_ecef_m,
+        origin_rotation, has_toa, loss, c2, max_iterations, tolerance_m)
+    return starts, True, position, bias, iterations, converged, cost
+
+
+def _eove_started_fits(batch: ProblemBatch, options: SolveOptions):
+    """``(starts, solution)``: :func:`initial_positions` then :func:`iterate` in one compiled call, for a batch
+    whose every problem its first stage starts (weighted EOVE: an azimuth, no initial guess) and does start;
+    None otherwise (the stages in turn then find each start, or say why there is none). The same kernels on
+    the same arrays: the same numbers, without the stages' per-call work between them."""
+    is_line, elevation, sigma_elevation = batch.lines_of_sight()
+    stations, rotations = batch.measurement_stations()
+    origin_ecef, origin_rotation = batch.frame_placements()
+    arrays = batch.kernel_inputs
+    loss = loss_of(options)
+    starts, solved, *fit = _eove_fit_kernel(
+        is_line, arrays.values, elevation, sigma_elevation, arrays.sigmas, stations, rotations, arrays.altitude_m,
+        arrays.geodetic, origin_ecef, origin_rotation, START_PASSES, arrays.kinds, batch.model_values(),
+        batch.weights(), arrays.has_toa, loss_code(loss[0]), float(loss[1]) ** 2, int(options.max_iterations),
+        float(options.tolerance_m), batch.kind_counts, batch.initial_guess_enu_m)
+    return (starts, Solution(*fit)) if solved else None
 
 
 def normalized_residuals(batch: ProblemBatch, solution: Solution) -> np.ndarray:
@@ -165,10 +210,15 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
     or is implausible (chi-square p below ``IMPLAUSIBLE_P``: the start sat in another basin) where other
     basins can be (:func:`one_basin`), ML from the geometry's candidates too, keeping the lower cost when that
     fit is plausible itself."""
-    starts, names, failures = initial_positions(batch)
-    missing = ~np.isfinite(starts).all(axis=-1)
-    solution = iterate(batch, np.where(missing[:, None], batch.stations_enu_m[:, 0] + [0.0, 0.0, 1.0], starts),
-                       options)
+    started = _eove_started_fits(batch, options)
+    if started is not None:
+        (starts, solution), names, failures = started, ["weighted_eove"] * batch.size, {}
+        missing = np.zeros(batch.size, dtype=bool)
+    else:
+        starts, names, failures = initial_positions(batch)
+        missing = ~np.isfinite(starts).all(axis=-1)
+        solution = iterate(batch, np.where(missing[:, None], batch.stations_enu_m[:, 0] + [0.0, 0.0, 1.0], starts)
+                           if np.count_nonzero(missing) else starts, options)
     dof = batch.dof
     p_value = chdtrc(np.maximum(dof, 1), solution.cost)
     implausible = p_value < IMPLAUSIBLE_P
