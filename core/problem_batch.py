@@ -14,15 +14,14 @@ problems by :meth:`ProblemBatch.from_problems`.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import NamedTuple, Sequence
 
-import numba
 import numpy as np
 
-from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, Kind
+from core.measurements import AZIMUTH, ELEVATION, Kind
+from core.problem_batch_kernels import geometry_kernel, masks_kernel, model_kernel
 from core.problem_frame import CommonFrame, GeodeticPoint, Problem, frame_placements, onto_altitude
 
 #: Kind written into measurement padding (any kind works: padding has zero weight).
@@ -30,91 +29,9 @@ PAD_KIND = Kind.RANGE
 _PAD_KIND_CODE = int(PAD_KIND)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas):
-    """:meth:`ProblemBatch.lines_of_sight` of ``(B, M)`` arrays: each used elevation joins the used azimuth row of
-    its bearing (and is left out of the lines where that azimuth is not used)."""
-    size, width = kinds.shape
-    is_line = np.zeros((size, width), dtype=np.bool_)
-    elevation, sigma = np.full((size, width), np.nan), np.full((size, width), np.nan)
-    azimuth_row = np.empty(width, dtype=np.int64)
-    for b in range(size):
-        azimuth_row[:] = -1
-        for m in range(width):
-            if valid[b, m] and kinds[b, m] == AZIMUTH:
-                is_line[b, m] = True
-                if 0 <= bearing_index[b, m] < width:
-                    azimuth_row[bearing_index[b, m]] = m
-        for m in range(width):
-            if valid[b, m] and kinds[b, m] == ELEVATION and 0 <= bearing_index[b, m] < width:
-                row = azimuth_row[bearing_index[b, m]]
-                if row >= 0:
-                    elevation[b, row], sigma[b, row] = values[b, m], sigmas[b, m]
-    return is_line, elevation, sigma
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _model_kernel(kinds, values, sigmas, valid):
-    """Values ``(B, M)`` in model units (TOA seconds as metres) and the weights ``1 / sigma^2`` ``(B, M)`` in
-    model units of the ``valid`` measurements with a finite sigma (0 elsewhere)."""
-    size, width = kinds.shape
-    model_values, weights = np.empty((size, width)), np.zeros((size, width))
-    for b in range(size):
-        for m in range(width):
-            unit = SPEED_OF_LIGHT_MPS if kinds[b, m] == TOA else 1.0
-            model_values[b, m] = values[b, m] * unit
-            sigma = sigmas[b, m]
-            if valid[b, m] and math.isfinite(sigma):
-                weights[b, m] = 1.0 / (sigma * unit) ** 2
-    return model_values, weights
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _masks_kernel(n_measurements, kinds, used, sigmas, altitude_m):
-    """The masks and counts a batch derives from its own, in one pass (see :attr:`ProblemBatch._masks`).
-
-    ``used`` is ``(B, M)``, or ``(0, 0)`` for every present measurement.
-    """
-    size, width = kinds.shape
-    present = np.zeros((size, width), dtype=np.bool_)
-    for b in range(size):
-        present[b, :n_measurements[b]] = True
-    valid = present.copy() if used.shape[0] == 0 else present & used
-    has_toa, constrained = np.zeros(size, dtype=np.bool_), np.empty(size, dtype=np.bool_)
-    lacks_sigma, kind_counts = np.zeros(size, dtype=np.bool_), np.zeros((size, 4), dtype=np.int64)
-    dof = np.empty(size, dtype=np.int64)
-    for b in range(size):
-        constrained[b] = not math.isnan(altitude_m[b])
-        known = 0
-        for m in range(width):
-            has_toa[b] |= kinds[b, m] == TOA
-            if valid[b, m]:
-                kind_counts[b, kinds[b, m]] += 1
-                lacks_sigma[b] |= math.isnan(sigmas[b, m])
-                known += 1 if math.isfinite(sigmas[b, m]) else 0
-        dof[b] = known - (2 if constrained[b] else 3) - (1 if has_toa[b] else 0)
-    return present, valid, has_toa, constrained, lacks_sigma, kind_counts, dof
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _geometry_kernel(valid, kinds, station_index, values, sigmas, bearing_index, stations_enu_m, station_rotations):
-    """The model values and weights, each measurement's station and rotation, and the lines of sight, in one
-    call (see :attr:`ProblemBatch._geometry`)."""
-    size, width = kinds.shape
-    stations = np.empty((size, width, 3))
-    rotations = np.empty((size, width, 3, 3))
-    for b in range(size):
-        for m in range(width):
-            s = station_index[b, m]
-            stations[b, m] = stations_enu_m[b, s]
-            rotations[b, m] = station_rotations[b, s]
-    model_values, weights = _model_kernel(kinds, values, sigmas, valid)
-    is_line, elevation, sigma_elevation = _lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas)
-    return model_values, weights, stations, rotations, is_line, elevation, sigma_elevation
-
 
 class _Masks(NamedTuple):
-    """What :func:`_masks_kernel` returns, by name (shapes in :class:`ProblemBatch`'s properties)."""
+    """What :func:`masks_kernel` returns, by name (shapes in :class:`ProblemBatch`'s properties)."""
 
     present: np.ndarray
     valid: np.ndarray
@@ -126,7 +43,7 @@ class _Masks(NamedTuple):
 
 
 class _Geometry(NamedTuple):
-    """What :func:`_geometry_kernel` returns, by name."""
+    """What :func:`geometry_kernel` returns, by name."""
 
     model_values: np.ndarray
     weights: np.ndarray
@@ -135,6 +52,20 @@ class _Geometry(NamedTuple):
     is_line: np.ndarray
     elevation_rad: np.ndarray
     sigma_elevation_rad: np.ndarray
+
+
+class KernelInputs(NamedTuple):
+    """A batch's own arrays as the compiled kernels take them (C-contiguous, their dtypes), converted once per
+    batch rather than once per kernel call (:attr:`ProblemBatch.kernel_inputs`)."""
+
+    kinds: np.ndarray
+    n_measurements: np.ndarray
+    values: np.ndarray
+    sigmas: np.ndarray
+    altitude_m: np.ndarray
+    has_toa: np.ndarray
+    geodetic: np.ndarray
+    source_index: np.ndarray
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -202,23 +133,36 @@ class ProblemBatch:
 
     @cached_property
     def _masks(self) -> _Masks:
-        """The masks and counts derived from the batch's own (:func:`_masks_kernel`): computed together on
+        """The masks and counts derived from the batch's own (:func:`masks_kernel`): computed together on
         first use, read-only."""
         used = np.zeros((0, 0), dtype=np.bool_) if self.used is None else np.ascontiguousarray(self.used)
         c = np.ascontiguousarray
-        return _Masks(*map(_frozen, _masks_kernel(
+        measured, facts, kind_counts, dof = map(_frozen, masks_kernel(
             c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used, c(self.sigmas, dtype=float),
-            c(self.altitude_m, dtype=float))))
+            c(self.altitude_m, dtype=float)))
+        return _Masks(*measured, *facts, kind_counts, dof)  # views of frozen arrays are read-only too
 
     @cached_property
     def _geometry(self) -> _Geometry:
-        """The model values, weights, measurement stations and lines of sight (:func:`_geometry_kernel`):
+        """The model values, weights, measurement stations and lines of sight (:func:`geometry_kernel`):
         computed together on first use (a batch that is only split into parts never needs them), read-only."""
         c = np.ascontiguousarray
-        return _Geometry(*map(_frozen, _geometry_kernel(
+        planes, stations, rotations, is_line = map(_frozen, geometry_kernel(
             self.valid, c(self.kinds, dtype=np.int8), c(self.station_index, dtype=np.intp),
             c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.bearing_index, dtype=np.intp),
-            c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float))))
+            c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float)))
+        model_values, weights, elevation, sigma_elevation = planes  # views of a frozen array are read-only too
+        return _Geometry(model_values, weights, stations, rotations, is_line, elevation, sigma_elevation)
+
+    @cached_property
+    def kernel_inputs(self) -> KernelInputs:
+        """``kinds`` (int64), ``n_measurements`` and ``source_index`` (int64), ``values``, ``sigmas`` and
+        ``altitude_m`` (float), ``has_toa`` and ``geodetic`` (bool), C-contiguous: computed once."""
+        c = np.ascontiguousarray
+        return KernelInputs(c(self.kinds, dtype=np.int64), c(self.n_measurements, dtype=np.int64),
+                            c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.altitude_m, dtype=float),
+                            c(self.has_toa, dtype=np.bool_), c(self.geodetic, dtype=np.bool_),
+                            c(self.source_index, dtype=np.int64))
 
     @property
     def present(self) -> np.ndarray:
@@ -278,7 +222,7 @@ class ProblemBatch:
         return self._model_values_weights(sigmas)[1]
 
     def _model_values_weights(self, sigmas) -> tuple[np.ndarray, np.ndarray]:
-        return _model_kernel(np.ascontiguousarray(self.kinds, dtype=np.int8), np.ascontiguousarray(self.values),
+        return model_kernel(np.ascontiguousarray(self.kinds, dtype=np.int8), np.ascontiguousarray(self.values),
                              np.ascontiguousarray(sigmas, dtype=float), np.ascontiguousarray(self.valid))
 
     def onto_altitude(self, positions_enu_m, rows=None) -> np.ndarray:

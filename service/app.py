@@ -68,7 +68,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         store.on_failure = lambda operation: metrics.store_errors.labels(operation).inc()
         app.state.store = store
         app.state.stopping = threading.Event()
-        app.state.fix_coalescer = Coalescer(app.state.stopping, metrics, settings.max_fix_cost)
+        app.state.fix_coalescer = Coalescer(app.state.stopping, metrics, settings.max_fix_cost,
+                                            settings.inline_fix_cost)
         app.state.cpu_pool = ThreadPoolExecutor(settings.cpu_workers, thread_name_prefix="cpu")
         await asyncio.get_running_loop().run_in_executor(app.state.cpu_pool, kernel_cache.load_kernels,
                                                          compile_kernels)

@@ -32,7 +32,7 @@ exclusion may take (:func:`exclusion_solves`): its refits run the method again, 
 from __future__ import annotations
 
 from service.problems import ApiError
-from service.fixes.decode import measurement_count, requested_method, requests_exclusion
+from service.fixes.decode import measurement_count, requested_method, requests_exclusion, station_count
 
 #: The key of pydantic's validation context (``model_validate(..., context=...)``) that carries the app's
 #: ``max_fix_cost`` to :class:`service.schemas.FixRequest`'s cost check (:func:`fix_cost_context`).
@@ -115,6 +115,16 @@ def check_batch(problems: list, limit: int) -> None:
 def fix_cost(stations: int, measurements: int, method: str = "auto", exclude: bool = False) -> int:
     """``stations x measurements`` (:func:`problem_units`) ``x solves`` (:func:`exclusion_solves`)."""
     return problem_units(method, stations * measurements, measurements) * exclusion_solves(exclude, measurements)
+
+
+def body_fix_cost(body) -> int:
+    """:func:`fix_cost` of a parsed or decoded FixRequest body, as it asks (1 for a body without lists of
+    stations and measurements: it is refused before any solve)."""
+    stations, measurements = station_count(body), measurement_count(body)
+    if stations is None or measurements is None:
+        return 1
+    method = requested_method(body)
+    return fix_cost(stations, measurements, method if type(method) is str else "auto", requests_exclusion(body))
 
 
 def check_fix(stations: int, measurements: int, method: str, exclude: bool, limit: int | None) -> None:

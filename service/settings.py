@@ -10,6 +10,8 @@ from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 _SHA256_HEX = re.compile(r"[0-9a-f]{64}")
+#: Default ``inline_fix_cost``: see :class:`Settings`.
+INLINE_FIX_COST = 128
 
 
 class Settings(BaseSettings):
@@ -67,6 +69,13 @@ class Settings(BaseSettings):
         25: service.limits).
     max_fix_cost : int
         Largest ``stations x measurements`` of one fix (also of each batch problem).
+    inline_fix_cost : int
+        ``POST /v1/fixes`` solves a fix whose cost estimate (``stations x measurements``, as ``max_fix_cost``
+        counts it) is at most this on the event loop, larger ones on a worker thread (watched for the deadline);
+        0 sends every fix to the worker. The default, 8 stations x 16 bearings, is about where an ML fix starts
+        to cost more than its fixed per-call overhead (``python -m bench.inline_threshold``: 270 us of thread
+        CPU at 16, 310 us at 128, 630 us at 576, on a loaded two-core machine). The estimate weighs every method
+        alike: a small los_intersection fix costs about four times an ML fix of the same estimate.
     max_grid_cost : int
         Largest ``cells x measurement rows`` of one coverage map (``POST /v1/crlb/grid``; 422 ``over_limit``).
     dask_scheduler : str or None
@@ -105,6 +114,7 @@ class Settings(BaseSettings):
     max_evaluation_cost: int = Field(400_000, ge=1)
     max_batch_cost: int = Field(200_000, ge=1)
     max_fix_cost: int = Field(256 * 1024, ge=1)
+    inline_fix_cost: int = Field(INLINE_FIX_COST, ge=0)
     max_grid_cost: int = Field(200_000, ge=1)
     dask_scheduler: str | None = None
     cpu_workers: int = Field(2, ge=1, le=64)

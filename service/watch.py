@@ -62,7 +62,12 @@ class RequestWatch:
             return ApiError(503, "deadline_exceeded",
                             f"not finished within request_deadline_s = {self.deadline_s:g} s; {hint}",
                             headers={"Retry-After": "1"})
-        return ApiError(503, "shutting_down", "the server is shutting down; retry", headers={"Retry-After": "1"})
+        return shutting_down()
+
+
+def shutting_down() -> ApiError:
+    """The answer to a request the server's shutdown stopped."""
+    return ApiError(503, "shutting_down", "the server is shutting down; retry", headers={"Retry-After": "1"})
 
 
 def _retrieve(future: asyncio.Future) -> None:

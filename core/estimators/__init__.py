@@ -140,6 +140,7 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, b
     if options is None or isinstance(options, SolveOptions):
         options = [options or SolveOptions()] * size
     missing = batch.lacks_sigma
+    any_missing = np.count_nonzero(missing) > 0
     work: list = []
     for (name, opts), rows in _groups(resolve_methods(batch, methods), options).items():
         try:
@@ -149,7 +150,7 @@ def iter_solutions(batch: ProblemBatch, methods, options, should_stop=None, *, b
         except LocalizationError as error:
             work.append((rows, error))
             continue
-        if spec.needs_sigmas:
+        if spec.needs_sigmas and any_missing:
             lacking = missing[rows]
             for b in rows[lacking].tolist():
                 m = int(np.flatnonzero(batch.valid[b] & np.isnan(batch.sigmas[b]))[0])

@@ -5,7 +5,7 @@ in the cost: ``sum C^2 rho(z / C^2)`` with the scale ``C`` in sigmas (scipy's
 ``f_scale`` applied to whitened residuals). ``linear`` is plain least squares.
 The cost here is scipy's times two, so that with ``linear`` it is chi-square.
 
-The Levenberg-Marquardt iteration (:mod:`core.estimators.ml`) uses the loss as
+The Levenberg-Marquardt iteration (:mod:`core.estimators.lm`) uses the loss as
 scipy does: the gradient weights each measurement by ``rho'``, the Gauss-Newton
 matrix by ``rho' + 2 rho'' z`` (floored at machine epsilon: a measurement past
 the loss's bend adds no curvature). Its steps are Jacobi-scaled by the larger

@@ -359,12 +359,11 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     stations, rotations = batch.measurement_stations()
     origin_ecef, origin_rotation = batch.frame_placements()
     weighted = weighting is Weighting.FIRST_ORDER
+    arrays = batch.kernel_inputs
     rows, used, sigma, position, status, scale = _orthogonal_kernel(
-        is_line, np.ascontiguousarray(batch.values, dtype=float), elevation, sigma_elevation,
-        np.ascontiguousarray(batch.sigmas, dtype=float), np.ascontiguousarray(stations, dtype=float),
-        np.ascontiguousarray(rotations, dtype=float), normals is not Normals.AZIMUTH_PLANE,
-        normals is not Normals.ELEVATION_PLANE, np.asarray(batch.altitude_m, dtype=float),
-        np.asarray(batch.geodetic, dtype=np.bool_), origin_ecef, origin_rotation, weighted, int(passes))
+        is_line, arrays.values, elevation, sigma_elevation, arrays.sigmas, stations, rotations,
+        normals is not Normals.AZIMUTH_PLANE, normals is not Normals.ELEVATION_PLANE, arrays.altitude_m,
+        arrays.geodetic, origin_ecef, origin_rotation, weighted, int(passes))
     errors: dict[int, LocalizationError] = {}
     failed = status != SOLVED
     if np.count_nonzero(failed):

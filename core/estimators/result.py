@@ -337,6 +337,16 @@ class FixBatch:
         errors.update({int(rows[j]): e for j, e in other.errors.items()})
         return replace(self, errors=errors, **arrays, **lists)
 
+    @classmethod
+    def of(cls, **fields) -> "FixBatch":
+        """A FixBatch of ``fields`` (every field, by name), without ``__init__``'s one frozen assignment per
+        field: there is no derived state to compute, and the finisher builds one per batch it finishes."""
+        if fields.keys() != _FIELD_NAMES:
+            raise TypeError(f"FixBatch fields {sorted(fields.keys() ^ _FIELD_NAMES)} missing or unknown")
+        out = object.__new__(cls)
+        out.__dict__.update(fields)
+        return out
+
     def scaled_by_fit(self) -> "FixBatch":
         """The covariances scaled by ``sigma_scale^2`` where the fit has degrees of freedom
         (scipy's ``curve_fit(absolute_sigma=False)``); ``covariance_source`` gains ``_scaled``."""
@@ -351,3 +361,4 @@ _MEASUREMENT_FIELDS = ("residuals", "normalized_residuals", "studentized_residua
 _ARRAY_FIELDS = ("position_enu_m", "covariance_enu_m2", "crlb_enu_m2", "chi2", "dof", "p_value", "sigma_scale",
                  "converged", "iterations", "coarse_position_enu_m", "gdop", "isolated", *_MEASUREMENT_FIELDS)
 _LIST_FIELDS = ("warnings", "estimated_bearing_errors_rad", "details")
+_FIELD_NAMES = frozenset(FixBatch.__dataclass_fields__)

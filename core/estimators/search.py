@@ -3,7 +3,7 @@
 Hybrid mixes (one bearing with ranges or TOAs, too few TOAs for Bancroft,
 ranges from two stations with a known altitude) have no closed form here,
 yet the information matrix may well call them observable. ML runs from
-every candidate and keeps the lowest cost (:func:`core.estimators.ml.searched_starts`):
+every candidate and keeps the lowest cost (:func:`core.estimators.ties.searched_starts`):
 scoring the candidates themselves would not do, since precise TOAs make the
 cost a narrow valley that a grid misses while a far plateau scores better.
 Candidates come from the geometry:

@@ -157,6 +157,14 @@ def requests_exclusion(body) -> bool:
     return type(options) is dict and options.get("outliers") == "exclude"
 
 
+def station_count(body) -> int | None:
+    """How many stations a parsed or decoded body holds (None when it holds no list of them)."""
+    if type(body) is FixBody:
+        return len(body.stations)
+    stations = body.get("stations") if type(body) is dict else None
+    return len(stations) if type(stations) is list else None
+
+
 def measurement_count(body) -> int | None:
     """How many measurements a parsed or decoded body holds (None when it holds no list of them)."""
     if type(body) is FixBody:

@@ -2,9 +2,12 @@
 
 ``POST /v1/fixes`` hands its decoded body (:mod:`service.fixes.decode`) to the app's
 :class:`~service.coalesce.Coalescer`, which solves every fix queued at that
-moment as one batch on a worker thread, through the same
-:func:`~service.fixes.pipeline.fix_results` as ``POST /v1/fixes/batch``: a single
-fix is a batch of one. Both wait under :func:`service.watch.watched`: 503
+moment as one batch, through the same :func:`~service.fixes.pipeline.fix_results`
+as ``POST /v1/fixes/batch``: a single fix is a batch of one. A fix whose cost
+estimate is at most ``inline_fix_cost`` is solved on the event loop
+(:meth:`~service.coalesce.Coalescer.inline`): it holds the loop a few hundred
+microseconds at most, and is not watched. Larger ones are solved on a
+worker thread and, like batches, wait under :func:`service.watch.watched`: 503
 ``deadline_exceeded`` past ``request_deadline_s``, and the solve stops between
 parts once its clients are gone.
 """
@@ -15,6 +18,7 @@ import orjson
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
+from core.parallel import Stopped
 from service import schemas, tak
 from service.deps import OwnerDep, get_owner, json_request_body, parse_json, request_id
 from service.fixes.decode import decode_fix
@@ -22,7 +26,7 @@ from service.planning import crlb_response
 from service.problems import MEDIA_TYPE
 from service.renderings import problem_renderings
 from service.responses import JsonResponse
-from service.watch import watched
+from service.watch import shutting_down, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
@@ -42,7 +46,14 @@ async def create_fix(http: Request) -> Response:
     body = decode_fix(raw) or parse_json(raw)
     get_owner(http)
     coalescer = http.app.state.fix_coalescer
-    result = await watched(http, lambda should_stop: coalescer.submit(body, request_id(http), should_stop), _HINT)
+    if coalescer.inline(body):
+        try:
+            result = await coalescer.submit(body, request_id(http), inline=True)
+        except Stopped:
+            raise shutting_down() from None
+    else:
+        result = await watched(http, lambda should_stop: coalescer.submit(body, request_id(http), should_stop,
+                                                                          inline=False), _HINT)
     if result["ok"]:
         fix = result["fix"]
         if type(body) is dict and body.get("cot") is not None:

@@ -104,7 +104,7 @@ def test_every_kernel_divides_as_numpy_does():
     from numba.core.registry import CPUDispatcher
 
     import core
-    from core.estimators.ml import _solve_small
+    from core.estimators.lm import _solve_small
 
     kernels = {}
     for info in pkgutil.walk_packages(core.__path__, "core."):

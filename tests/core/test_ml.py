@@ -397,7 +397,7 @@ def test_a_robust_fit_of_clean_bearings_stops_at_its_minimum(loss):
     # machine epsilon); the Jacobi scaling then came from that vanishing diagonal, the damped steps stayed
     # metres long, and LM stopped short of the minimum (cost 0.2-0.6 above it on this scene).
     from bench.scenarios import four_station_requests
-    from core.estimators.ml import levenberg_marquardt
+    from core.estimators.lm import levenberg_marquardt
     from core.estimators.starting_points import initial_positions
     from service.fixes.read import read_fix_requests
 
@@ -407,3 +407,26 @@ def test_a_robust_fit_of_clean_bearings_stops_at_its_minimum(loss):
     further = levenberg_marquardt(batch, fit.position_enu_m, 500, 1e-6, (loss, 1.0))
     assert fit.converged.all()
     assert np.max(fit.cost - further.cost) < 1e-6
+
+
+def test_the_one_call_start_and_fit_is_the_staged_one(monkeypatch):
+    # ML starts bearing problems by weighted EOVE and iterates from there in one compiled call; the staged path
+    # (initial_positions, then iterate) must give the same numbers, bit for bit, and the same start names.
+    from bench.scenarios import four_station_requests
+    from core.estimators import ml as ml_module
+    from service.translate import read_fix_requests
+
+    requests = four_station_requests(40, np.random.default_rng(5))
+    requests[3]["options"] = {"initial_guess": requests[3]["stations"][0]["position"]}  # staged: its guess
+    batch = read_fix_requests(requests).batch
+    assert ml_module._eove_started_fits(batch, SolveOptions()) is None  # a guess: the staged path
+    plain = read_fix_requests(requests[:3] + requests[4:]).batch
+    assert ml_module._eove_started_fits(plain, SolveOptions()) is not None
+    for options in (SolveOptions(), SolveOptions(loss="huber")):
+        fused = ml_module.ml(plain, options)
+        monkeypatch.setattr(ml_module, "_eove_started_fits", lambda batch, options: None)
+        staged = ml_module.ml(plain, options)
+        monkeypatch.undo()
+        for name in ("position_enu_m", "converged", "iterations", "bias_m"):
+            np.testing.assert_array_equal(getattr(fused, name), getattr(staged, name), err_msg=name)
+        assert fused.details == staged.details and fused.errors == staged.errors

@@ -104,12 +104,12 @@ def test_every_method_gives_each_problem_what_it_gets_alone(method):
 
 
 def test_chunking_the_search_does_not_change_results(monkeypatch):
-    import core.estimators.ml as ml
+    import core.estimators.ties as ties
 
     problems = [p for p in mixed_problems() if p.n_measurements == 8] * 20
     batch = ProblemBatch.from_problems(problems)
     whole = get_estimator("ml").solve_batch(batch, SolveOptions())
-    monkeypatch.setattr(ml, "CHUNK_ENTRIES", 8)
+    monkeypatch.setattr(ties, "CHUNK_ENTRIES", 8)
     chunked = get_estimator("ml").solve_batch(batch, SolveOptions())
     for b in range(batch.size):
         assert_same_fix(whole.fix(b), chunked.fix(b))

@@ -6,6 +6,9 @@ import asyncio
 import copy
 import threading
 
+import pytest
+
+from core.parallel import Stopped
 from service.fixes import pipeline
 from service.coalesce import Coalescer
 from service.responses import dumps
@@ -167,3 +170,83 @@ def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch, caplog)
                                                                                              "rid-1")
     for k in (0, 2):
         assert dumps({**results[k], "index": 0}) == dumps(expected)
+
+
+def _threads_that_solve(monkeypatch) -> list:
+    """The thread of each ``fix_results`` call the coalescer makes, and how many bodies it took."""
+    import service.coalesce as coalesce
+
+    calls = []
+    real = coalesce.fix_results
+
+    def recorded(bodies, *args, **kwargs):
+        calls.append((threading.get_ident(), len(bodies)))
+        return real(bodies, *args, **kwargs)
+
+    monkeypatch.setattr(coalesce, "fix_results", recorded)
+    return calls
+
+
+def test_the_cost_estimate_alone_sends_a_fix_to_the_loop_or_the_worker(monkeypatch):
+    # A four-station, four-bearing fix costs 16 (stations x measurements): on the loop at a threshold of 16, on
+    # the worker at 15; with outlier exclusion (16 x its 10 solves at most) on the worker at 16 too.
+    from service.limits import body_fix_cost
+
+    body = bearing_request(STATIONS_300KM, TARGET)
+    excluding = {**body, "options": {"outliers": "exclude"}}
+    assert (body_fix_cost(body), body_fix_cost(excluding)) == (16, 160)
+    calls = _threads_that_solve(monkeypatch)
+
+    async def run(threshold, bodies):
+        coalescer = Coalescer(inline_fix_cost=threshold)
+        results = [await coalescer.solve(b) for b in bodies]
+        coalescer.close()
+        return threading.get_ident(), coalescer, results
+
+    loop_thread, coalescer, results = asyncio.run(run(16, [body, excluding]))
+    assert all(r["ok"] for r in results)
+    assert [thread == loop_thread for thread, _ in calls] == [True, False]
+    assert (coalescer.drains, coalescer.inline_drains) == (2, 1)
+    calls.clear()
+    loop_thread, coalescer, _ = asyncio.run(run(15, [body]))
+    assert [thread == loop_thread for thread, _ in calls] == [False] and coalescer.inline_drains == 0
+    calls.clear()
+    loop_thread, coalescer, _ = asyncio.run(run(None, [body]))
+    assert [thread == loop_thread for thread, _ in calls] == [False] and coalescer.inline_drains == 0
+
+
+def test_small_fixes_queued_together_share_one_solve_on_the_loop(monkeypatch):
+    calls = _threads_that_solve(monkeypatch)
+    items = [(bearing_request(STATIONS_300KM, TARGET), f"rid-{i}") for i in range(3)]
+    large = (bearing_request(STATIONS_300KM, TARGET) | {"options": {"outliers": "exclude"}}, "rid-large")
+
+    async def run():
+        coalescer = Coalescer(inline_fix_cost=16)
+        results = await asyncio.gather(*(coalescer.solve(*item) for item in [*items, large]))
+        coalescer.close()
+        return threading.get_ident(), results
+
+    loop_thread, results = asyncio.run(run())
+    assert sorted((thread == loop_thread, size) for thread, size in calls) == [(False, 1), (True, 3)]
+    for (body, rid), result in zip([*items, large], results):
+        assert dumps({**result, "index": 0}) == dumps(fix_results([body], rid)[0])
+
+
+def test_a_fix_on_the_loop_answers_as_on_the_worker_and_is_counted(make_client):
+    body = bearing_request(STATIONS_300KM, TARGET)
+    on_loop, on_worker = make_client(), make_client(inline_fix_cost=0)
+    first, second = on_loop.post("/v1/fixes", json=body), on_worker.post("/v1/fixes", json=body)
+    assert first.status_code == second.status_code == 200
+    assert_close(first.json(), second.json())
+    assert on_loop.app.state.fix_coalescer.inline_drains == 1
+    assert on_worker.app.state.fix_coalescer.inline_drains == 0
+    counted = [line for line in on_loop.get("/metrics").text.splitlines()
+               if "fix_seconds_count" in line and 'method="ml"' in line]
+    assert counted and counted[0].endswith(" 1.0"), counted
+
+
+def test_a_stopping_server_answers_a_fix_on_the_loop_503():
+    stopping = threading.Event()
+    stopping.set()
+    with pytest.raises(Stopped):
+        asyncio.run(Coalescer(stopping, inline_fix_cost=16).solve(bearing_request(STATIONS_300KM, TARGET)))

@@ -57,7 +57,7 @@ def test_a_batch_over_its_deadline_is_503_and_stops_between_parts(make_client, s
 
 
 def test_a_single_fix_over_its_deadline_is_503_and_the_next_one_is_solved(make_client, slow_parts):
-    client = make_client(request_deadline_s=0.2)
+    client = make_client(request_deadline_s=0.2, inline_fix_cost=0)  # on the worker, where deadlines are watched
     slow_parts.start(1.5)  # longer than the deadline and the grace after it
     _deadline_problem(client.post("/v1/fixes", json=bearing_request(STATIONS_300KM, TARGET)))
     slow_parts.state["delay_s"] = 0.0

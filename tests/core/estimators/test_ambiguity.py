@@ -17,11 +17,11 @@ from scipy.stats import chi2
 
 from core.errors import LocalizationError
 from core.estimators import solve_batch
-from core.estimators.ml import (
+from core.estimators.ties import (
     DISTINCT_MAHALANOBIS2,
     DISTINCT_UNCONVERGED_MAHALANOBIS2,
     Fits,
-    _rivals,
+    rivals,
 )
 from core.problem import Bearing, GeodeticPoint, TimeOfArrival, build_problem
 from core.simulation.measurements import measure, true_values
@@ -91,17 +91,17 @@ def test_the_rival_rule():
     candidates = _fits([[far * 10, 0, 0], [far * 10, 0, 0], [near * 10, 0, 0], [far * 10, 0, 0]],
                        [0.5, 0.5, 0.0, 10.0], [True, False, True, True])
     best = _fits(np.zeros((4, 3)), np.zeros(4), np.ones(4, dtype=bool))
-    assert _rivals(best, candidates).tolist() == [True, False, False, False]
+    assert rivals(best, candidates).tolist() == [True, False, False, False]
     unconverged_best = _fits(np.zeros((4, 3)), np.zeros(4), np.zeros(4, dtype=bool))
-    assert _rivals(unconverged_best, candidates).tolist() == [True, True, False, False]
+    assert rivals(unconverged_best, candidates).tolist() == [True, True, False, False]
 
 
 def test_a_rival_must_be_distinct_under_its_own_bound_too():
     """A converged fit whose own covariance covers the best is the same solution seen from a flatter spot."""
     best = _fits([[0.0, 0.0, 0.0]], [0.0], [True], sigma_m=10.0)
     wide = _fits([[100.0, 0.0, 0.0]], [0.0], [True], sigma_m=1000.0)
-    assert not _rivals(best, wide)[0]
-    assert _rivals(best, _fits([[100.0, 0.0, 0.0]], [0.0], [True], sigma_m=10.0))[0]
+    assert not rivals(best, wide)[0]
+    assert rivals(best, _fits([[100.0, 0.0, 0.0]], [0.0], [True], sigma_m=10.0))[0]
 
 
 def test_where_the_bound_holds_the_answered_fixes_are_consistent_with_it():

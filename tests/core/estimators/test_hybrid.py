@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from core.errors import LocalizationError
 from core.estimators import solve_batch
-from core.estimators.ml import DISTINCT_MAHALANOBIS2
+from core.estimators.ties import DISTINCT_MAHALANOBIS2
 from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
 from core.simulation.measurements import measure, true_values
 
