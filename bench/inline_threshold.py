@@ -5,7 +5,7 @@
 the worker pool above it. This prints, for fixes of growing size (stations on
 a ring, bearings with elevation, methods ``ml``, ``los_intersection`` and
 ``ml`` with outlier exclusion), the cost estimate and the thread CPU time of
-:func:`service.translate.fix_results` on the body alone (read, solve, write:
+:func:`service.fixes.pipeline.fix_results` on the body alone (read, solve, write:
 what the loop would run), median of ``--repeat`` calls after a warm-up, so
 the threshold can be set where a fix holds the loop for a few hundred
 microseconds.
@@ -22,7 +22,7 @@ import numpy as np
 
 from bench.scenarios import largest_fix_request
 from service.limits import body_fix_cost
-from service.translate import fix_results
+from service.fixes.pipeline import fix_results
 
 #: (stations, bearings per station) of the fixes measured.
 SHAPES = ((2, 1), (3, 1), (4, 1), (4, 2), (6, 2), (8, 2), (8, 4), (12, 4), (16, 4), (24, 4), (32, 4), (48, 4))

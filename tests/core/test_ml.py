@@ -414,7 +414,7 @@ def test_the_one_call_start_and_fit_is_the_staged_one(monkeypatch):
     # (initial_positions, then iterate) must give the same numbers, bit for bit, and the same start names.
     from bench.scenarios import four_station_requests
     from core.estimators import ml as ml_module
-    from service.translate import read_fix_requests
+    from service.fixes.read import read_fix_requests
 
     requests = four_station_requests(40, np.random.default_rng(5))
     requests[3]["options"] = {"initial_guess": requests[3]["stations"][0]["position"]}  # staged: its guess
