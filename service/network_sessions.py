@@ -280,6 +280,8 @@ class ReportsChange:
         #: The core state of the record the change made (None when it wrote nothing).
         self.state: NetworkState | None = None
         self._prepared: tuple | None = None
+        #: Whether an auto session's post not prepared for the record it meets raises ``PrepareFirst``.
+        self.prepare_first = True
 
     def prepare(self, record: SessionRecord, should_stop=None) -> None:
         new = self._change(record)
@@ -291,6 +293,10 @@ class ReportsChange:
         if prepared is not None and prepared[:2] == (record.id, record.version):
             new, self.applied, self.duplicates, self.late, self.ended, self.state = prepared[2:]
             return new
+        if self.prepare_first and is_network(record) and association_sessions.is_auto(record.config["request"]):
+            from service.sessions import PrepareFirst
+
+            raise PrepareFirst()
         return self._change(record)
 
     def _change(self, record: SessionRecord) -> SessionRecord | None:

@@ -31,6 +31,7 @@ from core.errors import LocalizationError
 from core.parallel import Stopped
 from core.tracking import Epoch as TrackerEpoch
 from core.tracking import TrackerConfig, TrackState, new_state, step_many
+from core.tracking.network import NetworkState
 from service import network_sessions
 from service import session_schemas as schemas
 from service.problems import ApiError
@@ -263,6 +264,13 @@ STOP_CHECK_EPOCHS = 256
 INLINE_EPOCHS = 32
 
 
+class PrepareFirst(Exception):
+    """Raised by a change, within the store's update call, that must not be decided there because its cost
+    depends on the session rather than on the post's size (an auto network session re-runs its reorder window
+    on every post): the route prepares it on a worker thread, under the request deadline, and applies it
+    again. Nothing is written."""
+
+
 class MeasurementsChange:
     """What a batch of epochs does to its session: all of its new epochs, or (on any error) none.
 
@@ -358,7 +366,7 @@ def post_measurements(store: SessionStore, owner: str, session_id: str, change: 
     record = store.update(owner, session_id, change, read) if _SESSION_ID.fullmatch(session_id) else None
     if record is None:
         raise not_found(session_id)
-    if change.state is not None:  # what the write made, committed: the next post of this session starts from it
+    if isinstance(change.state, NetworkState):  # what the write made, committed: the next post starts from it
         decoded_states.remember(record, track_state, change.state)
     return PostOutcome(record, change.applied, change.duplicates)
 

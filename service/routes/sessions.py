@@ -114,15 +114,29 @@ async def get_session(session_id: str, owner: OwnerDep, store: StoreDep,
                                                                 at_time_s))
 
 
+#: Times a post prepared on a worker thread may find its session moved on by other posts before the store
+#: call decides it itself.
+PREPARE_ATTEMPTS = 3
+
+
 async def _apply(request: Request, store: GuardedStore, owner: str, session_id: str, change, count: int, apply,
                  too_long: str):
-    """Apply a posted change (epochs or reports) to its session: a batch of more than ``INLINE_EPOCHS`` items
-    is prepared first in the CPU pool, under the request's deadline and cancellation, so that the store's
-    atomic apply only checks and writes; ``too_long`` is the advice when that preparation runs out of time."""
+    """Apply a posted change (epochs or reports) to its session: a batch of more than ``INLINE_EPOCHS`` items,
+    or a change that asks for it (:class:`service.sessions.PrepareFirst`), is prepared first in the CPU pool,
+    under the request's deadline and cancellation, so that the store's atomic apply only checks and writes;
+    ``too_long`` is the advice when that preparation runs out of time."""
     record = None
-    if count > sessions.INLINE_EPOCHS:
-        record = await store.run(sessions.get, owner, session_id)
-        await watched(request, in_pool(None, lambda should_stop: change.prepare(record, should_stop)), too_long)
+    prepare = count > sessions.INLINE_EPOCHS
+    for _ in range(PREPARE_ATTEMPTS):
+        if prepare:
+            record = await store.run(sessions.get, owner, session_id)
+            await watched(request, in_pool(None, lambda should_stop: change.prepare(record, should_stop)),
+                          too_long)
+        try:
+            return await store.run(apply, owner, session_id, change, record)
+        except sessions.PrepareFirst:
+            prepare = True
+    change.prepare_first = False  # overtaken by other posts on every try: decided within the store call
     return await store.run(apply, owner, session_id, change, record)
 
 

@@ -320,3 +320,25 @@ def _confirmed_at(client, body: dict, time_s: float):
 
     state = client.get(f"/v1/sessions/{body['id']}", params={"at_time_s": time_s}).json()
     return confirmed_positions(state["tracks"])
+
+
+def test_an_auto_post_is_decided_on_a_worker_thread_not_within_the_store_call(client, run, monkeypatch):
+    """An auto post re-runs the reorder window: its cost follows the session, not the post's size, so even a
+    one-report post is prepared off the store's threads (whose calls have a deadline of their own)."""
+    import threading
+
+    from service.network_sessions import ReportsChange
+
+    threads = []
+    original = ReportsChange._change
+
+    def spy(self, record):
+        threads.append(threading.current_thread().name)
+        return original(self, record)
+
+    monkeypatch.setattr(ReportsChange, "_change", spy)
+    session = _create(client)
+    response = _post(client, session["id"], _reports(run)[:1])
+    assert response.status_code == 200, response.text
+    assert response.json()["applied"] == 1
+    assert threads and not any(name.startswith("store") for name in threads), threads
