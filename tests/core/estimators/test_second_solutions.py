@@ -27,7 +27,7 @@ from core.estimators.ambiguity import (
 )
 from core.estimators.ml import _second_solution, iterate, levenberg_marquardt
 from core.estimators.unscented_fix import never_below, unscented_covariance
-from core.problem import Bearing, LocalPoint, TimeOfArrival, build_problem
+from core.problem import Bearing, LocalPoint, Range, TimeOfArrival, build_problem
 from core.problem_batch import ProblemBatch
 from core.simulation.measurements import measure, true_values
 from tests.core.estimators.test_ambiguity import SIGMA_RAD, SIGMA_TOA_S, ground_scene
@@ -170,3 +170,39 @@ def test_never_below_raises_a_covariance_to_the_bound_and_reports_the_excess():
     raised, ratio = never_below(covariance, bound)
     assert np.allclose(raised[0], np.diag([4.0, 9.0, 0.0]))
     assert ratio[0] == pytest.approx(9.0)
+
+
+def _tilted_mirror_problem(tilt_m):
+    """Airborne stations at 10 km (one raised by ``tilt_m``), an azimuth and three ranges, an emitter at 2 km:
+    the ranges fit its mirror through the stations' plane exactly, the azimuth (measured in the station's
+    horizontal) less well the more the plane tilts. Noise-free."""
+    offsets = [(0.0, 0.0, 10e3), (30e3, 5e3, 10e3 + tilt_m), (8e3, 35e3, 10e3)]
+    stations = [(f"s{k}", LocalPoint(e, n, u)) for k, (e, n, u) in enumerate(offsets)]
+    measurements = [Bearing("s0", 0.0, None, SIGMA_RAD)] + [Range(s, 0.0, 10.0) for s, _ in stations]
+    problem = build_problem(stations, measurements)
+    target = np.array([14e3, 12e3, 2e3])
+    return problem.with_values(true_values(problem, target)), target
+
+
+def test_a_mirror_worse_but_plausible_is_answered_with_the_warning_and_a_covariance_that_covers_it():
+    """Tilted by 1 km the mirror's cost is 9.2 above the fix (between AMBIGUITY_COST and PLAUSIBLE_COST): the
+    fix is the target, it names the mirror and its probability, and its stated region reaches the mirror (the
+    mixture's variance along the line to it is at least the mirror's weight times the squared distance).
+    Untilted the two tie (422); tilted by 2 km the mirror is rejected and the fix is alone."""
+    problem, target = _tilted_mirror_problem(1e3)
+    (fix,) = solve_batch([problem], "auto")
+    assert np.linalg.norm(fix.position_enu_m - target) < 1e-3
+    (warning,) = [w for w in fix.warnings if w.code == "second_solution_plausible"]
+    delta = float(warning.message.split("chi2 ")[1].split(" ")[0])
+    assert AMBIGUITY_COST < delta <= PLAUSIBLE_COST
+    assert f"probability {rival_probability(delta):.1%}" in warning.message
+    mirror = np.array([float(v) for v in warning.message.split("at (")[1].split(")")[0].split(",")])
+    apart = mirror - fix.position_enu_m
+    unit = apart / np.linalg.norm(apart)
+    assert unit @ fix.covariance_enu_m2 @ unit >= 0.99 * rival_probability(delta) * (apart @ apart)
+    assert unit @ fix.crlb_enu_m2 @ unit < 0.01 * unit @ fix.covariance_enu_m2 @ unit  # the bound alone would not
+    (tie,) = solve_batch([_tilted_mirror_problem(0.0)[0]], "auto")
+    assert isinstance(tie, LocalizationError) and tie.code == "ambiguous_geometry"
+    (alone,) = solve_batch([_tilted_mirror_problem(2e3)[0]], "auto")
+    assert not {w.code for w in alone.warnings} & CAVEATS
+    assert np.allclose(alone.covariance_enu_m2, alone.crlb_enu_m2)
