@@ -9,7 +9,12 @@ A known altitude is a constraint: the position moves along the local
 east/north at the current point and is put back on the altitude surface
 after each step.
 The covariance is the inverse information at the solution (computed by the
-finisher, like everything else a fix reports).
+finisher, like everything else a fix reports), except where ML says more: a
+fix with a plausible second solution reports the two-solution mixture's, and
+a fix from the search (a mix without a closed form, or whose closed-form fit
+failed) the unscented spread of the estimator, never below the bound
+(:mod:`core.estimators.unscented_fix`): the inverse information is the
+covariance only where the model is linear over the fix's uncertainty.
 
 A robust loss (``options.loss``, scipy's names: :mod:`core.estimators.loss`)
 is minimised as scipy's ``least_squares`` does: the gradient weights each
