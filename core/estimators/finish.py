@@ -108,8 +108,11 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     elif estimates.covariance_enu_m2 is None:
         source = "information" if source == "information" else "crlb"
     else:
-        covariance = np.asarray(estimates.covariance_enu_m2, dtype=float).reshape(size, 3, 3)
-        covariance = 0.5 * (covariance + covariance.swapaxes(-1, -2))
+        own = np.asarray(estimates.covariance_enu_m2, dtype=float).reshape(size, 3, 3)
+        own = 0.5 * (own + own.swapaxes(-1, -2))
+        # ML's own rows (a two-solution mixture) replace the inverse information; its NaN rows keep it.
+        covariance = np.where(np.isfinite(own).all(axis=(-1, -2))[:, None, None], own, covariance) \
+            if source == "information" else own
 
     mismatch = p_value < SIGMA_MISMATCH_P
     iterations = np.zeros(size, dtype=int) if estimates.iterations is None else np.asarray(estimates.iterations)

@@ -5,7 +5,13 @@ range and TOA by Levenberg-Marquardt (:mod:`core.estimators.lm`), from the
 closed-form start for the mix, or from the geometry's candidates where there
 is none or the fit from it is implausible (:func:`ml`). The covariance is the
 inverse information at the solution (computed by the finisher, like
-everything else a fix reports).
+everything else a fix reports), except where ML says more: a fix with a
+plausible second solution reports the two-solution mixture's
+(:func:`core.estimators.ties.second_solution`), and a fix from the search (a
+mix without a closed form, or whose closed-form fit failed) the unscented
+spread of the estimator, never below the bound
+(:mod:`core.estimators.unscented_fix`): the inverse information is the
+covariance only where the model is linear over the fix's uncertainty.
 
 A robust loss (``options.loss``) is minimised as scipy's ``least_squares``
 does; the finisher then reports the sandwich covariance of the final weights
@@ -32,13 +38,14 @@ from scipy.special import chdtrc
 from core.crlb import batch_information
 from core.errors import LocalizationError
 from core.estimators.base import SolveOptions, register
-from core.estimators.lm import Solution, _lm_kernel, iterate, loss_of
+from core.estimators.lm import Solution, _lm_kernel, iterate, levenberg_marquardt, loss_of
 from core.estimators.loss import REDESCENDING, loss_code
 from core.estimators.orthogonal_vector import SOLVED, _orthogonal_kernel
-from core.estimators.result import Estimates
+from core.estimators.result import Estimates, FixWarning
 from core.estimators.starting_points import START_PASSES, initial_positions
-from core.estimators.ties import (Fits, above_ground, ambiguous, fit_from, mirror_applies, mirror_points, refine,
-                                  rivals, searched_starts)
+from core.estimators.ties import (REFINE_ITERATIONS, Fits, above_ground, fit_from, mirror_applies, mirror_points,
+                                  refine, rivals, searched_starts, second_solution)
+from core.estimators.unscented_fix import CURVED_VARIANCE_RATIO, never_below, unscented_covariance
 from core.measurements import AZIMUTH, ELEVATION, ahead_point, predict, residuals
 from core.problem_batch import ProblemBatch
 
@@ -49,7 +56,8 @@ SUBSET_CANDIDATES = 8
 
 
 def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, start_names, failures,
-                  solution: Solution | None = None, warnings: list | None = None) -> Estimates:
+                  solution: Solution | None = None, warnings: list | None = None,
+                  covariance_enu_m2=None) -> Estimates:
     """ML estimates of a batch from given starts.
 
     Parameters
@@ -66,6 +74,8 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
         The iteration from these starts, when already run.
     warnings : list of tuple of FixWarning, length B, optional
         The estimator's own warnings.
+    covariance_enu_m2 : ndarray, shape (B, 3, 3), optional
+        Covariances that replace the inverse information (a two-solution mixture); NaN rows keep it.
     """
     starts = np.array(starts_enu_m, dtype=float)
     missing = ~np.isfinite(starts).all(axis=-1)
@@ -78,6 +88,7 @@ def estimate_from(batch: ProblemBatch, starts_enu_m, options: SolveOptions, star
     return Estimates(
         position_enu_m=solution.position_enu_m,
         covariance_source="information",
+        covariance_enu_m2=covariance_enu_m2,
         loss=None if options.loss == "linear" else loss_of(options),
         errors=errors,
         converged=solution.converged,
@@ -228,10 +239,11 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
             implausible &= ~one_basin(batch, solution.position_enu_m)
         retry |= implausible
     warnings: list[tuple] = [()] * batch.size
+    covariance = np.full((batch.size, 3, 3), np.nan)  # a two-solution mixture's, where a rival is plausible
     if np.count_nonzero(retry):
         rows = np.flatnonzero(retry)
         earlier = np.where(missing[rows, None], np.nan, solution.position_enu_m[rows])
-        found, rival = searched_starts(batch.take(rows), options, earlier)
+        found, rival, rival_cost = searched_starts(batch.take(rows), options, earlier)
         ok = np.all(np.isfinite(found), axis=-1)
         again = iterate(batch.take(rows[ok]), found[ok], options) if np.any(ok) else None
         for j, b in enumerate(rows[ok].tolist()):
@@ -243,8 +255,10 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
                 missing[b] = False
                 solution.put(b, again, j)
             if np.all(np.isfinite(rival[ok][j])):
-                warnings[b] = ambiguous(batch, b, rival[ok][j], starts, names, failures, solution, options)
+                warnings[b] = second_solution(batch, b, rival[ok][j], rival_cost[ok][j], starts, names, failures,
+                                              solution, options, covariance)
         p_value[rows] = chdtrc(np.maximum(dof[rows], 1), solution.cost[rows])
+    searched = np.flatnonzero(retry)
     if options.loss != "linear":
         normalized = normalized_residuals(batch, solution)
         failing = chdtrc(np.maximum(dof, 1), np.sum(normalized**2, axis=-1)) < SUBSET_P
@@ -282,10 +296,38 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
         for j in np.flatnonzero(rival).tolist():
             b = int(check[j])
             if possible[j]:
-                warnings[b] = ambiguous(batch, b, images.position_enu_m[j], starts, names, failures, solution,
-                                         options)
+                warnings[b] = second_solution(batch, b, images.position_enu_m[j], images.cost[j], starts, names,
+                                              failures, solution, options, covariance)
                 continue
             # The fix is underground and its image a converged fit: the image is the fix.
             starts[b], names[b] = mirrored[j], "mirror"
             solution.put(b, iterate(batch.take([b]), images.position_enu_m[j][None], options), 0)
-    return estimate_from(batch, starts, options, names, failures, solution, warnings)
+    alone = np.array([b for b in searched.tolist() if not missing[b] and b not in failures and not warnings[b]],
+                     dtype=np.intp)
+    if alone.size and options.loss == "linear":
+        _spread(batch, alone, solution, options, covariance, warnings)
+    return estimate_from(batch, starts, options, names, failures, solution, warnings,
+                         covariance if np.isfinite(covariance).any() else None)
+
+
+def _spread(batch: ProblemBatch, rows, solution: Solution, options: SolveOptions, covariance, warnings) -> None:
+    """The searched fixes ``rows`` ``(K,)`` (mixes without a closed form, or whose closed-form fit failed: the
+    geometries where the model can be far from linear over the fix's uncertainty) get the unscented covariance
+    of the estimator, never below the bound (:mod:`core.estimators.unscented_fix`), in ``covariance``; where it
+    exceeds the bound by more than ``CURVED_VARIANCE_RATIO``, the warning ``curved_uncertainty``."""
+    part = batch.take(rows)
+    fixes = solution.position_enu_m[rows]
+
+    def refit(moved, starts):  # to 1e-6 of a sigma (STEP_MAHALANOBIS2), not a step in metres: a thin axis is mm
+        return levenberg_marquardt(moved, starts, REFINE_ITERATIONS, 0.0, loss_of(options)).position_enu_m
+
+    spread = unscented_covariance(part, fixes, solution.bias_m[rows], refit)
+    raised, ratio = never_below(spread, batch_information(part, fixes).covariance_enu_m2)
+    covariance[rows] = raised
+    for j in np.flatnonzero(ratio > CURVED_VARIANCE_RATIO).tolist():
+        b = int(rows[j])
+        warnings[b] = warnings[b] + (FixWarning(
+            "curved_uncertainty",
+            f"the measurement model is far from linear over this fix's uncertainty: fixes of the measurements moved "
+            f"by their sigmas spread {np.sqrt(ratio[j]):.1f} x the bound's sigma along its worst axis; the "
+            "covariance is that spread (unscented), not the inverse information"),)

@@ -37,6 +37,13 @@ WARNING_CODES = {
     "ambiguous_solution": "another point fits the measurements as well; options.initial_guess picked this one "
                           "(the other is named in the message; without a guess such a tie is a 422 "
                           "ambiguous_geometry, except under a robust loss)",
+    "second_solution_plausible": "a second solution (named in the message, with its probability from the two "
+                                 "fits' likelihoods) fits worse but is not ruled out at 0.1 %; the covariance is "
+                                 "the two-solution mixture's second moment about this fix, so its region covers both",
+    "curved_uncertainty": "the measurement model is far from linear over the fix's uncertainty (a line of sight "
+                          "nearly tangent to a TDOA hyperbola): the covariance is the spread of the fixes of the "
+                          "measurements moved by their sigmas (unscented transform of the estimator), not the "
+                          "inverse information, which understates the error there",
     "measurements_unused": "the method does not use some kinds of the given measurements (named in the message)",
     "measurement_downweighted": "the robust loss left this measurement under a tenth of its weight (named in the "
                                 "message)",
@@ -71,7 +78,8 @@ class Estimates:
         covariance is the inverse information the finisher computes, and an
         unobservable problem is an error; with ``"crlb"`` it is the bound.
     covariance_enu_m2 : ndarray, shape (B, 3, 3), optional
-        The estimator's own covariance (required with ``"propagated"``).
+        The estimator's own covariance (required with ``"propagated"``). With ``"information"``, rows that
+        replace the inverse information (ML's two-solution mixture); NaN rows keep it.
     errors : dict of int to LocalizationError
         Problems the method could not solve.
     converged : ndarray of bool, shape (B,), optional

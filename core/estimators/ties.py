@@ -4,19 +4,25 @@ Where the measurements leave (almost) no degree of freedom, a second point
 may fit as well: a line of sight crosses a TDOA hyperboloid twice, or
 ranges, TOAs and azimuths from nearly coplanar stations fit a point and its
 mirror image through their plane. ML (:mod:`core.estimators.ml`) looks for
-one among the search's solutions (:func:`searched_starts`) and from the fix's
+one among the search's solutions (:func:`searched_starts`: from the geometry's
+candidates and from the best fit's own uncertainty,
+:func:`~core.estimators.ambiguity.axis_starts`) and from the fix's
 mirror image (:func:`mirror_points`); a rival is itself a converged fit of the
 data (an iterate the cap stopped on its way is iterated further first,
 :func:`refine`, and is no rival unless that converges), whose cost is within
-``AMBIGUITY_COST`` of the fix, farther than one sigma from the fix under the
+``PLAUSIBLE_COST`` of the fix, farther than one sigma from the fix under the
 fix's bound and under its own (``DISTINCT_MAHALANOBIS2``: nearer, the
 covariance covers both; a refinement that converges onto the fix is the fix)
 and physically possible (a geodetic point more than 1 km below the ellipsoid
 is no solution; a point behind a bearing station never ties, its azimuth
 residual is near pi; a TOA's emission precedes its arrival by construction of
-the model). A tie is a :class:`~core.errors.AmbiguousGeometry` (422
-``ambiguous_geometry``) naming both points, unless the client's
-``initial_guess`` picks the nearer one (:func:`ambiguous`).
+the model). One rule judges it for every mix (:mod:`core.estimators.ambiguity`,
+:func:`second_solution`): within ``AMBIGUITY_COST`` a tie, a
+:class:`~core.errors.AmbiguousGeometry` (422 ``ambiguous_geometry``) naming
+both points, unless the client's ``initial_guess`` picks the nearer one
+(:func:`ambiguous`); worse but plausible, the fix warns
+``second_solution_plausible`` (the rival and its probability) and its
+covariance is the two-solution mixture's.
 """
 
 from __future__ import annotations
@@ -27,6 +33,8 @@ import numpy as np
 
 from core.crlb import batch_information
 from core.errors import AmbiguousGeometry
+from core.estimators.ambiguity import (AMBIGUITY_COST, PLAUSIBLE_COST, axis_starts, mixture_covariance,
+                                       rival_probability)
 from core.estimators.base import SolveOptions
 from core.estimators.lm import Solution, iterate, levenberg_marquardt, loss_of
 from core.estimators.result import FixWarning
@@ -39,16 +47,16 @@ from core.problem_batch import ProblemBatch
 #: (candidates x padded width): the expanded problems then take megabytes, not gigabytes.
 CHUNK_ENTRIES = 1 << 15
 
-#: A second solution whose cost is within this of the best (chi-square units) makes the fix ambiguous.
-AMBIGUITY_COST = 4.0
-#: ... when it is a converged solution farther from the best than this squared Mahalanobis distance, under the
-#: best's CRLB and under its own: nearer, no measurement at the stated noise tells them apart and the covariance
-#: covers both.
+#: A second solution is a rival (:func:`rivals`; judged by :mod:`core.estimators.ambiguity`: a tie within
+#: ``AMBIGUITY_COST``, a plausible worse solution within ``PLAUSIBLE_COST``) when it is a converged solution
+#: farther from the best than this squared Mahalanobis distance, under the best's CRLB and under its own: nearer,
+#: no measurement at the stated noise tells them apart and the covariance covers both.
 DISTINCT_MAHALANOBIS2 = 1.0
 #: Where the best is itself unconverged (the answer is flagged so), an unconverged iterate is a rival farther
 #: than this from it: neither is a solution, and the two may still be sliding down one valley.
 DISTINCT_UNCONVERGED_MAHALANOBIS2 = 25.0
-#: An unconverged candidate that might tie (cost within ``AMBIGUITY_COST`` of the best) goes on for this many
+#: An unconverged candidate that might be a rival (cost within ``PLAUSIBLE_COST`` of the best) goes on for this
+#: many
 #: more iterations before it is judged (:func:`refine`): an iterate the cap stopped in a crawling valley (a line
 #: of sight nearly tangent to a hyperbola) is no solution until it converges, and often converges onto the best.
 REFINE_ITERATIONS = 500
@@ -121,10 +129,10 @@ def fit_from(batch: ProblemBatch, owners, starts_enu_m, options: SolveOptions, m
 
 def refine(batch: ProblemBatch, owners, fits: Fits, best_cost, options: SolveOptions) -> Fits:
     """``fits`` (of problems ``owners`` ``(K,)`` of ``batch``) with every regular unconverged fit whose cost is
-    within ``AMBIGUITY_COST`` of ``best_cost`` ``(K,)`` iterated ``REFINE_ITERATIONS`` more: whether a candidate
+    within ``PLAUSIBLE_COST`` of ``best_cost`` ``(K,)`` iterated ``REFINE_ITERATIONS`` more: whether a candidate
     is a solution of the data is known only where its iteration ends. A refinement replaces its fit only where
     it converged to a regular point; the others stay as they were (an unconverged fit, judged as before)."""
-    again = np.flatnonzero(fits.regular & ~fits.converged & (fits.cost <= best_cost + AMBIGUITY_COST))
+    again = np.flatnonzero(fits.regular & ~fits.converged & (fits.cost <= best_cost + PLAUSIBLE_COST))
     if not again.size:
         return fits
     more = fit_from(batch, owners[again], fits.position_enu_m[again], options, REFINE_ITERATIONS)
@@ -140,8 +148,9 @@ def rivals(best: Fits, fits: Fits) -> np.ndarray:
 
     A rival is itself a converged fit of the data (:func:`refine` has taken an unconverged candidate as far
     as it goes), regular and physically possible, distinct from the best under the best's CRLB and under its
-    own (``DISTINCT_MAHALANOBIS2``: a candidate that converged onto the best is no rival) and as good
-    (``AMBIGUITY_COST``). Where the best is itself unconverged (its answer is flagged so), an unconverged
+    own (``DISTINCT_MAHALANOBIS2``: a candidate that converged onto the best is no rival) and not rejected by its
+    cost (within ``PLAUSIBLE_COST`` of the best; :mod:`core.estimators.ambiguity` judges a tie from a plausible
+    worse solution). Where the best is itself unconverged (its answer is flagged so), an unconverged
     iterate farther than ``DISTINCT_UNCONVERGED_MAHALANOBIS2`` from it counts too: neither is known to be the
     solution.
     """
@@ -152,7 +161,7 @@ def rivals(best: Fits, fits: Fits) -> np.ndarray:
         distance2.append(np.einsum("ki,kij,kj->k", apart, precision, apart))
     distinct = fits.converged & (np.minimum(*distance2) > DISTINCT_MAHALANOBIS2)
     distinct |= ~best.converged & ~fits.converged & (distance2[0] > DISTINCT_UNCONVERGED_MAHALANOBIS2)
-    return fits.regular & distinct & (fits.cost <= best.cost + AMBIGUITY_COST)
+    return fits.regular & distinct & (fits.cost <= best.cost + PLAUSIBLE_COST)
 
 
 def mirror_applies(batch: ProblemBatch) -> np.ndarray:
@@ -201,7 +210,8 @@ def _best_of(owners, cost):
     return first, cost[best_of], best_of
 
 
-def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None) -> tuple[np.ndarray, np.ndarray]:
+def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Starts where no closed form applies: ML from every candidate of
     :func:`core.estimators.search.candidates` (and from ``extra_enu_m``, e.g. a fit already made), the
     lowest final cost kept among the solutions that are regular (an iterate that ran off to where the
@@ -221,7 +231,11 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None
     rival : ndarray, shape (B, 3)
         The lowest-cost rival of the best (:func:`rivals`, after :func:`refine`): the second crossing of a
         line of sight with a hyperboloid, the mirror of coplanar stations, when the measurements leave no
-        degree of freedom to tell them apart; NaN rows where none.
+        degree of freedom to tell them apart; NaN rows where none. The search's candidates are followed by
+        starts along the best fit's principal axes (:func:`~core.estimators.ambiguity.axis_starts`), where a
+        second root near the first lies.
+    rival_cost : ndarray, shape (B,)
+        Its cost (``inf`` where none).
     """
     points = candidates(batch)
     if extra_enu_m is not None:
@@ -230,12 +244,22 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None
     tried = np.repeat(np.arange(size), count)
     flat = points.reshape(-1, 3)
     finite = np.all(np.isfinite(flat), axis=-1)
-    out, rival = np.full((size, 3), np.nan), np.full((size, 3), np.nan)
+    out, rival, rival_cost = np.full((size, 3), np.nan), np.full((size, 3), np.nan), np.full(size, np.inf)
     if not np.any(finite):
-        return out, rival
+        return out, rival, rival_cost
     tried, flat = tried[finite], flat[finite]
     fits = fit_from(batch, tried, flat, options, options.max_iterations)
     fits = refine(batch, tried, fits, _best_of(tried, fits.cost)[1], options)
+    first = _best_of(tried, fits.cost)[0]
+    first = first[np.isfinite(fits.cost[first])]
+    owners, more = axis_starts(batch, tried[first], fits.position_enu_m[first], fits.covariance_enu_m2[first])
+    if owners.size:
+        best_cost = np.full(size, np.inf)
+        best_cost[tried[first]] = fits.cost[first]
+        extra = fit_from(batch, owners, more, options, options.max_iterations)
+        extra = refine(batch, owners, extra, best_cost[owners], options)
+        tried = np.concatenate([tried, owners])
+        fits = Fits(*(np.concatenate([a, b]) for a, b in zip(fits, extra)))
     position, cost = fits.position_enu_m, fits.cost
     first, _, best_of = _best_of(tried, cost)
     good = np.isfinite(cost[first])
@@ -246,10 +270,32 @@ def searched_starts(batch: ProblemBatch, options: SolveOptions, extra_enu_m=None
     lowest = order[np.r_[True, tried[order][1:] != tried[order][:-1]]]
     found = np.isfinite(second[lowest])
     rival[tried[lowest][found]] = position[lowest][found]
-    return out, rival
+    rival_cost[tried[lowest][found]] = cost[lowest][found]
+    return out, rival, rival_cost
 
 
 #: A fit from the closed-form start whose chi-square has a p-value below this is retried from the search
+
+def second_solution(batch: ProblemBatch, b: int, other_enu_m, other_cost: float, starts, names, failures,
+                    solution: Solution, options: SolveOptions, covariance) -> tuple:
+    """Problem ``b``'s rival at ``other_enu_m`` of cost ``other_cost``, judged by the one rule
+    (:mod:`core.estimators.ambiguity`): a tie is :func:`ambiguous`; a worse but plausible rival (plain least
+    squares) makes the fix warn ``second_solution_plausible`` and writes the two-solution mixture's covariance
+    into ``covariance[b]``."""
+    delta = float(other_cost) - float(solution.cost[b])
+    if delta <= AMBIGUITY_COST:
+        return ambiguous(batch, b, other_enu_m, starts, names, failures, solution, options)
+    if options.loss != "linear" or delta > PLAUSIBLE_COST:  # a robust cost is no chi-square: only its ties count
+        return ()
+    fix = solution.position_enu_m[b]
+    bounds = batch_information(batch.take([b, b]), np.stack([fix, other_enu_m])).covariance_enu_m2
+    probability = float(rival_probability(delta))
+    covariance[b] = mixture_covariance(fix, bounds[0], other_enu_m, bounds[1], probability)
+    return (FixWarning("second_solution_plausible",
+                       f"a second solution at {_point(batch, b, other_enu_m)} fits the measurements worse "
+                       f"(chi2 {delta:.1f} above this fix) but is not ruled out: probability {probability:.1%}; "
+                       "the covariance covers both (their mixture about this fix)"),)
+
 
 def ambiguous(batch: ProblemBatch, b: int, other_enu_m, starts, names, failures, solution: Solution,
                options: SolveOptions) -> tuple:

@@ -17,6 +17,7 @@ from scipy.stats import chi2
 
 from core.errors import LocalizationError
 from core.estimators import solve_batch
+from core.estimators.ambiguity import PLAUSIBLE_COST
 from core.estimators.ties import (
     DISTINCT_MAHALANOBIS2,
     DISTINCT_UNCONVERGED_MAHALANOBIS2,
@@ -84,12 +85,13 @@ def _fits(position_enu_m, cost, converged, sigma_m=10.0):
 
 
 def test_the_rival_rule():
-    """Against a converged best: only a converged, distinct, as-good fit is a rival (an unconverged iterate
-    never is, a fit onto the best neither). Against an unconverged best, an unconverged iterate far off is."""
+    """Against a converged best: only a converged, distinct fit that its cost does not reject is a rival (an
+    unconverged iterate never is, a fit onto the best neither). Against an unconverged best, an unconverged
+    iterate far off is."""
     far = 10.0 * np.sqrt(DISTINCT_UNCONVERGED_MAHALANOBIS2)  # sigmas
     near = 0.5 * np.sqrt(DISTINCT_MAHALANOBIS2)
     candidates = _fits([[far * 10, 0, 0], [far * 10, 0, 0], [near * 10, 0, 0], [far * 10, 0, 0]],
-                       [0.5, 0.5, 0.0, 10.0], [True, False, True, True])
+                       [0.5, 0.5, 0.0, PLAUSIBLE_COST + 1.0], [True, False, True, True])
     best = _fits(np.zeros((4, 3)), np.zeros(4), np.ones(4, dtype=bool))
     assert rivals(best, candidates).tolist() == [True, False, False, False]
     unconverged_best = _fits(np.zeros((4, 3)), np.zeros(4), np.zeros(4, dtype=bool))
