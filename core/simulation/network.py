@@ -434,14 +434,13 @@ def nees(errors, covariances) -> np.ndarray:
     return out
 
 
-def evaluate_network(scenario: NetworkScenario, trials: int, seed: int = 0,
-                     config: NetworkConfig | None = None, should_stop=None) -> NetworkEvaluation:
+def evaluate_network(scenario: NetworkScenario, trials: int, seed: int = 0, config: NetworkConfig | None = None,
+                     should_stop=None) -> NetworkEvaluation:
     """Seeded Monte Carlo of the network tracker on a scene (trial ``r`` draws from ``seed + r``).
 
     Each trial posts its reports one at a time as they arrive and reads the track, predicted, at every
-    epoch; the bound is :func:`core.tracking.network_bound.network_pcrb` over the trials' truths.
-    ``should_stop`` (optional, a request's deadline or cancellation) is asked before each trial; True raises
-    :class:`core.parallel.Stopped`.
+    epoch; the bound is :func:`core.tracking.network_bound.network_pcrb` over the trials' truths. ``should_stop``
+    (optional, a request's deadline or cancellation) is asked before each trial: True raises ``Stopped``.
     """
     config = config or scenario.config
     epochs = epoch_times(scenario)
