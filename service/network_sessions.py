@@ -33,7 +33,8 @@ from service import schemas as fix_schemas
 from service import session_schemas as schemas
 from service.network_renderings import ended_cot, geojson, track_cot
 from service.problems import ApiError, api_loc
-from service.session_records import cot_options, decoded_states, etag, if_match_accepts, timestamp
+from service.session_records import (PrepareFirst, cot_options, decoded_states, etag, if_match_accepts,
+                                     timestamp)
 from service.stores import SessionRecord
 
 #: Ended tracks a record remembers (for the event stream and the state's ``ended_tracks``).
@@ -294,8 +295,6 @@ class ReportsChange:
             new, self.applied, self.duplicates, self.late, self.ended, self.state = prepared[2:]
             return new
         if self.prepare_first and is_network(record) and association_sessions.is_auto(record.config["request"]):
-            from service.sessions import PrepareFirst
-
             raise PrepareFirst()
         return self._change(record)
 

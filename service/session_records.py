@@ -93,3 +93,10 @@ class DecodedStates:
 
 #: This process's decoded session states.
 decoded_states = DecodedStates()
+
+
+class PrepareFirst(Exception):
+    """Raised by a change, within the store's update call, that must not be decided there because its cost
+    depends on the session rather than on the post's size (an auto network session re-runs its reorder window
+    on every post): the route prepares it on a worker thread, under the request deadline, and applies it
+    again. Nothing is written."""

@@ -264,12 +264,6 @@ STOP_CHECK_EPOCHS = 256
 INLINE_EPOCHS = 32
 
 
-class PrepareFirst(Exception):
-    """Raised by a change, within the store's update call, that must not be decided there because its cost
-    depends on the session rather than on the post's size (an auto network session re-runs its reorder window
-    on every post): the route prepares it on a worker thread, under the request deadline, and applies it
-    again. Nothing is written."""
-
 
 class MeasurementsChange:
     """What a batch of epochs does to its session: all of its new epochs, or (on any error) none.

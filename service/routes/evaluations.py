@@ -12,7 +12,7 @@ trial).
 
 from __future__ import annotations
 
-from typing import Annotated, Union
+from typing import Annotated, Callable, NamedTuple, Union
 
 from fastapi import APIRouter, Request
 from pydantic import Discriminator, Tag
@@ -55,6 +55,26 @@ AnyEvaluationRequest = Annotated[
 ]
 
 
+class _Tracking(NamedTuple):
+    """A tracking evaluation: its request type and spec field, the cost check ``(spec, max_cost)``, the
+    evaluation ``(spec, should_stop) -> body`` and the advice when it runs out of time."""
+
+    request: type
+    field: str
+    check: Callable
+    evaluate: Callable
+    too_long: str
+
+
+_TRACKING = (
+    _Tracking(session_schemas.NetworkEvaluationRequest, "network", network_sessions.check_network_evaluation,
+              network_sessions.network_evaluation_body, "ask for fewer trials"),
+    _Tracking(session_schemas.MultiEmitterEvaluationRequest, "multi_emitter",
+              multi_evaluation.check_multi_evaluation, multi_evaluation.multi_evaluation_body,
+              "ask for fewer trials or a shorter duration_s"),
+)
+
+
 @router.post("/evaluations", operation_id="evaluations-create",
              summary="Monte Carlo RMSE, bias, efficiency and NEES of methods for a scenario, of the network "
                      "tracker on a scene (per epoch, against the posterior CRLB), or GOSPA of the multi-emitter "
@@ -67,22 +87,14 @@ AnyEvaluationRequest = Annotated[
                               "description": "not finished within the request deadline (code deadline_exceeded)"}})
 async def create_evaluation(request: AnyEvaluationRequest, owner: OwnerDep, http: Request) -> JsonResponse:
     settings = http.app.state.settings
-    if isinstance(request, session_schemas.NetworkEvaluationRequest):
-        spec = request.network
-        network_sessions.check_network_evaluation(spec, settings.max_evaluation_cost)
-        body = await watched(http, in_pool(http.app.state.cpu_pool,
-                                           lambda should_stop: network_sessions.network_evaluation_body(
-                                               spec, should_stop)),
-                             "ask for fewer trials")
-        return JsonResponse(body)
-    if isinstance(request, session_schemas.MultiEmitterEvaluationRequest):
-        spec = request.multi_emitter
-        multi_evaluation.check_multi_evaluation(spec, settings.max_evaluation_cost)
-        body = await watched(http, in_pool(http.app.state.cpu_pool,
-                                           lambda should_stop: multi_evaluation.multi_evaluation_body(
-                                               spec, should_stop)),
-                             "ask for fewer trials or a shorter duration_s")
-        return JsonResponse(body)
+    for tracking in _TRACKING:
+        if isinstance(request, tracking.request):
+            spec = getattr(request, tracking.field)
+            tracking.check(spec, settings.max_evaluation_cost)
+            body = await watched(http, in_pool(http.app.state.cpu_pool,
+                                               lambda should_stop: tracking.evaluate(spec, should_stop)),
+                                 tracking.too_long)
+            return JsonResponse(body)
     problem, target = crlb_problem(request.scenario)
     methods = list(dict.fromkeys(request.methods))
     rows = int(problem.kinds.size)

@@ -16,6 +16,7 @@ from service.headers import of as parsed_headers
 from service.problems import ApiError
 from service.responses import JsonResponse
 from service.schemas import Problem
+from service.session_records import PrepareFirst
 from service.stores.guard import GuardedStore
 from service.watch import in_pool, watched
 
@@ -122,9 +123,9 @@ PREPARE_ATTEMPTS = 3
 async def _apply(request: Request, store: GuardedStore, owner: str, session_id: str, change, count: int, apply,
                  too_long: str):
     """Apply a posted change (epochs or reports) to its session: a batch of more than ``INLINE_EPOCHS`` items,
-    or a change that asks for it (:class:`service.sessions.PrepareFirst`), is prepared first in the CPU pool,
-    under the request's deadline and cancellation, so that the store's atomic apply only checks and writes;
-    ``too_long`` is the advice when that preparation runs out of time."""
+    or a change that asks for it (:class:`service.session_records.PrepareFirst`), is prepared first in the CPU
+    pool, under the request's deadline and cancellation, so that the store's atomic apply only checks and
+    writes; ``too_long`` is the advice when that preparation runs out of time."""
     record = None
     prepare = count > sessions.INLINE_EPOCHS
     for _ in range(PREPARE_ATTEMPTS):
@@ -134,7 +135,7 @@ async def _apply(request: Request, store: GuardedStore, owner: str, session_id: 
                           too_long)
         try:
             return await store.run(apply, owner, session_id, change, record)
-        except sessions.PrepareFirst:
+        except PrepareFirst:
             prepare = True
     change.prepare_first = False  # overtaken by other posts on every try: decided within the store call
     return await store.run(apply, owner, session_id, change, record)
