@@ -102,9 +102,12 @@ class FixResponse(BaseModel):
     covariance_ecef_m2: Matrix3 | None = Field(None, description="the same covariance in earth-centred "
                                                                  "earth-fixed axes; when geodetic")
     covariance_source: Literal[COVARIANCE_SOURCES + SCALED_COVARIANCE_SOURCES] = Field(  # type: ignore[valid-type]
-        description="information: inverse Fisher information at the fix; propagated: first-order through the "
-                    "closed form; crlb: the bound; robust: with options.loss, the sandwich A^-1 B A^-1 of the "
-                    "loss's final weights w = rho' (A = J^T W w J, B = J^T W w^2 J); _scaled: times "
+        description="information: inverse Fisher information at the fix, except on a fix that warns "
+                    "second_solution_plausible (the covariance is then the two-solution mixture's) or "
+                    "curved_uncertainty (the unscented spread of the estimator, never below the bound); "
+                    "propagated: first-order through the closed form; crlb: the bound; robust: with "
+                    "options.loss, the sandwich A^-1 B A^-1 of the loss's final weights w = rho' "
+                    "(A = J^T W w J, B = J^T W w^2 J); _scaled: times "
                     "sigma_scale^2 (options.absolute_sigma false)")
     crlb_enu_m2: Matrix3 = Field(description="3x3 Cramer-Rao bound at the fix for the measurements used, "
                                              "east/north/up at the fix (the least covariance an unbiased "
