@@ -4,7 +4,7 @@ Two buses behind one interface, chosen by the session store:
 
 - with the Redis store, Redis pub/sub (channel ``<key prefix>events:<session id>``), so a subscriber on
   one replica hears the updates that any replica applies;
-- with SQLite, an in-process bus, plus a poll of the store every :data:`POLL_S` seconds for what other
+- with SQLite, an in-process bus, plus a poll of the store every ``Settings.events_poll_s`` seconds for what other
   worker processes on the same file applied.
 
 An event carries only the session id and its new version; a subscriber then reads the state it streams
@@ -23,8 +23,7 @@ import orjson
 
 logger = logging.getLogger("passive_locator")
 
-#: Seconds between keep-alive comments on an idle stream (and store polls without Redis).
-POLL_S = 2.0
+#: Seconds between keep-alive comments on an idle stream with Redis (without it, ``Settings.events_poll_s``).
 HEARTBEAT_S = 15.0
 
 
@@ -34,8 +33,8 @@ class LocalBus:
     #: Whether :meth:`publish` may block (then the routes call it off the event loop).
     blocking = False
 
-    def __init__(self, metrics=None):
-        self.metrics = metrics
+    def __init__(self, metrics=None, poll_s: float = 2.0):
+        self.metrics, self.poll_s = metrics, poll_s
         self._lock = threading.Lock()
         self._subscribers: dict[str, set[tuple[asyncio.AbstractEventLoop, asyncio.Queue]]] = {}
 
@@ -62,7 +61,7 @@ class LocalBus:
                     if not found:
                         del self._subscribers[session_id]
 
-        return Subscription(queue, close, poll_s=POLL_S, metrics=self.metrics)
+        return Subscription(queue, close, poll_s=self.poll_s, metrics=self.metrics)
 
     def close(self) -> None:
         pass
@@ -170,7 +169,7 @@ def bus(app):
     if found is None:
         store = app.state.store
         found = RedisBus(store, app.state.settings.store, app.state.metrics) if store.kind == "redis" else \
-            LocalBus(app.state.metrics)
+            LocalBus(app.state.metrics, app.state.settings.events_poll_s)
         app.state.event_bus = found
     return found
 

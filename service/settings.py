@@ -33,6 +33,9 @@ class Settings(BaseSettings):
         After this many store failures in a row, calls fail at once (503) for the cooldown.
     sqlite_integrity_interval_s : float
         ``/readyz`` runs SQLite's ``quick_check`` at most this often.
+    events_poll_s : float
+        Without Redis, an event stream looks in the store this often for what other server processes wrote
+        (this process's writes are pushed at once), and sends a keep-alive comment when idle.
     max_body_bytes : int
         Larger request bodies get 413 (declared or streamed).
     header_timeout_s : float
@@ -100,6 +103,7 @@ class Settings(BaseSettings):
     store_breaker_failures: int = Field(3, ge=1)
     store_breaker_cooldown_s: float = Field(1.0, gt=0.0, le=300.0)
     sqlite_integrity_interval_s: float = Field(60.0, ge=0.0)
+    events_poll_s: float = Field(2.0, gt=0.0, le=3600.0)
     max_body_bytes: int = Field(32 * 1024 * 1024, gt=0)
     header_timeout_s: float = Field(10.0, gt=0.0, le=300.0)
     body_timeout_s: float = Field(30.0, gt=0.0, le=3600.0)

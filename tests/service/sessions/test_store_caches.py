@@ -79,35 +79,41 @@ def test_a_cached_record_is_not_served_to_another_owner_nor_after_it_expired(sto
     assert store.get("alice", "0001") is None
 
 
-class _CountingConnection:
-    """A connection whose ``COMMIT`` statements are counted."""
+class _WatchedConnection:
+    """A connection whose ``COMMIT`` statements are counted, and fail while ``failing`` is set (as on a full
+    disk)."""
 
-    def __init__(self, db: sqlite3.Connection):
-        self.db, self.commits = db, 0
+    def __init__(self, db: sqlite3.Connection, failing: threading.Event):
+        self.db, self.failing, self.commits = db, failing, 0
 
     def execute(self, sql: str, *args):
-        self.commits += sql == "COMMIT"
+        if sql == "COMMIT":
+            self.commits += 1
+            if self.failing.is_set():
+                raise sqlite3.OperationalError("database or disk is full")
         return self.db.execute(sql, *args)
 
     def __getattr__(self, name):
         return getattr(self.db, name)
 
 
-def _grouped(tmp_path, count: int):
+def _grouped(tmp_path, count: int, failing: threading.Event | None = None):
     """``count`` sessions updated by ``count`` threads that queue while the test holds the write turn, so that
-    they are written together once it lets go; the store, the wrapped connections and each thread's error."""
+    they are written together once it lets go (their COMMIT failing while ``failing`` is set); the store, the
+    wrapped connections and each thread's error."""
+    failing = failing or threading.Event()
     store = SqliteStore(str(tmp_path / "s.db"), busy_timeout_s=20.0)
     for k in range(count):
         store.create(make_record(f"{k:04d}", now=store.now(), ttl_s=1e6))
-    wrapped: dict[int, _CountingConnection] = {}
+    wrapped: dict[int, _WatchedConnection] = {}
     opened = store._db
 
     @contextmanager
-    def counting_db():
+    def watched_db():
         with opened() as db:
-            yield wrapped.setdefault(id(db), _CountingConnection(db))
+            yield wrapped.setdefault(id(db), _WatchedConnection(db, failing))
 
-    store._db = counting_db
+    store._db = watched_db
     errors: dict[int, BaseException | None] = {}
 
     def work(k):
@@ -140,36 +146,9 @@ def test_writes_queued_together_are_committed_in_one_transaction_each_with_its_o
 
 
 def test_a_failed_commit_fails_every_write_of_its_group_and_applies_none(tmp_path):
-    count = 6
-    store = SqliteStore(str(tmp_path / "s.db"), busy_timeout_s=20.0)
-    for k in range(count):
-        store.create(make_record(f"{k:04d}", now=store.now(), ttl_s=1e6))
-    opened, failing = store._db, threading.Event()
-
-    @contextmanager
-    def failing_db():
-        with opened() as db:
-            yield _FailingCommit(db, failing)
-
-    store._db = failing_db
-    errors: dict[int, BaseException | None] = {}
-
-    def work(k):
-        try:
-            store.update("alice", f"{k:04d}", bump)
-            errors[k] = None
-        except BaseException as error:  # each thread's outcome is asserted below
-            errors[k] = error
-
-    threads = [threading.Thread(target=work, args=(k,)) for k in range(count)]
-    with opened() as db, store._write(db):
-        for t in threads:
-            t.start()
-        while len(store._turns._queue) < count:
-            threading.Event().wait(0.01)
-        failing.set()
-    for t in threads:
-        t.join(30)
+    count, failing = 6, threading.Event()
+    failing.set()
+    store, _, errors = _grouped(tmp_path, count, failing)
     assert sorted(type(e).__name__ for e in errors.values()) == ["OperationalError"] * count
     assert len({id(e) for e in errors.values()}) == count  # each thread raised its own
     failing.clear()
@@ -179,21 +158,6 @@ def test_a_failed_commit_fails_every_write_of_its_group_and_applies_none(tmp_pat
     assert store.update("alice", "0000", bump).state["n"] == 1  # the store writes again once the fault is gone
     for s in (store, fresh):
         s.close()
-
-
-class _FailingCommit:
-    """A connection whose ``COMMIT`` fails while ``failing`` is set (as on a full disk)."""
-
-    def __init__(self, db: sqlite3.Connection, failing: threading.Event):
-        self.db, self.failing = db, failing
-
-    def execute(self, sql: str, *args):
-        if sql == "COMMIT" and self.failing.is_set():
-            raise sqlite3.OperationalError("database or disk is full")
-        return self.db.execute(sql, *args)
-
-    def __getattr__(self, name):
-        return getattr(self.db, name)
 
 
 def test_a_write_that_fails_alone_is_rolled_back_alone(tmp_path):
