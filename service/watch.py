@@ -70,6 +70,15 @@ def shutting_down() -> ApiError:
     return ApiError(503, "shutting_down", "the server is shutting down; retry", headers={"Retry-After": "1"})
 
 
+async def on_the_loop(work: Awaitable[Any]) -> Any:
+    """The result of ``work`` solved on the event loop, which is not watched (it holds the loop a few hundred
+    microseconds at most); 503 ``shutting_down`` when the server's shutdown stopped it."""
+    try:
+        return await work
+    except _STOPPED:
+        raise shutting_down() from None
+
+
 def _retrieve(future: asyncio.Future) -> None:
     """Consume the outcome of work nobody waits for any more (no 'exception never retrieved')."""
     if not future.cancelled():

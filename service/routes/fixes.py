@@ -18,7 +18,6 @@ import orjson
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from core.parallel import Stopped
 from service import schemas, tak
 from service.deps import OwnerDep, get_owner, json_request_body, parse_json, request_id
 from service.fixes.decode import decode_fix
@@ -26,7 +25,7 @@ from service.planning import crlb_response
 from service.problems import MEDIA_TYPE
 from service.renderings import problem_renderings
 from service.responses import JsonResponse
-from service.watch import shutting_down, watched
+from service.watch import on_the_loop, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
@@ -47,10 +46,7 @@ async def create_fix(http: Request) -> Response:
     get_owner(http)
     coalescer = http.app.state.fix_coalescer
     if coalescer.inline(body):
-        try:
-            result = await coalescer.submit(body, request_id(http), inline=True)
-        except Stopped:
-            raise shutting_down() from None
+        result = await on_the_loop(coalescer.submit(body, request_id(http), inline=True))
     else:
         result = await watched(http, lambda should_stop: coalescer.submit(body, request_id(http), should_stop,
                                                                           inline=False), _HINT)
