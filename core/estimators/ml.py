@@ -45,7 +45,7 @@ from core.estimators.result import Estimates, FixWarning
 from core.estimators.starting_points import START_PASSES, initial_positions
 from core.estimators.ties import (REFINE_ITERATIONS, Fits, above_ground, fit_from, mirror_applies, mirror_points,
                                   refine, rivals, searched_starts, second_solution)
-from core.estimators.unscented_fix import CURVED_VARIANCE_RATIO, never_below, unscented_covariance
+from core.estimators.unscented_fix import CURVED_VARIANCE_RATIO, curved_covariance
 from core.measurements import AZIMUTH, ELEVATION, ahead_point, predict, residuals
 from core.problem_batch import ProblemBatch
 
@@ -321,13 +321,13 @@ def _spread(batch: ProblemBatch, rows, solution: Solution, options: SolveOptions
     def refit(moved, starts):  # to 1e-6 of a sigma (STEP_MAHALANOBIS2), not a step in metres: a thin axis is mm
         return levenberg_marquardt(moved, starts, REFINE_ITERATIONS, 0.0, loss_of(options)).position_enu_m
 
-    spread = unscented_covariance(part, fixes, solution.bias_m[rows], refit)
-    raised, ratio = never_below(spread, batch_information(part, fixes).covariance_enu_m2)
-    covariance[rows] = raised
+    held, ratio, widened = curved_covariance(part, fixes, solution.bias_m[rows], refit)
+    covariance[rows] = held
     for j in np.flatnonzero(ratio > CURVED_VARIANCE_RATIO).tolist():
         b = int(rows[j])
         warnings[b] = warnings[b] + (FixWarning(
             "curved_uncertainty",
             f"the measurement model is far from linear over this fix's uncertainty: fixes of the measurements moved "
             f"by their sigmas spread {np.sqrt(ratio[j]):.1f} x the bound's sigma along its worst axis; the "
-            "covariance is that spread (unscented), not the inverse information"),)
+            "covariance is that spread (unscented), not the inverse information"
+            + (", widened so its 99 % region holds the curved error" if widened[j] else "")),)
