@@ -19,7 +19,7 @@ from a Gaussian lies in, by the least amount that makes its 99 % region hold
 :data:`PROMISED_COVERAGE` of a stated model of the error (draws of it, with
 weights): the curved fix's second-order expansion from its sigma points
 (:func:`core.estimators.unscented_fix.quadratic_offsets`), or the two
-solutions' mixture (:func:`core.estimators.ambiguity.mixture_offsets`). The
+solutions' mixture (:func:`core.estimators.ambiguity.mixture_region`). The
 widened covariance then states more than the error's second moment (its NEES
 mean falls below its dof): it is the smallest in that family whose region
 keeps the promise, and a fix whose covariance is so widened says why in its
@@ -77,8 +77,8 @@ def holding(covariance_enu_m2, offsets_enu_m, weights, along_enu_m2):
     Returns
     -------
     covariance_enu_m2 : ndarray, shape (B, 3, 3)
-        ``P + gamma A + (c - 1) (P + gamma A)`` restricted to ``P``'s range, ``gamma >= 0``, ``c >= 1``: ``P``
-        itself where its region already holds.
+        ``c (P + gamma A)`` with ``A`` restricted to ``P``'s range, ``gamma >= 0``, ``c >= 1`` (``c > 1`` only
+        where widening along ``A`` alone cannot hold the draws): ``P`` itself where its region already holds.
     widened : ndarray of bool, shape (B,)
         Where it did not.
     """
@@ -147,9 +147,7 @@ def _least_widening(squared, weights, inside, strengths, level):
     counts = np.bincount(rows, minlength=squared.shape[0])
     first = np.concatenate([[0], np.cumsum(counts)[:-1]])
     total = np.cumsum(weight)
-    before = total[np.minimum(first, max(total.size - 1, 0))] - weight[np.minimum(first, max(total.size - 1, 0))] \
-        if total.size else np.zeros(first.size)
-    entered = total - np.repeat(before, counts)  # the weight entered so far, per problem
+    entered = total - np.repeat(np.concatenate([[0.0], total])[first], counts)  # the weight entered so far, per problem
     needed = PROMISED_COVERAGE - np.sum(weights * inside, axis=-1)  # (B,)
     gamma = np.full(squared.shape[0], MAX_WIDENING)
     enough = np.flatnonzero((entered >= needed[rows] - 1e-12) & np.isfinite(enters))
