@@ -15,6 +15,7 @@ position of every station), the tracks that ended lately and the last post's war
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 from typing import Callable
@@ -133,6 +134,13 @@ def initial(request: schemas.NetworkSessionCreate) -> tuple[dict, dict]:
 
 def _frame(record: SessionRecord) -> CommonFrame:
     origin = record.config["origin"]
+    return _frame_at(None if origin is None else tuple(origin))
+
+
+@functools.lru_cache(maxsize=256)
+def _frame_at(origin: tuple[float, float, float] | None) -> CommonFrame:
+    """The session frame at ``origin`` (radians, metres), one object per origin, so that its placement on the
+    earth (:attr:`core.problem_frame.CommonFrame.placement`) is made once, not per response."""
     return CommonFrame(None if origin is None else GeodeticPoint(*origin))
 
 
