@@ -148,7 +148,7 @@ def _frame_at(origin: tuple[float, float, float] | None) -> CommonFrame:
 
 def core_reports(reports, first: int, registry: dict, frame: str, origin: GeodeticPoint | None,
                  check: Callable[[Report], object] = validate_report,
-                 before: Callable[[schemas.Report, int], object] | None = None) -> list[Report]:
+                 precheck: Callable[[schemas.Report, int], object] | None = None) -> list[Report]:
     """A post's API reports as core :class:`Report` values in the session's frame, each report's stations
     registered (:func:`_register`) once it is read, as the next report may use them.
 
@@ -170,8 +170,8 @@ def core_reports(reports, first: int, registry: dict, frame: str, origin: Geodet
     check : callable
         Core's check of a report (its errors' paths become the request's): :func:`validate_report`, or an auto
         session's :func:`service.association_sessions.check_bearings`.
-    before : callable, optional
-        ``before(report, index)``: a check of the API report before it is read (an auto session's).
+    precheck : callable, optional
+        ``precheck(report, index)``: a check of the API report before it is read (an auto session's).
 
     Raises
     ------
@@ -181,8 +181,8 @@ def core_reports(reports, first: int, registry: dict, frame: str, origin: Geodet
     """
     inputs = []
     for index, report in enumerate(reports, start=first):
-        if before is not None:
-            before(report, index)
+        if precheck is not None:
+            precheck(report, index)
         inputs.append(_report_inputs(report, index, registry, frame, origin))
         _register(registry, report)
     batch = build_problems(inputs)
