@@ -438,6 +438,47 @@ def whiten_into(factor, innovation, cross, rows, whitened):
     return chi2, half_log_det
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def whitened_update_into(mean, cov, cross, whitened, new_mean, new_cov):
+    """The Kalman update from :func:`whiten_into`'s outputs: ``new_mean = mean + cross^T whitened`` and
+    ``new_cov = cov - cross^T cross`` (its lower triangle computed from ``cov``'s, then mirrored, so it is
+    exactly symmetric); each sum added in index order. ``new_mean``, ``new_cov`` may be ``mean``, ``cov``.
+
+    Parameters
+    ----------
+    mean : ndarray, shape (F,)
+    cov : ndarray, shape (F, F)
+    cross : ndarray, shape (R, F)
+        ``L^-1`` times the state-measurement cross-covariance, transposed.
+    whitened : ndarray, shape (R,)
+        ``L^-1 innovation``.
+    new_mean : ndarray, shape (F,)
+    new_cov : ndarray, shape (F, F)
+        Written.
+
+    Returns
+    -------
+    bool
+        Whether every written entry is finite.
+    """
+    rows = whitened.shape[0]
+    finite = True
+    for i in range(mean.shape[0]):
+        total = mean[i]
+        for r in range(rows):
+            total += cross[r, i] * whitened[r]
+        new_mean[i] = total
+        finite = finite and math.isfinite(total)
+        for j in range(i + 1):
+            total = cov[i, j]
+            for r in range(rows):
+                total -= cross[r, i] * cross[r, j]
+            new_cov[i, j] = total
+            new_cov[j, i] = total
+            finite = finite and math.isfinite(total)
+    return finite
+
+
 def cholesky_repaired(cov):
     """Cholesky factor of a covariance, repairing it when it is not positive definite.
 

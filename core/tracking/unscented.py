@@ -1,6 +1,6 @@
-"""The unscented updates: step 3 of ``velocity_kinematic`` (:func:`polar_update`) and the joint UKF's
-predict and update (:func:`joint_ukf_kernel`); motion in :mod:`core.tracking.motion`, linear algebra in
-:mod:`core.linalg`.
+"""The unscented updates: step 3 of ``velocity_kinematic`` (:func:`polar_update`) here, the joint UKF's
+predict and update in :mod:`core.tracking.joint_kernel`; motion in :mod:`core.tracking.motion`, linear algebra
+in :mod:`core.linalg`.
 
 The unscented transform uses ``kappa = 0``, ``alpha = 1``, ``beta = 0``:
 ``2 n`` points ``mean +- sqrt(n) L[:, j]`` (``L L^T = P``), each of weight
@@ -22,8 +22,8 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
-from core.linalg import cholesky_into, linear_predict_into, lower_inverse_into, symmetrized, whiten_into
-from core.measurements import AZIMUTH, ELEVATION, RANGE, azimuth_rate_point, measure_point
+from core.linalg import cholesky_into, lower_inverse_into, symmetrized
+from core.measurements import AZIMUTH, ELEVATION, RANGE, measure_point
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi
@@ -33,16 +33,16 @@ NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
 
 
 #: The session's observer: the origin of its own ENU frame (the measurement model's one station, 0, and rotation).
-_OBSERVER = np.zeros((1, 3))
-_OBSERVER_AXES = np.eye(3)[None]
+OBSERVER_ENU_M = np.zeros((1, 3))
+OBSERVER_AXES = np.eye(3)[None]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _polar(east_m, north_m, up_m):
     """Range, azimuth and elevation of a point seen from the observer (:func:`core.measurements.measure_point`)."""
-    return (measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, RANGE)[0],
-            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, AZIMUTH)[0],
-            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, ELEVATION)[0])
+    return (measure_point(east_m, north_m, up_m, 0.0, OBSERVER_ENU_M, OBSERVER_AXES, 0, RANGE)[0],
+            measure_point(east_m, north_m, up_m, 0.0, OBSERVER_ENU_M, OBSERVER_AXES, 0, AZIMUTH)[0],
+            measure_point(east_m, north_m, up_m, 0.0, OBSERVER_ENU_M, OBSERVER_AXES, 0, ELEVATION)[0])
 
 
 def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elevation_rad: float,
@@ -303,173 +303,6 @@ _FIVE = {6: np.array([0, 1, 2, 6, 7])}
 _THREE = np.array([0, 1, 2])
 
 
-#: :func:`joint_ukf_kernel`'s outcome per state: updated; the predicted covariance, the innovation covariance
-#: or the updated covariance not positive definite; the update not finite.
-UPDATED, PREDICTED_NOT_PD, INNOVATION_NOT_PD, UPDATED_NOT_PD, NOT_FINITE = range(5)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _joint_measurement(state, n_pulses, interval_s, use_toa, out):
-    """``(B, E, c dS, Bdot)`` (without ``c dS`` unless ``use_toa``) of one joint state into ``out``.
-
-    ``c dS = |p| - |p - v T| + n period_error_m - toa_noise_m`` with ``T = interval_s`` (the previous range
-    from the current state; ``period_error_m`` only in an 8-component state).
-    """
-    x, y, z, vx, vy, vz = state[0], state[1], state[2], state[3], state[4], state[5]
-    out[0] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, AZIMUTH)[0]
-    out[1] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, ELEVATION)[0]
-    rate = azimuth_rate_point(x, y, vx, vy)[0]
-    if use_toa:
-        qx, qy, qz = x - interval_s * vx, y - interval_s * vy, z - interval_s * vz
-        change = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, RANGE)[0] \
-            - math.sqrt(qx * qx + qy * qy + qz * qz) - state[state.shape[0] - 1]
-        if state.shape[0] == 8:
-            change += n_pulses * state[6]
-        out[2] = change
-        out[3] = rate
-    else:
-        out[2] = rate
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def joint_ukf_kernel(means, covs, transition, noises, predict, n_pulses, interval_s, use_toa, measured, variances,
-                     new_means, new_covs, nis, log_det, status):
-    """Predict and update ``M`` joint UKF states (layout in :mod:`core.tracking.state`) with one epoch.
-
-    Prediction ``mean <- F mean``, ``cov <- F cov F^T + Q`` (in place, exactly
-    symmetric). Update: the ``2 F`` sigma points ``mean +- sqrt(F) L[:, j]``
-    (``L L^T = cov``, weights ``1 / (2 F)``, see the module docstring), the
-    measurement ``(B, E, [c dS,] Bdot)`` (:func:`_joint_measurement`; azimuth
-    deviations wrapped), the innovation covariance ``S = M L_S L_S^T`` with
-    the measurement noise, and the whitened update: with ``v = cov_xz L_S^-T``
-    and ``t = L_S^-1 innovation``, the mean moves by ``v t``, the covariance
-    loses ``v v^T`` (exactly symmetric), the NIS is ``|t|^2`` and ``log det S
-    = 2 sum log diag L_S``.
-
-    The last component (the reference TOA's noise) becomes the new TOA's
-    noise, prior ``N(0, var_toa)``: with a usable TOA it enters the TOA row
-    additively (its covariance with the TOA row is ``var_toa``), so its
-    posterior is correlated with the rest; without, it is a fresh,
-    independent noise.
-
-    Parameters
-    ----------
-    means : ndarray, shape (M, F)
-    covs : ndarray, shape (M, F, F)
-        The states; with ``predict``, overwritten with the prediction.
-    transition : ndarray, shape (F, F)
-    noises : ndarray, shape (M, F, F)
-        Each state's process noise (:func:`core.tracking.motion.transition`).
-    predict : bool
-        False: ``means``, ``covs`` are already predicted (``transition``, ``noises`` unused).
-    n_pulses : int
-    interval_s : float
-        ``n_pulses`` times the period the TOA difference is referred to.
-    use_toa : bool
-        Whether the TOA row is used (3 measurement rows without).
-    measured : ndarray, shape (4,)
-        Azimuth (rad), elevation (rad), TOA difference less ``interval_s`` (m), azimuth rate (rad/s).
-    variances : ndarray, shape (4,)
-        Their noise variances (the TOA's is that of one TOA).
-    new_means : ndarray, shape (M, F)
-    new_covs : ndarray, shape (M, F, F)
-    nis, log_det : ndarray, shape (M,)
-    status : ndarray of int, shape (M,)
-        Written: the updated states, the NIS (chi-square with 4, or 3, degrees of freedom when the model
-        holds), ``log det S`` and the outcome (:data:`UPDATED` ... :data:`NOT_FINITE`; the outputs of a
-        state are meaningful from :data:`UPDATED_NOT_PD` on).
-    """
-    count, f = means.shape
-    rows = 4 if use_toa else 3
-    spread = math.sqrt(f)
-    weight = 1.0 / (2 * f)
-    measured_rows = np.empty(rows)
-    noise_rows = np.empty(rows)
-    for r in range(rows):
-        source = r if use_toa or r < 2 else 3
-        measured_rows[r] = measured[source]
-        noise_rows[r] = variances[source]
-    var_toa = variances[2]
-    work = np.empty((f, f))
-    chol = np.empty((f, f))
-    point = np.empty(f)
-    z = np.empty(rows)
-    centre = np.empty(rows)
-    deviation = np.empty((rows, 2 * f))
-    mean_deviation = np.empty(rows)
-    innovation_cov = np.empty((rows, rows))
-    innovation_chol = np.empty((rows, rows))
-    v = np.empty((rows, f))
-    t = np.empty(rows)
-    innovation = np.empty(rows)
-    for b in range(count):
-        mean, cov, new_mean, new_cov = means[b], covs[b], new_means[b], new_covs[b]
-        if predict:
-            linear_predict_into(mean, cov, transition, noises[b], point, work)
-        if not cholesky_into(cov, chol):
-            status[b] = PREDICTED_NOT_PD
-            continue
-        _joint_measurement(mean, n_pulses, interval_s, use_toa, centre)
-        for j in range(2 * f):
-            for i in range(f):
-                offset = spread * chol[i, j % f]
-                point[i] = mean[i] + offset if j < f else mean[i] - offset
-            _joint_measurement(point, n_pulses, interval_s, use_toa, z)
-            for r in range(rows):
-                deviation[r, j] = z[r] - centre[r]
-            deviation[0, j] = wrap_point(deviation[0, j])
-        for r in range(rows):
-            total = 0.0
-            for j in range(2 * f):
-                total += deviation[r, j]
-            mean_deviation[r] = total * weight
-            innovation[r] = measured_rows[r] - centre[r]
-        innovation[0] = wrap_point(innovation[0])
-        for r in range(rows):
-            innovation[r] -= mean_deviation[r]
-            for q in range(r + 1):
-                total = 0.0
-                for j in range(2 * f):
-                    total += (deviation[r, j] - mean_deviation[r]) * (deviation[q, j] - mean_deviation[q])
-                innovation_cov[r, q] = total * weight
-                innovation_cov[q, r] = total * weight
-            innovation_cov[r, r] += noise_rows[r]
-            # Covariance of the state with row r: the symmetric points' differences along L.
-            for i in range(f - 1):
-                total = 0.0
-                for j in range(i + 1):
-                    total += chol[i, j] * (deviation[r, j] - deviation[r, j + f])
-                v[r, i] = total * (spread * weight)
-            v[r, f - 1] = var_toa if use_toa and r == 2 else 0.0
-        if not cholesky_into(innovation_cov, innovation_chol):
-            status[b] = INNOVATION_NOT_PD
-            continue
-        chi2, half_log_det = whiten_into(innovation_chol, innovation, v, rows, t)
-        nis[b] = chi2
-        log_det[b] = 2.0 * half_log_det
-        finite = True
-        for i in range(f):
-            keep = i < f - 1
-            total = mean[i] if keep else 0.0
-            for r in range(rows):
-                total += v[r, i] * t[r]
-            new_mean[i] = total
-            finite = finite and math.isfinite(total)
-            for j in range(i + 1):
-                total = cov[i, j] if keep else (var_toa if j == i else 0.0)
-                for r in range(rows):
-                    total -= v[r, i] * v[r, j]
-                new_cov[i, j] = total
-                new_cov[j, i] = total
-                finite = finite and math.isfinite(total)
-        if not finite:
-            status[b] = NOT_FINITE
-        elif not cholesky_into(new_cov, chol):
-            status[b] = UPDATED_NOT_PD
-        else:
-            status[b] = UPDATED
-
-
 def compile_kernels() -> None:
     """Compile (or load from numba's on-disk cache) this module's kernels and the Cholesky they call, with
     the argument types the filters pass (called by :func:`core.kernels.compile_kernels`)."""
@@ -479,6 +312,7 @@ def compile_kernels() -> None:
     f = 8
     mean = np.array([[1.2e5, 1.0e5, 8.0e3, -300.0, 100.0, 2.0, 0.0, 0.0]])
     cov = np.diag([1e6, 1e6, 1e6, 1e2, 1e2, 1e2, 1e-2, 9.0])[None]
+    from core.tracking.joint_kernel import joint_ukf_kernel
     from core.tracking.motion import transitions
     from core.tracking.range_mixture import moments
     from core.tracking.state import frozen_array
