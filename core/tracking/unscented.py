@@ -193,26 +193,92 @@ def polar_transform(mean, position_cov, step1_position, pseudo, azimuth_rad: flo
     return PolarTransform(to_innovation if pseudo is not None else to_innovation[:, :3], from_angles, whitened, nis)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _polar_kernel(position, position_cov, step1_position, range_terms, with_range, azimuth_rad, elevation_rad,
-                  var_azimuth, var_elevation, to_innovation, from_angles, whitened):
-    """:func:`polar_transform`: writes its three arrays and returns ``(status, nis)``, status 0, or 1 (2) when
-    the position (innovation) covariance is not positive definite.
+class PolarAngles(NamedTuple):
+    """This epoch's measured angles and their noise.
 
-    The six sigma points ``p +- sqrt(6) L[:, c]`` of the position map to deviations of ``(r, B, E)`` from
-    those of ``p`` (rows of ``deviation``; points along ``L[:, 1]`` and ``L[:, 2]`` keep ``x`` (and ``y``)
-    exactly, so their azimuth deviations are exactly zero, as they should be). ``range_terms`` is
-    ``(range_m, d_vx, d_vy, d_az, d_el, rr, rB, rE)`` of the pseudo-measurement: the part of its error
-    correlated with the state (through the step-1 velocity, ``step1_position``) is carried along the
-    points' differences, the rest added to the innovation covariance in closed form.
+    Attributes
+    ----------
+    azimuth_rad, elevation_rad : float
+    var_azimuth, var_elevation : float
+        Variances (rad^2).
     """
+
+    azimuth_rad: float
+    elevation_rad: float
+    var_azimuth: float
+    var_elevation: float
+
+
+class RangeTerms(NamedTuple):
+    """The range pseudo-measurement's terms (:class:`core.tracking.kinematic.RangePseudoMeasurement`) that
+    :func:`_polar_kernel` uses: its value, its sensitivities to the step-1 velocity errors (s) and to this
+    epoch's angle errors (m/rad), and the ``(range, B, E)`` covariance's first row (m^2, m rad, m rad).
+    """
+
+    range_m: float
+    d_vx: float
+    d_vy: float
+    d_azimuth: float
+    d_elevation: float
+    var_range: float
+    cov_range_azimuth: float
+    cov_range_elevation: float
+
+
+class PositionPrior(NamedTuple):
+    """The predicted position as :func:`_polar_kernel` uses it.
+
+    Attributes
+    ----------
+    position : ndarray, shape (3,)
+        ENU (m).
+    position_cov : ndarray, shape (3, 3)
+    step1_position : ndarray, shape (2, 3)
+        Covariance of the step-1 ``(vx, vy)`` with the position (zero without a range).
+    """
+
+    position: np.ndarray
+    position_cov: np.ndarray
+    step1_position: np.ndarray
+
+
+class PolarOutputs(NamedTuple):
+    """:class:`PolarTransform`'s arrays, written by :func:`_polar_kernel`: ``to_innovation`` ``(m, 5)``,
+    ``from_angles`` ``(m, 2)`` and ``whitened`` ``(m,)``."""
+
+    to_innovation: np.ndarray
+    from_angles: np.ndarray
+    whitened: np.ndarray
+
+
+class PolarMoments(NamedTuple):
+    """The sigma points' statistics of ``(r, B, E)`` (rows 0, 1, 2) about the values at the mean.
+
+    Attributes
+    ----------
+    centre : tuple of 3 floats
+        ``(r, B, E)`` at the mean.
+    mean_deviation : ndarray, shape (3,)
+    s : ndarray, shape (3, 3)
+        Their covariance (the innovation covariance once the noise is added).
+    d : ndarray, shape (3, 3)
+        ``d[m, c]``: the symmetric points' difference of row ``m`` along ``L[:, c]``, weighted.
+    """
+
+    centre: tuple
+    mean_deviation: np.ndarray
+    s: np.ndarray
+    d: np.ndarray
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _polar_moments(position, chol):
+    """:class:`PolarMoments` of the six sigma points ``p +- sqrt(6) L[:, c]`` of the position (``L`` is
+    ``chol``); points along ``L[:, 1]`` and ``L[:, 2]`` keep ``x`` (and ``y``) exactly, so their azimuth
+    deviations are exactly zero, as they should be."""
     spread = math.sqrt(6.0)
     weight = 1.0 / 12.0
     factor = spread * weight
-    chol, inverse = np.empty((3, 3)), np.empty((3, 3))
-    if not cholesky_into(position_cov, chol):
-        return 1, 0.0
-    lower_inverse_into(chol, inverse)
     x0, y0, z0 = position[0], position[1], position[2]
     r0, azimuth0, elevation0 = _polar(x0, y0, z0)
     deviation = np.empty((3, 6))
@@ -242,8 +308,44 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
                 total += deviation[m, j] * deviation[q, j]
             s[m, q] = total * weight - mean_deviation[m] * mean_deviation[q]
             s[q, m] = s[m, q]
-    s[1, 1] += var_azimuth
-    s[2, 2] += var_elevation
+    return PolarMoments((r0, azimuth0, elevation0), mean_deviation, s, d)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _add_range_noise(moments, range_terms, step1_position, inverse):
+    """The range row's error correlated with the state (through the step-1 velocity, ``step1_position``)
+    taken out of the points' covariance and its own ``(range, B, E)`` covariance added, in ``moments.s``."""
+    s, d = moments.s, moments.d
+    ell = np.empty(3)
+    for a in range(3):
+        total = 0.0
+        for k in range(a + 1):
+            total += (range_terms.d_vx * step1_position[0, k] + range_terms.d_vy * step1_position[1, k]) * inverse[a, k]
+        ell[a] = total
+    noise = (range_terms.var_range, range_terms.cov_range_azimuth, range_terms.cov_range_elevation)
+    for m in range(3):
+        total = 0.0
+        for k in range(3):
+            total += d[m, k] * ell[k]
+        s[0, m] += noise[m] - (2.0 if m == 0 else 1.0) * total
+        s[m, 0] = s[0, m]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _polar_update(prior, range_terms, with_range, angles, out):
+    """:func:`_polar_kernel` with its inputs named: ``prior`` a :class:`PositionPrior`, ``range_terms`` a
+    :class:`RangeTerms` (used ``with_range``), ``angles`` a :class:`PolarAngles`; ``out`` a
+    :class:`PolarOutputs`."""
+    to_innovation, from_angles, whitened = out.to_innovation, out.from_angles, out.whitened
+    chol, inverse = np.empty((3, 3)), np.empty((3, 3))
+    if not cholesky_into(prior.position_cov, chol):
+        return 1, 0.0
+    lower_inverse_into(chol, inverse)
+    moments = _polar_moments(prior.position, chol)
+    r0, azimuth0, elevation0 = moments.centre
+    mean_deviation, s, d = moments.mean_deviation, moments.s, moments.d
+    s[1, 1] += angles.var_azimuth
+    s[2, 2] += angles.var_elevation
     # w[a, m]: the covariance of position component a with row m, times L^-T.
     w = np.empty((3, 3))
     for a in range(3):
@@ -253,23 +355,11 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
                 total += inverse[k, a] * d[m, k]
             w[a, m] = total
     innovation = np.empty(3)
-    innovation[0] = range_terms[0] - r0 - mean_deviation[0]
-    innovation[1] = wrap_point(azimuth_rad - azimuth0) - mean_deviation[1]
-    innovation[2] = elevation_rad - elevation0 - mean_deviation[2]
-    d_vx, d_vy = range_terms[1], range_terms[2]
+    innovation[0] = range_terms.range_m - r0 - mean_deviation[0]
+    innovation[1] = wrap_point(angles.azimuth_rad - azimuth0) - mean_deviation[1]
+    innovation[2] = angles.elevation_rad - elevation0 - mean_deviation[2]
     if with_range:
-        ell = np.empty(3)
-        for a in range(3):
-            total = 0.0
-            for k in range(a + 1):
-                total += (d_vx * step1_position[0, k] + d_vy * step1_position[1, k]) * inverse[a, k]
-            ell[a] = total
-        for m in range(3):
-            total = 0.0
-            for k in range(3):
-                total += d[m, k] * ell[k]
-            s[0, m] += range_terms[5 + m] - (2.0 if m == 0 else 1.0) * total
-            s[m, 0] = s[0, m]
+        _add_range_noise(moments, range_terms, prior.step1_position, inverse)
     first = 0 if with_range else 1
     rows = 3 - first
     innovation_chol, k = np.empty((rows, rows)), np.empty((rows, rows))
@@ -289,14 +379,33 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
                 total += w[a, first + q] * k[i, q]
             to_innovation[i, a] = total
         if with_range:
-            to_innovation[i, 3] = -d_vx * k[i, 0]
-            to_innovation[i, 4] = -d_vy * k[i, 0]
-            from_angles[i, 0] = range_terms[3] * k[i, 0] + k[i, 1]
-            from_angles[i, 1] = range_terms[4] * k[i, 0] + k[i, 2]
+            to_innovation[i, 3] = -range_terms.d_vx * k[i, 0]
+            to_innovation[i, 4] = -range_terms.d_vy * k[i, 0]
+            from_angles[i, 0] = range_terms.d_azimuth * k[i, 0] + k[i, 1]
+            from_angles[i, 1] = range_terms.d_elevation * k[i, 0] + k[i, 2]
         else:
             from_angles[i, 0] = k[i, 0]
             from_angles[i, 1] = k[i, 1]
     return 0, nis
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _polar_kernel(position, position_cov, step1_position, range_terms, with_range, azimuth_rad, elevation_rad,
+                  var_azimuth, var_elevation, to_innovation, from_angles, whitened):
+    """:func:`polar_transform`: writes its three arrays and returns ``(status, nis)``, status 0, or 1 (2) when
+    the position (innovation) covariance is not positive definite.
+
+    The six sigma points of the position map to deviations of ``(r, B, E)`` (:func:`_polar_moments`).
+    ``range_terms`` ``(8,)`` holds a :class:`RangeTerms`' fields: the part of the pseudo-range's error
+    correlated with the state (through the step-1 velocity, ``step1_position``) is carried along the points'
+    differences, the rest added to the innovation covariance in closed form (:func:`_add_range_noise`). Flat
+    at this boundary because numba types a named-tuple argument in Python, which costs more than the update.
+    """
+    terms = RangeTerms(range_terms[0], range_terms[1], range_terms[2], range_terms[3], range_terms[4],
+                       range_terms[5], range_terms[6], range_terms[7])
+    return _polar_update(PositionPrior(position, position_cov, step1_position), terms, with_range,
+                         PolarAngles(azimuth_rad, elevation_rad, var_azimuth, var_elevation),
+                         PolarOutputs(to_innovation, from_angles, whitened))
 
 
 _FIVE = {6: np.array([0, 1, 2, 6, 7])}
