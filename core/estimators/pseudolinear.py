@@ -186,8 +186,8 @@ class PlaneRows(NamedTuple):
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _plane_rows(lines):
     """The :class:`PlaneRows` of a problem's lines of sight."""
-    origins, rotations, azimuth, elevation = lines.origins_enu_m, lines.rotations, lines.azimuth_rad, lines.elevation_rad
-    has_elevation = lines.has_elevation
+    origins, rotations = lines.origins_enu_m, lines.rotations
+    azimuth, elevation, has_elevation = lines.azimuth_rad, lines.elevation_rad, lines.has_elevation
     n = origins.shape[0]
     normals = np.empty((n, 3))
     along = np.empty((n, 3))
