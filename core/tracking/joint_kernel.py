@@ -27,6 +27,8 @@ from core.measurements import (
 from core.tracking.kernel_types import (
     INNOVATION_NOT_PD,
     NOT_FINITE,
+    OBSERVER_AXES,
+    OBSERVER_ENU_M,
     PREDICTED_NOT_PD,
     UPDATED,
     UPDATED_NOT_PD,
@@ -34,7 +36,6 @@ from core.tracking.kernel_types import (
     Motion,
     Posterior,
 )
-from core.tracking.unscented import OBSERVER_AXES, OBSERVER_ENU_M
 
 
 class JointEpoch(NamedTuple):

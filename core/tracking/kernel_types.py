@@ -14,6 +14,10 @@ import numpy as np
 #: covariance not positive definite; the update not finite.
 UPDATED, PREDICTED_NOT_PD, INNOVATION_NOT_PD, UPDATED_NOT_PD, NOT_FINITE = range(5)
 
+#: The session's observer: the origin of its own ENU frame (the measurement model's one station, 0, and rotation).
+OBSERVER_ENU_M = np.zeros((1, 3))
+OBSERVER_AXES = np.eye(3)[None]
+
 
 class GaussianStates(NamedTuple):
     """``C`` Gaussian states of one filter (its layout: :mod:`core.tracking.state` for the joint UKF,

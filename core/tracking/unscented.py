@@ -24,6 +24,7 @@ import numpy as np
 from core.angles import wrap_point
 from core.linalg import cholesky_into, lower_inverse_into, symmetrized
 from core.measurements import AZIMUTH, ELEVATION, RANGE, measure_point
+from core.tracking.kernel_types import OBSERVER_AXES, OBSERVER_ENU_M
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi
@@ -32,9 +33,6 @@ TWO_PI = 2.0 * math.pi
 NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
 
 
-#: The session's observer: the origin of its own ENU frame (the measurement model's one station, 0, and rotation).
-OBSERVER_ENU_M = np.zeros((1, 3))
-OBSERVER_AXES = np.eye(3)[None]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
