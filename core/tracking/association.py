@@ -90,10 +90,12 @@ from core.tracking.association_types import AssociationConfig, MultiTrack, Obser
 from core.tracking.network import NetworkState, predict_tracks
 from core.tracking.network_types import Report, Track
 from core.tracking.scan_assignment import assign_scan, gate_costs
-from core.tracking.track_start import Candidate, find_candidates, select_candidates, start_tracks
+from core.tracking.track_start import Candidate, decide_rivals, find_candidates, select_candidates, start_tracks
 
-#: Version of the :meth:`AssociationState.to_dict` layout.
-ASSOCIATION_STATE_FORMAT = 1
+#: Version of the :meth:`AssociationState.to_dict` layout. Format 1 (tracks without ``score`` and ``rivals``)
+#: still loads: its tracks have no rivals, so they are managed as they were.
+ASSOCIATION_STATE_FORMAT = 2
+_READABLE_FORMATS = (1, 2)
 
 
 def observations_from_report(report: Report, frequency_hz: float = math.nan) -> list[Observation]:
@@ -151,7 +153,8 @@ class AssociationState:
                 "tracks": [{"track": t.track.to_dict(), "frequency_hz": _float_or_none(t.frequency_hz),
                             "frequency_count": t.frequency_count, "hits": list(t.hits), "last_hit_s": t.last_hit_s,
                             "confirmed": t.confirmed, "started_s": t.started_s,
-                            "confirmed_s": _float_or_none(t.confirmed_s)} for t in self.tracks],
+                            "confirmed_s": _float_or_none(t.confirmed_s), "score": _float_or_none(t.score),
+                            "rivals": list(t.rivals)} for t in self.tracks],
                 "pool": [{"report": o.report.to_dict(), "frequency_hz": _float_or_none(o.frequency_hz)}
                          for o in self.pool]}
 
@@ -164,13 +167,14 @@ class AssociationState:
         InvalidInput
             When the data is not an association state of a known format.
         """
-        if not isinstance(data, dict) or data.get("format") != ASSOCIATION_STATE_FORMAT:
+        if not isinstance(data, dict) or data.get("format") not in _READABLE_FORMATS:
             raise InvalidInput(f"association state must be a mapping with format {ASSOCIATION_STATE_FORMAT}")
         try:
             tracks = tuple(MultiTrack(Track.from_dict(t["track"]), _nan_if_none(t["frequency_hz"]),
                                       int(t["frequency_count"]), tuple(bool(h) for h in t["hits"]),
                                       float(t["last_hit_s"]), bool(t["confirmed"]), float(t["started_s"]),
-                                      _nan_if_none(t["confirmed_s"])) for t in data["tracks"])
+                                      _nan_if_none(t["confirmed_s"]), _nan_if_none(t.get("score")),
+                                      tuple(str(r) for r in t.get("rivals", ()))) for t in data["tracks"])
             pool = tuple(Observation(Report.from_dict(o["report"]), _nan_if_none(o["frequency_hz"]))
                          for o in data["pool"])
             last, first = data["last_time_s"], data["first_time_s"]
@@ -274,6 +278,7 @@ def apply_observations(state: AssociationState, observations: Sequence[Observati
         tracks, gone = _drop_ended(tracks, time_s, config)
         ended.extend(gone)
         tracks, unassigned = assign_scan(tracks, scan, config)
+        tracks = decide_rivals(tracks, time_s, config)
         pool = [o for o in pool if o.time_s > time_s - config.init_window_s] + unassigned
         if unassigned and time_s - first >= config.init_window_s:
             tracks, pool, next_id, new = start_tracks(tracks, pool, next_id, time_s, config)

@@ -12,13 +12,21 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
 
 from core.angles import line_of_sight_enu, station_to_common, wrap_to_pi
 from core.measurements import AZIMUTH, ELEVATION, predict
-from core.tracking.association_types import COARSE_SIGMAS, AssociationConfig, MultiTrack, Observation, frequency_ok
+from core.tracking.association_types import (
+    COARSE_SIGMAS,
+    AssociationConfig,
+    MultiTrack,
+    Observation,
+    frequency_ok,
+    under_test,
+)
 from core.tracking.network_kernel import STATE_SIZE
 from core.tracking.network_types import Track
 from core.tracking.network_update import chi2_point, velocity_prior
@@ -119,23 +127,24 @@ def start_tracks(tracks: list[MultiTrack], pool: list[Observation], next_id: int
     if len(latest) < config.init_min_stations:
         return tracks, pool, next_id, []
     candidates = find_candidates(usable, config)
-    used: set[int] = set()
-    new_ids = []
-    for cand in select_candidates(candidates, len(usable), config.init_ambiguity_margin):
-        used.update(cand.members)
-        members = [usable[k] for k in cand.members]
-        track_id = f"t{next_id}"
-        next_id += 1
-        new_ids.append(track_id)
-        tracks.append(_new_track(track_id, cand, members, config))
-    consumed = {id(usable[k]) for k in used}
-    return tracks, [o for o in pool if id(o) not in consumed], next_id, new_ids
+    chosen, rivals = select_candidates(candidates, len(usable)), []
+    if config.init_ambiguity_margin > 0.0:
+        rivals = rival_candidates(candidates, chosen, len(usable), config.init_ambiguity_margin)
+    started = chosen + rivals
+    ids = [f"t{next_id + k}" for k in range(len(started))]
+    next_id += len(started)
+    for k, cand in enumerate(started):
+        shared = tuple(ids[n] for n, other in enumerate(started)
+                       if n != k and set(cand.members).intersection(other.members))
+        tracks.append(_new_track(ids[k], cand, [usable[m] for m in cand.members], config, shared))
+    consumed = {id(usable[m]) for cand in started for m in cand.members}
+    return tracks, [o for o in pool if id(o) not in consumed], next_id, ids
 
 
-def select_candidates(candidates: Sequence[Candidate], size: int, margin: float = 0.0) -> list[Candidate]:
+def select_candidates(candidates: Sequence[Candidate], size: int) -> list[Candidate]:
     """The candidates that share no bearing with the largest total score: the S-D assignment problem as a
     set packing, ``max sum score_k x_k`` over binary ``x`` with every bearing in at most one chosen candidate,
-    solved exactly (:func:`scipy.optimize.milp`). A greedy pick by score is not enough: where stations see two
+    solved exactly (:func:`set_packing`). A greedy pick by score is not enough: where stations see two
     emitters nearly in line, a ghost that borrows one bearing of each can out-score either real emitter and
     would block both.
 
@@ -145,49 +154,127 @@ def select_candidates(candidates: Sequence[Candidate], size: int, margin: float 
         Scores positive.
     size : int
         Number of bearings (pool indices ``0 .. size-1``).
-    margin : float
-        Above 0: a chosen candidate is returned only when the best packing without it scores at least this
-        much (log likelihood ratio) less; where another explanation of its bearings is about as likely (a
-        missed detection can make a ghost and an emitter equally good), the next scans decide.
 
     Returns
     -------
     list of Candidate
         In descending score.
     """
-    if len(candidates) <= 1:
-        return list(candidates)
+    chosen = set_packing(np.array([c.score for c in candidates]), [c.members for c in candidates], size)
+    return sorted((candidates[k] for k in chosen), key=lambda c: -c.score)
+
+
+def rival_candidates(candidates: Sequence[Candidate], chosen: Sequence[Candidate], size: int,
+                     margin: float) -> list[Candidate]:
+    """The candidates of each best packing without one of ``chosen`` (the best packing) that scores less than
+    ``margin`` below it: where a missed detection makes a ghost and an emitter about equally likely, both
+    start and the next scans decide (:func:`decide_rivals`).
+
+    Returns
+    -------
+    list of Candidate
+        Not in ``chosen``, in descending score.
+    """
+    if not chosen:
+        return []
+    scores = np.array([c.score for c in candidates])
+    members = [c.members for c in candidates]
+    best = float(sum(c.score for c in chosen))
+    index = {c.members: k for k, c in enumerate(candidates)}
+    picked = [index[c.members] for c in chosen]
+    out: set[int] = set()
+    for k in picked:
+        value, others = best_without(scores, members, size, k)
+        if best - value < margin:
+            out.update(n for n in others if n not in picked)
+    return sorted((candidates[k] for k in out), key=lambda c: -c.score)
+
+
+def set_packing(scores: np.ndarray, members: Sequence[Sequence[int]], size: int) -> list[int]:
+    """The items that share no resource with the largest total score: ``max sum score_k x_k`` over binary
+    ``x`` with every resource (``0 .. size-1``) in at most one chosen item's ``members``, solved exactly
+    (:func:`scipy.optimize.milp`; a greedy pick by score when HiGHS gives no solution). ``scores`` ``(K,)``;
+    an item scoring 0 or less is never chosen. Returns the chosen indices."""
+    if len(scores) == 1:
+        return [0] if scores[0] > 0.0 else []
+    return best_without(scores, members, size, -1)[1]
+
+
+def best_without(scores: np.ndarray, members: Sequence[Sequence[int]], size: int,
+                 excluded: int) -> tuple[float, list[int]]:
+    """:func:`set_packing` without item ``excluded`` (-1: none): the total score and the chosen indices."""
+    if not len(scores):
+        return 0.0, []
     from scipy.optimize import Bounds, LinearConstraint, milp
     from scipy.sparse import coo_matrix
 
-    rows = [m for c in candidates for m in c.members]
-    cols = [k for k, c in enumerate(candidates) for _ in c.members]
-    usage = LinearConstraint(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(size, len(candidates))), -np.inf,
-                             1.0)
-    scores = np.array([c.score for c in candidates])
-    integral = np.ones(len(candidates))
-    result = milp(-scores, constraints=usage, integrality=integral, bounds=Bounds(0.0, 1.0))
+    scores = np.asarray(scores, dtype=float)
+    rows = [m for group in members for m in group]
+    cols = [k for k, group in enumerate(members) for _ in group]
+    usage = LinearConstraint(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(max(size, 1), len(scores))),
+                             -np.inf, 1.0)
+    upper = (scores > 0.0).astype(float)
+    if excluded >= 0:
+        upper[excluded] = 0.0
+    result = milp(-scores, constraints=usage, integrality=np.ones(len(scores)), bounds=Bounds(0.0, upper))
     if result.x is None:  # no solution within HiGHS's limits: the greedy pick
         chosen, used = [], set()
-        for cand in sorted(candidates, key=lambda c: -c.score):
-            if not used.intersection(cand.members):
-                used.update(cand.members)
-                chosen.append(cand)
-        return chosen
-    chosen = np.flatnonzero(result.x > 0.5)
-    if margin > 0.0:
-        decided = []
-        for k in chosen.tolist():
-            upper = np.ones(len(candidates))
-            upper[k] = 0.0
-            other = milp(-scores, constraints=usage, integrality=integral, bounds=Bounds(0.0, upper))
-            if other.x is None or other.fun - result.fun >= margin:
-                decided.append(k)
-        chosen = np.array(decided, dtype=np.int64)
-    return sorted((candidates[k] for k in chosen.tolist()), key=lambda c: -c.score)
+        for k in np.argsort(-scores, kind="stable").tolist():
+            if upper[k] > 0.0 and not used.intersection(members[k]):
+                used.update(members[k])
+                chosen.append(k)
+    else:
+        chosen = np.flatnonzero(result.x > 0.5).tolist()
+    return float(scores[chosen].sum()), chosen
 
 
-def _new_track(track_id, cand: Candidate, members, config) -> MultiTrack:
+def decide_rivals(tracks: list[MultiTrack], time_s: float, config: AssociationConfig) -> list[MultiTrack]:
+    """Confirm rival tentative tracks on their cumulative scores, and end the rivals of those confirmed.
+
+    The tentative tracks with a live rival (:func:`core.tracking.association_types.under_test`) are packed like a start's candidates, each
+    rival pair sharing one resource, on their scores (:attr:`MultiTrack.score`): a track is confirmed when it
+    is in the best packing, every packing without it scores at least ``init_ambiguity_margin`` less (or
+    ``init_decision_s`` has passed since its start), and it has ``confirm_hits`` of its last
+    ``confirm_window`` scans; its rivals then end (they shared a starting bearing with it).
+
+    Parameters
+    ----------
+    tracks : list of MultiTrack
+        The live tracks after a scan.
+    time_s : float
+    config : AssociationConfig
+
+    Returns
+    -------
+    list of MultiTrack
+        In order, without the ended rivals.
+    """
+    testing = under_test(tracks)
+    if not testing:
+        return tracks
+    position = {tracks[k].id: n for n, k in enumerate(testing)}
+    pairs = sorted({(min(n, position[r]), max(n, position[r])) for n, k in enumerate(testing)
+                    for r in tracks[k].rivals if r in position})
+    members = [[e for e, pair in enumerate(pairs) if n in pair] for n in range(len(testing))]
+    scores = np.array([tracks[k].score for k in testing])
+    scores = np.where(np.isfinite(scores), scores, 0.0)
+    best, chosen = best_without(scores, members, len(pairs), -1)
+    out = list(tracks)
+    ended: set[int] = set()
+    for n in sorted(chosen, key=lambda n: -scores[n]):
+        track = tracks[testing[n]]
+        if n in ended or track.hits.count(True) < config.confirm_hits:
+            continue
+        if (time_s - track.started_s < config.init_decision_s
+                and best - best_without(scores, members, len(pairs), n)[0] < config.init_ambiguity_margin):
+            continue
+        out[testing[n]] = replace(track, confirmed=True, confirmed_s=time_s)
+        ended.update(m for pair in pairs if n in pair for m in pair if m != n)
+    gone = {testing[n] for n in ended}
+    return [t for k, t in enumerate(out) if k not in gone]
+
+
+def _new_track(track_id, cand: Candidate, members, config, rivals=()) -> MultiTrack:
     time_s = max(o.time_s for o in members)
     mean = np.zeros(STATE_SIZE)
     mean[:3] = cand.position_enu_m
@@ -200,7 +287,7 @@ def _new_track(track_id, cand: Candidate, members, config) -> MultiTrack:
     frequencies = [o.frequency_hz for o in members if math.isfinite(o.frequency_hz)]
     frequency = float(np.mean(frequencies)) if frequencies else math.nan
     return MultiTrack(track, frequency, len(frequencies), (True,) * min(len(members), config.confirm_window),
-                      time_s, False, time_s)
+                      time_s, False, time_s, score=float(cand.score), rivals=tuple(rivals))
 
 
 def find_candidates(pool: Sequence[Observation], config: AssociationConfig) -> list[Candidate]:
@@ -446,5 +533,5 @@ def _in_range(arrays: _Pool, members, position, config) -> bool:
     return bool(np.all((distances > config.range_min_m) & (distances < config.range_max_m)))
 
 
-__all__ = ["FIT_ITERATIONS", "MIN_CROSSING_ANGLE_RAD", "Candidate", "find_candidates", "select_candidates",
-           "start_tracks"]
+__all__ = ["FIT_ITERATIONS", "MIN_CROSSING_ANGLE_RAD", "Candidate", "best_without", "decide_rivals", "find_candidates",
+           "rival_candidates", "select_candidates", "set_packing", "start_tracks"]
