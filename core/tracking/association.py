@@ -154,7 +154,7 @@ class AssociationState:
                             "frequency_count": t.frequency_count, "hits": list(t.hits), "last_hit_s": t.last_hit_s,
                             "confirmed": t.confirmed, "started_s": t.started_s,
                             "confirmed_s": _float_or_none(t.confirmed_s), "score": _float_or_none(t.score),
-                            "rivals": list(t.rivals)} for t in self.tracks],
+                            "rivals": dict(t.rivals)} for t in self.tracks],
                 "pool": [{"report": o.report.to_dict(), "frequency_hz": _float_or_none(o.frequency_hz)}
                          for o in self.pool]}
 
@@ -174,13 +174,14 @@ class AssociationState:
                                       int(t["frequency_count"]), tuple(bool(h) for h in t["hits"]),
                                       float(t["last_hit_s"]), bool(t["confirmed"]), float(t["started_s"]),
                                       _nan_if_none(t["confirmed_s"]), _nan_if_none(t.get("score")),
-                                      tuple(str(r) for r in t.get("rivals", ()))) for t in data["tracks"])
+                                      {str(r): float(c) for r, c in t.get("rivals", {}).items()})
+                           for t in data["tracks"])
             pool = tuple(Observation(Report.from_dict(o["report"]), _nan_if_none(o["frequency_hz"]))
                          for o in data["pool"])
             last, first = data["last_time_s"], data["first_time_s"]
             return cls(tracks, pool, int(data["next_id"]), None if last is None else float(last),
                        None if first is None else float(first))
-        except (KeyError, TypeError, ValueError) as error:
+        except (AttributeError, KeyError, TypeError, ValueError) as error:
             raise InvalidInput(f"association state is malformed: {error}") from None
 
     def __eq__(self, other):

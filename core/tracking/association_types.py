@@ -9,6 +9,7 @@ more stations) all build on these; this module imports none of them. The rules t
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -175,9 +176,10 @@ class MultiTrack:
         Log likelihood ratio of "an emitter" against "false bearings": its start candidate's score plus, for
         each later scan while it has live rivals, its bearing's log likelihood ratio or ``log(1 - P_D)``
         (NaN for a track started before scores were kept).
-    rivals : tuple of str
-        Ids of the tracks started beside it that share a starting bearing with it: at most one of them and
-        it is an emitter (:func:`core.tracking.track_start.decide_rivals`).
+    rivals : mapping of str to float
+        The tracks started beside it that share a starting bearing with it, each with the log likelihood
+        ratio both would lose to be emitters side by side (one of them missing each bearing they share: at the
+        start and in every scan since; :func:`core.tracking.track_start.decide_rivals`).
     """
 
     track: Track
@@ -189,7 +191,7 @@ class MultiTrack:
     started_s: float
     confirmed_s: float = math.nan
     score: float = math.nan
-    rivals: tuple[str, ...] = ()
+    rivals: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def id(self) -> str:
@@ -204,7 +206,7 @@ def frequency_ok(a: float, b: float, config: AssociationConfig) -> bool:
 
 def under_test(tracks) -> list[int]:
     """Indices of the tentative tracks with a live tentative rival (:attr:`MultiTrack.rivals`): each is still
-    one of several explanations of its starting bearings (:func:`core.tracking.track_start.decide_rivals`)."""
+    one of several explanations of its bearings (:func:`core.tracking.track_start.decide_rivals`)."""
     tentative = {t.id for t in tracks if not t.confirmed}
     return [k for k, t in enumerate(tracks) if not t.confirmed and tentative.intersection(t.rivals)]
 

@@ -231,22 +231,34 @@ def _scan_gnn(tracks, scan, gate: ScanGate, config):
 def _test_rivals(tracks, scan, gate: ScanGate, testing, out, free, config):
     """Each rival tentative track (:func:`core.tracking.association_types.under_test`) takes its best gated bearing of
     those the other tracks left, rivals alike (each is one hypothesis about them), and adds that bearing's log
-    likelihood ratio, or ``log(1 - P_D)`` when none gates, to its score; it is not confirmed here
-    (:func:`core.tracking.track_start.decide_rivals` does). The bearings they take leave the start pool."""
+    likelihood ratio, or ``log(1 - P_D)`` when none gates, to its score; two rivals that took one bearing add
+    to their conflict what the one that fits it less would lose by missing it. They are not confirmed here
+    (:func:`core.tracking.track_start.decide_rivals` does); the bearings they take leave the start pool."""
     time_s = scan[0].time_s
     left = free.copy()
     missed = math.log1p(-config.detection_probability)
+    took = {}
     for i in testing:
         t = tracks[i]
         cost = np.where(free, gate.cost[i], np.inf)
         j = int(np.argmin(cost))
         hit = bool(np.isfinite(cost[j]))
-        after = _after_scan(t, scan[j] if hit else None, time_s, config, update=_update_of(gate, i, j if hit else None),
-                            may_confirm=False)
-        if after is not None:
-            after = replace(after, score=t.score + (-float(cost[j]) if hit else missed))
-            left[j] &= not hit
-        out[i] = after
+        out[i] = _after_scan(t, scan[j] if hit else None, time_s, config, update=_update_of(gate, i, j if hit else None),
+                             may_confirm=False)
+        if out[i] is not None:
+            out[i] = replace(out[i], score=t.score + (-float(cost[j]) if hit else missed))
+            if hit:
+                left[j] = False
+                took[t.id] = (j, -float(cost[j]))
+    for i in testing:
+        if out[i] is None or out[i].id not in took:
+            continue
+        j, llr = took[out[i].id]
+        shared = {other: max(0.0, min(llr, took[other][1]) - missed) for other in out[i].rivals
+                  if other in took and took[other][0] == j}
+        if shared:
+            out[i] = replace(out[i], rivals={other: loss + shared.get(other, 0.0)
+                                             for other, loss in out[i].rivals.items()})
     return out, left
 
 

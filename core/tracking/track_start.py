@@ -29,7 +29,7 @@ from core.tracking.association_types import (
 )
 from core.tracking.network_kernel import STATE_SIZE
 from core.tracking.network_types import Track
-from core.tracking.network_update import chi2_point, velocity_prior
+from core.tracking.network_update import chi2_point, predicted_moments, velocity_prior
 from core.tracking.state import frozen_array
 
 #: A pair of bearings whose lines of sight are closer to parallel than this (rad) is not crossed.
@@ -133,9 +133,10 @@ def start_tracks(tracks: list[MultiTrack], pool: list[Observation], next_id: int
     started = chosen + rivals
     ids = [f"t{next_id + k}" for k in range(len(started))]
     next_id += len(started)
+    give_up = _give_up_llr(_pool_arrays(usable, config), config) if rivals else None
     for k, cand in enumerate(started):
-        shared = tuple(ids[n] for n, other in enumerate(started)
-                       if n != k and set(cand.members).intersection(other.members))
+        shared = {ids[n]: float(sum(give_up[m] for m in set(cand.members).intersection(other.members)))
+                  for n, other in enumerate(started) if n != k and set(cand.members).intersection(other.members)}
         tracks.append(_new_track(ids[k], cand, [usable[m] for m in cand.members], config, shared))
     consumed = {id(usable[m]) for cand in started for m in cand.members}
     return tracks, [o for o in pool if id(o) not in consumed], next_id, ids
@@ -228,14 +229,21 @@ def best_without(scores: np.ndarray, members: Sequence[Sequence[int]], size: int
     return float(scores[chosen].sum()), chosen
 
 
-def decide_rivals(tracks: list[MultiTrack], time_s: float, config: AssociationConfig) -> list[MultiTrack]:
-    """Confirm rival tentative tracks on their cumulative scores, and end the rivals of those confirmed.
+#: Largest group of rival tracks whose joint hypotheses are all enumerated; a larger one is packed greedily.
+RIVALS_MAX_GROUP = 12
 
-    The tentative tracks with a live rival (:func:`core.tracking.association_types.under_test`) are packed like a start's candidates, each
-    rival pair sharing one resource, on their scores (:attr:`MultiTrack.score`): a track is confirmed when it
-    is in the best packing, every packing without it scores at least ``init_ambiguity_margin`` less (or
-    ``init_decision_s`` has passed since its start), and it has ``confirm_hits`` of its last
-    ``confirm_window`` scans; its rivals then end (they shared a starting bearing with it).
+
+def decide_rivals(tracks: list[MultiTrack], time_s: float, config: AssociationConfig) -> list[MultiTrack]:
+    """Confirm rival tentative tracks on their cumulative scores, and end the rivals that lost.
+
+    The tentative tracks with a live rival (:func:`core.tracking.association_types.under_test`) fall into
+    groups (rivals of rivals); a group's joint hypotheses are its subsets, each scored by its tracks' scores
+    (:attr:`MultiTrack.score`) less what every pair of rivals in it would lose to be two emitters
+    (:attr:`MultiTrack.rivals`); rivals that look alike (positions that agree within the ``gate_probability``
+    chi-square point: two starts of one emitter) are never in one subset. A track is confirmed when it is in
+    the best subset, has ``confirm_hits`` of its last ``confirm_window`` scans, and the best subset without it
+    and its look-alikes scores at least ``init_ambiguity_margin`` less, or ``init_decision_s`` has passed
+    since its start. Its rivals outside the best subset then end.
 
     Parameters
     ----------
@@ -252,29 +260,87 @@ def decide_rivals(tracks: list[MultiTrack], time_s: float, config: AssociationCo
     testing = under_test(tracks)
     if not testing:
         return tracks
-    position = {tracks[k].id: n for n, k in enumerate(testing)}
-    pairs = sorted({(min(n, position[r]), max(n, position[r])) for n, k in enumerate(testing)
-                    for r in tracks[k].rivals if r in position})
-    members = [[e for e, pair in enumerate(pairs) if n in pair] for n in range(len(testing))]
-    scores = np.array([tracks[k].score for k in testing])
-    scores = np.where(np.isfinite(scores), scores, 0.0)
-    best, chosen = best_without(scores, members, len(pairs), -1)
     out = list(tracks)
-    ended: set[int] = set()
-    for n in sorted(chosen, key=lambda n: -scores[n]):
-        track = tracks[testing[n]]
-        if n in ended or track.hits.count(True) < config.confirm_hits:
-            continue
-        if (time_s - track.started_s < config.init_decision_s
-                and best - best_without(scores, members, len(pairs), n)[0] < config.init_ambiguity_margin):
-            continue
-        out[testing[n]] = replace(track, confirmed=True, confirmed_s=time_s)
-        ended.update(m for pair in pairs if n in pair for m in pair if m != n)
-    gone = {testing[n] for n in ended}
+    gone: set[int] = set()
+    for group in _rival_groups(tracks, testing):
+        ids = {tracks[k].id: n for n, k in enumerate(group)}
+        scores = np.array([tracks[k].score for k in group])
+        scores = np.where(np.isfinite(scores), scores, 0.0)
+        rival = np.zeros((len(group), len(group)), dtype=bool)
+        conflict = np.zeros((len(group), len(group)))
+        for n, k in enumerate(group):
+            for other, loss in tracks[k].rivals.items():
+                if other in ids:
+                    rival[n, ids[other]] = rival[ids[other], n] = True
+                    conflict[n, ids[other]] = conflict[ids[other], n] = max(conflict[n, ids[other]], loss)
+        alike = _look_alike([tracks[k] for k in group], time_s, config)
+        # Rivals at one position are two starts of one emitter: never both (a conflict above any gain).
+        conflict[rival & alike] = 1.0 + np.abs(scores).sum()
+        value, best = _best_hypothesis(scores, conflict, np.ones(len(group), dtype=bool))
+        for n in sorted(np.flatnonzero(best).tolist(), key=lambda n: -scores[n]):
+            track = tracks[group[n]]
+            if track.hits.count(True) < config.confirm_hits:
+                continue
+            if (time_s - track.started_s < config.init_decision_s
+                    and value - _best_hypothesis(scores, conflict, ~alike[n])[0] < config.init_ambiguity_margin):
+                continue
+            out[group[n]] = replace(track, confirmed=True, confirmed_s=time_s)
+            gone.update(group[m] for m in np.flatnonzero(rival[n] & ~best).tolist())
     return [t for k, t in enumerate(out) if k not in gone]
 
 
-def _new_track(track_id, cand: Candidate, members, config, rivals=()) -> MultiTrack:
+def _rival_groups(tracks: Sequence[MultiTrack], testing: list[int]) -> list[list[int]]:
+    """The connected groups of ``testing`` (track indices) joined by their live rivalries."""
+    group_of = {tracks[k].id: n for n, k in enumerate(testing)}
+    parent = list(range(len(testing)))
+
+    def root(n):
+        while parent[n] != n:
+            parent[n] = parent[parent[n]]
+            n = parent[n]
+        return n
+
+    for n, k in enumerate(testing):
+        for other in tracks[k].rivals:
+            if other in group_of:
+                parent[root(n)] = root(group_of[other])
+    groups: dict[int, list[int]] = {}
+    for n, k in enumerate(testing):
+        groups.setdefault(root(n), []).append(k)
+    return list(groups.values())
+
+
+def _best_hypothesis(scores: np.ndarray, conflict: np.ndarray, allowed: np.ndarray) -> tuple[float, np.ndarray]:
+    """The subset of the ``allowed`` tracks ``(n,)`` with the largest sum of ``scores`` less the ``conflict``
+    ``(n, n)`` of each pair in it: its value and mask ``(n,)``. Every subset is tried up to
+    :data:`RIVALS_MAX_GROUP` candidate tracks; beyond, tracks are added greedily by score while they gain."""
+    mask = np.zeros(scores.size, dtype=bool)
+    index = np.flatnonzero(allowed & (scores > 0.0))
+    if index.size > RIVALS_MAX_GROUP:
+        for k in index[np.argsort(-scores[index], kind="stable")].tolist():
+            if scores[k] - conflict[k, mask].sum() > 0.0:
+                mask[k] = True
+    elif index.size:
+        subsets = ((np.arange(2 ** index.size)[:, None] >> np.arange(index.size)[None, :]) & 1).astype(float)
+        inner = conflict[np.ix_(index, index)]
+        values = subsets @ scores[index] - 0.5 * np.einsum("ki,ij,kj->k", subsets, inner, subsets)
+        mask[index[subsets[int(np.argmax(values))] > 0.5]] = True
+    upper = np.triu(conflict, 1)
+    return float(scores[mask].sum() - upper[np.ix_(mask, mask)].sum()), mask
+
+
+def _look_alike(tracks: Sequence[MultiTrack], time_s: float, config: AssociationConfig) -> np.ndarray:
+    """``(n, n)`` whether two tracks' positions, predicted to ``time_s``, agree within the ``gate_probability``
+    chi-square point of their summed covariances (each track alike itself)."""
+    means, covs = predicted_moments([t.track for t in tracks], time_s, config.network)
+    positions, spreads = means[:, :3], covs[:, :3, :3]
+    difference = positions[:, None, :] - positions[None, :, :]
+    summed = spreads[:, None] + spreads[None, :]
+    distance = np.einsum("abi,abi->ab", difference, np.linalg.solve(summed, difference[..., None])[..., 0])
+    return distance <= chi2_point(config.gate_probability, 3)
+
+
+def _new_track(track_id, cand: Candidate, members, config, rivals=None) -> MultiTrack:
     time_s = max(o.time_s for o in members)
     mean = np.zeros(STATE_SIZE)
     mean[:3] = cand.position_enu_m
@@ -287,7 +353,7 @@ def _new_track(track_id, cand: Candidate, members, config, rivals=()) -> MultiTr
     frequencies = [o.frequency_hz for o in members if math.isfinite(o.frequency_hz)]
     frequency = float(np.mean(frequencies)) if frequencies else math.nan
     return MultiTrack(track, frequency, len(frequencies), (True,) * min(len(members), config.confirm_window),
-                      time_s, False, time_s, score=float(cand.score), rivals=tuple(rivals))
+                      time_s, False, time_s, score=float(cand.score), rivals=rivals or {})
 
 
 def find_candidates(pool: Sequence[Observation], config: AssociationConfig) -> list[Candidate]:
@@ -517,15 +583,29 @@ def _score(arrays: _Pool, members, cov, chi2_value: float, stations: int, config
     bearing ``log(P_D / lambda)`` less its Gaussian normaliser, ``-chi2 / 2`` at the fit, ``log(1 - P_D)`` per
     station that saw nothing, ``log det(2 pi P) / 2 - log V`` for the position integrated out."""
     n = len(members)
-    sigmas = arrays.sigmas[members]
-    normaliser = 0.5 * np.log(2.0 * math.pi * sigmas[:, 0] ** 2) + np.where(
-        arrays.has_elevation[members], 0.5 * np.log(2.0 * math.pi * sigmas[:, 1] ** 2), 0.0)
     sign, log_det = np.linalg.slogdet(2.0 * math.pi * np.asarray(cov))
     if sign <= 0:
         return -math.inf
-    return float(n * math.log(config.detection_probability / config.false_density_per_rad2) - normaliser.sum()
-                 - 0.5 * chi2_value + (stations - n) * math.log1p(-config.detection_probability) + 0.5 * log_det
+    return float(_exact_llr(arrays, members, config).sum() - 0.5 * chi2_value + (stations - n) * math.log1p(-config.detection_probability) + 0.5 * log_det
                  - math.log(config.surveillance_volume_m3))
+
+
+def _exact_llr(arrays: _Pool, members, config) -> np.ndarray:
+    """Log likelihood ratio ``(n,)`` of each bearing of ``members`` against a false one where it fits exactly:
+    ``log(P_D / lambda)`` less its Gaussian normaliser."""
+    sigmas = arrays.sigmas[members]
+    normaliser = 0.5 * np.log(2.0 * math.pi * sigmas[:, 0] ** 2) + np.where(
+        arrays.has_elevation[members], 0.5 * np.log(2.0 * math.pi * sigmas[:, 1] ** 2), 0.0)
+    return math.log(config.detection_probability / config.false_density_per_rad2) - normaliser
+
+
+def _give_up_llr(arrays: _Pool, config) -> np.ndarray:
+    """What a candidate loses ``(P,)`` by leaving each pool bearing to another (counting it missed instead): its
+    expected log likelihood ratio at a fit (the residual's chi-square at its mean, one per measured angle) less
+    ``log(1 - P_D)``."""
+    everyone = np.arange(arrays.station.size)
+    return (_exact_llr(arrays, everyone, config) - 0.5 * (1.0 + arrays.has_elevation)
+            - math.log1p(-config.detection_probability))
 
 
 def _in_range(arrays: _Pool, members, position, config) -> bool:
@@ -533,5 +613,5 @@ def _in_range(arrays: _Pool, members, position, config) -> bool:
     return bool(np.all((distances > config.range_min_m) & (distances < config.range_max_m)))
 
 
-__all__ = ["FIT_ITERATIONS", "MIN_CROSSING_ANGLE_RAD", "Candidate", "best_without", "decide_rivals", "find_candidates",
+__all__ = ["FIT_ITERATIONS", "MIN_CROSSING_ANGLE_RAD", "Candidate", "RIVALS_MAX_GROUP", "best_without", "decide_rivals", "find_candidates",
            "rival_candidates", "select_candidates", "set_packing", "start_tracks"]
