@@ -52,7 +52,7 @@ class AssociationConfig:
     init_ambiguity_margin : float
         A start is decided when every other packing of the start's candidates is this much less likely (log
         likelihood ratio); when one is closer, its candidates start too, as rival tentative tracks that are
-        confirmed on their cumulative score (:func:`core.tracking.track_start.decide_rivals`); 0: the best
+        confirmed on their cumulative score (:func:`core.tracking.rival_starts.decide_rivals`); 0: the best
         packing starts alone.
     init_decision_s : float
         Rival tracks that their scores do not tell apart within this long after their start are decided for
@@ -179,7 +179,7 @@ class MultiTrack:
     rivals : mapping of str to float
         The tracks started beside it that share a starting bearing with it, each with the log likelihood
         ratio both would lose to be emitters side by side (one of them missing each bearing they share: at the
-        start and in every scan since; :func:`core.tracking.track_start.decide_rivals`).
+        start and in every scan since; :func:`core.tracking.rival_starts.decide_rivals`).
     """
 
     track: Track
@@ -206,7 +206,7 @@ def frequency_ok(a: float, b: float, config: AssociationConfig) -> bool:
 
 def under_test(tracks) -> list[int]:
     """Indices of the tentative tracks with a live tentative rival (:attr:`MultiTrack.rivals`): each is still
-    one of several explanations of its bearings (:func:`core.tracking.track_start.decide_rivals`)."""
+    one of several explanations of its bearings (:func:`core.tracking.rival_starts.decide_rivals`)."""
     tentative = {t.id for t in tracks if not t.confirmed}
     return [k for k, t in enumerate(tracks) if not t.confirmed and tentative.intersection(t.rivals)]
 

@@ -189,7 +189,6 @@ def assign_scan(tracks: list[MultiTrack], scan: Sequence[Observation],
     unassigned : list of Observation
         The bearings left for track starts.
     """
-    time_s = scan[0].time_s
     if not tracks:
         return [], list(scan)
     gate = scan_gate(tracks, scan, config)
@@ -233,7 +232,7 @@ def _test_rivals(tracks, scan, gate: ScanGate, testing, out, free, config):
     those the other tracks left, rivals alike (each is one hypothesis about them), and adds that bearing's log
     likelihood ratio, or ``log(1 - P_D)`` when none gates, to its score; two rivals that took one bearing add
     to their conflict what the one that fits it less would lose by missing it. They are not confirmed here
-    (:func:`core.tracking.track_start.decide_rivals` does); the bearings they take leave the start pool."""
+    (:func:`core.tracking.rival_starts.decide_rivals` does); the bearings they take leave the start pool."""
     time_s = scan[0].time_s
     left = free.copy()
     missed = math.log1p(-config.detection_probability)
@@ -457,5 +456,14 @@ def _labelled(report: Report, track_id: str) -> Report:
     return out
 
 
-__all__ = ["COARSE_FROM_TRACKS", "JPDA_MAX_CLUSTER", "JPDA_NEGLIGIBLE", "ScanGate", "ambiguous_tracks", "gate_costs",
-           "assign_scan", "jpda_weights", "scan_gate"]
+__all__ = [
+    "COARSE_FROM_TRACKS",
+    "JPDA_MAX_CLUSTER",
+    "JPDA_NEGLIGIBLE",
+    "ScanGate",
+    "ambiguous_tracks",
+    "assign_scan",
+    "gate_costs",
+    "jpda_weights",
+    "scan_gate",
+]

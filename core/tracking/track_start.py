@@ -12,7 +12,6 @@ from __future__ import annotations
 import itertools
 import math
 from collections.abc import Sequence
-from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
@@ -25,11 +24,10 @@ from core.tracking.association_types import (
     MultiTrack,
     Observation,
     frequency_ok,
-    under_test,
 )
 from core.tracking.network_kernel import STATE_SIZE
 from core.tracking.network_types import Track
-from core.tracking.network_update import chi2_point, predicted_moments, velocity_prior
+from core.tracking.network_update import chi2_point, velocity_prior
 from core.tracking.state import frozen_array
 
 #: A pair of bearings whose lines of sight are closer to parallel than this (rad) is not crossed.
@@ -169,7 +167,7 @@ def rival_candidates(candidates: Sequence[Candidate], chosen: Sequence[Candidate
                      margin: float) -> list[Candidate]:
     """The candidates of each best packing without one of ``chosen`` (the best packing) that scores less than
     ``margin`` below it: where a missed detection makes a ghost and an emitter about equally likely, both
-    start and the next scans decide (:func:`decide_rivals`).
+    start and the next scans decide (:func:`core.tracking.rival_starts.decide_rivals`).
 
     Returns
     -------
@@ -227,117 +225,6 @@ def best_without(scores: np.ndarray, members: Sequence[Sequence[int]], size: int
     else:
         chosen = np.flatnonzero(result.x > 0.5).tolist()
     return float(scores[chosen].sum()), chosen
-
-
-#: Largest group of rival tracks whose joint hypotheses are all enumerated; a larger one is packed greedily.
-RIVALS_MAX_GROUP = 12
-
-
-def decide_rivals(tracks: list[MultiTrack], time_s: float, config: AssociationConfig) -> list[MultiTrack]:
-    """Confirm rival tentative tracks on their cumulative scores, and end the rivals that lost.
-
-    The tentative tracks with a live rival (:func:`core.tracking.association_types.under_test`) fall into
-    groups (rivals of rivals); a group's joint hypotheses are its subsets, each scored by its tracks' scores
-    (:attr:`MultiTrack.score`) less what every pair of rivals in it would lose to be two emitters
-    (:attr:`MultiTrack.rivals`); rivals that look alike (positions that agree within the ``gate_probability``
-    chi-square point: two starts of one emitter) are never in one subset. A track is confirmed when it is in
-    the best subset, has ``confirm_hits`` of its last ``confirm_window`` scans, and the best subset without it
-    and its look-alikes scores at least ``init_ambiguity_margin`` less, or ``init_decision_s`` has passed
-    since its start. Its rivals outside the best subset then end.
-
-    Parameters
-    ----------
-    tracks : list of MultiTrack
-        The live tracks after a scan.
-    time_s : float
-    config : AssociationConfig
-
-    Returns
-    -------
-    list of MultiTrack
-        In order, without the ended rivals.
-    """
-    testing = under_test(tracks)
-    if not testing:
-        return tracks
-    out = list(tracks)
-    gone: set[int] = set()
-    for group in _rival_groups(tracks, testing):
-        ids = {tracks[k].id: n for n, k in enumerate(group)}
-        scores = np.array([tracks[k].score for k in group])
-        scores = np.where(np.isfinite(scores), scores, 0.0)
-        rival = np.zeros((len(group), len(group)), dtype=bool)
-        conflict = np.zeros((len(group), len(group)))
-        for n, k in enumerate(group):
-            for other, loss in tracks[k].rivals.items():
-                if other in ids:
-                    rival[n, ids[other]] = rival[ids[other], n] = True
-                    conflict[n, ids[other]] = conflict[ids[other], n] = max(conflict[n, ids[other]], loss)
-        alike = _look_alike([tracks[k] for k in group], time_s, config)
-        # Rivals at one position are two starts of one emitter: never both (a conflict above any gain).
-        conflict[rival & alike] = 1.0 + np.abs(scores).sum()
-        value, best = _best_hypothesis(scores, conflict, np.ones(len(group), dtype=bool))
-        for n in sorted(np.flatnonzero(best).tolist(), key=lambda n: -scores[n]):
-            track = tracks[group[n]]
-            if track.hits.count(True) < config.confirm_hits:
-                continue
-            if (time_s - track.started_s < config.init_decision_s
-                    and value - _best_hypothesis(scores, conflict, ~alike[n])[0] < config.init_ambiguity_margin):
-                continue
-            out[group[n]] = replace(track, confirmed=True, confirmed_s=time_s)
-            gone.update(group[m] for m in np.flatnonzero(rival[n] & ~best).tolist())
-    return [t for k, t in enumerate(out) if k not in gone]
-
-
-def _rival_groups(tracks: Sequence[MultiTrack], testing: list[int]) -> list[list[int]]:
-    """The connected groups of ``testing`` (track indices) joined by their live rivalries."""
-    group_of = {tracks[k].id: n for n, k in enumerate(testing)}
-    parent = list(range(len(testing)))
-
-    def root(n):
-        while parent[n] != n:
-            parent[n] = parent[parent[n]]
-            n = parent[n]
-        return n
-
-    for n, k in enumerate(testing):
-        for other in tracks[k].rivals:
-            if other in group_of:
-                parent[root(n)] = root(group_of[other])
-    groups: dict[int, list[int]] = {}
-    for n, k in enumerate(testing):
-        groups.setdefault(root(n), []).append(k)
-    return list(groups.values())
-
-
-def _best_hypothesis(scores: np.ndarray, conflict: np.ndarray, allowed: np.ndarray) -> tuple[float, np.ndarray]:
-    """The subset of the ``allowed`` tracks ``(n,)`` with the largest sum of ``scores`` less the ``conflict``
-    ``(n, n)`` of each pair in it: its value and mask ``(n,)``. Every subset is tried up to
-    :data:`RIVALS_MAX_GROUP` candidate tracks; beyond, tracks are added greedily by score while they gain."""
-    mask = np.zeros(scores.size, dtype=bool)
-    index = np.flatnonzero(allowed & (scores > 0.0))
-    if index.size > RIVALS_MAX_GROUP:
-        for k in index[np.argsort(-scores[index], kind="stable")].tolist():
-            if scores[k] - conflict[k, mask].sum() > 0.0:
-                mask[k] = True
-    elif index.size:
-        subsets = ((np.arange(2 ** index.size)[:, None] >> np.arange(index.size)[None, :]) & 1).astype(float)
-        inner = conflict[np.ix_(index, index)]
-        values = subsets @ scores[index] - 0.5 * np.einsum("ki,ij,kj->k", subsets, inner, subsets)
-        mask[index[subsets[int(np.argmax(values))] > 0.5]] = True
-    upper = np.triu(conflict, 1)
-    return float(scores[mask].sum() - upper[np.ix_(mask, mask)].sum()), mask
-
-
-def _look_alike(tracks: Sequence[MultiTrack], time_s: float, config: AssociationConfig) -> np.ndarray:
-    """``(n, n)`` whether two tracks' positions, predicted to ``time_s``, agree within the ``gate_probability``
-    chi-square point of their summed covariances (each track alike itself)."""
-    means, covs = predicted_moments([t.track for t in tracks], time_s, config.network)
-    positions, spreads = means[:, :3], covs[:, :3, :3]
-    difference = positions[:, None, :] - positions[None, :, :]
-    summed = spreads[:, None] + spreads[None, :]
-    distance = np.einsum("abi,abi->ab", difference, np.linalg.solve(summed, difference[..., None])[..., 0])
-    return distance <= chi2_point(config.gate_probability, 3)
 
 
 def _new_track(track_id, cand: Candidate, members, config, rivals=None) -> MultiTrack:
@@ -613,5 +500,5 @@ def _in_range(arrays: _Pool, members, position, config) -> bool:
     return bool(np.all((distances > config.range_min_m) & (distances < config.range_max_m)))
 
 
-__all__ = ["FIT_ITERATIONS", "MIN_CROSSING_ANGLE_RAD", "Candidate", "RIVALS_MAX_GROUP", "best_without", "decide_rivals", "find_candidates",
+__all__ = ["FIT_ITERATIONS", "MIN_CROSSING_ANGLE_RAD", "Candidate", "best_without", "find_candidates",
            "rival_candidates", "select_candidates", "set_packing", "start_tracks"]

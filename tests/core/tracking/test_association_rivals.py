@@ -17,8 +17,8 @@ from core.tracking.association import (
     new_association_state,
 )
 from core.tracking.network import Track
+from core.tracking.rival_starts import decide_rivals
 from core.tracking.state import frozen_array
-from core.tracking.track_start import decide_rivals
 
 CONFIG = multi_emitter_scene(0).config
 
