@@ -78,7 +78,7 @@ def test_a_ghost_pairing_that_ties_the_emitters_at_the_start_is_not_confirmed():
     state = new_association_state()
     for second in range(1, 31):
         now = START_TIME_S + second
-        batch = [o for o in run.observations if now - 1.0 < o.time_s <= now]
+        batch = [o for o in run.observations if (second == 1 or now - 1.0 < o.time_s) and o.time_s <= now]
         state = apply_observations(state, batch, scene.config).state
         confirmed = [t for t in current_tracks(state, now, scene.config) if t.status == "confirmed"]
         ids, truths = truth_at(scene, now)
