@@ -9,7 +9,7 @@ more stations) all build on these; this module imports none of them. The rules t
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -204,7 +204,7 @@ def frequency_ok(a: float, b: float, config: AssociationConfig) -> bool:
     return not (abs(a - b) > config.frequency_tolerance_hz)  # NaN on either side: True
 
 
-def under_test(tracks) -> list[int]:
+def under_test(tracks: Sequence[MultiTrack]) -> list[int]:
     """Indices of the tentative tracks with a live tentative rival (:attr:`MultiTrack.rivals`): each is still
     one of several explanations of its bearings (:func:`core.tracking.rival_starts.decide_rivals`)."""
     tentative = {t.id for t in tracks if not t.confirmed}
