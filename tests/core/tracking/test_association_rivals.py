@@ -6,10 +6,13 @@ import math
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
+from core.errors import InvalidInput
 from core.simulation.multi_emitter import multi_emitter_scene, simulate_multi, truth_at
 from core.simulation.network import START_TIME_S
 from core.tracking.association import (
+    AssociationConfig,
     AssociationState,
     MultiTrack,
     apply_observations,
@@ -105,3 +108,10 @@ def test_states_written_before_rivals_were_kept_still_load():
     rest = [o for o in run.observations if START_TIME_S + 5.0 <= o.time_s < START_TIME_S + 10.0]
     after = apply_observations(old, rest, scene.config).state
     assert [t.id for t in after.tracks if t.confirmed] == [t.id for t in state.tracks if t.confirmed]
+
+
+def test_rival_settings_are_validated():
+    for bad in ({"init_ambiguity_margin": -1.0}, {"init_ambiguity_margin": math.inf}, {"init_decision_s": 0.0}):
+        with pytest.raises(InvalidInput) as error:
+            AssociationConfig(**bad)
+        assert error.value.loc == (next(iter(bad)),)
