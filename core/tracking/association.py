@@ -62,18 +62,19 @@ each of two emitters on one frequency lies near the line between two opposite st
 is a pair of ghosts that all four stations fit, and a missed detection can make it score as well as the
 emitters. So when the best packing without one of the accepted candidates scores less than
 ``init_ambiguity_margin`` below the best (:func:`core.tracking.track_start.rival_candidates`), that packing's
-candidates start too, as tentative tracks that are each other's *rivals* where they share starting bearings.
-While a tentative track has a live rival it is a hypothesis about bearings, not an emitter beside the others:
+candidates start too, as tentative tracks that are each other's *rivals* where they share starting bearings,
+unless a candidate's position agrees with that of an accepted one it shares a bearing with (within the
+``gate_probability`` chi-square point: the same emitter from other bearings, which the next scans refine
+anyway). While a tentative track has a live rival it is a hypothesis about bearings, not an emitter beside the others:
 it stays out of the joint assignment, takes each scan its best gated bearing of those the other tracks left,
 and adds that bearing's log likelihood ratio (``log(1 - P_D)`` when none gates) to its score, its candidate's
 score to begin with (the track score of Blackman and Popoli, 1999). Two rivals that take one bearing
 add to their *conflict* what the one that fits it less would lose by missing it; the bearings they shared at
 the start begin it. After each scan the rivals' joint hypotheses (the subsets of a group of rivals) are scored
-as their tracks' scores less their pairs' conflicts, rivals at one position (two starts of one emitter) never
-together; a rival is confirmed once it has the M of N hits below, is in the best subset, and the best subset
-without it (and its look-alikes) scores ``init_ambiguity_margin`` less, or ``init_decision_s`` after its start;
-its rivals outside the best subset end (:func:`core.tracking.rival_starts.decide_rivals`). Ghosts that fit
-one scan fit the next ones worse as the emitters move and the stations miss them, and the emitters' lead
+as their tracks' scores less their pairs' conflicts; a rival is confirmed once it has the M of N hits below,
+is in the best subset, ``init_window_s`` after its start, and the best subset without it scores
+``init_ambiguity_margin`` less, or ``init_decision_s`` after its start; its rivals outside the best subset
+end (:func:`core.tracking.rival_starts.decide_rivals`). Ghosts that fit one scan fit the next ones worse as the emitters move and the stations miss them, and the emitters' lead
 grows scan by scan. This is track-oriented MHT confined to where it is needed: hypotheses over every track
 and scan would grow with both, while the ambiguity here is one of starts (a confirmed track is followed by
 JPDA, which weighs its pairings anyway); withholding an ambiguous start instead would look again at a

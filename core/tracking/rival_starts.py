@@ -15,7 +15,6 @@ from dataclasses import replace
 import numpy as np
 
 from core.tracking.association_types import AssociationConfig, MultiTrack, under_test
-from core.tracking.network_update import chi2_point, predicted_moments
 
 #: Largest group of rival tracks whose joint hypotheses are all enumerated; a larger one is packed greedily.
 RIVALS_MAX_GROUP = 12
@@ -27,11 +26,11 @@ def decide_rivals(tracks: list[MultiTrack], time_s: float, config: AssociationCo
     The tentative tracks with a live rival (:func:`core.tracking.association_types.under_test`) fall into
     groups (rivals of rivals); a group's joint hypotheses are its subsets, each scored by its tracks' scores
     (:attr:`MultiTrack.score`) less what every pair of rivals in it would lose to be two emitters
-    (:attr:`MultiTrack.rivals`); rivals that look alike (positions that agree within the ``gate_probability``
-    chi-square point: two starts of one emitter) are never in one subset. A track is confirmed when it is in
-    the best subset, has ``confirm_hits`` of its last ``confirm_window`` scans, and the best subset without it
-    and its look-alikes scores at least ``init_ambiguity_margin`` less, or ``init_decision_s`` has passed
-    since its start. Its rivals outside the best subset then end.
+    (:attr:`MultiTrack.rivals`). A track is confirmed when it is in the best subset, has ``confirm_hits`` of its
+    last ``confirm_window`` scans, ``init_window_s`` has passed since its start (every station has scanned
+    since: a score of fewer scans weighs the stations unevenly), and the best subset without it scores at
+    least ``init_ambiguity_margin`` less, or ``init_decision_s`` has passed since its start. Its rivals outside
+    the best subset then end.
 
     Parameters
     ----------
@@ -61,16 +60,13 @@ def decide_rivals(tracks: list[MultiTrack], time_s: float, config: AssociationCo
                 if other in ids:
                     rival[n, ids[other]] = rival[ids[other], n] = True
                     conflict[n, ids[other]] = conflict[ids[other], n] = max(conflict[n, ids[other]], loss)
-        alike = _look_alike([tracks[k] for k in group], time_s, config)
-        # Rivals at one position are two starts of one emitter: never both (a conflict above any gain).
-        conflict[rival & alike] = 1.0 + np.abs(scores).sum()
         value, best = _best_hypothesis(scores, conflict, np.ones(len(group), dtype=bool))
         for n in sorted(np.flatnonzero(best).tolist(), key=lambda n: -scores[n]):
             track = tracks[group[n]]
-            if track.hits.count(True) < config.confirm_hits:
+            if track.hits.count(True) < config.confirm_hits or time_s - track.started_s < config.init_window_s:
                 continue
             if (time_s - track.started_s < config.init_decision_s
-                    and value - _best_hypothesis(scores, conflict, ~alike[n])[0] < config.init_ambiguity_margin):
+                    and value - _best_hypothesis(scores, conflict, np.arange(len(group)) != n)[0] < config.init_ambiguity_margin):
                 continue
             out[group[n]] = replace(track, confirmed=True, confirmed_s=time_s)
             gone.update(group[m] for m in np.flatnonzero(rival[n] & ~best).tolist())
@@ -115,17 +111,6 @@ def _best_hypothesis(scores: np.ndarray, conflict: np.ndarray, allowed: np.ndarr
         mask[index[subsets[int(np.argmax(values))] > 0.5]] = True
     upper = np.triu(conflict, 1)
     return float(scores[mask].sum() - upper[np.ix_(mask, mask)].sum()), mask
-
-
-def _look_alike(tracks: Sequence[MultiTrack], time_s: float, config: AssociationConfig) -> np.ndarray:
-    """``(n, n)`` whether two tracks' positions, predicted to ``time_s``, agree within the ``gate_probability``
-    chi-square point of their summed covariances (each track alike itself)."""
-    means, covs = predicted_moments([t.track for t in tracks], time_s, config.network)
-    positions, spreads = means[:, :3], covs[:, :3, :3]
-    difference = positions[:, None, :] - positions[None, :, :]
-    summed = spreads[:, None] + spreads[None, :]
-    distance = np.einsum("abi,abi->ab", difference, np.linalg.solve(summed, difference[..., None])[..., 0])
-    return distance <= chi2_point(config.gate_probability, 3)
 
 
 __all__ = ["RIVALS_MAX_GROUP", "decide_rivals"]

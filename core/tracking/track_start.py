@@ -127,7 +127,8 @@ def start_tracks(tracks: list[MultiTrack], pool: list[Observation], next_id: int
     candidates = find_candidates(usable, config)
     chosen, rivals = select_candidates(candidates, len(usable)), []
     if config.init_ambiguity_margin > 0.0:
-        rivals = rival_candidates(candidates, chosen, len(usable), config.init_ambiguity_margin)
+        rivals = rival_candidates(candidates, chosen, len(usable), config.init_ambiguity_margin,
+                                  config.gate_probability)
     started = chosen + rivals
     ids = [f"t{next_id + k}" for k in range(len(started))]
     next_id += len(started)
@@ -163,11 +164,14 @@ def select_candidates(candidates: Sequence[Candidate], size: int) -> list[Candid
     return sorted((candidates[k] for k in chosen), key=lambda c: -c.score)
 
 
-def rival_candidates(candidates: Sequence[Candidate], chosen: Sequence[Candidate], size: int,
-                     margin: float) -> list[Candidate]:
+def rival_candidates(candidates: Sequence[Candidate], chosen: Sequence[Candidate], size: int, margin: float,
+                     gate_probability: float) -> list[Candidate]:
     """The candidates of each best packing without one of ``chosen`` (the best packing) that scores less than
     ``margin`` below it: where a missed detection makes a ghost and an emitter about equally likely, both
-    start and the next scans decide (:func:`core.tracking.rival_starts.decide_rivals`).
+    start and the next scans decide (:func:`core.tracking.rival_starts.decide_rivals`). A candidate whose
+    position agrees with that of a chosen one it shares a bearing with (within the ``gate_probability``
+    chi-square point of their summed covariances) is the same emitter from other bearings and is left out:
+    the chosen one's track refines it, and a choice between the two by their scores would be noise.
 
     Returns
     -------
@@ -186,7 +190,16 @@ def rival_candidates(candidates: Sequence[Candidate], chosen: Sequence[Candidate
         value, others = best_without(scores, members, size, k)
         if best - value < margin:
             out.update(n for n in others if n not in picked)
-    return sorted((candidates[k] for k in out), key=lambda c: -c.score)
+    gate = chi2_point(gate_probability, 3)
+    distinct = [k for k in out if not any(set(candidates[k].members).intersection(c.members)
+                                          and _distance2(candidates[k], c) <= gate for c in chosen)]
+    return sorted((candidates[k] for k in distinct), key=lambda c: -c.score)
+
+
+def _distance2(a: Candidate, b: Candidate) -> float:
+    """Squared Mahalanobis distance of two candidates' positions (their covariances summed)."""
+    difference = a.position_enu_m - b.position_enu_m
+    return float(difference @ np.linalg.solve(a.covariance_enu_m2 + b.covariance_enu_m2, difference))
 
 
 def set_packing(scores: np.ndarray, members: Sequence[Sequence[int]], size: int) -> list[int]:

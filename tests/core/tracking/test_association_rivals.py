@@ -63,14 +63,15 @@ def test_rivals_wait_while_their_scores_are_close_then_the_better_pair_is_confir
     assert [t.id for t in decide_rivals(tracks, now, CONFIG)] == ["r1", "r2"]
 
 
-def test_two_starts_of_one_emitter_are_decided_without_waiting():
-    # Look-alikes (one position) with a shared bearing: whichever is kept, the emitter is there.
+def test_two_emitters_that_shared_a_starting_bearing_are_both_confirmed():
+    # The conflict (one shared bearing) is less than either score: both are emitters, decided at once.
     now = START_TIME_S + 2.0
-    tracks = [rival("a", 0.0, 30.0, {"b": 10.0}), rival("b", 20.0, 29.5, {"a": 10.0})]
-    assert [(t.id, t.confirmed) for t in decide_rivals(tracks, now, CONFIG)] == [("a", True)]
-    # Two emitters that shared a starting bearing are both confirmed (the conflict is less than either score).
     tracks = [rival("a", 0.0, 30.0, {"b": 10.0}), rival("b", 4e3, 29.5, {"a": 10.0})]
     assert [(t.id, t.confirmed) for t in decide_rivals(tracks, now, CONFIG)] == [("a", True), ("b", True)]
+    # Not before every station has scanned since their start.
+    early = START_TIME_S + 2.0 + 0.5 * CONFIG.init_window_s
+    tracks = [replace(t, started_s=START_TIME_S + 2.0) for t in tracks]
+    assert not any(t.confirmed for t in decide_rivals(tracks, early, CONFIG))
 
 
 def test_a_ghost_pairing_that_ties_the_emitters_at_the_start_is_not_confirmed():
