@@ -104,16 +104,14 @@ def test_starts_only_real_emitters_from_crossing_bearings():
     assert wrong <= 1
 
 
-def test_tracks_start_and_confirm_from_four_scans_of_three_emitters():
-    # Two of the emitters line up from df-east, so a start may keep the swapped pairing as rival tracks; by
-    # four scans of each station their scores have told them apart and only the three emitters are left.
+def test_tracks_start_from_two_scans_of_three_emitters():
     emitters = np.array([[-4e3, 2e3, 100.0], [3e3, -1e3, 150.0], [6e3, 7e3, 80.0]])
     for seed in range(10):
         rng = np.random.default_rng(seed)
         observations = [bearing(s, e, START_TIME_S + second + 0.2 * s, rng, 433.92e6, seq=100 * second + 10 * s + k)
-                        for second in range(4) for s in range(4) for k, e in enumerate(emitters)]
+                        for second in range(2) for s in range(4) for k, e in enumerate(emitters)]
         tracks = apply_observations(new_association_state(), observations, CONFIG).state.tracks
-        assert len(tracks) == 3 and all(t.confirmed for t in tracks), seed
+        assert len(tracks) == 3, seed
         distances = np.linalg.norm(emitters[:, None, :2] - np.array([t.track.mean_enu[:2] for t in tracks])[None],
                                    axis=-1)
         assert np.all(distances.min(axis=1) < 1000.0), seed
