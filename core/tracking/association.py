@@ -33,8 +33,7 @@ linear_sum_assignment` maximises the scan's summed log likelihood ratios (unassi
 kept) and assigned bearings update their track, unless another track could have taken the bearing at a cost
 less than ``ambiguity_margin`` above (such a bearing counts as a hit but moves neither track). On the eight
 variants of :func:`core.simulation.multi_emitter.multi_emitter_scene` (seeds 10-13) JPDA's mean GOSPA was
-175-183 m on seven of them (354 m on the eighth, where a ghost started) against GNN's 203-593 m, with 0.06
-identity switches a run against GNN's 0.44: where
+167-183 m against GNN's 203-593 m, with no identity switch against GNN's 0.38 a run: where
 two emitters on one frequency pass close by, GNN's hard decisions pull the two tracks onto a wrong pairing of
 the bearings that it does not revisit, while JPDA weighs the pairings and follows both.
 
