@@ -51,12 +51,12 @@ class AssociationConfig:
         Stations a candidate needs (at least 3: two bearings always cross).
     init_ambiguity_margin : float
         A start is decided when every other packing of the start's candidates is this much less likely (log
-        likelihood ratio); when one is closer, its candidates start too, as rival tentative tracks that are
-        confirmed on their cumulative score (:func:`core.tracking.rival_starts.decide_rivals`); 0: the best
-        packing starts alone.
+        likelihood ratio); when one is closer, its candidates that place an emitter elsewhere start too, as
+        rival tentative tracks confirmed on their cumulative scores
+        (:func:`core.tracking.rival_starts.decide_rivals`); 0: the best packing starts alone.
     init_decision_s : float
-        Rival tracks that their scores do not tell apart within this long after their start are decided for
-        the best packing of their scores.
+        Rival tracks whose scores have not told them apart this long after their start are decided for the
+        best joint hypothesis of their scores.
     ambiguity_margin : float
         A bearing updates its track only when no other track could take it at a cost (log likelihood
         ratio) less than this above the assignment's (:func:`core.tracking.scan_assignment.ambiguous_tracks`); 0:
