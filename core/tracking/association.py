@@ -73,7 +73,8 @@ the start begin it. After each scan the rivals' joint hypotheses (the subsets of
 as their tracks' scores less their pairs' conflicts; a rival is confirmed once it has the M of N hits below,
 is in the best subset, ``init_window_s`` after its start, and the best subset without it scores
 ``init_ambiguity_margin`` less, or ``init_decision_s`` after its start; its rivals outside the best subset
-end (:func:`core.tracking.rival_starts.decide_rivals`). Ghosts that fit one scan fit the next ones worse as the emitters move and the stations miss them, and the emitters' lead
+end (:func:`core.tracking.rival_starts.decide_rivals`). Ghosts that fit one scan fit the next ones worse
+as the emitters move and the stations miss them, and the emitters' lead
 grows scan by scan. This is track-oriented MHT confined to where it is needed: hypotheses over every track
 and scan would grow with both, while the ambiguity here is one of starts (a confirmed track is followed by
 JPDA, which weighs its pairings anyway); withholding an ambiguous start instead would look again at a

@@ -66,7 +66,8 @@ def decide_rivals(tracks: list[MultiTrack], time_s: float, config: AssociationCo
             if track.hits.count(True) < config.confirm_hits or time_s - track.started_s < config.init_window_s:
                 continue
             if (time_s - track.started_s < config.init_decision_s
-                    and value - _best_hypothesis(scores, conflict, np.arange(len(group)) != n)[0] < config.init_ambiguity_margin):
+                    and value - _best_hypothesis(scores, conflict, np.arange(len(group)) != n)[0]
+                    < config.init_ambiguity_margin):
                 continue
             out[group[n]] = replace(track, confirmed=True, confirmed_s=time_s)
             gone.update(group[m] for m in np.flatnonzero(rival[n] & ~best).tolist())

@@ -242,8 +242,8 @@ def _test_rivals(tracks, scan, gate: ScanGate, testing, out, free, config):
         cost = np.where(free, gate.cost[i], np.inf)
         j = int(np.argmin(cost))
         hit = bool(np.isfinite(cost[j]))
-        out[i] = _after_scan(t, scan[j] if hit else None, time_s, config, update=_update_of(gate, i, j if hit else None),
-                             may_confirm=False)
+        out[i] = _after_scan(t, scan[j] if hit else None, time_s, config,
+                             update=_update_of(gate, i, j if hit else None), may_confirm=False)
         if out[i] is not None:
             out[i] = replace(out[i], score=t.score + (-float(cost[j]) if hit else missed))
             if hit:

@@ -486,7 +486,8 @@ def _score(arrays: _Pool, members, cov, chi2_value: float, stations: int, config
     sign, log_det = np.linalg.slogdet(2.0 * math.pi * np.asarray(cov))
     if sign <= 0:
         return -math.inf
-    return float(_exact_llr(arrays, members, config).sum() - 0.5 * chi2_value + (stations - n) * math.log1p(-config.detection_probability) + 0.5 * log_det
+    return float(_exact_llr(arrays, members, config).sum() - 0.5 * chi2_value
+                 + (stations - n) * math.log1p(-config.detection_probability) + 0.5 * log_det
                  - math.log(config.surveillance_volume_m3))
 
 
