@@ -16,7 +16,9 @@ compare the association and the filter and nothing else:
 - **starts**: Stone Soup has none for bearings-only sensors (``MultiMeasurementInitiator`` needs an
   invertible measurement model), so tracks start exactly as the association tracker's do: the bearings no
   track took go to the same pool and :func:`core.tracking.track_start.start_tracks` starts them (its fit and
-  covariance, velocity zero with the tracker's prior);
+  covariance, velocity zero with the tracker's prior), the best packing only (``init_ambiguity_margin`` 0:
+  the rival starts of an ambiguous packing are decided by the association tracker's scores,
+  :mod:`core.tracking.rival_starts`, which a GNN tracker does not keep);
 - **management**: the association tracker's rules (M of N confirmation, tentative tracks deleted when they
   can no longer confirm, a confirmed track without a hit for ``coast_after_s`` not reported, ended after
   ``end_after_s``).
@@ -27,6 +29,7 @@ from __future__ import annotations
 import datetime
 import itertools
 import math
+from dataclasses import replace
 from typing import NamedTuple
 
 import numpy as np
@@ -137,7 +140,8 @@ class StoneSoupGnn:
         unassigned = [o for d, o in detections.items() if d not in taken]
         self.pool = [o for o in self.pool if o.time_s > time_s - config.init_window_s] + unassigned
         if unassigned and time_s - self.first_s >= config.init_window_s:
-            started, self.pool, self.next_id, _ = start_tracks([], self.pool, self.next_id, time_s, config)
+            started, self.pool, self.next_id, _ = start_tracks([], self.pool, self.next_id, time_s,
+                                                               replace(config, init_ambiguity_margin=0.0))
             for new in started:
                 self.tracks.append(self._from_start(new))
 

@@ -33,8 +33,7 @@ linear_sum_assignment` maximises the scan's summed log likelihood ratios (unassi
 kept) and assigned bearings update their track, unless another track could have taken the bearing at a cost
 less than ``ambiguity_margin`` above (such a bearing counts as a hit but moves neither track). On the eight
 variants of :func:`core.simulation.multi_emitter.multi_emitter_scene` (seeds 10-13) JPDA's mean GOSPA was
-175-183 m on seven of them (354 m on the eighth, where a ghost started) against GNN's 203-593 m, with 0.06
-identity switches a run against GNN's 0.44: where
+167-183 m against GNN's 203-593 m, with no identity switch against GNN's 0.38 a run: where
 two emitters on one frequency pass close by, GNN's hard decisions pull the two tracks onto a wrong pairing of
 the bearings that it does not revisit, while JPDA weighs the pairings and follows both.
 
@@ -57,13 +56,39 @@ chosen only when it explains the bearings better than the real emitters that sha
 elevation is taken, for the fit, as elevation 0 with ``network.azimuth_only_elevation_sigma_rad``, as the
 network tracker's start does.
 
+**Rival starts: the decision deferred to the next scans.** One scan can leave the packing ambiguous: where
+each of two emitters on one frequency lies near the line between two opposite stations, the swapped pairing
+is a pair of ghosts that all four stations fit, and a missed detection can make it score as well as the
+emitters. So when the best packing without one of the accepted candidates scores less than
+``init_ambiguity_margin`` below the best (:func:`core.tracking.track_start.rival_candidates`), that packing's
+candidates start too, as tentative tracks that are each other's *rivals* where they share starting bearings,
+unless a candidate's position agrees with that of an accepted one it shares a bearing with (within the
+``gate_probability`` chi-square point: the same emitter from other bearings, which the next scans refine
+anyway). While a tentative track has a live rival it is a hypothesis about bearings, not an emitter beside the others:
+it stays out of the joint assignment, takes each scan its best gated bearing of those the other tracks left,
+and adds that bearing's log likelihood ratio (``log(1 - P_D)`` when none gates) to its score, its candidate's
+score to begin with (the track score of Blackman and Popoli, 1999). Two rivals that take one bearing
+add to their *conflict* what the one that fits it less would lose by missing it; the bearings they shared at
+the start begin it. After each scan the rivals' joint hypotheses (the subsets of a group of rivals) are scored
+as their tracks' scores less their pairs' conflicts; a rival is confirmed once it has the M of N hits below,
+is in the best subset, ``init_window_s`` after its start, and the best subset without it scores
+``init_ambiguity_margin`` less, or ``init_decision_s`` after its start; its rivals outside the best subset
+end (:func:`core.tracking.rival_starts.decide_rivals`). Ghosts that fit one scan fit the next ones worse
+as the emitters move and the stations miss them, and the emitters' lead
+grows scan by scan. This is track-oriented MHT confined to where it is needed: hypotheses over every track
+and scan would grow with both, while the ambiguity here is one of starts (a confirmed track is followed by
+JPDA, which weighs its pairings anyway); withholding an ambiguous start instead would look again at a
+single scan's pool each time and, where the ambiguity persists, leave the emitters unstarted with nothing
+learnt; and confirming every track on its score rather than M of N would change every unambiguous start too.
+
 **Track management** (statuses are those of the network sessions):
 
 - a track starts ``tentative`` from an accepted candidate: position the fit (covariance its inverse Fisher
   information), velocity zero with the network tracker's prior (:func:`core.tracking.network_update.velocity_prior`);
   its starting bearings count as hits;
 - each later scan of any station is a hit (a bearing assigned) or a miss. A tentative track is ``confirmed``
-  once ``confirm_hits`` of its last ``confirm_window`` scans are hits (M of N), and deleted as soon as it can no
+  once ``confirm_hits`` of its last ``confirm_window`` scans are hits (M of N; a rival also as above), and
+  deleted as soon as it can no
   longer reach that (more than ``confirm_window - confirm_hits`` misses among them): a ghost or clutter-born
   track gets the bearings of at most the stations whose lines made it and dies within a few scans;
 - a confirmed track without a hit for ``coast_after_s`` is ``coasting`` (it still gates and may take
@@ -71,8 +96,9 @@ network tracker's start does.
 - ids are ``"t1"``, ``"t2"``, ... in start order, never reused.
 
 Layout: this module holds the state and its API; one scan's gating and assignment is
-:mod:`core.tracking.scan_assignment`, the track starts are :mod:`core.tracking.track_start`, and the values
-all three share (settings, bearing, track) are :mod:`core.tracking.association_types`. Imports run one way,
+:mod:`core.tracking.scan_assignment`, the track starts are :mod:`core.tracking.track_start`, the decision
+between rival starts is :mod:`core.tracking.rival_starts`, and the values all four share (settings, bearing,
+track) are :mod:`core.tracking.association_types`. Imports run one way,
 from here down.
 """
 
@@ -89,11 +115,19 @@ from core.measurements import AZIMUTH, ELEVATION
 from core.tracking.association_types import AssociationConfig, MultiTrack, Observation
 from core.tracking.network import NetworkState, predict_tracks
 from core.tracking.network_types import Report, Track
+from core.tracking.rival_starts import decide_rivals
 from core.tracking.scan_assignment import assign_scan, gate_costs
-from core.tracking.track_start import Candidate, find_candidates, select_candidates, start_tracks
+from core.tracking.track_start import (
+    Candidate,
+    find_candidates,
+    select_candidates,
+    start_tracks,
+)
 
-#: Version of the :meth:`AssociationState.to_dict` layout.
-ASSOCIATION_STATE_FORMAT = 1
+#: Version of the :meth:`AssociationState.to_dict` layout. Format 1 (tracks without ``score`` and ``rivals``)
+#: still loads: its tracks have no rivals, so they are managed as they were.
+ASSOCIATION_STATE_FORMAT = 2
+_READABLE_FORMATS = (1, 2)
 
 
 def observations_from_report(report: Report, frequency_hz: float = math.nan) -> list[Observation]:
@@ -151,7 +185,8 @@ class AssociationState:
                 "tracks": [{"track": t.track.to_dict(), "frequency_hz": _float_or_none(t.frequency_hz),
                             "frequency_count": t.frequency_count, "hits": list(t.hits), "last_hit_s": t.last_hit_s,
                             "confirmed": t.confirmed, "started_s": t.started_s,
-                            "confirmed_s": _float_or_none(t.confirmed_s)} for t in self.tracks],
+                            "confirmed_s": _float_or_none(t.confirmed_s), "score": _float_or_none(t.score),
+                            "rivals": dict(t.rivals)} for t in self.tracks],
                 "pool": [{"report": o.report.to_dict(), "frequency_hz": _float_or_none(o.frequency_hz)}
                          for o in self.pool]}
 
@@ -164,19 +199,21 @@ class AssociationState:
         InvalidInput
             When the data is not an association state of a known format.
         """
-        if not isinstance(data, dict) or data.get("format") != ASSOCIATION_STATE_FORMAT:
+        if not isinstance(data, dict) or data.get("format") not in _READABLE_FORMATS:
             raise InvalidInput(f"association state must be a mapping with format {ASSOCIATION_STATE_FORMAT}")
         try:
             tracks = tuple(MultiTrack(Track.from_dict(t["track"]), _nan_if_none(t["frequency_hz"]),
                                       int(t["frequency_count"]), tuple(bool(h) for h in t["hits"]),
                                       float(t["last_hit_s"]), bool(t["confirmed"]), float(t["started_s"]),
-                                      _nan_if_none(t["confirmed_s"])) for t in data["tracks"])
+                                      _nan_if_none(t["confirmed_s"]), _nan_if_none(t.get("score")),
+                                      {str(r): float(c) for r, c in t.get("rivals", {}).items()})
+                           for t in data["tracks"])
             pool = tuple(Observation(Report.from_dict(o["report"]), _nan_if_none(o["frequency_hz"]))
                          for o in data["pool"])
             last, first = data["last_time_s"], data["first_time_s"]
             return cls(tracks, pool, int(data["next_id"]), None if last is None else float(last),
                        None if first is None else float(first))
-        except (KeyError, TypeError, ValueError) as error:
+        except (AttributeError, KeyError, TypeError, ValueError) as error:
             raise InvalidInput(f"association state is malformed: {error}") from None
 
     def __eq__(self, other):
@@ -274,6 +311,7 @@ def apply_observations(state: AssociationState, observations: Sequence[Observati
         tracks, gone = _drop_ended(tracks, time_s, config)
         ended.extend(gone)
         tracks, unassigned = assign_scan(tracks, scan, config)
+        tracks = decide_rivals(tracks, time_s, config)
         pool = [o for o in pool if o.time_s > time_s - config.init_window_s] + unassigned
         if unassigned and time_s - first >= config.init_window_s:
             tracks, pool, next_id, new = start_tracks(tracks, pool, next_id, time_s, config)

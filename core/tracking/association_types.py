@@ -9,6 +9,7 @@ more stations) all build on these; this module imports none of them. The rules t
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,8 +50,13 @@ class AssociationConfig:
     init_min_stations : int
         Stations a candidate needs (at least 3: two bearings always cross).
     init_ambiguity_margin : float
-        A candidate starts a track only when every packing without it is this much less likely (log
-        likelihood ratio; :func:`core.tracking.track_start.select_candidates`); 0: off.
+        A start is decided when every other packing of the start's candidates is this much less likely (log
+        likelihood ratio); when one is closer, its candidates that place an emitter elsewhere start too, as
+        rival tentative tracks confirmed on their cumulative scores
+        (:func:`core.tracking.rival_starts.decide_rivals`); 0: the best packing starts alone.
+    init_decision_s : float
+        Rival tracks whose scores have not told them apart this long after their start are decided for the
+        best joint hypothesis of their scores.
     ambiguity_margin : float
         A bearing updates its track only when no other track could take it at a cost (log likelihood
         ratio) less than this above the assignment's (:func:`core.tracking.scan_assignment.ambiguous_tracks`); 0:
@@ -75,7 +81,8 @@ class AssociationConfig:
     frequency_tolerance_hz: float = 10e3
     init_window_s: float = 1.0
     init_min_stations: int = 3
-    init_ambiguity_margin: float = 0.0
+    init_ambiguity_margin: float = 4.0
+    init_decision_s: float = 10.0
     ambiguity_margin: float = 2.0
     method: str = "jpda"
     range_min_m: float = 200.0
@@ -89,7 +96,7 @@ class AssociationConfig:
         if not isinstance(self.network, NetworkConfig):
             raise InvalidInput("network must be a NetworkConfig", ("network",))
         for name in ("false_density_per_rad2", "surveillance_volume_m3", "frequency_tolerance_hz",
-                     "init_window_s", "range_min_m", "range_max_m", "coast_after_s", "end_after_s"):
+                     "init_window_s", "init_decision_s", "range_min_m", "range_max_m", "coast_after_s", "end_after_s"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0.0):
                 raise InvalidInput(f"{name} must be a finite number > 0", (name,))
@@ -99,6 +106,8 @@ class AssociationConfig:
                 raise InvalidInput(f"{name} must be inside (0, 1)", (name,))
         if not 3 <= self.init_min_stations:
             raise InvalidInput("init_min_stations must be >= 3", ("init_min_stations",))
+        if not (math.isfinite(self.init_ambiguity_margin) and self.init_ambiguity_margin >= 0.0):
+            raise InvalidInput("init_ambiguity_margin must be a finite number >= 0", ("init_ambiguity_margin",))
         if self.method not in ("gnn", "jpda"):
             raise InvalidInput("method must be \"gnn\" or \"jpda\"", ("method",))
         if not 1 <= self.confirm_hits <= self.confirm_window:
@@ -163,6 +172,14 @@ class MultiTrack:
     started_s : float
     confirmed_s : float
         When it was confirmed (NaN while tentative).
+    score : float
+        Log likelihood ratio of "an emitter" against "false bearings": its start candidate's score plus, for
+        each later scan while it has live rivals, its bearing's log likelihood ratio or ``log(1 - P_D)``
+        (NaN for a track started before scores were kept).
+    rivals : mapping of str to float
+        The tracks started beside it that share a starting bearing with it, each with the log likelihood
+        ratio both would lose to be emitters side by side (one of them missing each bearing they share: at the
+        start and in every scan since; :func:`core.tracking.rival_starts.decide_rivals`).
     """
 
     track: Track
@@ -173,6 +190,8 @@ class MultiTrack:
     confirmed: bool
     started_s: float
     confirmed_s: float = math.nan
+    score: float = math.nan
+    rivals: Mapping[str, float] = field(default_factory=dict)
 
     @property
     def id(self) -> str:
@@ -185,4 +204,11 @@ def frequency_ok(a: float, b: float, config: AssociationConfig) -> bool:
     return not (abs(a - b) > config.frequency_tolerance_hz)  # NaN on either side: True
 
 
-__all__ = ["COARSE_SIGMAS", "AssociationConfig", "MultiTrack", "Observation", "frequency_ok"]
+def under_test(tracks: Sequence[MultiTrack]) -> list[int]:
+    """Indices of the tentative tracks with a live tentative rival (:attr:`MultiTrack.rivals`): each is still
+    one of several explanations of its bearings (:func:`core.tracking.rival_starts.decide_rivals`)."""
+    tentative = {t.id for t in tracks if not t.confirmed}
+    return [k for k, t in enumerate(tracks) if not t.confirmed and tentative.intersection(t.rivals)]
+
+
+__all__ = ["COARSE_SIGMAS", "AssociationConfig", "MultiTrack", "Observation", "frequency_ok", "under_test"]

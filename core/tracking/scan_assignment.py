@@ -21,7 +21,14 @@ from scipy.optimize import linear_sum_assignment
 
 from core.angles import wrap_to_pi
 from core.measurements import AZIMUTH, predict
-from core.tracking.association_types import COARSE_SIGMAS, AssociationConfig, MultiTrack, Observation, frequency_ok
+from core.tracking.association_types import (
+    COARSE_SIGMAS,
+    AssociationConfig,
+    MultiTrack,
+    Observation,
+    frequency_ok,
+    under_test,
+)
 from core.tracking.network import NetworkState, predict_tracks
 from core.tracking.network_kernel import STATE_SIZE, UPDATED, network_ukf_pairs
 from core.tracking.network_types import Report
@@ -182,25 +189,76 @@ def assign_scan(tracks: list[MultiTrack], scan: Sequence[Observation],
     unassigned : list of Observation
         The bearings left for track starts.
     """
+    if not tracks:
+        return [], list(scan)
+    gate = scan_gate(tracks, scan, config)
+    # Rival tentative tracks are alternative explanations of the same bearings, not emitters beside each
+    # other: they stay out of the joint assignment and are scored on their own (:func:`_test_rivals`).
+    testing = under_test(tracks)
+    joint = gate._replace(cost=gate.cost.copy()) if testing else gate
+    joint.cost[testing] = np.inf
+    if config.method == "jpda":
+        out, claimed = _scan_jpda(tracks, scan, joint, config)
+        free = claimed < 0.5
+    else:
+        out, free = _scan_gnn(tracks, scan, joint, config)
+    if testing:
+        out, free = _test_rivals(tracks, scan, gate, testing, out, free, config)
+    return [t for t in out if t is not None], [o for j, o in enumerate(scan) if free[j]]
+
+
+def _scan_gnn(tracks, scan, gate: ScanGate, config):
+    """Global nearest neighbour: the tracks after the scan (None: deleted) and which bearings are left
+    ``(B,)``."""
     time_s = scan[0].time_s
+    cost = gate.cost
     pairs = {}
-    gate = None
-    if tracks:
-        gate = scan_gate(tracks, scan, config)
-        cost = gate.cost
-        if config.method == "jpda":
-            return _scan_jpda(tracks, scan, gate, config)
-        usable = np.minimum(np.where(np.isfinite(cost), cost, 0.0), 0.0)
-        if usable.any():
-            rows, cols = linear_sum_assignment(usable)
-            pairs = {int(i): int(j) for i, j in zip(rows, cols) if cost[i, j] < 0.0}
+    usable = np.minimum(np.where(np.isfinite(cost), cost, 0.0), 0.0)
+    if usable.any():
+        rows, cols = linear_sum_assignment(usable)
+        pairs = {int(i): int(j) for i, j in zip(rows, cols) if cost[i, j] < 0.0}
     unsure = (ambiguous_tracks(pairs, cost, config.ambiguity_margin) if pairs and config.ambiguity_margin > 0.0
               else set())
     out = [_after_scan(t, None if pairs.get(i) is None else scan[pairs[i]], time_s, config, i in unsure,
                        _update_of(gate, i, pairs.get(i)))
            for i, t in enumerate(tracks)]
-    taken = set(pairs.values())
-    return [t for t in out if t is not None], [o for j, o in enumerate(scan) if j not in taken]
+    free = np.ones(len(scan), dtype=bool)
+    free[list(pairs.values())] = False
+    return out, free
+
+
+def _test_rivals(tracks, scan, gate: ScanGate, testing, out, free, config):
+    """Each rival tentative track (:func:`core.tracking.association_types.under_test`) takes its best gated bearing of
+    those the other tracks left, rivals alike (each is one hypothesis about them), and adds that bearing's log
+    likelihood ratio, or ``log(1 - P_D)`` when none gates, to its score; two rivals that took one bearing add
+    to their conflict what the one that fits it less would lose by missing it. They are not confirmed here
+    (:func:`core.tracking.rival_starts.decide_rivals` does); the bearings they take leave the start pool."""
+    time_s = scan[0].time_s
+    left = free.copy()
+    missed = math.log1p(-config.detection_probability)
+    took = {}
+    for i in testing:
+        t = tracks[i]
+        cost = np.where(free, gate.cost[i], np.inf)
+        j = int(np.argmin(cost))
+        hit = bool(np.isfinite(cost[j]))
+        out[i] = _after_scan(t, scan[j] if hit else None, time_s, config,
+                             update=_update_of(gate, i, j if hit else None), may_confirm=False)
+        if out[i] is not None:
+            out[i] = replace(out[i], score=t.score + (-float(cost[j]) if hit else missed))
+            if hit:
+                left[j] = False
+                took[t.id] = (j, -float(cost[j]))
+    for i in testing:
+        if out[i] is None or out[i].id not in took:
+            continue
+        j, llr = took[out[i].id]
+        shared = {other: max(0.0, min(llr, took[other][1]) - missed) for other in out[i].rivals
+                  if other in took and took[other][0] == j}
+        if shared:
+            out[i] = replace(out[i], rivals={other: loss + shared.get(other, 0.0)
+                                             for other, loss in out[i].rivals.items()})
+    return out, left
 
 
 #: Largest number of tracks in one JPDA cluster whose joint events are enumerated; larger ones fall back to
@@ -276,8 +334,9 @@ def _joint_events(order: list, gated: np.ndarray, likelihood: np.ndarray, missed
 def _scan_jpda(tracks, scan, gate: ScanGate, config):
     """JPDA in place of GNN: each track updated with every gated bearing of the scan and left as predicted,
     the hypotheses merged by their association probabilities (the Gaussian sum's moments; for a linear model
-    this is the PDA update); a hit when the track's bearing probability is above one half; a bearing whose
-    probability of belonging to any track is below one half goes to the start pool."""
+    this is the PDA update); a hit when the track's bearing probability is above one half. Returns the tracks
+    after the scan (None: deleted) and each bearing's probability of belonging to a track ``(B,)`` (below one
+    half: it goes to the start pool)."""
     time_s = scan[0].time_s
     cost = gate.cost
     likelihood = np.where(np.isfinite(cost), np.exp(-np.where(np.isfinite(cost), cost, 0.0)), 0.0)
@@ -319,12 +378,12 @@ def _scan_jpda(tracks, scan, gate: ScanGate, config):
         hit = 1.0 - beta0[i] > 0.5
         hits = (t.hits + (bool(hit),))[-config.confirm_window:]
         if not hit and not t.confirmed and hits.count(False) > config.confirm_window - config.confirm_hits:
+            out.append(None)
             continue
         confirmed = t.confirmed or hits.count(True) >= config.confirm_hits
-        out.append(MultiTrack(merged, t.frequency_hz, t.frequency_count, hits, time_s if hit else t.last_hit_s,
-                              confirmed, t.started_s, time_s if confirmed and not t.confirmed else t.confirmed_s))
-    claimed = beta.sum(axis=0)
-    return [t for t in out if t is not None], [o for j, o in enumerate(scan) if claimed[j] < 0.5]
+        out.append(replace(t, track=merged, hits=hits, last_hit_s=time_s if hit else t.last_hit_s,
+                           confirmed=confirmed, confirmed_s=time_s if confirmed and not t.confirmed else t.confirmed_s))
+    return out, beta.sum(axis=0)
 
 
 def ambiguous_tracks(pairs: dict, cost: np.ndarray, margin: float) -> set:
@@ -366,28 +425,28 @@ def _updated(track: MultiTrack, obs: Observation, update, config: AssociationCon
 
 
 def _after_scan(track: MultiTrack, obs: Observation | None, time_s: float, config: AssociationConfig,
-                unsure: bool = False, update=None):
+                unsure: bool = False, update=None, may_confirm: bool = True):
     """A track after one scan (None: deleted as a tentative track that can no longer confirm). With ``unsure``
     the bearing counts as a hit but does not update the track (:func:`ambiguous_tracks`). ``update`` is the
-    gate's for the pair (:func:`_update_of`), if any."""
+    gate's for the pair (:func:`_update_of`), if any. Without ``may_confirm`` a tentative track stays
+    tentative."""
     hits = (track.hits + (obs is not None,))[-config.confirm_window:]
     if obs is None:
         if not track.confirmed and hits.count(False) > config.confirm_window - config.confirm_hits:
             return None
-        return MultiTrack(track.track, track.frequency_hz, track.frequency_count, hits, track.last_hit_s,
-                          track.confirmed, track.started_s, track.confirmed_s)
-    confirmed = track.confirmed or hits.count(True) >= config.confirm_hits
+        return replace(track, hits=hits)
+    confirmed = track.confirmed or (may_confirm and hits.count(True) >= config.confirm_hits)
     confirmed_s = time_s if confirmed and not track.confirmed else track.confirmed_s
     if unsure:
-        return MultiTrack(track.track, track.frequency_hz, track.frequency_count, hits, time_s, confirmed,
-                          track.started_s, confirmed_s)
+        return replace(track, hits=hits, last_hit_s=time_s, confirmed=confirmed, confirmed_s=confirmed_s)
     updated = _updated(track, obs, update, config)
     frequency, count = track.frequency_hz, track.frequency_count
     if math.isfinite(obs.frequency_hz):
         count += 1
         frequency = obs.frequency_hz if not math.isfinite(frequency) else (
             frequency + (obs.frequency_hz - frequency) / count)
-    return MultiTrack(updated, frequency, count, hits, time_s, confirmed, track.started_s, confirmed_s)
+    return replace(track, track=updated, frequency_hz=frequency, frequency_count=count, hits=hits, last_hit_s=time_s,
+                   confirmed=confirmed, confirmed_s=confirmed_s)
 
 
 def _labelled(report: Report, track_id: str) -> Report:
@@ -397,5 +456,14 @@ def _labelled(report: Report, track_id: str) -> Report:
     return out
 
 
-__all__ = ["COARSE_FROM_TRACKS", "JPDA_MAX_CLUSTER", "JPDA_NEGLIGIBLE", "ScanGate", "ambiguous_tracks", "gate_costs",
-           "assign_scan", "jpda_weights", "scan_gate"]
+__all__ = [
+    "COARSE_FROM_TRACKS",
+    "JPDA_MAX_CLUSTER",
+    "JPDA_NEGLIGIBLE",
+    "ScanGate",
+    "ambiguous_tracks",
+    "assign_scan",
+    "gate_costs",
+    "jpda_weights",
+    "scan_gate",
+]

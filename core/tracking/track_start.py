@@ -18,7 +18,13 @@ import numpy as np
 
 from core.angles import line_of_sight_enu, station_to_common, wrap_to_pi
 from core.measurements import AZIMUTH, ELEVATION, predict
-from core.tracking.association_types import COARSE_SIGMAS, AssociationConfig, MultiTrack, Observation, frequency_ok
+from core.tracking.association_types import (
+    COARSE_SIGMAS,
+    AssociationConfig,
+    MultiTrack,
+    Observation,
+    frequency_ok,
+)
 from core.tracking.network_kernel import STATE_SIZE
 from core.tracking.network_types import Track
 from core.tracking.network_update import chi2_point, velocity_prior
@@ -119,23 +125,26 @@ def start_tracks(tracks: list[MultiTrack], pool: list[Observation], next_id: int
     if len(latest) < config.init_min_stations:
         return tracks, pool, next_id, []
     candidates = find_candidates(usable, config)
-    used: set[int] = set()
-    new_ids = []
-    for cand in select_candidates(candidates, len(usable), config.init_ambiguity_margin):
-        used.update(cand.members)
-        members = [usable[k] for k in cand.members]
-        track_id = f"t{next_id}"
-        next_id += 1
-        new_ids.append(track_id)
-        tracks.append(_new_track(track_id, cand, members, config))
-    consumed = {id(usable[k]) for k in used}
-    return tracks, [o for o in pool if id(o) not in consumed], next_id, new_ids
+    chosen, rivals = select_candidates(candidates, len(usable)), []
+    if config.init_ambiguity_margin > 0.0:
+        rivals = rival_candidates(candidates, chosen, len(usable), config.init_ambiguity_margin,
+                                  config.gate_probability)
+    started = chosen + rivals
+    ids = [f"t{next_id + k}" for k in range(len(started))]
+    next_id += len(started)
+    give_up = _give_up_llr(_pool_arrays(usable, config), config) if rivals else None
+    for k, cand in enumerate(started):
+        shared = {ids[n]: float(sum(give_up[m] for m in set(cand.members).intersection(other.members)))
+                  for n, other in enumerate(started) if n != k and set(cand.members).intersection(other.members)}
+        tracks.append(_new_track(ids[k], cand, [usable[m] for m in cand.members], config, shared))
+    consumed = {id(usable[m]) for cand in started for m in cand.members}
+    return tracks, [o for o in pool if id(o) not in consumed], next_id, ids
 
 
-def select_candidates(candidates: Sequence[Candidate], size: int, margin: float = 0.0) -> list[Candidate]:
+def select_candidates(candidates: Sequence[Candidate], size: int) -> list[Candidate]:
     """The candidates that share no bearing with the largest total score: the S-D assignment problem as a
     set packing, ``max sum score_k x_k`` over binary ``x`` with every bearing in at most one chosen candidate,
-    solved exactly (:func:`scipy.optimize.milp`). A greedy pick by score is not enough: where stations see two
+    solved exactly (:func:`set_packing`). A greedy pick by score is not enough: where stations see two
     emitters nearly in line, a ghost that borrows one bearing of each can out-score either real emitter and
     would block both.
 
@@ -145,49 +154,93 @@ def select_candidates(candidates: Sequence[Candidate], size: int, margin: float 
         Scores positive.
     size : int
         Number of bearings (pool indices ``0 .. size-1``).
-    margin : float
-        Above 0: a chosen candidate is returned only when the best packing without it scores at least this
-        much (log likelihood ratio) less; where another explanation of its bearings is about as likely (a
-        missed detection can make a ghost and an emitter equally good), the next scans decide.
 
     Returns
     -------
     list of Candidate
         In descending score.
     """
-    if len(candidates) <= 1:
-        return list(candidates)
+    chosen = set_packing(np.array([c.score for c in candidates]), [c.members for c in candidates], size)
+    return sorted((candidates[k] for k in chosen), key=lambda c: -c.score)
+
+
+def rival_candidates(candidates: Sequence[Candidate], chosen: Sequence[Candidate], size: int, margin: float,
+                     gate_probability: float) -> list[Candidate]:
+    """The candidates of each best packing without one of ``chosen`` (the best packing) that scores less than
+    ``margin`` below it: where a missed detection makes a ghost and an emitter about equally likely, both
+    start and the next scans decide (:func:`core.tracking.rival_starts.decide_rivals`). A candidate whose
+    position agrees with that of a chosen one it shares a bearing with (within the ``gate_probability``
+    chi-square point of their summed covariances) is the same emitter from other bearings and is left out:
+    the chosen one's track refines it, and a choice between the two by their scores would be noise.
+
+    Returns
+    -------
+    list of Candidate
+        Not in ``chosen``, in descending score.
+    """
+    if not chosen:
+        return []
+    scores = np.array([c.score for c in candidates])
+    members = [c.members for c in candidates]
+    best = float(sum(c.score for c in chosen))
+    index = {c.members: k for k, c in enumerate(candidates)}
+    picked = [index[c.members] for c in chosen]
+    out: set[int] = set()
+    for k in picked:
+        value, others = best_without(scores, members, size, k)
+        if best - value < margin:
+            out.update(n for n in others if n not in picked)
+    gate = chi2_point(gate_probability, 3)
+    distinct = [k for k in out if not any(set(candidates[k].members).intersection(c.members)
+                                          and _distance2(candidates[k], c) <= gate for c in chosen)]
+    return sorted((candidates[k] for k in distinct), key=lambda c: -c.score)
+
+
+def _distance2(a: Candidate, b: Candidate) -> float:
+    """Squared Mahalanobis distance of two candidates' positions (their covariances summed)."""
+    difference = a.position_enu_m - b.position_enu_m
+    return float(difference @ np.linalg.solve(a.covariance_enu_m2 + b.covariance_enu_m2, difference))
+
+
+def set_packing(scores: np.ndarray, members: Sequence[Sequence[int]], size: int) -> list[int]:
+    """The items that share no resource with the largest total score: ``max sum score_k x_k`` over binary
+    ``x`` with every resource (``0 .. size-1``) in at most one chosen item's ``members``, solved exactly
+    (:func:`scipy.optimize.milp`; a greedy pick by score when HiGHS gives no solution). ``scores`` ``(K,)``;
+    an item scoring 0 or less is never chosen. Returns the chosen indices."""
+    if len(scores) == 1:
+        return [0] if scores[0] > 0.0 else []
+    return best_without(scores, members, size, -1)[1]
+
+
+def best_without(scores: np.ndarray, members: Sequence[Sequence[int]], size: int,
+                 excluded: int) -> tuple[float, list[int]]:
+    """:func:`set_packing` without item ``excluded`` (-1: none): the total score and the chosen indices."""
+    if not len(scores):
+        return 0.0, []
     from scipy.optimize import Bounds, LinearConstraint, milp
     from scipy.sparse import coo_matrix
 
-    rows = [m for c in candidates for m in c.members]
-    cols = [k for k, c in enumerate(candidates) for _ in c.members]
-    usage = LinearConstraint(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(size, len(candidates))), -np.inf,
-                             1.0)
-    scores = np.array([c.score for c in candidates])
-    integral = np.ones(len(candidates))
-    result = milp(-scores, constraints=usage, integrality=integral, bounds=Bounds(0.0, 1.0))
+    scores = np.asarray(scores, dtype=float)
+    rows = [m for group in members for m in group]
+    cols = [k for k, group in enumerate(members) for _ in group]
+    usage = LinearConstraint(coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(max(size, 1), len(scores))),
+                             -np.inf, 1.0)
+    upper = (scores > 0.0).astype(float)
+    if excluded >= 0:
+        upper[excluded] = 0.0
+    result = milp(-scores, constraints=usage, integrality=np.ones(len(scores)), bounds=Bounds(0.0, upper))
     if result.x is None:  # no solution within HiGHS's limits: the greedy pick
         chosen, used = [], set()
-        for cand in sorted(candidates, key=lambda c: -c.score):
-            if not used.intersection(cand.members):
-                used.update(cand.members)
-                chosen.append(cand)
-        return chosen
-    chosen = np.flatnonzero(result.x > 0.5)
-    if margin > 0.0:
-        decided = []
-        for k in chosen.tolist():
-            upper = np.ones(len(candidates))
-            upper[k] = 0.0
-            other = milp(-scores, constraints=usage, integrality=integral, bounds=Bounds(0.0, upper))
-            if other.x is None or other.fun - result.fun >= margin:
-                decided.append(k)
-        chosen = np.array(decided, dtype=np.int64)
-    return sorted((candidates[k] for k in chosen.tolist()), key=lambda c: -c.score)
+        for k in np.argsort(-scores, kind="stable").tolist():
+            if upper[k] > 0.0 and not used.intersection(members[k]):
+                used.update(members[k])
+                chosen.append(k)
+    else:
+        chosen = np.flatnonzero(result.x > 0.5).tolist()
+    return float(scores[chosen].sum()), chosen
 
 
-def _new_track(track_id, cand: Candidate, members, config) -> MultiTrack:
+def _new_track(track_id, cand: Candidate, members, config, rivals=None) -> MultiTrack:
     time_s = max(o.time_s for o in members)
     mean = np.zeros(STATE_SIZE)
     mean[:3] = cand.position_enu_m
@@ -200,7 +253,7 @@ def _new_track(track_id, cand: Candidate, members, config) -> MultiTrack:
     frequencies = [o.frequency_hz for o in members if math.isfinite(o.frequency_hz)]
     frequency = float(np.mean(frequencies)) if frequencies else math.nan
     return MultiTrack(track, frequency, len(frequencies), (True,) * min(len(members), config.confirm_window),
-                      time_s, False, time_s)
+                      time_s, False, time_s, score=float(cand.score), rivals=rivals or {})
 
 
 def find_candidates(pool: Sequence[Observation], config: AssociationConfig) -> list[Candidate]:
@@ -430,15 +483,30 @@ def _score(arrays: _Pool, members, cov, chi2_value: float, stations: int, config
     bearing ``log(P_D / lambda)`` less its Gaussian normaliser, ``-chi2 / 2`` at the fit, ``log(1 - P_D)`` per
     station that saw nothing, ``log det(2 pi P) / 2 - log V`` for the position integrated out."""
     n = len(members)
-    sigmas = arrays.sigmas[members]
-    normaliser = 0.5 * np.log(2.0 * math.pi * sigmas[:, 0] ** 2) + np.where(
-        arrays.has_elevation[members], 0.5 * np.log(2.0 * math.pi * sigmas[:, 1] ** 2), 0.0)
     sign, log_det = np.linalg.slogdet(2.0 * math.pi * np.asarray(cov))
     if sign <= 0:
         return -math.inf
-    return float(n * math.log(config.detection_probability / config.false_density_per_rad2) - normaliser.sum()
-                 - 0.5 * chi2_value + (stations - n) * math.log1p(-config.detection_probability) + 0.5 * log_det
+    return float(_exact_llr(arrays, members, config).sum() - 0.5 * chi2_value
+                 + (stations - n) * math.log1p(-config.detection_probability) + 0.5 * log_det
                  - math.log(config.surveillance_volume_m3))
+
+
+def _exact_llr(arrays: _Pool, members, config) -> np.ndarray:
+    """Log likelihood ratio ``(n,)`` of each bearing of ``members`` against a false one where it fits exactly:
+    ``log(P_D / lambda)`` less its Gaussian normaliser."""
+    sigmas = arrays.sigmas[members]
+    normaliser = 0.5 * np.log(2.0 * math.pi * sigmas[:, 0] ** 2) + np.where(
+        arrays.has_elevation[members], 0.5 * np.log(2.0 * math.pi * sigmas[:, 1] ** 2), 0.0)
+    return math.log(config.detection_probability / config.false_density_per_rad2) - normaliser
+
+
+def _give_up_llr(arrays: _Pool, config) -> np.ndarray:
+    """What a candidate loses ``(P,)`` by leaving each pool bearing to another (counting it missed instead): its
+    expected log likelihood ratio at a fit (the residual's chi-square at its mean, one per measured angle) less
+    ``log(1 - P_D)``."""
+    everyone = np.arange(arrays.station.size)
+    return (_exact_llr(arrays, everyone, config) - 0.5 * (1.0 + arrays.has_elevation)
+            - math.log1p(-config.detection_probability))
 
 
 def _in_range(arrays: _Pool, members, position, config) -> bool:
@@ -446,5 +514,5 @@ def _in_range(arrays: _Pool, members, position, config) -> bool:
     return bool(np.all((distances > config.range_min_m) & (distances < config.range_max_m)))
 
 
-__all__ = ["FIT_ITERATIONS", "MIN_CROSSING_ANGLE_RAD", "Candidate", "find_candidates", "select_candidates",
-           "start_tracks"]
+__all__ = ["FIT_ITERATIONS", "MIN_CROSSING_ANGLE_RAD", "Candidate", "best_without", "find_candidates",
+           "rival_candidates", "select_candidates", "set_packing", "start_tracks"]

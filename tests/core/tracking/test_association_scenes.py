@@ -10,13 +10,7 @@ pytest.importorskip("sklearn")
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("variant", [0, pytest.param(1, marks=pytest.mark.xfail(
-    reason="variant 1, seed 10: e2 lies near the east-northwest station diagonal and e1 near the north-west "
-           "one, so each is seen along nearly one line by two opposite stations and the cross pairing is a ghost "
-           "all four stations fit; with east missing e1 in the first scan the ghost pair ties the real pair "
-           "(set-packing scores 27.79 against 27.74) and is confirmed 1 s later, and the ghosts follow the pair "
-           "until it closes in (about 100 s)",
-    strict=False)), 2, 3, 4, 5, 6, 7])
+@pytest.mark.parametrize("variant", range(8))
 def test_scene_targets(variant):
     evaluation = evaluate_multi(multi_emitter_scene(variant), trials=4, seed=10)
     # Mean GOSPA (c = 1 km, p = 2, horizontal) of the confirmed tracks at most half the baseline's.
