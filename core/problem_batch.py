@@ -42,6 +42,12 @@ class _Masks(NamedTuple):
     kind_counts: np.ndarray
     dof: np.ndarray
 
+    @staticmethod
+    def room(size: int, width: int) -> tuple:
+        """The arrays :func:`masks_kernel` writes, for ``size`` problems of ``width`` measurement rows."""
+        return (np.empty((2, size, width), dtype=np.bool_), np.empty((3, size), dtype=np.bool_),
+                np.empty((size, 4), dtype=np.int64), np.empty(size, dtype=np.int64))
+
     @classmethod
     def of(cls, computed) -> "_Masks":
         """The masks of :func:`masks_kernel`'s outputs ``computed``, read-only (views of frozen arrays are too)."""
@@ -59,6 +65,12 @@ class _Geometry(NamedTuple):
     is_line: np.ndarray
     elevation_rad: np.ndarray
     sigma_elevation_rad: np.ndarray
+
+    @staticmethod
+    def room(size: int, width: int) -> tuple:
+        """The arrays :func:`geometry_kernel` writes, for ``size`` problems of ``width`` measurement rows."""
+        return (np.empty((4, size, width)), np.empty((size, width, 3)), np.empty((size, width, 3, 3)),
+                np.empty((size, width), dtype=np.bool_))
 
     @classmethod
     def of(cls, computed) -> "_Geometry":
@@ -137,18 +149,21 @@ class ProblemBatch:
         first use, read-only."""
         used = np.zeros((0, 0), dtype=np.bool_) if self.used is None else np.ascontiguousarray(self.used)
         c = np.ascontiguousarray
-        return _Masks.of(masks_kernel(c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used,
-                                      c(self.sigmas, dtype=float), c(self.altitude_m, dtype=float)))
+        out = _Masks.room(*self.kinds.shape)
+        masks_kernel(c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used,
+                     c(self.sigmas, dtype=float), c(self.altitude_m, dtype=float), out)
+        return _Masks.of(out)
 
     @cached_property
     def _geometry(self) -> _Geometry:
         """The model values, weights, measurement stations and lines of sight (:func:`geometry_kernel`):
         computed together on first use (a batch that is only split into parts never needs them), read-only."""
         c = np.ascontiguousarray
-        return _Geometry.of(geometry_kernel(
-            self.valid, c(self.kinds, dtype=np.int8), c(self.station_index, dtype=np.intp),
-            c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.bearing_index, dtype=np.intp),
-            c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float)))
+        out = _Geometry.room(*self.kinds.shape)
+        geometry_kernel(self.valid, c(self.kinds, dtype=np.int8), c(self.station_index, dtype=np.intp),
+                        c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.bearing_index, dtype=np.intp),
+                        c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float), out)
+        return _Geometry.of(out)
 
     @cached_property
     def kernel_measurements(self) -> Measurements:

@@ -157,17 +157,16 @@ def _pad_measurements(flat, padded):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _build_kernel(given, placed, flat, padded, altitude_m):
-    """:func:`_place`, :func:`_pad_measurements`, and the batch's masks and geometry from what they wrote
-    (:func:`core.problem_batch_kernels.masks_kernel`, ``geometry_kernel``: every present measurement in use),
-    in one call; returns the outputs of those two. The structures come as plain tuples (:mod:`core.kernel_data`)."""
+def _build_kernel(given, placed, flat, padded, altitude_m, masks, geometry):
+    """:func:`_place`, :func:`_pad_measurements`, and the batch's ``masks`` and ``geometry`` from what they
+    wrote (:func:`core.problem_batch_kernels.masks_kernel`, ``geometry_kernel``: every present measurement in
+    use), in one call. The structures come as plain tuples (:mod:`core.kernel_data`)."""
     given, placed, flat, padded = _Stations(*given), _Placed(*placed), _FlatMeasurements(*flat), _Padded(*padded)
     _place(given, placed)
     _pad_measurements(flat, padded)
-    masks = masks_kernel(flat.counts, padded.kinds, np.zeros((0, 0), dtype=np.bool_), padded.sigmas, altitude_m)
-    geometry = geometry_kernel(masks[0][1], padded.kinds, padded.station_index, padded.values, padded.sigmas,
-                               padded.bearing_index, placed.stations_enu_m, placed.rotations)
-    return masks, geometry
+    masks_kernel(flat.counts, padded.kinds, np.zeros((0, 0), dtype=np.bool_), padded.sigmas, altitude_m, masks)
+    geometry_kernel(masks[0][1], padded.kinds, padded.station_index, padded.values, padded.sigmas,
+                    padded.bearing_index, placed.stations_enu_m, placed.rotations, geometry)
 
 
 def build_problem_batch(
@@ -226,7 +225,8 @@ def build_problem_batch(
     padded = _Padded(np.empty((size, m), dtype=np.int8), np.empty((size, m), dtype=np.intp), np.empty((size, m)),
                      np.empty((size, m)), np.empty((size, m), dtype=np.intp), np.empty((size, m), dtype=np.intp),
                      np.empty(size))
-    masks, geometry = _build_kernel(
+    masks, geometry = _Masks.room(size, m), _Geometry.room(size, m)
+    _build_kernel(
         tuple(_Stations(np.ascontiguousarray(station_coordinates, dtype=float).reshape(-1, 3), station_counts,
                   np.asarray(geodetic_stations, dtype=bool), np.ascontiguousarray(origin, dtype=float).reshape(-1, 3),
                   np.ascontiguousarray(initial_guess, dtype=float).reshape(-1, 3),
@@ -235,7 +235,7 @@ def build_problem_batch(
         tuple(_FlatMeasurements(measurement_counts, np.asarray(kinds, dtype=np.int8), np.asarray(station_index, dtype=np.intp),
                           np.asarray(values, dtype=float), np.asarray(sigmas, dtype=float),
                           np.asarray(bearing_index, dtype=np.intp), np.asarray(source_index, dtype=np.intp))),
-        tuple(padded), altitude_m)
+        tuple(padded), altitude_m, masks, geometry)
 
     built = ProblemBatch(
         station_ids=tuple(station_ids),

@@ -74,6 +74,13 @@ class Solution:
     converged: np.ndarray
     cost: np.ndarray
 
+    @classmethod
+    def empty(cls, size: int) -> "Solution":
+        """A solution of ``size`` problems for :func:`_lm_kernel` to fill (a compiled call costs more for each
+        array it returns than for each it is given)."""
+        return cls(np.empty((size, 3)), np.empty(size), np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.bool_),
+                   np.empty(size))
+
     def put(self, rows, other: "Solution", picks) -> None:
         """Rows ``rows`` of this solution become rows ``picks`` of ``other`` (in place; int or ``(K,)`` each)."""
         for name in self.__dataclass_fields__:
@@ -252,20 +259,17 @@ def _add_distance_curvature(x, stations, kinds, count, gradient_w, residual, axe
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _lm_kernel(measurements, frames, starts_enu_m, fitting):
+def _lm_kernel(measurements, frames, starts_enu_m, fitting, out):
     """Every problem's Levenberg-Marquardt iteration (:func:`levenberg_marquardt`) from ``starts_enu_m``
     ``(B, 3)``: a batch's :class:`~core.kernel_data.Measurements` and :class:`~core.kernel_data.Frames`, and
-    the :class:`~core.kernel_data.Fitting` (named or plain tuples); returns the fields of a :class:`Solution`."""
+    the :class:`~core.kernel_data.Fitting` (named or plain tuples); into ``out``, the fields of a
+    :class:`Solution` (:meth:`Solution.empty`)."""
     measurements, frames, fitting = Measurements(*measurements), Frames(*frames), Fitting(*fitting)
+    position_out, bias_out, iterations_out, converged_out, cost_out = out
     size, count = measurements.kinds.shape
     altitude_m, geodetic, has_toa = frames.altitude_m, frames.geodetic, frames.has_toa
     origin_ecef_m, origin_rotation = frames.origin_ecef_m, frames.origin_rotation
     loss_code = fitting.loss_code
-    position_out = np.empty((size, 3))
-    bias_out = np.empty(size)
-    iterations_out = np.zeros(size, dtype=np.int64)
-    converged_out = np.zeros(size, dtype=np.bool_)
-    cost_out = np.empty(size)
     current, trial = _linearization(count), _linearization(count)
     local = np.empty((4, count))
     axes = np.empty((3, 3))
@@ -376,7 +380,6 @@ def _lm_kernel(measurements, frames, starts_enu_m, fitting):
         position_out[b] = x
         bias_out[b], cost_out[b] = bias, cost
         iterations_out[b], converged_out[b] = iterations, converged
-    return position_out, bias_out, iterations_out, converged_out, cost_out
 
 
 def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tolerance_m=1e-3,
@@ -406,9 +409,15 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     -------
     Solution
     """
-    out = _lm_kernel(tuple(batch.kernel_measurements), tuple(batch.kernel_frames),
-                     np.ascontiguousarray(start_enu_m, dtype=float), tuple(fitting_of(loss, max_iterations, tolerance_m)))
-    return Solution(*out)
+    solution = Solution.empty(batch.size)
+    _lm_kernel(tuple(batch.kernel_measurements), tuple(batch.kernel_frames), np.ascontiguousarray(start_enu_m, dtype=float),
+               tuple(fitting_of(loss, max_iterations, tolerance_m)), _fields(solution))
+    return solution
+
+
+def _fields(solution: Solution) -> tuple:
+    """A solution's arrays in :func:`_lm_kernel`'s order, for it to fill."""
+    return solution.position_enu_m, solution.bias_m, solution.iterations, solution.converged, solution.cost
 
 
 def fitting_of(loss, max_iterations, tolerance_m) -> Fitting:

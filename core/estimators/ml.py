@@ -38,7 +38,7 @@ from scipy.special import chdtrc
 from core.crlb import batch_information
 from core.errors import LocalizationError
 from core.estimators.base import SolveOptions, register
-from core.estimators.lm import Solution, _lm_kernel, fitting_of, iterate, levenberg_marquardt, loss_of
+from core.estimators.lm import Solution, _fields, _lm_kernel, fitting_of, iterate, levenberg_marquardt, loss_of
 from core.estimators.loss import REDESCENDING
 from core.estimators.orthogonal_vector import SOLVED, _orthogonal_kernel
 from core.estimators.result import Estimates, FixWarning
@@ -147,27 +147,26 @@ def one_basin(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _eove_fit_kernel(measurements, frames, fitting, kind_counts, initial_guess_enu_m):
+def _eove_fit_kernel(measurements, frames, fitting, kind_counts, initial_guess_enu_m, out):
     """Every problem's weighted-EOVE start (the orthogonal kernel as :func:`initial_positions` runs it: both
     normals, first-order weights, ``START_PASSES``) and ML's iteration from it (the LM kernel as :func:`iterate`
-    runs it), in one call; ``solved`` False, and no fits, where some problem is not started so: it has no
-    azimuth (``kind_counts`` ``(B, 4)``), an initial guess (a row of ``initial_guess_enu_m`` ``(B, 3)`` not NaN),
-    or no solution of its rows (the structures: plain tuples or named, :mod:`core.kernel_data`)."""
+    runs it, into ``out``: :func:`core.estimators.lm._fields`), in one call; returns ``(starts, solved)``,
+    ``solved`` False, and no fits, where some problem is not started so: it has no azimuth (``kind_counts``
+    ``(B, 4)``), an initial guess (a row of ``initial_guess_enu_m`` ``(B, 3)`` not NaN), or no solution of its
+    rows (the structures: plain tuples or named, :mod:`core.kernel_data`)."""
     measurements, frames = Measurements(*measurements), Frames(*frames)
     for b in range(kind_counts.shape[0]):
         if kind_counts[b, AZIMUTH] == 0 or not math.isnan(initial_guess_enu_m[b, 0]):
-            return (np.empty((0, 3)), False, np.empty((0, 3)), np.empty(0), np.zeros(0, dtype=np.int64),
-                    np.zeros(0, dtype=np.bool_), np.empty(0))
+            return np.empty((0, 3)), False
     _, _, _, starts, status, _ = _orthogonal_kernel(
         measurements.is_line, measurements.values, measurements.elevation_rad, measurements.sigma_elevation_rad,
         measurements.sigmas, measurements.stations_enu_m, measurements.rotations, True, True, frames.altitude_m,
         frames.geodetic, frames.origin_ecef_m, frames.origin_rotation, True, START_PASSES)
     for b in range(status.size):
         if status[b] != SOLVED:
-            return (starts, False, np.empty((0, 3)), np.empty(0), np.zeros(0, dtype=np.int64),
-                    np.zeros(0, dtype=np.bool_), np.empty(0))
-    position, bias, iterations, converged, cost = _lm_kernel(measurements, frames, starts, fitting)
-    return starts, True, position, bias, iterations, converged, cost
+            return starts, False
+    _lm_kernel(measurements, frames, starts, fitting, out)
+    return starts, True
 
 
 def _eove_started_fits(batch: ProblemBatch, options: SolveOptions):
@@ -175,11 +174,12 @@ def _eove_started_fits(batch: ProblemBatch, options: SolveOptions):
     whose every problem its first stage starts (weighted EOVE: an azimuth, no initial guess) and does start;
     None otherwise (the stages in turn then find each start, or say why there is none). The same kernels on
     the same arrays: the same numbers, without the stages' per-call work between them."""
-    starts, solved, *fit = _eove_fit_kernel(
+    solution = Solution.empty(batch.size)
+    starts, solved = _eove_fit_kernel(
         tuple(batch.kernel_measurements), tuple(batch.kernel_frames),
         tuple(fitting_of(loss_of(options), options.max_iterations, options.tolerance_m)), batch.kind_counts,
-        batch.initial_guess_enu_m)
-    return (starts, Solution(*fit)) if solved else None
+        batch.initial_guess_enu_m, _fields(solution))
+    return (starts, solution) if solved else None
 
 
 def normalized_residuals(batch: ProblemBatch, solution: Solution) -> np.ndarray:
@@ -231,6 +231,10 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
             implausible &= ~one_basin(batch, solution.position_enu_m)
         retry |= implausible
     warnings: list[tuple] = [()] * batch.size
+    if options.loss == "linear" and not np.count_nonzero(
+            retry | mirror_applies(batch) & ~missing & (p_value >= IMPLAUSIBLE_P)):
+        # Every fit is settled from its start: no search, subset or mirror image to try (the usual batch).
+        return estimate_from(batch, starts, options, names, failures, solution, warnings)
     covariance = np.full((batch.size, 3, 3), np.nan)  # a two-solution mixture's, where a rival is plausible
     if np.count_nonzero(retry):
         rows = np.flatnonzero(retry)
