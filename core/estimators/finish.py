@@ -25,7 +25,7 @@ from scipy.special import chdtrc
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.finish_kernels import (BEHIND, COARSE_TOA, COLLINEAR, DOWNWEIGHTED, DOWNWEIGHTED_FACTOR, EXCLUDED,
                                             ILL, NOT_CONVERGED, NOT_ISOLABLE, OUTLIER, OUTLIER_SIGMAS, RUNAWAY, SINGULAR,
-                                            UNUSED, ZENITH, Estimate, Finished, fix_kernel)
+                                            UNUSED, ZENITH, Estimate, fix_kernel)
 from core.estimators.loss import loss_code
 from core.estimators.result import Estimates, FixBatch, FixWarning
 from core.measurements import KIND_NAMES, RANGE, SPEED_OF_LIGHT_MPS, TOA, toa_spacing_s
@@ -77,14 +77,15 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
     measurements = batch.kernel_measurements
-    finished = Finished.empty(size, present.shape[1])
-    fix_kernel(tuple(measurements), tuple(batch.kernel_frames), tuple(Estimate(
-        position, np.zeros(size) if bias is None else np.asarray(bias, dtype=float), bias is not None,
-        np.ascontiguousarray(converged, dtype=np.bool_),
-        measurements.sigmas if estimates.sigmas is None else np.ascontiguousarray(sigmas, dtype=float),
-        np.ascontiguousarray(excluded), -1 if loss is None else loss_code(loss[0]),
-        1.0 if loss is None else float(loss[1]) ** 2)), finished)
-    measured, bounds, seen_lines, scalars, counts, isolated = finished
+    estimate = Estimate(
+        position_enu_m=position, bias_m=np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
+        has_bias=bias is not None, converged=np.ascontiguousarray(converged, dtype=np.bool_),
+        sigmas=measurements.sigmas if estimates.sigmas is None else np.ascontiguousarray(sigmas, dtype=float),
+        excluded=np.ascontiguousarray(excluded), loss_code=-1 if loss is None else loss_code(loss[0]),
+        c2=1.0 if loss is None else float(loss[1]) ** 2)
+    # The fields of a Finished.
+    measured, bounds, seen_lines, scalars, counts, isolated = fix_kernel(tuple(measurements),
+                                                                         tuple(batch.kernel_frames), tuple(estimate))
     raw, normalized, studentized, robust_factor = measured
     crlb, covariance = bounds
     behind, zenith = seen_lines

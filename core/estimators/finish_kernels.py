@@ -118,9 +118,9 @@ class _Refit(NamedTuple):
 
 
 class Finished(NamedTuple):
-    """What :func:`fix_kernel` writes for a batch, in six arrays (views of them unpack the rest,
-    :func:`core.estimators.finish.finish`); the caller allocates them (:meth:`empty`): a compiled call costs
-    more for each array it returns than for each it is given.
+    """What :func:`fix_kernel` returns for a batch, in six arrays (views of them unpack the rest,
+    :func:`core.estimators.finish.finish`): planes of a few arrays, since numba boxes each returned array on
+    its own, a cost per array that a batch of one feels.
 
     Attributes
     ----------
@@ -146,12 +146,6 @@ class Finished(NamedTuple):
     scalars: np.ndarray
     counts: np.ndarray
     isolated: np.ndarray
-
-    @classmethod
-    def empty(cls, size: int, width: int) -> "Finished":
-        """Room for a batch of ``size`` problems of ``width`` measurement rows."""
-        return cls(np.empty((4, size, width)), np.empty((2, size, 3, 3)), np.empty((2, size, width), dtype=np.bool_),
-                   np.empty((8, size)), np.empty((3, size), dtype=np.int64), np.empty(size, dtype=np.bool_))
 
 
 class _Numbers(NamedTuple):
@@ -323,13 +317,13 @@ def _separation(studentized, room, weights, local, params, source_index, count, 
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _finish_kernel(measurements, frames, estimate, out):
+def _finish_kernel(measurements, frames, estimate):
     """The numbers of :func:`core.estimators.finish.finish`, each problem on its own: residuals (problem units), normalized and
     studentized residuals, chi-square and the count of measurements in it, the CRLB, the covariance (the
     CRLB, or with a robust loss (``estimate.loss_code`` not -1) the sandwich of its weights), the smallest
     unit-diagonal information eigenvalue, the loss's weight factors and cost, the reference sigma, and per
     line of sight whether the fix is behind its station or at its zenith, the lines' smallest spread, and whether
-    the fix ran off (``RUNAWAY_SIGMA_RATIO``); the planes into ``out`` (a :class:`Finished`)."""
+    the fix ran off (``RUNAWAY_SIGMA_RATIO``)."""
     kinds, n_measurements, valid, values = measurements.kinds, measurements.n_measurements, measurements.valid, \
         measurements.values
     stations_enu_m, rotations, source_index = measurements.stations_enu_m, measurements.rotations, \
@@ -340,16 +334,17 @@ def _finish_kernel(measurements, frames, estimate, out):
         estimate.sigmas
     loss, c2 = estimate.loss_code, estimate.c2
     size, width = kinds.shape
-    # The per-measurement numbers, the bounds and the line-of-sight facts are planes of one array each.
-    measured, bounds, seen_lines = out.measured, out.bounds, out.seen_lines
-    measured[:] = 0.0
+    # The per-measurement numbers, the bounds and the line-of-sight facts are planes of one array each (see
+    # :class:`Finished`).
+    measured = np.zeros((4, size, width))
     raw, normalized, studentized, robust_factor = measured[0], measured[1], measured[2], measured[3]
     robust_factor[:] = 1.0
     chi2, known_count = np.zeros(size), np.zeros(size, dtype=np.int64)
+    bounds = np.empty((2, size, 3, 3))
     crlb, covariance = bounds[0], bounds[1]
     smallest, robust_cost = np.empty(size), np.zeros(size)
     sigma_ref, spread = np.empty(size), np.full(size, np.pi / 2)
-    seen_lines[:] = False
+    seen_lines = np.zeros((2, size, width), dtype=np.bool_)
     behind, zenith = seen_lines[0], seen_lines[1]
     runaway = np.zeros(size, dtype=np.bool_)
     separation, room = np.full(size, np.inf), np.ones(width)
@@ -533,24 +528,22 @@ def _verdicts_kernel(numbers, measurements, frames, estimate):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def fix_kernel(measurements, frames, estimate, out):
-    """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call, into ``out`` (a :class:`Finished`,
-    :meth:`Finished.empty`).
+def fix_kernel(measurements, frames, estimate):
+    """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call; returns the fields of a
+    :class:`Finished`.
 
     ``measurements``, ``frames``: the batch's (:mod:`core.kernel_data`); ``estimate``: an :class:`Estimate`
     (each a plain tuple or named).
     """
-    measurements, frames, estimate, out = Measurements(*measurements), Frames(*frames), Estimate(*estimate), \
-        Finished(*out)
-    numbers = _finish_kernel(measurements, frames, estimate, out)
+    measurements, frames, estimate = Measurements(*measurements), Frames(*frames), Estimate(*estimate)
+    numbers = _finish_kernel(measurements, frames, estimate)
     dof, plain_scale, sigma_scale, worst, worst_value, flags, isolated = _verdicts_kernel(numbers, measurements,
                                                                                          frames, estimate)
     measured, bounds, seen_lines, chi2, smallest, spread = (numbers.measured, numbers.bounds, numbers.seen_lines,
                                                             numbers.chi2, numbers.smallest, numbers.spread)
     crlb, covariance, sigma_ref = bounds[0], bounds[1], numbers.sigma_ref
     size = dof.size
-    scalars, counts = out.scalars, out.counts
-    out.isolated[:] = isolated
+    scalars, counts = np.empty((8, size)), np.empty((3, size), dtype=np.int64)
     for b in range(size):
         for i in range(3):
             for j in range(i):
@@ -560,3 +553,4 @@ def fix_kernel(measurements, frames, estimate, out):
         scalars[4, b], scalars[5, b], scalars[6, b] = plain_scale[b], sigma_scale[b], worst_value[b]
         scalars[7, b] = gdop_point(crlb[b], sigma_ref[b])
         counts[0, b], counts[1, b], counts[2, b] = dof[b], worst[b], flags[b]
+    return measured, bounds, seen_lines, scalars, counts, isolated
