@@ -25,7 +25,7 @@ from scipy.special import chdtrc
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.finish_kernels import (BEHIND, COARSE_TOA, COLLINEAR, DOWNWEIGHTED, DOWNWEIGHTED_FACTOR, EXCLUDED,
                                             ILL, NOT_CONVERGED, NOT_ISOLABLE, OUTLIER, OUTLIER_SIGMAS, RUNAWAY, SINGULAR,
-                                            UNUSED, ZENITH, Estimate, fix_kernel)
+                                            UNUSED, ZENITH, Estimate, Finished, fix_kernel)
 from core.estimators.loss import loss_code
 from core.estimators.result import Estimates, FixBatch, FixWarning
 from core.measurements import KIND_NAMES, RANGE, SPEED_OF_LIGHT_MPS, TOA, toa_spacing_s
@@ -83,14 +83,12 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         sigmas=measurements.sigmas if estimates.sigmas is None else np.ascontiguousarray(sigmas, dtype=float),
         excluded=np.ascontiguousarray(excluded), loss_code=-1 if loss is None else loss_code(loss[0]),
         c2=1.0 if loss is None else float(loss[1]) ** 2)
-    # The fields of a Finished.
-    measured, bounds, seen_lines, scalars, counts, isolated = fix_kernel(tuple(measurements),
-                                                                         tuple(batch.kernel_frames), tuple(estimate))
-    raw, normalized, studentized, robust_factor = measured
-    crlb, covariance = bounds
-    behind, zenith = seen_lines
-    chi2, min_eigenvalue, spread, p_dof, plain_scale, sigma_scale, worst_value, gdop = scalars
-    dof, worst, flags = counts
+    finished = Finished(*fix_kernel(tuple(measurements), tuple(batch.kernel_frames), tuple(estimate)))
+    raw, normalized, studentized, robust_factor = finished.measured
+    crlb, covariance = finished.bounds
+    behind, zenith = finished.seen_lines
+    chi2, min_eigenvalue, spread, p_dof, plain_scale, sigma_scale, worst_value, gdop = finished.scalars
+    dof, worst, flags = finished.counts
     p_value = chdtrc(p_dof, chi2)
     if loss is None:
         robust_factor = None
@@ -214,7 +212,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         used=valid,
         excluded=excluded,
         gdop=gdop,
-        isolated=isolated,
+        isolated=finished.isolated,
     )
 
 
