@@ -7,11 +7,12 @@ rows of zero padding. :func:`jacobi_svd` computes the same factorisation in
 one compiled kernel (numba) that costs a few microseconds per matrix, alone
 or in a stack, with the same bits either way.
 
-The session filters' Cholesky factor, triangular inverse, covariance repair
-and symmetrisation (:func:`cholesky_into`, :func:`lower_inverse_into`,
-:func:`cholesky_repaired`, :func:`repaired_block`, :func:`symmetrized`) are
-here too: compiled where a filter kernel calls them, each sum added in index
-order.
+The session filters' Cholesky factor, triangular inverse, linear prediction,
+whitened Kalman update, covariance repair and symmetrisation
+(:func:`cholesky_into`, :func:`lower_inverse_into`, :func:`linear_predict_into`,
+:func:`whiten_into`, :func:`whitened_update_into`, :func:`cholesky_repaired`,
+:func:`repaired_block`, :func:`symmetrized`) are here too: compiled where a
+filter kernel calls them, each sum added in index order.
 """
 
 from __future__ import annotations
@@ -278,6 +279,31 @@ def matvec(m, x):
     return last_dot(m, np.asarray(x)[..., None, :])
 
 
+def solve_2x2(matrix, right):
+    """Solutions ``(B, 2, ...)`` of 2x2 systems ``(B, 2, 2)`` (a singular one gives inf or NaN, not an exception)."""
+    a, b, c, d = matrix[:, 0, 0], matrix[:, 0, 1], matrix[:, 1, 0], matrix[:, 1, 1]
+    extra = (slice(None),) + (None,) * (np.ndim(right) - 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inverse_det = 1.0 / (a * d - b * c)
+        x0 = (d[extra] * right[:, 0] - b[extra] * right[:, 1]) * inverse_det[extra]
+        x1 = (a[extra] * right[:, 1] - c[extra] * right[:, 0]) * inverse_det[extra]
+    return np.stack([x0, x1], axis=1)
+
+
+def inverse_2x2(matrix):
+    """Inverses ``(B, 2, 2)`` of 2x2 matrices."""
+    return solve_2x2(matrix, np.broadcast_to(np.eye(2), matrix.shape))
+
+
+def gram_eigenvalues_2x2(rows) -> np.ndarray:
+    """Eigenvalues ``(B, 2)``, ascending, of ``sum_k x_k x_k^T`` for rows ``(B, K, 2)`` (in closed form, summed
+    in order by :func:`row_sums`)."""
+    a, c = row_sums(rows[..., 0] ** 2), row_sums(rows[..., 1] ** 2)
+    b = row_sums(rows[..., 0] * rows[..., 1])
+    mean, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
+    return np.stack([mean - radius, mean + radius], axis=-1)
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def symmetric_eigen_in_place(a, v):
     """Eigen-decomposition of one small symmetric matrix ``a`` ``(C, C)`` by cyclic Jacobi rotations.
@@ -436,6 +462,47 @@ def whiten_into(factor, innovation, cross, rows, whitened):
                 total -= factor[r, q] * cross[q, i]
             cross[r, i] = total / pivot
     return chi2, half_log_det
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def whitened_update_into(mean, cov, cross, whitened, new_mean, new_cov):
+    """The Kalman update from :func:`whiten_into`'s outputs: ``new_mean = mean + cross^T whitened`` and
+    ``new_cov = cov - cross^T cross`` (its lower triangle computed from ``cov``'s, then mirrored, so it is
+    exactly symmetric); each sum added in index order. ``new_mean``, ``new_cov`` may be ``mean``, ``cov``.
+
+    Parameters
+    ----------
+    mean : ndarray, shape (F,)
+    cov : ndarray, shape (F, F)
+    cross : ndarray, shape (R, F)
+        ``L^-1`` times the state-measurement cross-covariance, transposed.
+    whitened : ndarray, shape (R,)
+        ``L^-1 innovation``.
+    new_mean : ndarray, shape (F,)
+    new_cov : ndarray, shape (F, F)
+        Written.
+
+    Returns
+    -------
+    bool
+        Whether every written entry is finite.
+    """
+    rows = whitened.shape[0]
+    finite = True
+    for i in range(mean.shape[0]):
+        total = mean[i]
+        for r in range(rows):
+            total += cross[r, i] * whitened[r]
+        new_mean[i] = total
+        finite = finite and math.isfinite(total)
+        for j in range(i + 1):
+            total = cov[i, j]
+            for r in range(rows):
+                total -= cross[r, i] * cross[r, j]
+            new_cov[i, j] = total
+            new_cov[j, i] = total
+            finite = finite and math.isfinite(total)
+    return finite
 
 
 def cholesky_repaired(cov):

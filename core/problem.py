@@ -7,7 +7,8 @@ stations in the common tangent frame, each station's rotation (its own ENU
 <- common ENU), and flat measurement arrays in radians, metres and seconds.
 Every estimator reads only a :class:`Problem`. The frame placement is the
 batch's (:func:`core.problem_batch_build.build_problem_batch` over one problem), so
-a problem gets the same bits alone and in a batch.
+a problem gets the same bits alone and in a batch; callers with many problems check each
+(:func:`checked_inputs`) and place them all in one call (:func:`build_problems`).
 
 The frame and the problem record live in :mod:`core.problem_frame`, below
 this module and the batch; they are re-exported here for callers.
@@ -15,13 +16,15 @@ this module and the batch; they are re-exported here for callers.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 
 from core.errors import InvalidInput
 from core.measurements import Kind
+from core.problem_batch import ProblemBatch
 from core.problem_batch_build import build_problem_batch
 from core.problem_frame import (
     CommonFrame,
@@ -44,9 +47,12 @@ __all__ = [
     "LocalPoint",
     "Measurement",
     "Problem",
+    "ProblemInputs",
     "Range",
     "TimeOfArrival",
     "build_problem",
+    "build_problems",
+    "checked_inputs",
     "frame_placements",
     "local_axes",
     "local_axes_point",
@@ -93,7 +99,7 @@ Measurement = Bearing | Range | TimeOfArrival
 
 
 def _check_finite(value, loc):
-    if value is None or not np.isfinite(value):
+    if value is None or not math.isfinite(value):  # a Python or numpy scalar (math's test: no array made)
         raise InvalidInput(f"{_words(loc[-1])} must be a finite number", loc)
 
 
@@ -113,6 +119,26 @@ def _words(name: str) -> str:
     return (head if unit in ("rad", "m", "s", "deg") and head else name).replace("_", " ")
 
 
+class ProblemInputs(NamedTuple):
+    """One problem's inputs once :func:`checked_inputs` has passed them: a row of what
+    :func:`core.problem_batch_build.build_problem_batch` takes (its measurement columns are this problem's alone,
+    ``station_index`` counting within it)."""
+
+    station_ids: tuple[str, ...]
+    station_coordinates: list[tuple[float, ...]]
+    geodetic: bool
+    origin: tuple[float, float, float]
+    kinds: list[int]
+    station_index: list[int]
+    values: list[float]
+    sigmas: list[float]
+    bearing_index: list[int]
+    source_index: list[int]
+    altitude_m: float
+    initial_guess: tuple[float, float, float]
+    geodetic_guess: bool
+
+
 def build_problem(
     stations: Sequence[tuple[str, GeodeticPoint | LocalPoint]],
     measurements: Sequence[Measurement],
@@ -121,7 +147,56 @@ def build_problem(
     initial_guess: GeodeticPoint | LocalPoint | None = None,
     require_sigmas: bool = True,
 ) -> Problem:
-    """Validate stations and measurements and place them in the common frame.
+    """Validate stations and measurements and place them in the common frame: :func:`checked_inputs` (its
+    parameters; it raises ``InvalidInput`` naming the field), then :func:`build_problems` of that one problem."""
+    return build_problems([checked_inputs(stations, measurements, origin, altitude_m, initial_guess,
+                                          require_sigmas)]).problem(0)
+
+
+def build_problems(inputs: Sequence[ProblemInputs]) -> ProblemBatch:
+    """Problems that passed :func:`checked_inputs`, placed in their common frames in one batch (their
+    frame placement in one call, rather than one per problem).
+
+    Parameters
+    ----------
+    inputs : sequence of ProblemInputs, length B (>= 1)
+
+    Returns
+    -------
+    ProblemBatch
+        Problem ``b`` is ``inputs[b]``'s, as :func:`build_problem` would give it.
+    """
+    def column(name: str) -> list:
+        return [value for one in inputs for value in getattr(one, name)]
+
+    return build_problem_batch(
+        station_counts=[len(one.station_ids) for one in inputs],
+        station_ids=[one.station_ids for one in inputs],
+        station_coordinates=column("station_coordinates"),
+        geodetic_stations=[one.geodetic for one in inputs],
+        origin=[one.origin for one in inputs],
+        measurement_counts=[len(one.kinds) for one in inputs],
+        kinds=column("kinds"),
+        station_index=column("station_index"),
+        values=column("values"),
+        sigmas=column("sigmas"),
+        bearing_index=column("bearing_index"),
+        source_index=column("source_index"),
+        altitude_m=[one.altitude_m for one in inputs],
+        initial_guess=[one.initial_guess for one in inputs],
+        geodetic_guess=[one.geodetic_guess for one in inputs],
+    )
+
+
+def checked_inputs(
+    stations: Sequence[tuple[str, GeodeticPoint | LocalPoint]],
+    measurements: Sequence[Measurement],
+    origin: GeodeticPoint | None = None,
+    altitude_m: float | None = None,
+    initial_guess: GeodeticPoint | LocalPoint | None = None,
+    require_sigmas: bool = True,
+) -> ProblemInputs:
+    """Validate stations and measurements: what :func:`build_problem` places in the common frame.
 
     Parameters
     ----------
@@ -216,21 +291,18 @@ def build_problem(
     if altitude_m is not None:
         _check_finite(altitude_m, ("altitude_m",))
 
-    batch = build_problem_batch(
-        station_counts=[len(stations)],
-        station_ids=[tuple(ids)],
+    return ProblemInputs(
+        station_ids=tuple(ids),
         station_coordinates=[tuple(vars(p).values()) for _, p in stations],
-        geodetic_stations=[geodetic_frame],
-        origin=[(np.nan,) * 3 if origin is None else (origin.lat_rad, origin.lon_rad, origin.alt_m)],
-        measurement_counts=[len(kinds)],
+        geodetic=geodetic_frame,
+        origin=(np.nan,) * 3 if origin is None else (origin.lat_rad, origin.lon_rad, origin.alt_m),
         kinds=kinds,
         station_index=station_index,
         values=values,
         sigmas=sigmas,
         bearing_index=bearing_index,
         source_index=source_index,
-        altitude_m=[np.nan if altitude_m is None else altitude_m],
-        initial_guess=[guess],
-        geodetic_guess=[geodetic_guess],
+        altitude_m=np.nan if altitude_m is None else altitude_m,
+        initial_guess=guess,
+        geodetic_guess=geodetic_guess,
     )
-    return batch.problem(0)

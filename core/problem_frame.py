@@ -17,6 +17,7 @@ imports another back.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numba
 import numpy as np
@@ -72,9 +73,18 @@ class CommonFrame:
         o = self.origin
         return geodesy.enu_to_ecef(position_enu_m, o.lat_rad, o.lon_rad, o.alt_m)
 
+    @cached_property
+    def placement(self) -> tuple[np.ndarray, np.ndarray]:
+        """The origin's ECEF position ``(3,)`` and ECEF -> ENU rotation ``(3, 3)`` (:func:`frame_placements`;
+        those of zero latitude and longitude for a flat plane, where nothing reads them), made once per frame."""
+        return frame_placements(self.origin_array())
+
     def to_geodetic(self, position_enu_m):
         """Frame ENU ``(..., 3)`` to ``(lat_rad, lon_rad, alt_m)``."""
-        return geodesy.ecef_to_geodetic(self.to_ecef(position_enu_m))
+        p = np.asarray(position_enu_m, dtype=float)
+        if p.shape == (3,):  # one point: the same compiled steps, on the frame's placement made once
+            return tuple(np.float64(v) for v in _enu_to_geodetic_point(p, *self.placement))
+        return geodesy.ecef_to_geodetic(self.to_ecef(p))
 
     def from_geodetic(self, lat_rad, lon_rad, alt_m):
         """Geodetic to frame ENU ``(..., 3)``."""
@@ -93,6 +103,10 @@ class CommonFrame:
     def local_axes(self, position_enu_m):
         """Local east/north/up unit vectors at points; see :func:`local_axes`."""
         p = np.asarray(position_enu_m, dtype=float)
+        if p.shape == (3,):  # one point: the same compiled steps, on the frame's placement made once
+            axes = np.empty((3, 3))
+            local_axes_point(p, self.is_geodetic, *self.placement, axes)
+            return axes
         return local_axes(p, self.origin_array(), self.is_geodetic)
 
     def onto_altitude(self, position_enu_m, altitude_m):

@@ -16,9 +16,15 @@ one time) is never split between the two, since the cut is by time. Ids are core
 order, never reused): a track keeps its id while it lives; only one that started within the window can be
 decided again (and numbered again) when a late report lands before its start.
 
+**The window's cost is bounded.** Every post re-runs ``pending``, so its cost follows how many reports the window
+holds, not how many the post brings: a long window on a busy network would make each post re-run an hour.
+At most :data:`MAX_PENDING_REPORTS` reports stay pending (a scan is never split, so ties at the cut stay
+together); older ones settle early, and a report older than the settled ones is late whatever the window says.
+
 Record layout: ``state["auto"] = {"settled", "current"}`` (:meth:`AssociationState.to_dict`),
-``"pending"`` (``[{"report": Report.to_dict(), "frequency_hz": float or None}]`` in time order) and
-``"newest_s"`` (the newest accepted report's time, or None).
+``"pending"`` (``[{"report": Report.to_dict(), "frequency_hz": float or None}]`` in time order),
+``"newest_s"`` (the newest accepted report's time, or None) and ``"settled_before_s"`` (every report before
+this time is settled: the late limit the pending bound set, or None).
 
 **What is shown.** The state lists every track with its status (tentative, confirmed, coasting). CoT, GeoJSON
 and the TAK feed leave tentative tracks out (:func:`on_map`): a tentative track may be a ghost of crossing
@@ -97,10 +103,15 @@ def settings_body(request: dict) -> dict | None:
             if request.get("association_config") is not None else schemas.AssociationSettings()).model_dump()
 
 
+#: The most reports an auto session keeps pending (re-run by every post). At the bench's busiest network (20
+#: emitters x 10 stations, a bearing per station a second) that is 25 s of reports, about 0.5 s of work a post.
+MAX_PENDING_REPORTS = 5000
+
+
 def initial_state() -> dict:
     """A new auto session's ``state["auto"]`` (module docstring)."""
     empty = new_association_state().to_dict()
-    return {"settled": empty, "current": empty, "pending": [], "newest_s": None}
+    return {"settled": empty, "current": empty, "pending": [], "newest_s": None, "settled_before_s": None}
 
 
 # -- reports ----------------------------------------------------------------------------------------------------
@@ -155,7 +166,7 @@ def apply_post(auto: dict, reports: list[tuple[Report, float]], window_s: float,
         The record's ``state["auto"]``.
     reports : list of (Report, float)
         In arrival (seq) order, each checked by :func:`check_bearings`. A report older than the newest accepted
-        one (before it, this post's included) by more than ``window_s`` is late.
+        one (before it, this post's included) by more than ``window_s``, or older than the settled reports, is late.
     window_s : float
         The session's ``reorder_window_s``.
     config : AssociationConfig
@@ -163,9 +174,11 @@ def apply_post(auto: dict, reports: list[tuple[Report, float]], window_s: float,
         Ids of the tracks already announced as ended (re-running the window ends them again: not announced twice).
     """
     newest = auto["newest_s"]
+    settled_before = auto.get("settled_before_s")
+    settled_before = -math.inf if settled_before is None else settled_before
     accepted, late = [], 0
     for report, frequency in reports:
-        if newest is not None and report.time_s < newest - window_s:
+        if newest is not None and report.time_s < max(newest - window_s, settled_before):
             late += 1
             continue
         accepted.append((report, frequency))
@@ -174,7 +187,9 @@ def apply_post(auto: dict, reports: list[tuple[Report, float]], window_s: float,
         return AutoOutcome(auto, AssociationState.from_dict(auto["current"]), 0, late, [])
     pending = sorted([(Report.from_dict(p["report"]), _nan_if_none(p["frequency_hz"])) for p in auto["pending"]]
                      + accepted, key=_time_order)
-    cut = newest - window_s if newest is not None else -math.inf
+    if len(pending) > MAX_PENDING_REPORTS:
+        settled_before = max(settled_before, pending[len(pending) - MAX_PENDING_REPORTS][0].time_s)
+    cut = max(newest - window_s, settled_before)
     settling = [p for p in pending if p[0].time_s < cut]
     pending = [p for p in pending if not p[0].time_s < cut]
     before = AssociationState.from_dict(auto["current"])
@@ -185,6 +200,7 @@ def apply_post(auto: dict, reports: list[tuple[Report, float]], window_s: float,
     ended = [{"id": t.id, "time_s": float(t.track.time_s)} for t in seen.values()
              if t.confirmed and t.id not in live and t.id not in announced]
     stored = {"settled": settled.to_dict(), "current": current.to_dict(), "newest_s": newest,
+              "settled_before_s": None if settled_before == -math.inf else settled_before,
               "pending": [{"report": r.to_dict(), "frequency_hz": None if math.isnan(f) else f} for r, f in pending]}
     return AutoOutcome(stored, current, len(accepted), late, ended)
 
@@ -220,7 +236,8 @@ def late_warnings(late: int, window_s: float) -> list[dict]:
     if not late:
         return []
     return [{"code": "late_report", "message": f"{late} report(s) older than the newest applied one by more than "
-                                               f"reorder_window_s {window_s:g} s were not applied"}]
+                                               f"reorder_window_s {window_s:g} s, or than the reports already "
+                                               "settled, were not applied"}]
 
 
 # -- core -> responses ------------------------------------------------------------------------------------------

@@ -3,7 +3,7 @@
 A report's stations and measurements become core arrays the way a fix request's do: the same schema models
 (:class:`service.schemas.Station` and the measurement models), the same converters
 (:func:`service.convert.to_point`, :func:`service.convert.to_measurement`) and the same placement in the
-common frame (:func:`core.problem.build_problem`), with the session's origin fixed at creation so that every
+common frame (:func:`core.problem.build_problems`), with the session's origin fixed at creation so that every
 report lands in one frame. The tracker itself is core's (:mod:`core.tracking.network`): pure
 ``(state, reports) -> state``; this module decides what reports are, which are duplicates, and what the
 stored record becomes, as :mod:`service.sessions` does for paper-001 sessions.
@@ -15,6 +15,7 @@ position of every station), the tracks that ended lately and the last post's war
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import replace
 from typing import Callable
@@ -25,7 +26,7 @@ from core import geodesy
 from core.error_summary import error_summary
 from core.errors import LocalizationError
 from core.measurements import Kind
-from core.problem import CommonFrame, GeodeticPoint, build_problem
+from core.problem import CommonFrame, GeodeticPoint, ProblemInputs, build_problems, checked_inputs
 from core.tracking.network import (NetworkConfig, NetworkState, Report, apply_reports, in_track_axes,
                                    new_network_state, predict_tracks, validate_report)
 from service import association_sessions
@@ -133,28 +134,44 @@ def initial(request: schemas.NetworkSessionCreate) -> tuple[dict, dict]:
 
 def _frame(record: SessionRecord) -> CommonFrame:
     origin = record.config["origin"]
+    return _frame_at(None if origin is None else tuple(origin))
+
+
+@functools.lru_cache(maxsize=256)
+def _frame_at(origin: tuple[float, float, float] | None) -> CommonFrame:
+    """The session frame at ``origin`` (radians, metres), one object per origin, so that its placement on the
+    earth (:attr:`core.problem_frame.CommonFrame.placement`) is made once, not per response."""
     return CommonFrame(None if origin is None else GeodeticPoint(*origin))
 
 
 # -- reports -> core ----------------------------------------------------------------------------------------------
 
-def core_report(report: schemas.Report, index: int, registry: dict, frame: str, origin: GeodeticPoint | None,
-                check: Callable[[Report], object] = validate_report) -> Report:
-    """One API report as a core :class:`Report` in the session's frame.
+def core_reports(reports, first: int, registry: dict, frame: str, origin: GeodeticPoint | None,
+                 check: Callable[[Report], object] = validate_report,
+                 precheck: Callable[[schemas.Report, int], object] | None = None) -> list[Report]:
+    """A post's API reports as core :class:`Report` values in the session's frame, each report's stations
+    registered (:func:`_register`) once it is read, as the next report may use them.
+
+    Each report is checked on its own (:func:`core.problem.checked_inputs`, naming its field); then all are
+    placed in the session's frame in one batch (:func:`core.problem.build_problems`), so that a report's
+    share of the placement is a row of one call rather than a call of its own.
 
     Parameters
     ----------
-    report : Report
-    index : int
-        Its index in the post (the error paths start ``reports, index``).
+    reports : sequence of Report
+        The post's new reports, in post order.
+    first : int
+        The index in the post of ``reports[0]`` (the error paths start ``reports, index``).
     registry : dict
-        The session's stations: id -> ``{"position", "moving", "time_s"}`` (API positions).
+        The session's stations: id -> ``{"position", "moving", "time_s"}`` (API positions); updated in place.
     frame : str
         ``"wgs84"`` or ``"local"``: which positions the report's stations must give.
     origin : GeodeticPoint or None
     check : callable
-        Core's check of the report (its errors' paths become the request's): :func:`validate_report`, or an auto
+        Core's check of a report (its errors' paths become the request's): :func:`validate_report`, or an auto
         session's :func:`service.association_sessions.check_bearings`.
+    precheck : callable, optional
+        ``precheck(report, index)``: a check of the API report before it is read (an auto session's).
 
     Raises
     ------
@@ -162,6 +179,43 @@ def core_report(report: schemas.Report, index: int, registry: dict, frame: str, 
         422 with the field path: a station position in the wrong frame or given twice, an unknown station, a
         moving station without its position, a lone TOA, a value core refuses.
     """
+    inputs = []
+    for index, report in enumerate(reports, start=first):
+        if precheck is not None:
+            precheck(report, index)
+        inputs.append(_report_inputs(report, index, registry, frame, origin))
+        _register(registry, report)
+    batch = build_problems(inputs)
+    valid = batch.valid
+    out = []
+    for b, (index, report) in enumerate(zip(range(first, first + len(reports)), reports)):
+        m = np.flatnonzero(valid[b])
+        rows = batch.station_index[b, m]
+        values = batch.values[b, m]
+        source = batch.source_index[b, m]
+        kinds = batch.kinds[b, m]
+        toa = kinds == _TOA
+        if toa.any():  # the client's own TOAs: core takes its own reference, so no digit is lost to a round trip
+            values[toa] = [report.measurements[s].toa_s for s in source[toa]]
+        ids = batch.station_ids[b]
+        core = Report(seq=report.seq, time_s=report.time_s,
+                      emitter_id=report.emitter_id or schemas.DEFAULT_EMITTER_ID,
+                      station_ids=tuple(ids[s] for s in rows), stations_enu_m=batch.stations_enu_m[b, rows],
+                      rotations=batch.station_rotations[b, rows], kinds=kinds, values=values,
+                      sigmas=batch.sigmas[b, m])
+        try:
+            check(core)
+        except LocalizationError as error:
+            raise _problem(422, error.code, f"reports[{index}]: {error.message}",
+                           ("reports", index, *_core_loc(error.loc or (), source))) from error
+        out.append(core)
+    return out
+
+
+def _report_inputs(report: schemas.Report, index: int, registry: dict, frame: str,
+                   origin: GeodeticPoint | None) -> ProblemInputs:
+    """One API report's stations and measurements, checked (:func:`core.problem.checked_inputs`), with the
+    stations it measures from: given in the report, else the registry's (422 with the field path)."""
     from service.convert import to_measurement, to_point
 
     where = ("reports", index)
@@ -201,27 +255,11 @@ def core_report(report: schemas.Report, index: int, registry: dict, frame: str, 
                        "report (the emission time is unknown: one station's TOA alone says nothing)",
                        (*where, "measurements", j))
     try:
-        problem = build_problem([(sid, to_point(p)) for sid, p in used.items()],
-                                [to_measurement(m) for m in report.measurements], origin=origin)
+        return checked_inputs([(sid, to_point(p)) for sid, p in used.items()],
+                              [to_measurement(m) for m in report.measurements], origin=origin)
     except LocalizationError as error:
         raise _problem(422, error.code, f"reports[{index}]: {error.message}",
                        (*where, *api_loc(error.loc or ()))) from error
-    rows = problem.station_index
-    values = problem.values.copy()
-    toa = problem.kinds == _TOA
-    if toa.any():  # the client's own TOAs: core takes its own reference, so no digit is lost to a round trip
-        values[toa] = [report.measurements[s].toa_s for s in problem.source_index[toa]]
-    core = Report(seq=report.seq, time_s=report.time_s,
-                  emitter_id=report.emitter_id or schemas.DEFAULT_EMITTER_ID,
-                  station_ids=tuple(problem.station_ids[s] for s in rows),
-                  stations_enu_m=problem.stations_enu_m[rows], rotations=problem.station_rotations[rows],
-                  kinds=problem.kinds.copy(), values=values, sigmas=problem.sigmas.copy())
-    try:
-        check(core)
-    except LocalizationError as error:
-        raise _problem(422, error.code, f"reports[{index}]: {error.message}",
-                       (*where, *_core_loc(error.loc or (), problem.source_index))) from error
-    return core
 
 
 def _core_loc(loc, source_index) -> list:
@@ -319,19 +357,15 @@ class ReportsChange:
         auto = association_sessions.is_auto(request)
         registry = {sid: dict(entry) for sid, entry in record.state["stations"].items()}
         origin = _frame(record).origin
-        core_reports = []
-        for i, report in enumerate(fresh, start=first_new):
-            if auto:
-                association_sessions.check_report(report, i)
-            core_reports.append(core_report(report, i, registry, request["frame"], origin,
-                                            association_sessions.check_bearings if auto else validate_report))
-            _register(registry, report)
+        reports_in_frame = core_reports(fresh, first_new, registry, request["frame"], origin,
+                                        association_sessions.check_bearings if auto else validate_report,
+                                        association_sessions.check_report if auto else None)
         if auto:
-            return self._auto(record, fresh, core_reports, registry)
+            return self._auto(record, fresh, reports_in_frame, registry)
         config = decoded_states.get(record, core_config, fixed=True)
         before = decoded_states.get(record, core_state)
         try:
-            outcome = apply_reports(before, core_reports, config)
+            outcome = apply_reports(before, reports_in_frame, config)
         except LocalizationError as error:
             loc = list(error.loc or ())
             if loc and isinstance(loc[0], int) and 0 <= loc[0] < len(fresh):  # core names the report by its index

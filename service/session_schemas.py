@@ -295,7 +295,9 @@ class NetworkSessionCreate(Strict):
                                     description="a report up to this much older than the newest applied one is "
                                                 "still applied in time order; older ones are counted as late "
                                                 "and not applied (auto: every post re-runs the association "
-                                                "over the window's reports, so a long window costs time)")
+                                                "over the window's reports, so the number it keeps open is "
+                                                "bounded: older ones settle early, and a report older than the "
+                                                "settled ones is late)")
     coast_after_s: float = Field(10.0, gt=0.0, le=1e6, description="a track without a report for longer than "
                                                                    "this is coasting (predicted only; auto: a "
                                                                    "confirmed track without a bearing)")
@@ -447,8 +449,8 @@ class ReportResult(NetworkSessionState):
                                      "reorder_window_s included)")
     duplicates: int = Field(description="reports whose seq was not above the last applied one (acknowledged, "
                                         "not applied)")
-    late: int = Field(description="reports older than the newest applied time less reorder_window_s: "
-                                  "acknowledged, counted, not applied")
+    late: int = Field(description="reports older than the newest applied time less reorder_window_s (auto: "
+                                  "or than the settled reports): acknowledged, counted, not applied")
 
 
 AnySessionState = Annotated[Union[SessionState, NetworkSessionState], Field(union_mode="left_to_right")]

@@ -26,8 +26,9 @@ log-likelihood ratio of the two fits at the stated sigmas):
   ``w = 1 / (1 + exp(delta / 2))`` (the two fits' likelihoods, normalised),
   and its covariance is the two-solution mixture's second moment about the
   reported fix, ``(1 - w) P_best + w (P_rival + d d^T)`` with ``d`` the rival
-  minus the fix (:func:`mixture_covariance`): the region it states covers
-  both.
+  minus the fix (:func:`mixture_covariance`), widened where its 99 % region
+  would not hold the mixture (:func:`mixture_region`: a rival of probability
+  above 1 % must lie inside it).
 - ``delta > PLAUSIBLE_COST``: rejected; the fix is answered as if alone.
 """
 
@@ -37,6 +38,7 @@ import math
 
 import numpy as np
 
+from core.estimators.region import holding, normal_draws
 from core.problem_batch import ProblemBatch
 
 #: A rival whose cost is within this of the best's (chi-square units) ties with it: 422 ``ambiguous_geometry``.
@@ -104,3 +106,21 @@ def mixture_covariance(fix_enu_m, covariance_enu_m2, rival_enu_m, rival_covarian
     mixed = (1.0 - probability) * np.asarray(covariance_enu_m2, dtype=float) \
         + probability * (np.asarray(rival_covariance_enu_m2, dtype=float) + np.outer(apart, apart))
     return 0.5 * (mixed + mixed.T)
+
+
+def mixture_region(fix_enu_m, covariance_enu_m2, rival_enu_m, rival_covariance_enu_m2, probability):
+    """The two-solution mixture's covariance ``(3, 3)`` (:func:`mixture_covariance`, same parameters), widened
+    towards the rival by the least amount that makes its 99 % region hold 99 % of the mixture
+    (:func:`core.estimators.region.holding`): the second moment alone reaches ``sqrt(w)`` of the way to a
+    rival of weight ``w``, and leaves out one whose probability ``w`` exceeds 1 %."""
+    fix, rival = np.asarray(fix_enu_m, dtype=float), np.asarray(rival_enu_m, dtype=float)
+    draws = normal_draws(3)
+    parts = []
+    for covariance in (covariance_enu_m2, rival_covariance_enu_m2):
+        values, vectors = np.linalg.eigh(0.5 * (covariance + np.swapaxes(covariance, -1, -2)))
+        parts.append(draws @ (vectors * np.sqrt(np.clip(values, 0.0, None))).T)  # (N, 3) of N(0, covariance)
+    offsets = np.concatenate([parts[0], rival - fix + parts[1]])
+    weights = np.repeat([(1.0 - probability) / draws.shape[0], probability / draws.shape[0]], draws.shape[0])
+    mixed = mixture_covariance(fix, covariance_enu_m2, rival, rival_covariance_enu_m2, probability)
+    held, _ = holding(mixed[None], offsets[None], weights[None], np.outer(rival - fix, rival - fix)[None])
+    return held[0]

@@ -35,7 +35,7 @@ import numpy as np
 from scipy.stats import chi2 as chi2_distribution
 
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
-from core.linalg import row_sums
+from core.linalg import gram_eigenvalues_2x2, row_sums
 from core.measurements import ELEVATION, KIND_NAMES, RANGE, TOA
 from core.problem import frame_placements, local_axes_point, onto_altitude
 from core.problem_batch import ProblemBatch
@@ -171,22 +171,6 @@ def _azimuth_directions_kernel(azimuth_rad, rotations, normals, horizontal):
             azimuth_directions_point(azimuth_rad[b, k], rotations[b, k], normals[b, k], horizontal[b, k])
 
 
-def solve_2x2(matrix, right):
-    """Solutions ``(B, 2, ...)`` of 2x2 systems ``(B, 2, 2)`` (a singular one gives inf or NaN, not an exception)."""
-    a, b, c, d = matrix[:, 0, 0], matrix[:, 0, 1], matrix[:, 1, 0], matrix[:, 1, 1]
-    extra = (slice(None),) + (None,) * (np.ndim(right) - 2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inverse_det = 1.0 / (a * d - b * c)
-        x0 = (d[extra] * right[:, 0] - b[extra] * right[:, 1]) * inverse_det[extra]
-        x1 = (a[extra] * right[:, 1] - c[extra] * right[:, 0]) * inverse_det[extra]
-    return np.stack([x0, x1], axis=1)
-
-
-def inverse_2x2(matrix):
-    """Inverses ``(B, 2, 2)`` of 2x2 matrices."""
-    return solve_2x2(matrix, np.broadcast_to(np.eye(2), matrix.shape))
-
-
 def _point_chi2(lines: Lines, normals_enu, weights) -> np.ndarray:
     """Smallest chi-square ``(B,)`` of the azimuths, as undirected lines, through one horizontal point.
 
@@ -256,14 +240,6 @@ def _point_chi2_kernel(count, origins, rotations, azimuth, normals, weights, bes
             point[1] += step1
 
 
-def _eigenvalues_2x2(rows) -> np.ndarray:
-    """Eigenvalues ``(B, 2)``, ascending, of ``sum_k x_k x_k^T`` for rows ``(B, K, 2)``."""
-    a, c = row_sums(rows[..., 0] ** 2), row_sums(rows[..., 1] ** 2)
-    b = row_sums(rows[..., 0] * rows[..., 1])
-    mean, radius = 0.5 * (a + c), np.hypot(0.5 * (a - c), b)
-    return np.stack([mean - radius, mean + radius], axis=-1)
-
-
 def crossing_errors(lines: Lines, name: str) -> dict[int, LocalizationError]:
     """Refuse azimuth lines that do not cross in the horizontal plane.
 
@@ -301,7 +277,7 @@ def crossing_errors(lines: Lines, name: str) -> dict[int, LocalizationError]:
     mask = lines.mask
     normals, _ = azimuth_normals(lines)
     flat = normals[..., :2] / np.linalg.norm(normals[..., :2], axis=-1, keepdims=True) * mask[..., None]
-    eigenvalues = _eigenvalues_2x2(flat)
+    eigenvalues = gram_eigenvalues_2x2(flat)
     rank_deficient = (eigenvalues[:, 0] <= RANK_TOLERANCE * eigenvalues[:, -1]) & (count >= 2)
     spread_rad = np.sqrt(np.maximum(eigenvalues[:, 0], 0.0) / np.maximum(count, 1))
     sigma = lines.sigma_azimuth_rad
@@ -313,7 +289,7 @@ def crossing_errors(lines: Lines, name: str) -> dict[int, LocalizationError]:
         part = lines.take(rows)
         weights = np.where(part.mask, 1.0 / part.sigma_azimuth_rad, 0.0)
         weighted = flat[rows] * weights[..., None]
-        parallel = _eigenvalues_2x2(weighted)[:, 0]
+        parallel = gram_eigenvalues_2x2(weighted)[:, 0]
         gain[rows] = parallel - _point_chi2(part, normals[rows], weights)
     refused = rank_deficient | (tested & (gain < threshold))
     for b in np.flatnonzero(refused).tolist():

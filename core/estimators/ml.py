@@ -9,9 +9,10 @@ everything else a fix reports), except where ML says more: a fix with a
 plausible second solution reports the two-solution mixture's
 (:func:`core.estimators.ties.second_solution`), and a fix from the search (a
 mix without a closed form, or whose closed-form fit failed) the unscented
-spread of the estimator, never below the bound
-(:mod:`core.estimators.unscented_fix`): the inverse information is the
-covariance only where the model is linear over the fix's uncertainty.
+spread of the estimator, never below the bound and widened until its 99 %
+region holds the curved error (:mod:`core.estimators.unscented_fix`): the
+inverse information is the covariance only where the model is linear over
+the fix's uncertainty.
 
 A robust loss (``options.loss``) is minimised as scipy's ``least_squares``
 does; the finisher then reports the sandwich covariance of the final weights
@@ -45,7 +46,7 @@ from core.estimators.result import Estimates, FixWarning
 from core.estimators.starting_points import START_PASSES, initial_positions
 from core.estimators.ties import (REFINE_ITERATIONS, Fits, above_ground, fit_from, mirror_applies, mirror_points,
                                   refine, rivals, searched_starts, second_solution)
-from core.estimators.unscented_fix import CURVED_VARIANCE_RATIO, never_below, unscented_covariance
+from core.estimators.unscented_fix import CURVED_VARIANCE_RATIO, curved_covariance
 from core.kernel_data import Frames, Measurements
 from core.measurements import AZIMUTH, ELEVATION, ahead_point, predict, residuals
 from core.problem_batch import ProblemBatch
@@ -309,21 +310,22 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
 def _spread(batch: ProblemBatch, rows, solution: Solution, options: SolveOptions, covariance, warnings) -> None:
     """The searched fixes ``rows`` ``(K,)`` (mixes without a closed form, or whose closed-form fit failed: the
     geometries where the model can be far from linear over the fix's uncertainty) get the unscented covariance
-    of the estimator, never below the bound (:mod:`core.estimators.unscented_fix`), in ``covariance``; where it
-    exceeds the bound by more than ``CURVED_VARIANCE_RATIO``, the warning ``curved_uncertainty``."""
+    of the estimator, never below the bound, widened until its 99 % region holds the curved error
+    (:func:`core.estimators.unscented_fix.curved_covariance`), in ``covariance``; where it exceeds the bound by
+    more than ``CURVED_VARIANCE_RATIO``, the warning ``curved_uncertainty``."""
     part = batch.take(rows)
     fixes = solution.position_enu_m[rows]
 
     def refit(moved, starts):  # to 1e-6 of a sigma (STEP_MAHALANOBIS2), not a step in metres: a thin axis is mm
         return levenberg_marquardt(moved, starts, REFINE_ITERATIONS, 0.0, loss_of(options)).position_enu_m
 
-    spread = unscented_covariance(part, fixes, solution.bias_m[rows], refit)
-    raised, ratio = never_below(spread, batch_information(part, fixes).covariance_enu_m2)
-    covariance[rows] = raised
+    held, ratio, widened = curved_covariance(part, fixes, solution.bias_m[rows], refit)
+    covariance[rows] = held
     for j in np.flatnonzero(ratio > CURVED_VARIANCE_RATIO).tolist():
         b = int(rows[j])
         warnings[b] = warnings[b] + (FixWarning(
             "curved_uncertainty",
             f"the measurement model is far from linear over this fix's uncertainty: fixes of the measurements moved "
-            f"by their sigmas spread {np.sqrt(ratio[j]):.1f} x the bound's sigma along its worst axis; the "
-            "covariance is that spread (unscented), not the inverse information"),)
+            f"by their sigmas spread up to {np.sqrt(ratio[j]):.1f} x the bound's sigma; the covariance is that spread "
+            "(unscented), not the inverse information"
+            + (", widened until its 99 % region holds the curved error" if widened[j] else "")),)

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import math
 from enum import Enum
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -82,6 +83,45 @@ class Weighting(Enum):
 #: Passes of an orthogonal-vector estimator: the unit-weight one, then two that re-weigh the rows (and re-take
 #: a known altitude's up row) at the previous fix.
 PASSES = 3
+
+
+class StackedRows(NamedTuple):
+    """Each problem's orthogonal-vector rows (:func:`_rows_kernel`): measurement ``m``'s ``c`` row at ``m``, its
+    ``c'`` row at ``M + m``.
+
+    Attributes
+    ----------
+    rows : ndarray, shape (B, 2M, 3)
+        Unit normals, common frame.
+    rhs : ndarray, shape (B, 2M)
+        ``c . r`` (m).
+    used : ndarray of bool, shape (B, 2M)
+    sigma : ndarray, shape (B, 2M)
+        The row's angle sigma (rad; 1 where none).
+    """
+
+    rows: np.ndarray
+    rhs: np.ndarray
+    used: np.ndarray
+    sigma: np.ndarray
+
+
+class StationFrames(NamedTuple):
+    """Each measurement's station ``(B, M, 3)`` (m) and rotation ``(B, M, 3, 3)`` (station ENU <- common ENU)."""
+
+    stations_enu_m: np.ndarray
+    rotations: np.ndarray
+
+
+class AltitudeSurfaces(NamedTuple):
+    """Each problem's known target altitude ``(B,)`` (m, NaN where unknown), whether its frame is geodetic
+    ``(B,)``, and the frame's placement: origin ``(B, 3)`` (ECEF, m) and rotation ``(B, 3, 3)``
+    (:func:`core.problem.frame_placements`)."""
+
+    altitude_m: np.ndarray
+    geodetic: np.ndarray
+    origin_ecef_m: np.ndarray
+    origin_rotation: np.ndarray
 
 
 def normal_vectors(azimuth_rad, elevation_rad):
@@ -200,18 +240,23 @@ def _least_squares(s, v, projected, lane, out):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _positions_kernel(rows, rhs, used, sigma, stations, rotations, altitude_m, geodetic, origin_ecef_m,
-                      origin_rotation, weighted, passes):
+def _positions_kernel(stacked_rows, stations_frames, surfaces, weighted, passes):
     """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), its status (``SOLVED``,
     ``NO_ROWS`` or ``RANK_DEFICIENT``) and each row's noise per unit angle at the fix (:func:`_noise_scale`;
-    1 where no fix).
+    1 where no fix), from its :class:`StackedRows`, :class:`StationFrames` and :class:`AltitudeSurfaces`;
+    ``weighted``: the rows weighed by their first-order noise from the second of ``passes`` on.
 
-    ``rows`` ``(B, 2M, 3)``: measurement ``m``'s ``c`` row at ``m``, its ``c'`` row at ``M + m``; the known
-    altitude's up row is the last of the stacked system (zero weight without one). Rows of zero weight past
-    the first three are left out of the SVD (:func:`_stack_lane`). ``SVD_LANES`` problems are solved side
+    The known altitude's up row is the last of the stacked system (zero weight without one). Rows of zero
+    weight past the first three are left out of the SVD (:func:`_stack_lane`). ``SVD_LANES`` problems are solved side
     by side, each pass's systems in one :func:`core.linalg.svd_in_place` (each problem gets its own bits),
     except a system of three rows or fewer, which is not reduced first and goes alone.
     """
+    # The pass loop stays in one function: a helper taking the bundles, called per group of problems, pays for
+    # their arguments and refcounts on every call, a visible share of a four-line problem's solution.
+    rows, rhs, used, sigma = stacked_rows.rows, stacked_rows.rhs, stacked_rows.used, stacked_rows.sigma
+    stations, rotations = stations_frames.stations_enu_m, stations_frames.rotations
+    altitude_m, geodetic = surfaces.altitude_m, surfaces.geodetic
+    origin_ecef_m, origin_rotation = surfaces.origin_ecef_m, surfaces.origin_rotation
     size, count, _ = rows.shape
     position = np.full((size, 3), np.nan)
     status = np.full(size, NO_ROWS, dtype=np.int8)
@@ -322,11 +367,14 @@ def _orthogonal_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad,
                        weighted, passes):
     """:func:`_rows_kernel` then :func:`_positions_kernel`, in one call: the stacked rows, which are used and
     their sigmas (what the propagated covariance needs), then each problem's fix, its status and each row's noise
-    scale."""
+    scale. Flat from Python (numba types a named tuple there at more than a small batch costs); named inside
+    (:class:`StackedRows`, :class:`StationFrames`, :class:`AltitudeSurfaces`)."""
     rows, rhs, used, sigma = _rows_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad,
                                           stations_enu_m, rotations, use_vertical, use_horizontal)
-    position, status, scale = _positions_kernel(rows, rhs, used, sigma, stations_enu_m, rotations, altitude_m,
-                                                geodetic, origin_ecef_m, origin_rotation, weighted, passes)
+    position, status, scale = _positions_kernel(StackedRows(rows, rhs, used, sigma),
+                                                StationFrames(stations_enu_m, rotations),
+                                                AltitudeSurfaces(altitude_m, geodetic, origin_ecef_m, origin_rotation),
+                                                weighted, passes)
     return rows, used, sigma, position, status, scale
 
 

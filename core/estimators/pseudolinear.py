@@ -40,6 +40,7 @@ alone and in any batch.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -82,37 +83,112 @@ def _foot_up(point, altitude_m, geodetic, origin_ecef_m, origin_rotation):
     return foot[2]
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _stages_point(origins, rotations, azimuth, elevation, has_elevation, hw, dhw, vw, dvw, weighted,
-                  altitude_m, geodetic, origin_ecef_m, origin_rotation, position, d_position, horizontal,
-                  d_horizontal):
-    """Run one problem's two stages to their fixed point, with the derivatives w.r.t. every angle.
+class LinesOfSight(NamedTuple):
+    """One problem's ``n`` lines of sight (a slice of :class:`core.estimators.azimuth_lines.Lines`).
 
-    The angles are ``P = 2n`` parameters: each line's azimuth, then each line's elevation; a term of line
-    k that depends on its own angle only lands in that angle's slot.
-
-    Parameters
+    Attributes
     ----------
-    origins : ndarray, shape (n, 3)
+    origins_enu_m : ndarray, shape (n, 3)
     rotations : ndarray, shape (n, 3, 3)
-    azimuth, elevation : ndarray, shape (n,)
+        Station ENU <- common ENU.
+    azimuth_rad, elevation_rad : ndarray, shape (n,)
     has_elevation : ndarray of bool, shape (n,)
-    hw, vw : ndarray, shape (n,)
-        Horizontal and height weights (heights: zero on lines without elevation).
-    dhw, dvw : ndarray, shape (n, P)
-        Their derivatives, used when ``weighted``.
+    """
+
+    origins_enu_m: np.ndarray
+    rotations: np.ndarray
+    azimuth_rad: np.ndarray
+    elevation_rad: np.ndarray
+    has_elevation: np.ndarray
+
+
+class AltitudeSurface(NamedTuple):
+    """The known target altitude of one problem and its frame's placement (:func:`core.problem.frame_placements`).
+
+    Attributes
+    ----------
     altitude_m : float
         NaN where the height comes from the elevations.
+    geodetic : bool
+    origin_ecef_m : ndarray, shape (3,)
+    origin_rotation : ndarray, shape (3, 3)
+    """
+
+    altitude_m: float
+    geodetic: bool
+    origin_ecef_m: np.ndarray
+    origin_rotation: np.ndarray
+
+
+class StageWeights(NamedTuple):
+    """The two stages' row weights and their derivatives w.r.t. the ``P = 2n`` angles.
+
+    Attributes
+    ----------
+    horizontal, height : ndarray, shape (n,)
+        Horizontal and height weights (heights: zero on lines without elevation).
+    d_horizontal, d_height : ndarray, shape (n, P)
+        Their derivatives, used when ``weighted``.
+    weighted : bool
+    """
+
+    horizontal: np.ndarray
+    d_horizontal: np.ndarray
+    height: np.ndarray
+    d_height: np.ndarray
+    weighted: bool
+
+
+class StageFix(NamedTuple):
+    """The two stages' fixed point and its derivatives w.r.t. the ``P = 2n`` angles (written by
+    :func:`_stages_point`).
+
+    Attributes
+    ----------
     position : ndarray, shape (3,)
+        ENU (m).
     d_position : ndarray, shape (3, P)
     horizontal : ndarray, shape (n,)
-        Horizontal distance of the fix from each line's station, in the station's frame.
+        Horizontal distance (m) of the fix from each line's station, in the station's frame.
     d_horizontal : ndarray, shape (n, P)
-        Outputs.
     """
+
+    position: np.ndarray
+    d_position: np.ndarray
+    horizontal: np.ndarray
+    d_horizontal: np.ndarray
+
+
+class PlaneRows(NamedTuple):
+    """Each line's azimuth plane ``n_k . p = rhs_k`` and line-of-sight height slope (:func:`_plane_rows`).
+
+    Attributes
+    ----------
+    normals, along : ndarray, shape (n, 3)
+        ``n_k`` and the horizontal line-of-sight direction ``h_k`` (``d n_k / d az_k = -h_k``), common frame.
+    rhs, along_rhs : ndarray, shape (n,)
+        ``n_k . r_k`` and ``h_k . r_k`` (m).
+    slope : ndarray, shape (n,)
+        Height gained per metre of horizontal distance along the line of sight.
+    d_slope_az, d_slope_el : ndarray, shape (n,)
+        Its derivatives w.r.t. the line's azimuth and elevation.
+    """
+
+    normals: np.ndarray
+    along: np.ndarray
+    rhs: np.ndarray
+    along_rhs: np.ndarray
+    slope: np.ndarray
+    d_slope_az: np.ndarray
+    d_slope_el: np.ndarray
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _plane_rows(lines):
+    """The :class:`PlaneRows` of a problem's lines of sight."""
+    origins, rotations = lines.origins_enu_m, lines.rotations
+    azimuth, elevation, has_elevation = lines.azimuth_rad, lines.elevation_rad, lines.has_elevation
     n = origins.shape[0]
-    p_count = 2 * n
-    constrained = not math.isnan(altitude_m)
     normals = np.empty((n, 3))
     along = np.empty((n, 3))
     rhs, along_rhs = np.empty(n), np.empty(n)
@@ -127,6 +203,16 @@ def _stages_point(origins, rotations, azimuth, elevation, has_elevation, hw, dhw
         slope[k] = rotations[k, 0, 2] * s + rotations[k, 1, 2] * c + rotations[k, 2, 2] * math.tan(elevation[k])
         d_slope_az[k] = rotations[k, 0, 2] * c - rotations[k, 1, 2] * s
         d_slope_el[k] = rotations[k, 2, 2] / math.cos(elevation[k]) ** 2 if has_elevation[k] else 0.0
+    return PlaneRows(normals, along, rhs, along_rhs, slope, d_slope_az, d_slope_el)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _horizontal_normal(normals, along, hw, dhw, weighted):
+    """Stage 1's weighted normal matrix ``G = [[g00, g01], [g01, g11]]`` of the east/north columns, the up
+    column's products ``c0, c1`` and the derivatives ``dg00, dg01, dg11`` ``(P,)`` of ``G`` w.r.t. the angles
+    (``hw``, ``dhw``: the horizontal weights, :class:`StageWeights`)."""
+    n = normals.shape[0]
+    p_count = 2 * n
     g00 = g01 = g11 = c0 = c1 = 0.0
     dg00, dg01, dg11 = np.zeros(p_count), np.zeros(p_count), np.zeros(p_count)
     for k in range(n):
@@ -147,6 +233,51 @@ def _stages_point(origins, rotations, azimuth, elevation, has_elevation, hw, dhw
                 dg00[p] += 2 * n0 * n0 * hw[k] * dhw[k, p]
                 dg01[p] += 2 * n0 * n1 * hw[k] * dhw[k, p]
                 dg11[p] += 2 * n1 * n1 * hw[k] * dhw[k, p]
+    return (g00, g01, g11), (c0, c1), (dg00, dg01, dg11)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _foot_gradient(point, altitude_m, geodetic, origin_ecef_m, origin_rotation, out):
+    """The gradient ``(3,)`` of the foot's up coordinate w.r.t. ``point``, by central differences of
+    ``FOOT_STEP_M`` (exact to about 1e-12 on the ellipsoid's curvature), into ``out``."""
+    for i in range(3):
+        shifted = point.copy()
+        shifted[i] = point[i] + FOOT_STEP_M
+        high = _foot_up(shifted, altitude_m, geodetic, origin_ecef_m, origin_rotation)
+        shifted[i] = point[i] - FOOT_STEP_M
+        low = _foot_up(shifted, altitude_m, geodetic, origin_ecef_m, origin_rotation)
+        out[i] = (high - low) / (2 * FOOT_STEP_M)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _stages_point(lines, weights, surface, fix):
+    """Run one problem's two stages to their fixed point, with the derivatives w.r.t. every angle.
+
+    The angles are ``P = 2n`` parameters: each line's azimuth, then each line's elevation; a term of line
+    k that depends on its own angle only lands in that angle's slot.
+
+    Parameters
+    ----------
+    lines : LinesOfSight
+    weights : StageWeights
+    surface : AltitudeSurface
+        A known altitude replaces stage 2.
+    fix : StageFix
+        Written.
+    """
+    origins, rotations = lines.origins_enu_m, lines.rotations
+    hw, dhw, weighted = weights.horizontal, weights.d_horizontal, weights.weighted
+    vw, dvw = weights.height, weights.d_height
+    altitude_m, geodetic = surface.altitude_m, surface.geodetic
+    origin_ecef_m, origin_rotation = surface.origin_ecef_m, surface.origin_rotation
+    d_position, horizontal = fix.d_position, fix.horizontal
+    n = origins.shape[0]
+    p_count = 2 * n
+    constrained = not math.isnan(altitude_m)
+    rows = _plane_rows(lines)
+    normals, along, rhs, along_rhs = rows.normals, rows.along, rows.rhs, rows.along_rhs
+    slope, d_slope_az, d_slope_el = rows.slope, rows.d_slope_az, rows.d_slope_el
+    (g00, g01, g11), (c0, c1), (dg00, dg01, dg11) = _horizontal_normal(normals, along, hw, dhw, weighted)
     inverse_det = 1.0 / (g00 * g11 - g01 * g01)
     if constrained:
         up = altitude_m
@@ -166,8 +297,10 @@ def _stages_point(origins, rotations, azimuth, elevation, has_elevation, hw, dhw
     heights = np.empty(n)
     gradient = np.empty((n, 3))
     point = np.empty(3)
+    foot_gradient = np.empty(3)
     east = north = 0.0
     for _ in range(PASSES):
+        # Stage 1: the horizontal least squares at the current height, and its derivatives.
         right0 = right1 = 0.0
         d_right0[:] = 0.0
         d_right1[:] = 0.0
@@ -195,20 +328,15 @@ def _stages_point(origins, rotations, azimuth, elevation, has_elevation, hw, dhw
             d_position[1, p] = (g00 * r1 - g01 * r0) * inverse_det
             d_position[2, p] = d_up[p]
         point[0], point[1], point[2] = east, north, up
+        # Stage 2: the height, on the known altitude surface or from the elevations.
         if constrained:
             up = _foot_up(point, altitude_m, geodetic, origin_ecef_m, origin_rotation)
-            foot_gradient = np.empty(3)
-            for i in range(3):
-                shifted = point.copy()
-                shifted[i] = point[i] + FOOT_STEP_M
-                high = _foot_up(shifted, altitude_m, geodetic, origin_ecef_m, origin_rotation)
-                shifted[i] = point[i] - FOOT_STEP_M
-                low = _foot_up(shifted, altitude_m, geodetic, origin_ecef_m, origin_rotation)
-                foot_gradient[i] = (high - low) / (2 * FOOT_STEP_M)
+            _foot_gradient(point, altitude_m, geodetic, origin_ecef_m, origin_rotation, foot_gradient)
             for p in range(p_count):
                 d_up[p] = (foot_gradient[0] * d_position[0, p] + foot_gradient[1] * d_position[1, p]
                            + foot_gradient[2] * d_position[2, p])
         else:
+            # The (weighted) mean of each line of sight's height at the point's horizontal distance.
             _horizontal_point(point, origins, rotations, horizontal, gradient)
             new_up = 0.0
             toward = np.zeros(3)
@@ -229,59 +357,86 @@ def _stages_point(origins, rotations, azimuth, elevation, has_elevation, hw, dhw
                         d_new_up += (heights[k] - new_up) * dvw[k, p]
                 d_up[p] = d_new_up / vw_total
             up = new_up
+    _fix_at(east, north, up, d_up, origins, rotations, fix, gradient)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _fix_at(east, north, up, d_up, origins, rotations, fix, gradient):
+    """Write the fixed point into ``fix``: its position, the up row of its derivatives, and the horizontal
+    distances from the stations with their derivatives (``gradient`` ``(n, 3)`` is scratch)."""
+    position, d_position, horizontal, d_horizontal = fix.position, fix.d_position, fix.horizontal, fix.d_horizontal
+    p_count = d_position.shape[1]
     position[0], position[1], position[2] = east, north, up
     for p in range(p_count):
         d_position[2, p] = d_up[p]
     _horizontal_point(position, origins, rotations, horizontal, gradient)
-    for k in range(n):
+    for k in range(origins.shape[0]):
         for p in range(p_count):
             d_horizontal[k, p] = (gradient[k, 0] * d_position[0, p] + gradient[k, 1] * d_position[1, p]
                                   + gradient[k, 2] * d_position[2, p])
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
+def _first_order_weights(lines, sigma_azimuth, sigma_elevation, fix):
+    """WS3D's :class:`StageWeights` from a PLE pass ``fix``: ``1 / (sigma_az d)`` horizontally and
+    ``cos^4(el) / (sigma_el d)^2`` for the heights (``d`` the horizontal distance), with their derivatives."""
+    elevation, has_elevation = lines.elevation_rad, lines.has_elevation
+    horizontal, d_horizontal = fix.horizontal, fix.d_horizontal
+    n = elevation.size
+    p_count = 2 * n
+    hw, vw = np.empty(n), np.empty(n)
+    dhw, dvw = np.empty((n, p_count)), np.empty((n, p_count))
+    for k in range(n):
+        near = horizontal[k] < 1e-9
+        distance = 1e-9 if near else horizontal[k]
+        hw[k] = 1.0 / (sigma_azimuth[k] * distance)
+        cos_el = math.cos(elevation[k])
+        vw[k] = (1.0 if has_elevation[k] else 0.0) * cos_el**4 / (sigma_elevation[k] * distance) ** 2
+        for p in range(p_count):
+            d_distance = 0.0 if near else d_horizontal[k, p]
+            dhw[k, p] = -(hw[k] / distance) * d_distance
+            dvw[k, p] = -(2 * vw[k] / distance) * d_distance
+        dvw[k, n + k] -= 4 * math.tan(elevation[k]) * vw[k]
+    return StageWeights(hw, dhw, vw, dvw, True)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pseudolinear_point(lines, sigma_azimuth, sigma_elevation, surface, weighted, position, covariance):
+    """One problem's PLE (or, ``weighted``, WS3D) position ``(3,)`` and first-order covariance ``(3, 3)``."""
+    n = lines.azimuth_rad.size
+    p_count = 2 * n
+    has_elevation = lines.has_elevation
+    height_ones = np.zeros(n)
+    for k in range(n):
+        if has_elevation[k]:
+            height_ones[k] = 1.0
+    constant = np.zeros((n, p_count))  # the first pass's weights do not depend on the angles
+    fix = StageFix(position, np.empty((3, p_count)), np.empty(n), np.empty((n, p_count)))
+    _stages_point(lines, StageWeights(np.ones(n), constant, height_ones, constant, False), surface, fix)
+    if weighted:
+        _stages_point(lines, _first_order_weights(lines, sigma_azimuth, sigma_elevation, fix), surface, fix)
+    variance = np.empty(p_count)
+    constrained = not math.isnan(surface.altitude_m)
+    for k in range(n):
+        variance[k] = sigma_azimuth[k] ** 2
+        variance[n + k] = sigma_elevation[k] ** 2 if has_elevation[k] and not constrained else 0.0
+    gram_point(fix.d_position, variance, covariance)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _pseudolinear_kernel(count, origins, rotations, azimuth, elevation, has_elevation, sigma_azimuth,
                          sigma_elevation, altitude_m, geodetic, origin_ecef_m, origin_rotation, weighted, position,
                          covariance):
-    """PLE or WS3D positions and covariances of every problem (see :func:`pseudolinear_positions`)."""
+    """PLE or WS3D positions and covariances of every problem (see :func:`pseudolinear_positions`):
+    :class:`core.estimators.azimuth_lines.Lines`' arrays and the frames' placements, named per problem here
+    (:class:`LinesOfSight`, :class:`AltitudeSurface`). Flat at this boundary because numba types a
+    named-tuple argument in Python, which costs more than a problem's solution."""
     for b in range(count.size):
         n = count[b]
-        p_count = 2 * n
-        o, r = origins[b, :n], rotations[b, :n]
-        az, el, has_el = azimuth[b, :n], elevation[b, :n], has_elevation[b, :n]
-        ones = np.ones(n)
-        height_ones = np.zeros(n)
-        for k in range(n):
-            if has_el[k]:
-                height_ones[k] = 1.0
-        constant = np.zeros((n, p_count))  # the first pass's weights do not depend on the angles
-        d_position = np.empty((3, p_count))
-        horizontal = np.empty(n)
-        d_horizontal = np.empty((n, p_count))
-        _stages_point(o, r, az, el, has_el, ones, constant, height_ones, constant, False, altitude_m[b], geodetic[b],
-                      origin_ecef_m[b], origin_rotation[b], position[b], d_position, horizontal, d_horizontal)
-        if weighted:
-            hw, vw = np.empty(n), np.empty(n)
-            dhw, dvw = np.empty((n, p_count)), np.empty((n, p_count))
-            for k in range(n):
-                near = horizontal[k] < 1e-9
-                distance = 1e-9 if near else horizontal[k]
-                hw[k] = 1.0 / (sigma_azimuth[b, k] * distance)
-                cos_el = math.cos(el[k])
-                vw[k] = height_ones[k] * cos_el**4 / (sigma_elevation[b, k] * distance) ** 2
-                for p in range(p_count):
-                    d_distance = 0.0 if near else d_horizontal[k, p]
-                    dhw[k, p] = -(hw[k] / distance) * d_distance
-                    dvw[k, p] = -(2 * vw[k] / distance) * d_distance
-                dvw[k, n + k] -= 4 * math.tan(el[k]) * vw[k]
-            _stages_point(o, r, az, el, has_el, hw, dhw, vw, dvw, True, altitude_m[b], geodetic[b], origin_ecef_m[b],
-                          origin_rotation[b], position[b], d_position, horizontal, d_horizontal)
-        variance = np.empty(p_count)
-        constrained = not math.isnan(altitude_m[b])
-        for k in range(n):
-            variance[k] = sigma_azimuth[b, k] ** 2
-            variance[n + k] = sigma_elevation[b, k] ** 2 if has_el[k] and not constrained else 0.0
-        gram_point(d_position, variance, covariance[b])
+        lines = LinesOfSight(origins[b, :n], rotations[b, :n], azimuth[b, :n], elevation[b, :n], has_elevation[b, :n])
+        surface = AltitudeSurface(altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
+        _pseudolinear_point(lines, sigma_azimuth[b, :n], sigma_elevation[b, :n], surface, weighted, position[b],
+                            covariance[b])
 
 
 def pseudolinear_positions(lines: Lines, weighted: bool):

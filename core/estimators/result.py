@@ -39,11 +39,15 @@ WARNING_CODES = {
                           "ambiguous_geometry, except under a robust loss)",
     "second_solution_plausible": "a second solution (named in the message, with its probability from the two "
                                  "fits' likelihoods) fits worse but is not ruled out at 0.1 %; the covariance is "
-                                 "the two-solution mixture's second moment about this fix, so its region covers both",
+                                 "the two-solution mixture's second moment about this fix, widened where needed so "
+                                 "that its 99 % region holds 99 % of the mixture (a second solution more likely "
+                                 "than 1 % lies inside it)",
     "curved_uncertainty": "the measurement model is far from linear over the fix's uncertainty (a line of sight "
                           "nearly tangent to a TDOA hyperbola): the covariance is the spread of the fixes of the "
                           "measurements moved by their sigmas (unscented transform of the estimator), not the "
-                          "inverse information, which understates the error there",
+                          "inverse information, which understates the error there; widened across the curve "
+                          "where needed so that its 99 % region holds the curved error (it then states more "
+                          "than the error's second moment)",
     "measurements_unused": "the method does not use some kinds of the given measurements (named in the message)",
     "measurement_downweighted": "the robust loss left this measurement under a tenth of its weight (named in the "
                                 "message)",

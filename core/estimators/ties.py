@@ -22,7 +22,7 @@ the model). One rule judges it for every mix (:mod:`core.estimators.ambiguity`,
 both points, unless the client's ``initial_guess`` picks the nearer one
 (:func:`ambiguous`); worse but plausible, the fix warns
 ``second_solution_plausible`` (the rival and its probability) and its
-covariance is the two-solution mixture's.
+covariance is the two-solution mixture's, its 99 % region holding both.
 """
 
 from __future__ import annotations
@@ -33,8 +33,7 @@ import numpy as np
 
 from core.crlb import batch_information
 from core.errors import AmbiguousGeometry
-from core.estimators.ambiguity import (AMBIGUITY_COST, PLAUSIBLE_COST, axis_starts, mixture_covariance,
-                                       rival_probability)
+from core.estimators.ambiguity import AMBIGUITY_COST, PLAUSIBLE_COST, axis_starts, mixture_region, rival_probability
 from core.estimators.base import SolveOptions
 from core.estimators.lm import Solution, iterate, levenberg_marquardt, loss_of
 from core.estimators.result import FixWarning
@@ -290,11 +289,11 @@ def second_solution(batch: ProblemBatch, b: int, other_enu_m, other_cost: float,
     fix = solution.position_enu_m[b]
     bounds = batch_information(batch.take([b, b]), np.stack([fix, other_enu_m])).covariance_enu_m2
     probability = float(rival_probability(delta))
-    covariance[b] = mixture_covariance(fix, bounds[0], other_enu_m, bounds[1], probability)
+    covariance[b] = mixture_region(fix, bounds[0], other_enu_m, bounds[1], probability)
     return (FixWarning("second_solution_plausible",
                        f"a second solution at {_point(batch, b, other_enu_m)} fits the measurements worse "
                        f"(chi2 {delta:.1f} above this fix) but is not ruled out: probability {probability:.1%}; "
-                       "the covariance covers both (their mixture about this fix)"),)
+                       "the covariance covers both (their mixture about this fix, its 99 % region holding both)"),)
 
 
 def ambiguous(batch: ProblemBatch, b: int, other_enu_m, starts, names, failures, solution: Solution,

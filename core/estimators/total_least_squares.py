@@ -77,15 +77,13 @@ from core.estimators.azimuth_lines import (
     azimuth_only_errors,
     crossing_errors,
     has_elevations,
-    inverse_2x2,
     plane_and_equations,
     plane_spread_m,
-    solve_2x2,
 )
 from core.estimators.base import AZIMUTHS, SolveOptions, register
 from core.estimators.orthogonal_vector import eove_start
 from core.estimators.result import Estimates, FixWarning
-from core.linalg import jacobi_svd, row_sums, weighted_gram
+from core.linalg import inverse_2x2, jacobi_svd, row_sums, solve_2x2, weighted_gram
 from core.problem_batch import ProblemBatch
 
 #: Re-takes of the tangent plane at the solution (exact on the ellipsoid after two).

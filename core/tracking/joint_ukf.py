@@ -50,8 +50,9 @@ from core.tracking.kinematic import (MAX_INTERVAL_MISMATCH, MAX_PULSE_COUNT_FRAC
 from core.tracking.state import TrackState, freeze, symmetric
 from core.linalg import cholesky_repaired, symmetrized
 from core.tracking.motion import constant_velocity_predict, transitions
-from core.tracking.unscented import (INNOVATION_NOT_PD, NIS_LIMIT, NOT_FINITE, PREDICTED_NOT_PD, UPDATED,
-                                     UPDATED_NOT_PD, joint_ukf_kernel)
+from core.tracking.joint_kernel import joint_ukf_kernel
+from core.tracking.kernel_types import INNOVATION_NOT_PD, NOT_FINITE, PREDICTED_NOT_PD, UPDATED, UPDATED_NOT_PD
+from core.tracking.unscented import NIS_LIMIT
 
 
 def advance(state: TrackState, values, config: TrackerConfig) -> TrackState:
@@ -360,7 +361,7 @@ def joint_epochs(means: np.ndarray, covariances: np.ndarray, accel_sigmas_mps2, 
     """Predict and update ``M`` joint states (the components of a mixture or an IMM, or the one state of
     :func:`joint_epoch`) with one epoch and one pulse count, the period error left unfolded.
 
-    The arithmetic is :func:`core.tracking.unscented.joint_ukf_kernel`'s; here
+    The arithmetic is :func:`core.tracking.joint_kernel.joint_update`'s; here
     its outcomes become warnings: a predicted or updated covariance that is
     not positive definite is repaired (``covariance_repaired``); an update
     that fails or is not finite is skipped, the state predicted only, with

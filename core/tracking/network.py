@@ -208,6 +208,7 @@ def validate_report(report: Report) -> None:
     if (report.values.shape != (m,) or report.sigmas.shape != (m,) or report.stations_enu_m.shape != (m, 3)
             or report.rotations.shape != (m, 3, 3) or len(report.station_ids) != m):
         raise InvalidInput("a report's arrays must hold one entry per measurement", ("measurements",))
+    placed = np.isfinite(report.stations_enu_m).all(axis=1) & np.isfinite(report.rotations).all(axis=(1, 2))
     for i in range(m):
         loc = ("measurements", i)
         kind = int(report.kinds[i])
@@ -222,7 +223,7 @@ def validate_report(report: Report) -> None:
             raise InvalidInput("elevation must be within [-90, 90] deg", loc + ("value",))
         if kind == RANGE and value < 0.0:
             raise InvalidInput("range must be >= 0", loc + ("value",))
-        if not (np.all(np.isfinite(report.stations_enu_m[i])) and np.all(np.isfinite(report.rotations[i]))):
+        if not placed[i]:
             raise InvalidInput("station position must be finite", loc + ("station_id",))
 
 

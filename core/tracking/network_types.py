@@ -166,10 +166,20 @@ class Report:
         return (self.time_s, self.seq)
 
     def to_dict(self) -> dict:
-        return {"seq": self.seq, "time_s": self.time_s, "emitter_id": self.emitter_id,
-                "station_ids": list(self.station_ids), "stations_enu_m": self.stations_enu_m.tolist(),
-                "rotations": self.rotations.tolist(), "kinds": self.kinds.tolist(), "values": self.values.tolist(),
-                "sigmas": self.sigmas.tolist()}
+        """Plain JSON-able data; exact inverse of :meth:`from_dict`.
+
+        Made once per report and shared by every later call (read it, never change it), as
+        :meth:`Track.to_dict` is: a report is an immutable value, and a state's history carries it through
+        every post of its reorder window.
+        """
+        made = self.__dict__.get("_as_dict")
+        if made is None:
+            made = {"seq": self.seq, "time_s": self.time_s, "emitter_id": self.emitter_id,
+                    "station_ids": list(self.station_ids), "stations_enu_m": self.stations_enu_m.tolist(),
+                    "rotations": self.rotations.tolist(), "kinds": self.kinds.tolist(),
+                    "values": self.values.tolist(), "sigmas": self.sigmas.tolist()}
+            object.__setattr__(self, "_as_dict", made)
+        return made
 
     @classmethod
     def from_dict(cls, data: dict) -> "Report":

@@ -1,6 +1,6 @@
-"""The unscented updates: step 3 of ``velocity_kinematic`` (:func:`polar_update`) and the joint UKF's
-predict and update (:func:`joint_ukf_kernel`); motion in :mod:`core.tracking.motion`, linear algebra in
-:mod:`core.linalg`.
+"""The unscented updates: step 3 of ``velocity_kinematic`` (:func:`polar_update`) here, the joint UKF's
+predict and update in :mod:`core.tracking.joint_kernel`; motion in :mod:`core.tracking.motion`, linear algebra
+in :mod:`core.linalg`.
 
 The unscented transform uses ``kappa = 0``, ``alpha = 1``, ``beta = 0``:
 ``2 n`` points ``mean +- sqrt(n) L[:, j]`` (``L L^T = P``), each of weight
@@ -22,8 +22,8 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
-from core.linalg import cholesky_into, linear_predict_into, lower_inverse_into, symmetrized, whiten_into
-from core.measurements import AZIMUTH, ELEVATION, RANGE, azimuth_rate_point, measure_point
+from core.linalg import cholesky_into, lower_inverse_into, symmetrized
+from core.measurements import AZIMUTH, ELEVATION, RANGE, measure_point
 
 PI = math.pi
 TWO_PI = 2.0 * math.pi
@@ -33,16 +33,16 @@ NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
 
 
 #: The session's observer: the origin of its own ENU frame (the measurement model's one station, 0, and rotation).
-_OBSERVER = np.zeros((1, 3))
-_OBSERVER_AXES = np.eye(3)[None]
+OBSERVER_ENU_M = np.zeros((1, 3))
+OBSERVER_AXES = np.eye(3)[None]
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _polar(east_m, north_m, up_m):
     """Range, azimuth and elevation of a point seen from the observer (:func:`core.measurements.measure_point`)."""
-    return (measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, RANGE)[0],
-            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, AZIMUTH)[0],
-            measure_point(east_m, north_m, up_m, 0.0, _OBSERVER, _OBSERVER_AXES, 0, ELEVATION)[0])
+    return (measure_point(east_m, north_m, up_m, 0.0, OBSERVER_ENU_M, OBSERVER_AXES, 0, RANGE)[0],
+            measure_point(east_m, north_m, up_m, 0.0, OBSERVER_ENU_M, OBSERVER_AXES, 0, AZIMUTH)[0],
+            measure_point(east_m, north_m, up_m, 0.0, OBSERVER_ENU_M, OBSERVER_AXES, 0, ELEVATION)[0])
 
 
 def polar_update(mean, cov, offset: int, cross, pseudo, azimuth_rad: float, elevation_rad: float,
@@ -193,26 +193,92 @@ def polar_transform(mean, position_cov, step1_position, pseudo, azimuth_rad: flo
     return PolarTransform(to_innovation if pseudo is not None else to_innovation[:, :3], from_angles, whitened, nis)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _polar_kernel(position, position_cov, step1_position, range_terms, with_range, azimuth_rad, elevation_rad,
-                  var_azimuth, var_elevation, to_innovation, from_angles, whitened):
-    """:func:`polar_transform`: writes its three arrays and returns ``(status, nis)``, status 0, or 1 (2) when
-    the position (innovation) covariance is not positive definite.
+class PolarAngles(NamedTuple):
+    """This epoch's measured angles and their noise.
 
-    The six sigma points ``p +- sqrt(6) L[:, c]`` of the position map to deviations of ``(r, B, E)`` from
-    those of ``p`` (rows of ``deviation``; points along ``L[:, 1]`` and ``L[:, 2]`` keep ``x`` (and ``y``)
-    exactly, so their azimuth deviations are exactly zero, as they should be). ``range_terms`` is
-    ``(range_m, d_vx, d_vy, d_az, d_el, rr, rB, rE)`` of the pseudo-measurement: the part of its error
-    correlated with the state (through the step-1 velocity, ``step1_position``) is carried along the
-    points' differences, the rest added to the innovation covariance in closed form.
+    Attributes
+    ----------
+    azimuth_rad, elevation_rad : float
+    var_azimuth, var_elevation : float
+        Variances (rad^2).
     """
+
+    azimuth_rad: float
+    elevation_rad: float
+    var_azimuth: float
+    var_elevation: float
+
+
+class RangeTerms(NamedTuple):
+    """The range pseudo-measurement's terms (:class:`core.tracking.kinematic.RangePseudoMeasurement`) that
+    :func:`_polar_kernel` uses: its value, its sensitivities to the step-1 velocity errors (s) and to this
+    epoch's angle errors (m/rad), and the ``(range, B, E)`` covariance's first row (m^2, m rad, m rad).
+    """
+
+    range_m: float
+    d_vx: float
+    d_vy: float
+    d_azimuth: float
+    d_elevation: float
+    var_range: float
+    cov_range_azimuth: float
+    cov_range_elevation: float
+
+
+class PositionPrior(NamedTuple):
+    """The predicted position as :func:`_polar_kernel` uses it.
+
+    Attributes
+    ----------
+    position : ndarray, shape (3,)
+        ENU (m).
+    position_cov : ndarray, shape (3, 3)
+    step1_position : ndarray, shape (2, 3)
+        Covariance of the step-1 ``(vx, vy)`` with the position (zero without a range).
+    """
+
+    position: np.ndarray
+    position_cov: np.ndarray
+    step1_position: np.ndarray
+
+
+class PolarOutputs(NamedTuple):
+    """:class:`PolarTransform`'s arrays, written by :func:`_polar_kernel`: ``to_innovation`` ``(m, 5)``,
+    ``from_angles`` ``(m, 2)`` and ``whitened`` ``(m,)``."""
+
+    to_innovation: np.ndarray
+    from_angles: np.ndarray
+    whitened: np.ndarray
+
+
+class PolarMoments(NamedTuple):
+    """The sigma points' statistics of ``(r, B, E)`` (rows 0, 1, 2) about the values at the mean.
+
+    Attributes
+    ----------
+    centre : tuple of 3 floats
+        ``(r, B, E)`` at the mean.
+    mean_deviation : ndarray, shape (3,)
+    s : ndarray, shape (3, 3)
+        Their covariance (the innovation covariance once the noise is added).
+    d : ndarray, shape (3, 3)
+        ``d[m, c]``: the symmetric points' difference of row ``m`` along ``L[:, c]``, weighted.
+    """
+
+    centre: tuple
+    mean_deviation: np.ndarray
+    s: np.ndarray
+    d: np.ndarray
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _polar_moments(position, chol):
+    """:class:`PolarMoments` of the six sigma points ``p +- sqrt(6) L[:, c]`` of the position (``L`` is
+    ``chol``); points along ``L[:, 1]`` and ``L[:, 2]`` keep ``x`` (and ``y``) exactly, so their azimuth
+    deviations are exactly zero, as they should be."""
     spread = math.sqrt(6.0)
     weight = 1.0 / 12.0
     factor = spread * weight
-    chol, inverse = np.empty((3, 3)), np.empty((3, 3))
-    if not cholesky_into(position_cov, chol):
-        return 1, 0.0
-    lower_inverse_into(chol, inverse)
     x0, y0, z0 = position[0], position[1], position[2]
     r0, azimuth0, elevation0 = _polar(x0, y0, z0)
     deviation = np.empty((3, 6))
@@ -242,8 +308,44 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
                 total += deviation[m, j] * deviation[q, j]
             s[m, q] = total * weight - mean_deviation[m] * mean_deviation[q]
             s[q, m] = s[m, q]
-    s[1, 1] += var_azimuth
-    s[2, 2] += var_elevation
+    return PolarMoments((r0, azimuth0, elevation0), mean_deviation, s, d)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _add_range_noise(moments, range_terms, step1_position, inverse):
+    """The range row's error correlated with the state (through the step-1 velocity, ``step1_position``)
+    taken out of the points' covariance and its own ``(range, B, E)`` covariance added, in ``moments.s``."""
+    s, d = moments.s, moments.d
+    ell = np.empty(3)
+    for a in range(3):
+        total = 0.0
+        for k in range(a + 1):
+            total += (range_terms.d_vx * step1_position[0, k] + range_terms.d_vy * step1_position[1, k]) * inverse[a, k]
+        ell[a] = total
+    noise = (range_terms.var_range, range_terms.cov_range_azimuth, range_terms.cov_range_elevation)
+    for m in range(3):
+        total = 0.0
+        for k in range(3):
+            total += d[m, k] * ell[k]
+        s[0, m] += noise[m] - (2.0 if m == 0 else 1.0) * total
+        s[m, 0] = s[0, m]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _polar_update(prior, range_terms, with_range, angles, out):
+    """:func:`_polar_kernel` with its inputs named: ``prior`` a :class:`PositionPrior`, ``range_terms`` a
+    :class:`RangeTerms` (used ``with_range``), ``angles`` a :class:`PolarAngles`; ``out`` a
+    :class:`PolarOutputs`."""
+    to_innovation, from_angles, whitened = out.to_innovation, out.from_angles, out.whitened
+    chol, inverse = np.empty((3, 3)), np.empty((3, 3))
+    if not cholesky_into(prior.position_cov, chol):
+        return 1, 0.0
+    lower_inverse_into(chol, inverse)
+    moments = _polar_moments(prior.position, chol)
+    r0, azimuth0, elevation0 = moments.centre
+    mean_deviation, s, d = moments.mean_deviation, moments.s, moments.d
+    s[1, 1] += angles.var_azimuth
+    s[2, 2] += angles.var_elevation
     # w[a, m]: the covariance of position component a with row m, times L^-T.
     w = np.empty((3, 3))
     for a in range(3):
@@ -253,23 +355,11 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
                 total += inverse[k, a] * d[m, k]
             w[a, m] = total
     innovation = np.empty(3)
-    innovation[0] = range_terms[0] - r0 - mean_deviation[0]
-    innovation[1] = wrap_point(azimuth_rad - azimuth0) - mean_deviation[1]
-    innovation[2] = elevation_rad - elevation0 - mean_deviation[2]
-    d_vx, d_vy = range_terms[1], range_terms[2]
+    innovation[0] = range_terms.range_m - r0 - mean_deviation[0]
+    innovation[1] = wrap_point(angles.azimuth_rad - azimuth0) - mean_deviation[1]
+    innovation[2] = angles.elevation_rad - elevation0 - mean_deviation[2]
     if with_range:
-        ell = np.empty(3)
-        for a in range(3):
-            total = 0.0
-            for k in range(a + 1):
-                total += (d_vx * step1_position[0, k] + d_vy * step1_position[1, k]) * inverse[a, k]
-            ell[a] = total
-        for m in range(3):
-            total = 0.0
-            for k in range(3):
-                total += d[m, k] * ell[k]
-            s[0, m] += range_terms[5 + m] - (2.0 if m == 0 else 1.0) * total
-            s[m, 0] = s[0, m]
+        _add_range_noise(moments, range_terms, prior.step1_position, inverse)
     first = 0 if with_range else 1
     rows = 3 - first
     innovation_chol, k = np.empty((rows, rows)), np.empty((rows, rows))
@@ -289,185 +379,37 @@ def _polar_kernel(position, position_cov, step1_position, range_terms, with_rang
                 total += w[a, first + q] * k[i, q]
             to_innovation[i, a] = total
         if with_range:
-            to_innovation[i, 3] = -d_vx * k[i, 0]
-            to_innovation[i, 4] = -d_vy * k[i, 0]
-            from_angles[i, 0] = range_terms[3] * k[i, 0] + k[i, 1]
-            from_angles[i, 1] = range_terms[4] * k[i, 0] + k[i, 2]
+            to_innovation[i, 3] = -range_terms.d_vx * k[i, 0]
+            to_innovation[i, 4] = -range_terms.d_vy * k[i, 0]
+            from_angles[i, 0] = range_terms.d_azimuth * k[i, 0] + k[i, 1]
+            from_angles[i, 1] = range_terms.d_elevation * k[i, 0] + k[i, 2]
         else:
             from_angles[i, 0] = k[i, 0]
             from_angles[i, 1] = k[i, 1]
     return 0, nis
 
 
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _polar_kernel(position, position_cov, step1_position, range_terms, with_range, azimuth_rad, elevation_rad,
+                  var_azimuth, var_elevation, to_innovation, from_angles, whitened):
+    """:func:`polar_transform`: writes its three arrays and returns ``(status, nis)``, status 0, or 1 (2) when
+    the position (innovation) covariance is not positive definite.
+
+    The six sigma points of the position map to deviations of ``(r, B, E)`` (:func:`_polar_moments`).
+    ``range_terms`` ``(8,)`` holds a :class:`RangeTerms`' fields: the part of the pseudo-range's error
+    correlated with the state (through the step-1 velocity, ``step1_position``) is carried along the points'
+    differences, the rest added to the innovation covariance in closed form (:func:`_add_range_noise`). Flat
+    at this boundary because numba types a named-tuple argument in Python, which costs more than the update.
+    """
+    terms = RangeTerms(range_terms[0], range_terms[1], range_terms[2], range_terms[3], range_terms[4],
+                       range_terms[5], range_terms[6], range_terms[7])
+    return _polar_update(PositionPrior(position, position_cov, step1_position), terms, with_range,
+                         PolarAngles(azimuth_rad, elevation_rad, var_azimuth, var_elevation),
+                         PolarOutputs(to_innovation, from_angles, whitened))
+
+
 _FIVE = {6: np.array([0, 1, 2, 6, 7])}
 _THREE = np.array([0, 1, 2])
-
-
-#: :func:`joint_ukf_kernel`'s outcome per state: updated; the predicted covariance, the innovation covariance
-#: or the updated covariance not positive definite; the update not finite.
-UPDATED, PREDICTED_NOT_PD, INNOVATION_NOT_PD, UPDATED_NOT_PD, NOT_FINITE = range(5)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _joint_measurement(state, n_pulses, interval_s, use_toa, out):
-    """``(B, E, c dS, Bdot)`` (without ``c dS`` unless ``use_toa``) of one joint state into ``out``.
-
-    ``c dS = |p| - |p - v T| + n period_error_m - toa_noise_m`` with ``T = interval_s`` (the previous range
-    from the current state; ``period_error_m`` only in an 8-component state).
-    """
-    x, y, z, vx, vy, vz = state[0], state[1], state[2], state[3], state[4], state[5]
-    out[0] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, AZIMUTH)[0]
-    out[1] = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, ELEVATION)[0]
-    rate = azimuth_rate_point(x, y, vx, vy)[0]
-    if use_toa:
-        qx, qy, qz = x - interval_s * vx, y - interval_s * vy, z - interval_s * vz
-        change = measure_point(x, y, z, 0.0, _OBSERVER, _OBSERVER_AXES, 0, RANGE)[0] \
-            - math.sqrt(qx * qx + qy * qy + qz * qz) - state[state.shape[0] - 1]
-        if state.shape[0] == 8:
-            change += n_pulses * state[6]
-        out[2] = change
-        out[3] = rate
-    else:
-        out[2] = rate
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def joint_ukf_kernel(means, covs, transition, noises, predict, n_pulses, interval_s, use_toa, measured, variances,
-                     new_means, new_covs, nis, log_det, status):
-    """Predict and update ``M`` joint UKF states (layout in :mod:`core.tracking.state`) with one epoch.
-
-    Prediction ``mean <- F mean``, ``cov <- F cov F^T + Q`` (in place, exactly
-    symmetric). Update: the ``2 F`` sigma points ``mean +- sqrt(F) L[:, j]``
-    (``L L^T = cov``, weights ``1 / (2 F)``, see the module docstring), the
-    measurement ``(B, E, [c dS,] Bdot)`` (:func:`_joint_measurement`; azimuth
-    deviations wrapped), the innovation covariance ``S = M L_S L_S^T`` with
-    the measurement noise, and the whitened update: with ``v = cov_xz L_S^-T``
-    and ``t = L_S^-1 innovation``, the mean moves by ``v t``, the covariance
-    loses ``v v^T`` (exactly symmetric), the NIS is ``|t|^2`` and ``log det S
-    = 2 sum log diag L_S``.
-
-    The last component (the reference TOA's noise) becomes the new TOA's
-    noise, prior ``N(0, var_toa)``: with a usable TOA it enters the TOA row
-    additively (its covariance with the TOA row is ``var_toa``), so its
-    posterior is correlated with the rest; without, it is a fresh,
-    independent noise.
-
-    Parameters
-    ----------
-    means : ndarray, shape (M, F)
-    covs : ndarray, shape (M, F, F)
-        The states; with ``predict``, overwritten with the prediction.
-    transition : ndarray, shape (F, F)
-    noises : ndarray, shape (M, F, F)
-        Each state's process noise (:func:`core.tracking.motion.transition`).
-    predict : bool
-        False: ``means``, ``covs`` are already predicted (``transition``, ``noises`` unused).
-    n_pulses : int
-    interval_s : float
-        ``n_pulses`` times the period the TOA difference is referred to.
-    use_toa : bool
-        Whether the TOA row is used (3 measurement rows without).
-    measured : ndarray, shape (4,)
-        Azimuth (rad), elevation (rad), TOA difference less ``interval_s`` (m), azimuth rate (rad/s).
-    variances : ndarray, shape (4,)
-        Their noise variances (the TOA's is that of one TOA).
-    new_means : ndarray, shape (M, F)
-    new_covs : ndarray, shape (M, F, F)
-    nis, log_det : ndarray, shape (M,)
-    status : ndarray of int, shape (M,)
-        Written: the updated states, the NIS (chi-square with 4, or 3, degrees of freedom when the model
-        holds), ``log det S`` and the outcome (:data:`UPDATED` ... :data:`NOT_FINITE`; the outputs of a
-        state are meaningful from :data:`UPDATED_NOT_PD` on).
-    """
-    count, f = means.shape
-    rows = 4 if use_toa else 3
-    spread = math.sqrt(f)
-    weight = 1.0 / (2 * f)
-    measured_rows = np.empty(rows)
-    noise_rows = np.empty(rows)
-    for r in range(rows):
-        source = r if use_toa or r < 2 else 3
-        measured_rows[r] = measured[source]
-        noise_rows[r] = variances[source]
-    var_toa = variances[2]
-    work = np.empty((f, f))
-    chol = np.empty((f, f))
-    point = np.empty(f)
-    z = np.empty(rows)
-    centre = np.empty(rows)
-    deviation = np.empty((rows, 2 * f))
-    mean_deviation = np.empty(rows)
-    innovation_cov = np.empty((rows, rows))
-    innovation_chol = np.empty((rows, rows))
-    v = np.empty((rows, f))
-    t = np.empty(rows)
-    innovation = np.empty(rows)
-    for b in range(count):
-        mean, cov, new_mean, new_cov = means[b], covs[b], new_means[b], new_covs[b]
-        if predict:
-            linear_predict_into(mean, cov, transition, noises[b], point, work)
-        if not cholesky_into(cov, chol):
-            status[b] = PREDICTED_NOT_PD
-            continue
-        _joint_measurement(mean, n_pulses, interval_s, use_toa, centre)
-        for j in range(2 * f):
-            for i in range(f):
-                offset = spread * chol[i, j % f]
-                point[i] = mean[i] + offset if j < f else mean[i] - offset
-            _joint_measurement(point, n_pulses, interval_s, use_toa, z)
-            for r in range(rows):
-                deviation[r, j] = z[r] - centre[r]
-            deviation[0, j] = wrap_point(deviation[0, j])
-        for r in range(rows):
-            total = 0.0
-            for j in range(2 * f):
-                total += deviation[r, j]
-            mean_deviation[r] = total * weight
-            innovation[r] = measured_rows[r] - centre[r]
-        innovation[0] = wrap_point(innovation[0])
-        for r in range(rows):
-            innovation[r] -= mean_deviation[r]
-            for q in range(r + 1):
-                total = 0.0
-                for j in range(2 * f):
-                    total += (deviation[r, j] - mean_deviation[r]) * (deviation[q, j] - mean_deviation[q])
-                innovation_cov[r, q] = total * weight
-                innovation_cov[q, r] = total * weight
-            innovation_cov[r, r] += noise_rows[r]
-            # Covariance of the state with row r: the symmetric points' differences along L.
-            for i in range(f - 1):
-                total = 0.0
-                for j in range(i + 1):
-                    total += chol[i, j] * (deviation[r, j] - deviation[r, j + f])
-                v[r, i] = total * (spread * weight)
-            v[r, f - 1] = var_toa if use_toa and r == 2 else 0.0
-        if not cholesky_into(innovation_cov, innovation_chol):
-            status[b] = INNOVATION_NOT_PD
-            continue
-        chi2, half_log_det = whiten_into(innovation_chol, innovation, v, rows, t)
-        nis[b] = chi2
-        log_det[b] = 2.0 * half_log_det
-        finite = True
-        for i in range(f):
-            keep = i < f - 1
-            total = mean[i] if keep else 0.0
-            for r in range(rows):
-                total += v[r, i] * t[r]
-            new_mean[i] = total
-            finite = finite and math.isfinite(total)
-            for j in range(i + 1):
-                total = cov[i, j] if keep else (var_toa if j == i else 0.0)
-                for r in range(rows):
-                    total -= v[r, i] * v[r, j]
-                new_cov[i, j] = total
-                new_cov[j, i] = total
-                finite = finite and math.isfinite(total)
-        if not finite:
-            status[b] = NOT_FINITE
-        elif not cholesky_into(new_cov, chol):
-            status[b] = UPDATED_NOT_PD
-        else:
-            status[b] = UPDATED
 
 
 def compile_kernels() -> None:
@@ -479,6 +421,7 @@ def compile_kernels() -> None:
     f = 8
     mean = np.array([[1.2e5, 1.0e5, 8.0e3, -300.0, 100.0, 2.0, 0.0, 0.0]])
     cov = np.diag([1e6, 1e6, 1e6, 1e2, 1e2, 1e2, 1e-2, 9.0])[None]
+    from core.tracking.joint_kernel import joint_ukf_kernel
     from core.tracking.motion import transitions
     from core.tracking.range_mixture import moments
     from core.tracking.state import frozen_array

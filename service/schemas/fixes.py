@@ -104,7 +104,8 @@ class FixResponse(BaseModel):
     covariance_source: Literal[COVARIANCE_SOURCES + SCALED_COVARIANCE_SOURCES] = Field(  # type: ignore[valid-type]
         description="information: inverse Fisher information at the fix, except on a fix that warns "
                     "second_solution_plausible (the covariance is then the two-solution mixture's) or "
-                    "curved_uncertainty (the unscented spread of the estimator, never below the bound); "
+                    "curved_uncertainty (the unscented spread of the estimator, never below the bound), "
+                    "either widened where needed so that its 99 % region holds 99 % of the error; "
                     "propagated: first-order through the closed form; crlb: the bound; robust: with "
                     "options.loss, the sandwich A^-1 B A^-1 of the loss's final weights w = rho' "
                     "(A = J^T W w J, B = J^T W w^2 J); _scaled: times "

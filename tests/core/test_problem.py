@@ -202,3 +202,40 @@ def test_leave_one_out_lists_each_problems_most_suspect_request_measurements_fir
     left_out = [sorted(set(batch.source_index[b, d].tolist())) for b, d in zip(owners, dropped)]
     assert left_out == [[0], [2], [3], [1]]  # by each one's largest row; a bearing's two rows go together
     assert not (dropped & ~used[owners]).any()
+
+
+def test_problems_placed_in_one_batch_are_those_placed_one_by_one():
+    """build_problems of checked inputs gives each problem exactly as build_problem does on its own (same
+    frame, same bits), whatever the other problems of the batch hold."""
+    from core.problem import build_problems, checked_inputs
+
+    local = [("a", LocalPoint(0.0, 0.0, 0.0)), ("b", LocalPoint(5_000.0, 1_000.0, 20.0))]
+    cases = [
+        (geodetic_stations(), bearings_by_pymap3d(), {}),
+        (local, [Range("a", 4_000.0, 5.0), TimeOfArrival("a", 2.0e-5, 1e-9), TimeOfArrival("b", 3.0e-5, 1e-9)],
+         {"origin": GeodeticPoint(d2r(46.0), d2r(8.0), 300.0)}),
+        (geodetic_stations()[:2], [Bearing("e", 0.4, None, ONE_DEG)], {"altitude_m": 1_000.0}),
+    ]
+    batch = build_problems([checked_inputs(stations, measurements, **options)
+                            for stations, measurements, options in cases])
+    for b, (stations, measurements, options) in enumerate(cases):
+        alone, placed = build_problem(stations, measurements, **options), batch.problem(b)
+        assert placed.frame == alone.frame and placed.station_ids == alone.station_ids
+        for name in ("stations_enu_m", "station_rotations", "kinds", "station_index", "values", "sigmas",
+                     "bearing_index", "source_index"):
+            assert np.array_equal(getattr(placed, name), getattr(alone, name)), name
+        assert placed.toa_reference_s == alone.toa_reference_s and placed.altitude_m == alone.altitude_m
+
+
+def test_one_point_of_a_frame_matches_the_broadcast_path_bit_for_bit():
+    """CommonFrame's one-point local axes and geodetic position (compiled, on the frame's placement made once)
+    equal the broadcast functions' for the same point, in a geodetic and in a flat frame."""
+    from core.problem import CommonFrame, local_axes
+
+    frame = CommonFrame(GeodeticPoint(d2r(46.0), d2r(8.0), 300.0))
+    points = np.random.default_rng(3).normal(scale=80_000.0, size=(50, 3))
+    for point in points:
+        assert np.array_equal(frame.local_axes(point), local_axes(point, frame.origin_array(), True))
+        assert frame.to_geodetic(point) == geodesy.ecef_to_geodetic(frame.to_ecef(point))
+    assert np.array_equal(frame.local_axes(points), local_axes(points, frame.origin_array(), True))
+    assert np.array_equal(CommonFrame(None).local_axes(points[0]), np.eye(3))

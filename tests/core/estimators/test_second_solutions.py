@@ -122,9 +122,10 @@ def test_answered_fixes_are_consistent_with_what_they_state(where):
     """Over seeded draws at the scene's noise: every answered fix's truth lies inside its stated 99.99 % region
     unless the fix carries a caveat (``CAVEATS``), and the uncaveated fixes' NEES mean is in its 99 % chi-square
     interval. Where the crossing is unique, (8, 8) km, every fix is answered and its covariance is the
-    estimator's spread over a curved region: the error there is no Gaussian (the NEES no chi-square), but an
-    honest second moment still makes the NEES's mean the dof (a 99 % interval from the sample's own spread), and
-    the share of truths outside the stated 99 % region within Markov's bound ``dof / chi2_99``."""
+    estimator's spread over a curved region, widened until its 99 % region holds: the error there is no Gaussian
+    (the NEES no chi-square), so the covariance states at least its second moment (the NEES's mean at most the
+    dof, within a 99 % interval from the sample's own spread) and the share of truths outside the stated 99 %
+    region is in the binomial interval of 1 %."""
     problem, target = scene_3d() if where == "3d" else ground_scene(*where)
     dof = 3 if where == "3d" else 2
     rng = np.random.default_rng(2026)
@@ -144,9 +145,9 @@ def test_answered_fixes_are_consistent_with_what_they_state(where):
     if where == (8e3, 8e3):
         assert len(answered) >= 0.95 * TRIALS
         margin = norm.ppf(0.995) * nees.std(ddof=1) / np.sqrt(nees.size)
-        assert abs(nees.mean() - dof) <= margin, (nees.mean(), margin)
+        assert nees.mean() <= dof + margin, (nees.mean(), margin)
         region = chi2.ppf(0.99, dof)
-        assert np.mean(nees > region) <= binom.ppf(0.995, nees.size, dof / region) / nees.size
+        assert np.sum(nees > region) <= binom.ppf(0.995, nees.size, 0.01)
 
 
 def test_the_unscented_covariance_is_the_bound_where_the_model_is_linear():

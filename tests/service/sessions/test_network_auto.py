@@ -18,6 +18,7 @@ from fastapi.testclient import TestClient
 from core.simulation.multi_emitter import multi_emitter_scene, simulate_multi
 from core.simulation.network import START_TIME_S
 from core.tracking.association import AssociationConfig
+from service import association_sessions
 from service.app import create_app
 from service.session_schemas import NetworkSessionCreate, NetworkSessionState, ReportResult
 from service.settings import Settings
@@ -169,6 +170,26 @@ def test_reports_out_of_order_within_the_window_give_the_same_tracks_and_older_o
     late = _post(client, session["id"], [too_old]).json()
     assert (late["applied"], late["late"], late["duplicates"]) == (0, 1, 0)
     assert late["tracks"] == got["tracks"]
+
+
+def test_a_long_window_keeps_a_bounded_pending_set_and_the_same_tracks(client, run, monkeypatch):
+    """Every post re-runs the pending reports, so their number is bounded whatever the window: the oldest settle
+    early, the tracks are those of the same reports in time order, and a report older than the settled ones is
+    late although the window would take it."""
+    reports = _reports(run)
+    span_s = reports[-1]["time_s"] - reports[0]["time_s"]
+    expected = _post(client, _create(client, end_after_s=span_s + 10.0)["id"], reports).json()
+    monkeypatch.setattr(association_sessions, "MAX_PENDING_REPORTS", 20)
+    session = _create(client, reorder_window_s=span_s + 5.0, end_after_s=span_s + 10.0)
+    half = len(reports) // 2
+    _post(client, session["id"], reports[:half])
+    got = _post(client, session["id"], reports[half:]).json()
+    assert _view(got) == _view(expected)
+    first = {**reports[0], "seq": len(reports) + 1}
+    late = _post(client, session["id"], [first]).json()
+    assert (late["applied"], late["late"]) == (0, 1)
+    recent = {**reports[-1], "seq": len(reports) + 2}
+    assert _post(client, session["id"], [recent]).json()["applied"] == 1
 
 
 def test_a_retried_post_is_acknowledged_and_changes_nothing(client, run):
