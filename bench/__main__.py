@@ -215,11 +215,12 @@ below the 0.5x target, and the fix's work, about 305 us in a warm loop,
 costs about 510 us in the server.
 
 **Row 7, one fix in core.** Every per-problem loop is compiled (start, LM,
-finisher and verdicts in one call, the batch's masks and its geometry in one
-pass each, the reader's checks and unit conversions, the writer's numbers,
-lines of sight, error summary, batch building); what is left is Python and
-numpy call overhead around them: about 310 Python-level calls per fix in
-row 7's loop (cProfile), at 0.3-7 us each here.
+finisher and verdicts in one call, batch building with the batch's masks and
+geometry in one call, the reader's checks and unit conversions, the writer's
+numbers, lines of sight, error summary); what is left is Python and numpy call
+overhead around them: about 300 Python-level calls per fix in row 7's loop
+(cProfile), at 0.3-7 us each here, besides the numpy ufunc calls on arrays of
+one problem, which cProfile does not count.
 The 100 us target needs a batch of one to run as a few kernel calls
 with nothing between them (one compiled pass from the read arrays to the
 written text): not done.

@@ -20,6 +20,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from core.kernel_data import Frames, Measurements
 from core.measurements import AZIMUTH, ELEVATION, Kind
 from core.problem_batch_kernels import geometry_kernel, masks_kernel, model_kernel
 from core.problem_frame import CommonFrame, GeodeticPoint, Problem, frame_placements, onto_altitude
@@ -41,6 +42,18 @@ class _Masks(NamedTuple):
     kind_counts: np.ndarray
     dof: np.ndarray
 
+    @staticmethod
+    def room(size: int, width: int) -> tuple:
+        """The arrays :func:`masks_kernel` writes, for ``size`` problems of ``width`` measurement rows."""
+        return (np.empty((2, size, width), dtype=np.bool_), np.empty((3, size), dtype=np.bool_),
+                np.empty((size, 4), dtype=np.int64), np.empty(size, dtype=np.int64))
+
+    @classmethod
+    def of(cls, computed) -> "_Masks":
+        """The masks of :func:`masks_kernel`'s outputs ``computed``, read-only (views of frozen arrays are too)."""
+        measured, facts, kind_counts, dof = map(_frozen, computed)
+        return cls(*measured, *facts, kind_counts, dof)
+
 
 class _Geometry(NamedTuple):
     """What :func:`geometry_kernel` returns, by name."""
@@ -53,19 +66,18 @@ class _Geometry(NamedTuple):
     elevation_rad: np.ndarray
     sigma_elevation_rad: np.ndarray
 
+    @staticmethod
+    def room(size: int, width: int) -> tuple:
+        """The arrays :func:`geometry_kernel` writes, for ``size`` problems of ``width`` measurement rows."""
+        return (np.empty((4, size, width)), np.empty((size, width, 3)), np.empty((size, width, 3, 3)),
+                np.empty((size, width), dtype=np.bool_))
 
-class KernelInputs(NamedTuple):
-    """A batch's own arrays as the compiled kernels take them (C-contiguous, their dtypes), converted once per
-    batch rather than once per kernel call (:attr:`ProblemBatch.kernel_inputs`)."""
-
-    kinds: np.ndarray
-    n_measurements: np.ndarray
-    values: np.ndarray
-    sigmas: np.ndarray
-    altitude_m: np.ndarray
-    has_toa: np.ndarray
-    geodetic: np.ndarray
-    source_index: np.ndarray
+    @classmethod
+    def of(cls, computed) -> "_Geometry":
+        """The geometry of :func:`geometry_kernel`'s outputs ``computed``, read-only."""
+        planes, stations, rotations, is_line = map(_frozen, computed)
+        model_values, weights, elevation, sigma_elevation = planes  # views of a frozen array are read-only too
+        return cls(model_values, weights, stations, rotations, is_line, elevation, sigma_elevation)
 
 
 def _frozen(array: np.ndarray) -> np.ndarray:
@@ -137,32 +149,42 @@ class ProblemBatch:
         first use, read-only."""
         used = np.zeros((0, 0), dtype=np.bool_) if self.used is None else np.ascontiguousarray(self.used)
         c = np.ascontiguousarray
-        measured, facts, kind_counts, dof = map(_frozen, masks_kernel(
-            c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used, c(self.sigmas, dtype=float),
-            c(self.altitude_m, dtype=float)))
-        return _Masks(*measured, *facts, kind_counts, dof)  # views of frozen arrays are read-only too
+        out = _Masks.room(*self.kinds.shape)
+        masks_kernel(c(self.n_measurements, dtype=np.intp), c(self.kinds, dtype=np.int8), used,
+                     c(self.sigmas, dtype=float), c(self.altitude_m, dtype=float), out)
+        return _Masks.of(out)
 
     @cached_property
     def _geometry(self) -> _Geometry:
         """The model values, weights, measurement stations and lines of sight (:func:`geometry_kernel`):
         computed together on first use (a batch that is only split into parts never needs them), read-only."""
         c = np.ascontiguousarray
-        planes, stations, rotations, is_line = map(_frozen, geometry_kernel(
-            self.valid, c(self.kinds, dtype=np.int8), c(self.station_index, dtype=np.intp),
-            c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.bearing_index, dtype=np.intp),
-            c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float)))
-        model_values, weights, elevation, sigma_elevation = planes  # views of a frozen array are read-only too
-        return _Geometry(model_values, weights, stations, rotations, is_line, elevation, sigma_elevation)
+        out = _Geometry.room(*self.kinds.shape)
+        geometry_kernel(self.valid, c(self.kinds, dtype=np.int8), c(self.station_index, dtype=np.intp),
+                        c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.bearing_index, dtype=np.intp),
+                        c(self.stations_enu_m, dtype=float), c(self.station_rotations, dtype=float), out)
+        return _Geometry.of(out)
 
     @cached_property
-    def kernel_inputs(self) -> KernelInputs:
-        """``kinds`` (int64), ``n_measurements`` and ``source_index`` (int64), ``values``, ``sigmas`` and
-        ``altitude_m`` (float), ``has_toa`` and ``geodetic`` (bool), C-contiguous: computed once."""
+    def kernel_measurements(self) -> Measurements:
+        """The measurements as the compiled kernels take them (:class:`core.kernel_data.Measurements`; the
+        batch's own arrays in the kernels' dtypes, C-contiguous): made once."""
         c = np.ascontiguousarray
-        return KernelInputs(c(self.kinds, dtype=np.int64), c(self.n_measurements, dtype=np.int64),
-                            c(self.values, dtype=float), c(self.sigmas, dtype=float), c(self.altitude_m, dtype=float),
-                            c(self.has_toa, dtype=np.bool_), c(self.geodetic, dtype=np.bool_),
+        geometry = self._geometry
+        return Measurements(c(self.kinds, dtype=np.int64), c(self.n_measurements, dtype=np.int64), self.valid,
+                            c(self.values, dtype=float), c(self.sigmas, dtype=float), geometry.model_values,
+                            geometry.weights, geometry.measurement_stations_enu_m, geometry.measurement_rotations,
+                            geometry.is_line, geometry.elevation_rad, geometry.sigma_elevation_rad,
                             c(self.source_index, dtype=np.int64))
+
+    @cached_property
+    def kernel_frames(self) -> Frames:
+        """Each problem's frame and constraint as the compiled kernels take them
+        (:class:`core.kernel_data.Frames`): made once."""
+        c = np.ascontiguousarray
+        origin_ecef, origin_rotation = self.frame_placements()
+        return Frames(c(self.altitude_m, dtype=float), self.has_toa, c(self.geodetic, dtype=np.bool_),
+                      c(origin_ecef, dtype=float), c(origin_rotation, dtype=float))
 
     @property
     def present(self) -> np.ndarray:

@@ -3,49 +3,97 @@
 :func:`build_problem_batch` is :func:`core.problem.build_problem` over a batch,
 for inputs that already passed its checks: each problem's common frame is
 placed (exact geodesy, the stations' centroid on the ellipsoid as the default
-origin) and its stations and measurements padded, in two compiled passes over
-every station and measurement of every problem (:func:`_place`,
-:func:`_pad_measurements`).
+origin), its stations and measurements padded, and the batch's masks and
+geometry derived, in one compiled call (:func:`_build_kernel`: :func:`_place`,
+:func:`_pad_measurements`, then the batch's own kernels), so that a batch of
+one costs one call.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numba
 import numpy as np
 
 from core import geodesy
 from core.measurements import TOA
-from core.problem_batch import PAD_KIND, ProblemBatch
+from core.problem_batch import PAD_KIND, ProblemBatch, _Geometry, _Masks
+from core.problem_batch_kernels import geometry_kernel, masks_kernel
 from core.problem_frame import local_axes_point
 
 #: :data:`core.problem_batch.PAD_KIND` as the compiled padding pass writes it.
 _PAD_KIND_CODE = int(PAD_KIND)
 
 
+class _Stations(NamedTuple):
+    """The flat station inputs of B problems (see :func:`build_problem_batch`): ``coordinates`` ``(S, 3)``,
+    ``counts`` ``(B,)``, ``geodetic`` ``(B,)``, the given ``origin`` ``(B, 3)`` and initial ``guess`` ``(B, 3)``
+    (NaN rows: none) and whether that guess is geodetic ``(B,)``."""
+
+    coordinates: np.ndarray
+    counts: np.ndarray
+    geodetic: np.ndarray
+    origin: np.ndarray
+    guess: np.ndarray
+    geodetic_guess: np.ndarray
+
+
+class _Placed(NamedTuple):
+    """Each problem's common frame, filled by :func:`_place`: its origin ``(B, 3)`` (zeros for a flat plane),
+    whether it is geodetic ``(B,)``, its placement ``(B, 3)`` and ``(B, 3, 3)``
+    (:func:`core.problem.frame_placements` of the origin), the stations ``(B, N, 3)`` and their rotations
+    ``(B, N, 3, 3)`` (zero and identity on padding) and the guesses in the frame ``(B, 3)``."""
+
+    origin: np.ndarray
+    geodetic: np.ndarray
+    origin_ecef_m: np.ndarray
+    origin_rotation: np.ndarray
+    stations_enu_m: np.ndarray
+    rotations: np.ndarray
+    guess_enu_m: np.ndarray
+
+
+class _FlatMeasurements(NamedTuple):
+    """The flat measurements of B problems: ``counts`` ``(B,)``, then ``(T,)`` each (see
+    :func:`build_problem_batch`)."""
+
+    counts: np.ndarray
+    kinds: np.ndarray
+    station_index: np.ndarray
+    values: np.ndarray
+    sigmas: np.ndarray
+    bearing_index: np.ndarray
+    source_index: np.ndarray
+
+
+class _Padded(NamedTuple):
+    """The measurements padded to ``(B, M)`` by :func:`_pad_measurements`, and each problem's TOA reference
+    ``(B,)``."""
+
+    kinds: np.ndarray
+    station_index: np.ndarray
+    values: np.ndarray
+    sigmas: np.ndarray
+    bearing_index: np.ndarray
+    source_index: np.ndarray
+    toa_reference_s: np.ndarray
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _place(coordinates, counts, geodetic_stations, origin_given, guess_given, geodetic_guess, origin, geodetic,
-           origin_ecef, origin_rotation, enu, rotations, guess):
-    """Each problem's common frame, its stations in it (padded) and its initial guess in it (compiled).
+def _place(given, placed):
+    """Each problem's common frame, its stations in it (padded) and its initial guess in it, from the
+    :class:`_Stations` ``given`` into the :class:`_Placed` ``placed``.
 
     A geodetic problem without an origin takes its stations' ECEF centroid on
     the ellipsoid (the first station where the centroid is at the earth's
     centre); a geodetic station ``(lat_rad, lon_rad, alt_m)`` is placed by
     exact geodesy, a local one ``(east_m, north_m, up_m)`` as given, with
-    the local axes at it. So is a guess ``guess_given`` ``(B, 3)`` (where ``geodetic_guess`` ``(B,)``; NaN
-    rows: none).
-
-    Parameters
-    ----------
-    origin, geodetic, origin_ecef, origin_rotation, enu, rotations, guess : ndarray
-        The outputs, filled here (a compiled call costs more for each array it returns than for each it is
-        given): each frame's origin ``(B, 3)`` (zeros for a flat plane), whether it is geodetic ``(B,)``, its
-        placement ``(B, 3)`` and ``(B, 3, 3)`` (:func:`core.problem.frame_placements` of the origin), the
-        stations ``(B, N, 3)`` and their rotations ``(B, N, 3, 3)`` (zero and identity on padding) and the
-        guesses in the frame ``(B, 3)``.
+    the local axes at it. So is a guess (where ``geodetic_guess``; NaN rows: none).
     """
+    coordinates, counts, geodetic_stations, origin_given, guess_given, geodetic_guess = given
+    origin, geodetic, origin_ecef, origin_rotation, enu, rotations, guess = placed
     origin[:], geodetic[:], enu[:], rotations[:], guess[:] = 0.0, False, 0.0, 0.0, guess_given
     first = 0
     for b in range(counts.size):
@@ -82,11 +130,12 @@ def _place(coordinates, counts, geodetic_stations, origin_given, guess_given, ge
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pad_measurements(counts, kinds, station_index, values, sigmas, bearing_index, source_index, kinds_out,
-                      station_out, values_out, sigmas_out, bearing_out, source_out, reference):
-    """The flat measurements of B problems padded into the ``(B, M)`` outputs (padding: kind ``PAD_KIND``,
-    station 0, value 0, sigma NaN, indices -1), TOA values less each problem's earliest, and that reference
-    into ``reference`` ``(B,)`` (0 without TOA; compiled)."""
+def _pad_measurements(flat, padded):
+    """The :class:`_FlatMeasurements` ``flat`` padded into the :class:`_Padded` ``padded`` (padding: kind
+    ``PAD_KIND``, station 0, value 0, sigma NaN, indices -1), TOA values less each problem's earliest, and that
+    reference (0 without TOA)."""
+    counts, kinds, station_index, values, sigmas, bearing_index, source_index = flat
+    kinds_out, station_out, values_out, sigmas_out, bearing_out, source_out, reference = padded
     kinds_out[:], station_out[:], values_out[:], sigmas_out[:] = _PAD_KIND_CODE, 0, 0.0, np.nan
     bearing_out[:], source_out[:], reference[:] = -1, -1, 0.0
     first = 0
@@ -105,6 +154,19 @@ def _pad_measurements(counts, kinds, station_index, values, sigmas, bearing_inde
                 if kinds_out[b, m] == TOA:
                     values_out[b, m] -= earliest
         first += counts[b]
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _build_kernel(given, placed, flat, padded, altitude_m, masks, geometry):
+    """:func:`_place`, :func:`_pad_measurements`, and the batch's ``masks`` and ``geometry`` from what they
+    wrote (:func:`core.problem_batch_kernels.masks_kernel`, ``geometry_kernel``: every present measurement in
+    use), in one call. The structures come as plain tuples (:mod:`core.kernel_data`)."""
+    given, placed, flat, padded = _Stations(*given), _Placed(*placed), _FlatMeasurements(*flat), _Padded(*padded)
+    _place(given, placed)
+    _pad_measurements(flat, padded)
+    masks_kernel(flat.counts, padded.kinds, np.zeros((0, 0), dtype=np.bool_), padded.sigmas, altitude_m, masks)
+    geometry_kernel(masks[0][1], padded.kinds, padded.station_index, padded.values, padded.sigmas,
+                    padded.bearing_index, placed.stations_enu_m, placed.rotations, geometry)
 
 
 def build_problem_batch(
@@ -157,38 +219,43 @@ def build_problem_batch(
     measurement_counts = np.asarray(measurement_counts, dtype=np.intp)
     size = station_counts.size
     n, m = max([1, *station_counts.tolist()]), max([1, *measurement_counts.tolist()])
-    placed = (np.empty((size, 3)), np.empty(size, dtype=bool), np.empty((size, 3)), np.empty((size, 3, 3)),
-              np.empty((size, n, 3)), np.empty((size, n, 3, 3)), np.empty((size, 3)))
-    _place(np.asarray(station_coordinates, dtype=float).reshape(-1, 3), station_counts,
-           np.asarray(geodetic_stations, dtype=bool), np.ascontiguousarray(origin, dtype=float).reshape(-1, 3),
-           np.ascontiguousarray(initial_guess, dtype=float).reshape(-1, 3), np.asarray(geodetic_guess, dtype=bool),
-           *placed)
-    origin, geodetic, origin_ecef, origin_rotation, stations_enu, rotations, guess = placed
-    padded = (np.empty((size, m), dtype=np.int8), np.empty((size, m), dtype=np.intp), np.empty((size, m)),
-              np.empty((size, m)), np.empty((size, m), dtype=np.intp), np.empty((size, m), dtype=np.intp),
-              np.empty(size))
-    _pad_measurements(measurement_counts, np.asarray(kinds, dtype=np.int8), np.asarray(station_index, dtype=np.intp),
-                      np.asarray(values, dtype=float), np.asarray(sigmas, dtype=float),
-                      np.asarray(bearing_index, dtype=np.intp), np.asarray(source_index, dtype=np.intp), *padded)
-    kinds, station_index, values, sigmas, bearing_index, source_index, reference = padded
+    altitude_m = np.ascontiguousarray(altitude_m, dtype=float).reshape(-1)
+    placed = _Placed(np.empty((size, 3)), np.empty(size, dtype=bool), np.empty((size, 3)), np.empty((size, 3, 3)),
+                     np.empty((size, n, 3)), np.empty((size, n, 3, 3)), np.empty((size, 3)))
+    padded = _Padded(np.empty((size, m), dtype=np.int8), np.empty((size, m), dtype=np.intp), np.empty((size, m)),
+                     np.empty((size, m)), np.empty((size, m), dtype=np.intp), np.empty((size, m), dtype=np.intp),
+                     np.empty(size))
+    masks, geometry = _Masks.room(size, m), _Geometry.room(size, m)
+    _build_kernel(
+        tuple(_Stations(np.ascontiguousarray(station_coordinates, dtype=float).reshape(-1, 3), station_counts,
+                  np.asarray(geodetic_stations, dtype=bool), np.ascontiguousarray(origin, dtype=float).reshape(-1, 3),
+                  np.ascontiguousarray(initial_guess, dtype=float).reshape(-1, 3),
+                  np.asarray(geodetic_guess, dtype=bool))),
+        tuple(placed),
+        tuple(_FlatMeasurements(measurement_counts, np.asarray(kinds, dtype=np.int8), np.asarray(station_index, dtype=np.intp),
+                          np.asarray(values, dtype=float), np.asarray(sigmas, dtype=float),
+                          np.asarray(bearing_index, dtype=np.intp), np.asarray(source_index, dtype=np.intp))),
+        tuple(padded), altitude_m, masks, geometry)
 
     built = ProblemBatch(
         station_ids=tuple(station_ids),
-        origin=origin,
-        geodetic=geodetic,
+        origin=placed.origin,
+        geodetic=placed.geodetic,
         n_stations=station_counts,
-        stations_enu_m=stations_enu,
-        station_rotations=rotations,
+        stations_enu_m=placed.stations_enu_m,
+        station_rotations=placed.rotations,
         n_measurements=measurement_counts,
-        kinds=kinds,
-        station_index=station_index,
-        values=values,
-        sigmas=sigmas,
-        bearing_index=bearing_index,
-        source_index=source_index,
-        toa_reference_s=reference,
-        altitude_m=np.ascontiguousarray(altitude_m, dtype=float).reshape(-1),
-        initial_guess_enu_m=guess,
+        kinds=padded.kinds,
+        station_index=padded.station_index,
+        values=padded.values,
+        sigmas=padded.sigmas,
+        bearing_index=padded.bearing_index,
+        source_index=padded.source_index,
+        toa_reference_s=padded.toa_reference_s,
+        altitude_m=altitude_m,
+        initial_guess_enu_m=placed.guess_enu_m,
     )
-    built.__dict__["_frame_placements"] = origin_ecef, origin_rotation  # the cache of frame_placements()
+    # The caches of frame_placements() and of the batch's masks and geometry, already computed.
+    built.__dict__.update(_frame_placements=(placed.origin_ecef_m, placed.origin_rotation),
+                          _masks=_Masks.of(masks), _geometry=_Geometry.of(geometry))
     return built

@@ -1,9 +1,10 @@
 """The compiled passes a :class:`~core.problem_batch.ProblemBatch` derives its masks and geometry with.
 
-Each takes the batch's ``(B, M)`` arrays and returns what the batch caches
-(:attr:`~core.problem_batch.ProblemBatch._masks` and ``_geometry``); several
-``(B, M)`` results come as planes of one array, since numba boxes each
-returned array on its own, a cost per array that a batch of one feels.
+Each takes the batch's ``(B, M)`` arrays and writes what the batch caches
+(:attr:`~core.problem_batch.ProblemBatch._masks` and ``_geometry``) into arrays
+its caller allocated (``out``), several ``(B, M)`` results as planes of one
+array: a compiled call costs more for each array it returns, or is given,
+than for each plane, a cost a batch of one feels.
 """
 
 from __future__ import annotations
@@ -56,24 +57,24 @@ def model_kernel(kinds, values, sigmas, valid):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def masks_kernel(n_measurements, kinds, used, sigmas, altitude_m):
-    """The masks and counts a batch derives from its own, in one pass (see :attr:`core.problem_batch.ProblemBatch._masks`).
+def masks_kernel(n_measurements, kinds, used, sigmas, altitude_m, out):
+    """The masks and counts a batch derives from its own, in one pass (see :attr:`core.problem_batch.ProblemBatch._masks`),
+    into ``out``: ``(2, B, M)`` bool (present, valid), ``(3, B)`` bool (has_toa, constrained, lacks_sigma),
+    the kind counts ``(B, 4)`` and the dof ``(B,)`` (int64).
 
     ``used`` is ``(B, M)``, or ``(0, 0)`` for every present measurement.
     """
     size, width = kinds.shape
-    # Planes of one array each (present and valid; has_toa, constrained and lacks_sigma): a kernel's returned
-    # arrays are boxed one by one, a cost per array that a small batch feels.
-    measured = np.zeros((2, size, width), dtype=np.bool_)
+    measured, facts, kind_counts, dof = out
+    measured[:] = False
     present, valid = measured[0], measured[1]
     for b in range(size):
         present[b, :n_measurements[b]] = True
         for m in range(width):
             valid[b, m] = present[b, m] and (used.shape[0] == 0 or used[b, m])
-    facts = np.zeros((3, size), dtype=np.bool_)
+    facts[:] = False
     has_toa, constrained, lacks_sigma = facts[0], facts[1], facts[2]
-    kind_counts = np.zeros((size, 4), dtype=np.int64)
-    dof = np.empty(size, dtype=np.int64)
+    kind_counts[:] = 0
     for b in range(size):
         constrained[b] = not math.isnan(altitude_m[b])
         known = 0
@@ -84,16 +85,17 @@ def masks_kernel(n_measurements, kinds, used, sigmas, altitude_m):
                 lacks_sigma[b] |= math.isnan(sigmas[b, m])
                 known += 1 if math.isfinite(sigmas[b, m]) else 0
         dof[b] = known - (2 if constrained[b] else 3) - (1 if has_toa[b] else 0)
-    return measured, facts, kind_counts, dof
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def geometry_kernel(valid, kinds, station_index, values, sigmas, bearing_index, stations_enu_m, station_rotations):
+def geometry_kernel(valid, kinds, station_index, values, sigmas, bearing_index, stations_enu_m, station_rotations,
+                    out):
     """The model values and weights, each measurement's station and rotation, and the lines of sight, in one
-    call (see :attr:`core.problem_batch.ProblemBatch._geometry`)."""
+    call (see :attr:`core.problem_batch.ProblemBatch._geometry`), into ``out``: ``(4, B, M)`` (model values,
+    weights, a line's elevation and its sigma), the stations ``(B, M, 3)``, their rotations ``(B, M, 3, 3)`` and
+    ``is_line`` ``(B, M)``."""
     size, width = kinds.shape
-    stations = np.empty((size, width, 3))
-    rotations = np.empty((size, width, 3, 3))
+    planes, stations, rotations, is_line_out = out
     for b in range(size):
         for m in range(width):
             s = station_index[b, m]
@@ -101,7 +103,5 @@ def geometry_kernel(valid, kinds, station_index, values, sigmas, bearing_index, 
             rotations[b, m] = station_rotations[b, s]
     model_values, weights = model_kernel(kinds, values, sigmas, valid)
     is_line, elevation, sigma_elevation = lines_of_sight_kernel(valid, kinds, bearing_index, values, sigmas)
-    # One array of the four (B, M) planes: each returned array is boxed on its own (see masks_kernel).
-    planes = np.empty((4, size, width))
     planes[0], planes[1], planes[2], planes[3] = model_values, weights, elevation, sigma_elevation
-    return planes, stations, rotations, is_line
+    is_line_out[:] = is_line

@@ -25,7 +25,7 @@ from scipy.special import chdtrc
 from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators.finish_kernels import (BEHIND, COARSE_TOA, COLLINEAR, DOWNWEIGHTED, DOWNWEIGHTED_FACTOR, EXCLUDED,
                                             ILL, NOT_CONVERGED, NOT_ISOLABLE, OUTLIER, OUTLIER_SIGMAS, RUNAWAY, SINGULAR,
-                                            UNUSED, ZENITH, fix_kernel)
+                                            UNUSED, ZENITH, Estimate, Finished, fix_kernel)
 from core.estimators.loss import loss_code
 from core.estimators.result import Estimates, FixBatch, FixWarning
 from core.measurements import KIND_NAMES, RANGE, SPEED_OF_LIGHT_MPS, TOA, toa_spacing_s
@@ -70,29 +70,25 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
     if errors:  # exactly the failed rows
         position[failed] = batch.stations_enu_m[failed, 0] + [0.0, 0.0, 1.0]
 
-    stations, rotations = batch.measurement_stations()
-    arrays = batch.kernel_inputs
     sigmas = batch.sigmas if estimates.sigmas is None else np.where(batch.present, estimates.sigmas, np.nan)
     bias = estimates.bias_m
-    is_line, elevation, _ = batch.lines_of_sight()
-    origin_ecef, origin_rotation = batch.frame_placements()
     loss = estimates.loss
     present, valid = batch.present, batch.valid
     excluded = np.zeros(present.shape, dtype=bool) if excluded is None else excluded & present
     converged = np.ones(size, dtype=bool) if estimates.converged is None else np.asarray(estimates.converged)
-    measured, bounds, seen_lines, scalars, counts, isolated = fix_kernel(
-        position, np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
-        bias is not None, stations, rotations, arrays.kinds, arrays.values,
-        arrays.sigmas if estimates.sigmas is None else np.ascontiguousarray(sigmas, dtype=float),
-        arrays.n_measurements, valid, np.ascontiguousarray(excluded), arrays.altitude_m, arrays.has_toa,
-        arrays.geodetic, origin_ecef, origin_rotation, -1 if loss is None else loss_code(loss[0]),
-        1.0 if loss is None else float(loss[1]) ** 2, is_line, elevation,
-        np.ascontiguousarray(converged, dtype=np.bool_), arrays.source_index)
-    raw, normalized, studentized, robust_factor = measured
-    crlb, covariance = bounds
-    behind, zenith = seen_lines
-    chi2, min_eigenvalue, spread, p_dof, plain_scale, sigma_scale, worst_value, gdop = scalars
-    dof, worst, flags = counts
+    measurements = batch.kernel_measurements
+    estimate = Estimate(
+        position_enu_m=position, bias_m=np.zeros(size) if bias is None else np.asarray(bias, dtype=float),
+        has_bias=bias is not None, converged=np.ascontiguousarray(converged, dtype=np.bool_),
+        sigmas=measurements.sigmas if estimates.sigmas is None else np.ascontiguousarray(sigmas, dtype=float),
+        excluded=np.ascontiguousarray(excluded), loss_code=-1 if loss is None else loss_code(loss[0]),
+        c2=1.0 if loss is None else float(loss[1]) ** 2)
+    finished = Finished(*fix_kernel(tuple(measurements), tuple(batch.kernel_frames), tuple(estimate)))
+    raw, normalized, studentized, robust_factor = finished.measured
+    crlb, covariance = finished.bounds
+    behind, zenith = finished.seen_lines
+    chi2, min_eigenvalue, spread, p_dof, plain_scale, sigma_scale, worst_value, gdop = finished.scalars
+    dof, worst, flags = finished.counts
     p_value = chdtrc(p_dof, chi2)
     if loss is None:
         robust_factor = None
@@ -216,7 +212,7 @@ def finish(batch: ProblemBatch, method: str, estimates: Estimates, excluded=None
         used=valid,
         excluded=excluded,
         gdop=gdop,
-        isolated=isolated,
+        isolated=finished.isolated,
     )
 
 

@@ -14,6 +14,7 @@ leaves (:func:`_ml_residuals`), whatever estimate a method returned.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -22,6 +23,7 @@ from core.angles import wrap_point
 from core.crlb import (OBSERVABILITY_THRESHOLD, gdop_point, invert_point, normal_point, parameters_point,
                        reference_sigma_point, sandwich_point)
 from core.estimators.loss import loss_point
+from core.kernel_data import Frames, Measurements
 from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, ahead_point, measure_point, toa_offset_point
 from core.problem import onto_altitude_point
 
@@ -50,6 +52,121 @@ RUNAWAY_SIGMA_RATIO = 1e6
 (ILL, OUTLIER, COLLINEAR, BEHIND, ZENITH, EXCLUDED, UNUSED, DOWNWEIGHTED, RUNAWAY, COARSE_TOA, SINGULAR,
  NOT_CONVERGED, NOT_ISOLABLE) = (1 << k for k in range(13))
 
+
+
+class Estimate(NamedTuple):
+    """An estimator's estimates of a batch, as the finisher judges them (:func:`fix_kernel`).
+
+    Attributes
+    ----------
+    position_enu_m : ndarray, shape (B, 3)
+    bias_m : ndarray, shape (B,)
+        The TOA offset (metres of pseudo-range), where ``has_bias``.
+    has_bias : bool
+        False: the offset is the one that fits best at each position.
+    converged : ndarray of bool, shape (B,)
+        The estimator's own verdict.
+    sigmas : ndarray, shape (B, M)
+        The sigmas judged by (problem units): the batch's, or those the estimator estimated.
+    excluded : ndarray of bool, shape (B, M)
+        Measurements outlier exclusion set aside (not in the batch's ``valid``).
+    loss_code : int
+        The robust loss's code, -1 for none.
+    c2 : float
+        Its scale squared (1 for none).
+    """
+
+    position_enu_m: np.ndarray
+    bias_m: np.ndarray
+    has_bias: bool
+    converged: np.ndarray
+    sigmas: np.ndarray
+    excluded: np.ndarray
+    loss_code: int
+    c2: float
+
+
+class _Linearised(NamedTuple):
+    """One problem's measurements at an estimate, as :func:`_ml_residuals` takes them: model values and weights
+    ``(M,)``, the whitened local Jacobian ``local`` ``(4, M)``, the inverse information ``params`` ``(4, 4)``,
+    the residuals ``(M,)`` and a Gauss-Newton step ``(4,)``."""
+
+    model_values: np.ndarray
+    weights: np.ndarray
+    local: np.ndarray
+    params: np.ndarray
+    residual: np.ndarray
+    step: np.ndarray
+
+
+class _Refit(NamedTuple):
+    """Where :func:`_ml_residuals` refines the ML fit: the point, its Jacobian, whitened local Jacobian,
+    information, inverse information (``params``), CRLB (``position``), local axes and free parameters, and
+    scratch."""
+
+    gradient: np.ndarray
+    point: np.ndarray
+    jacobian: np.ndarray
+    local: np.ndarray
+    information: np.ndarray
+    params: np.ndarray
+    position: np.ndarray
+    axes: np.ndarray
+    free: np.ndarray
+    work: np.ndarray
+    vectors: np.ndarray
+
+
+class Finished(NamedTuple):
+    """What :func:`fix_kernel` returns for a batch, in six arrays (views of them unpack the rest,
+    :func:`core.estimators.finish.finish`): planes of a few arrays, since numba boxes each returned array on
+    its own, a cost per array that a batch of one feels.
+
+    Attributes
+    ----------
+    measured : ndarray, shape (4, B, M)
+        The residuals (problem units), normalized and studentized residuals, and the loss's weight factors.
+    bounds : ndarray, shape (2, B, 3, 3)
+        The CRLB and the covariance (made symmetric).
+    seen_lines : ndarray of bool, shape (2, B, M)
+        Per line of sight, whether the fix is behind its station, and at its zenith.
+    scalars : ndarray, shape (8, B)
+        Chi-square, the smallest unit-diagonal information eigenvalue, the lines' smallest spread, the degrees
+        of freedom as floats (NaN where there are none: the p-value's), the plain and the reported sigma scale,
+        the worst measurement's studentized residual, and GDOP.
+    counts : ndarray of int, shape (3, B)
+        The degrees of freedom, the worst measurement and the verdict bits.
+    isolated : ndarray of bool, shape (B,)
+        Whether the largest studentized residual singles its measurement out (``ISOLATION_SIGMAS``).
+    """
+
+    measured: np.ndarray
+    bounds: np.ndarray
+    seen_lines: np.ndarray
+    scalars: np.ndarray
+    counts: np.ndarray
+    isolated: np.ndarray
+
+
+class _Numbers(NamedTuple):
+    """What :func:`_finish_kernel` computes for a batch: ``measured`` ``(4, B, M)`` (residuals in problem units,
+    normalized and studentized residuals, the loss's weight factors), ``bounds`` ``(2, B, 3, 3)`` (the CRLB and
+    the covariance), ``seen_lines`` ``(2, B, M)`` (behind the station, at its zenith), and per problem the
+    chi-square, the count of measurements in it, the smallest unit-diagonal information eigenvalue, the robust
+    cost, the reference sigma, the lines' smallest spread, whether the fix ran off, and how far its largest
+    studentized residual stands out (:func:`_separation`)."""
+
+    measured: np.ndarray
+    bounds: np.ndarray
+    seen_lines: np.ndarray
+    chi2: np.ndarray
+    known_count: np.ndarray
+    smallest: np.ndarray
+    robust_cost: np.ndarray
+    sigma_ref: np.ndarray
+    spread: np.ndarray
+    runaway: np.ndarray
+    separation: np.ndarray
 
 
 #: A fit whose residuals are judged lies farther than this (squared Mahalanobis distance, its own information)
@@ -99,19 +216,24 @@ def _residuals_at(x, bias, stations, rotations, kinds, model_values, weights, co
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _ml_residuals(position, bias, stations, rotations, kinds, model_values, weights, count, altitude_m, has_toa,
-                  geodetic, origin_ecef_m, origin_rotation, local, params, residual, step, gradient, point,
-                  jacobian_fit, local_fit, information_fit, params_fit, position_fit, axes_fit, free, work, vectors):
-    """The residuals the ML fit of a problem's measurements leaves, to first order from an estimate.
+def _ml_residuals(position, bias, measurements, frames, b, at_estimate, fit):
+    """The residuals the ML fit of problem ``b``'s measurements leaves, to first order from an estimate.
 
-    On entry ``residual`` ``(M,)`` holds the residuals at ``position`` and ``local`` / ``params`` the whitened
-    Jacobian and inverse information there. ``step`` ``(4,)`` becomes the Gauss-Newton step to the ML fit, so
+    On entry ``at_estimate`` (:class:`_Linearised`) holds the residuals at ``position`` and the whitened
+    Jacobian and inverse information there; its ``step`` becomes the Gauss-Newton step to the ML fit, so
     that ``residual - local^T step`` are its residuals (exact for a linear model). When that step is longer than
     ``REFINE_MAHALANOBIS2`` (an inefficient closed form, an unfinished iteration), its linearisation is not
     trusted: Gauss-Newton steps are taken from ``position`` while they lower the chi-square (at most
-    ``REFINE_STEPS``), and ``residual``, ``step``, and ``local_fit`` / ``params_fit`` (then returned True) are
-    those at the last point. The rest: scratch.
+    ``REFINE_STEPS``), and ``residual``, ``step``, and ``fit.local`` / ``fit.params`` (then returned True) are
+    those at the last point (``fit``: a :class:`_Refit`).
     """
+    model_values, weights, local, params, residual, step = at_estimate
+    gradient, point, jacobian_fit, local_fit, information_fit, params_fit, position_fit, axes_fit, free, work, \
+        vectors = fit
+    stations, rotations, kinds = measurements.stations_enu_m[b], measurements.rotations[b], measurements.kinds[b]
+    count = measurements.n_measurements[b]
+    altitude_m, has_toa, geodetic = frames.altitude_m[b], frames.has_toa[b], frames.geodetic[b]
+    origin_ecef_m, origin_rotation = frames.origin_ecef_m[b], frames.origin_rotation[b]
     removed = _gauss_newton_step(residual, local, params, weights, gradient, step)
     if not removed > REFINE_MAHALANOBIS2:
         return False
@@ -195,18 +317,25 @@ def _separation(studentized, room, weights, local, params, source_index, count, 
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
-                   n_measurements, valid, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2,
-                   is_line, elevation_rad, source_index):
+def _finish_kernel(measurements, frames, estimate):
     """The numbers of :func:`core.estimators.finish.finish`, each problem on its own: residuals (problem units), normalized and
     studentized residuals, chi-square and the count of measurements in it, the CRLB, the covariance (the
-    CRLB, or with a robust ``loss`` (code, ``-1`` for none) the sandwich of its weights), the smallest
+    CRLB, or with a robust loss (``estimate.loss_code`` not -1) the sandwich of its weights), the smallest
     unit-diagonal information eigenvalue, the loss's weight factors and cost, the reference sigma, and per
     line of sight whether the fix is behind its station or at its zenith, the lines' smallest spread, and whether
     the fix ran off (``RUNAWAY_SIGMA_RATIO``)."""
+    kinds, n_measurements, valid, values = measurements.kinds, measurements.n_measurements, measurements.valid, \
+        measurements.values
+    stations_enu_m, rotations, source_index = measurements.stations_enu_m, measurements.rotations, \
+        measurements.source_index
+    is_line, elevation_rad = measurements.is_line, measurements.elevation_rad
+    altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation = frames
+    positions_enu_m, bias_in_m, has_bias, sigmas = estimate.position_enu_m, estimate.bias_m, estimate.has_bias, \
+        estimate.sigmas
+    loss, c2 = estimate.loss_code, estimate.c2
     size, width = kinds.shape
-    # The per-measurement numbers, the bounds and the line-of-sight facts are planes of one array each: a
-    # kernel's returned arrays are boxed one by one, a cost per array that a small batch feels.
+    # The per-measurement numbers, the bounds and the line-of-sight facts are planes of one array each (see
+    # :class:`Finished`).
     measured = np.zeros((4, size, width))
     raw, normalized, studentized, robust_factor = measured[0], measured[1], measured[2], measured[3]
     robust_factor[:] = 1.0
@@ -227,8 +356,9 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
     bread, meat = np.empty((4, 4)), np.empty((4, 4))
     bread_weights, meat_weights = np.empty(width), np.empty(width)
     model_residual, whitened, gradient, step = np.empty(width), np.empty(width), np.empty(4), np.empty(4)
-    fitted_residual, point, jacobian_fit, local_fit = np.empty(width), np.empty(3), np.empty((4, width)), np.empty((4, width))
-    information_fit, params_fit, position_fit, axes_fit = np.empty((4, 4)), np.empty((4, 4)), np.empty((3, 3)), np.empty((3, 3))
+    fitted_residual, local_fit, params_fit = np.empty(width), np.empty((4, width)), np.empty((4, 4))
+    refit = _Refit(gradient, np.empty(3), np.empty((4, width)), local_fit, np.empty((4, 4)), params_fit,
+                   np.empty((3, 3)), np.empty((3, 3)), free, work, vectors)
     for b in range(size):
         p = positions_enu_m[b]
         east, north, up = p[0], p[1], p[2]
@@ -272,10 +402,8 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
         for i in range(4):
             step[i] = 0.0
         if loss < 0 and smallest[b] > OBSERVABILITY_THRESHOLD:
-            if _ml_residuals(p, bias, stations_b, rotations_b, kinds[b], model_values, weights, n_measurements[b],
-                             altitude_m[b], has_toa[b], geodetic[b], origin_ecef_m[b], origin_rotation[b],
-                             local, params, fitted_residual, step, gradient, point, jacobian_fit, local_fit,
-                             information_fit, params_fit, position_fit, axes_fit, free, work, vectors):
+            if _ml_residuals(p, bias, measurements, frames, b,
+                             _Linearised(model_values, weights, local, params, fitted_residual, step), refit):
                 hat_local, hat_params = local_fit, params_fit
         chi2[b] = 0.0
         for m in range(width):
@@ -340,19 +468,24 @@ def _finish_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotatio
                         dot = abs(seen[i, 0] * seen[j, 0] + seen[i, 1] * seen[j, 1] + seen[i, 2] * seen[j, 2])
                         cosine = min(cosine, dot)
             spread[b] = math.acos(cosine)
-    return (measured, bounds, seen_lines, raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest,
-            robust_factor, robust_cost,
-            sigma_ref, behind, zenith, spread, runaway, separation)
+    return _Numbers(measured, bounds, seen_lines, chi2, known_count, smallest, robust_cost, sigma_ref, spread, runaway,
+                    separation)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith,
-                     runaway, is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, robust, converged,
-                     separation):
+def _verdicts_kernel(numbers, measurements, frames, estimate):
     """Per problem, from :func:`_finish_kernel`'s numbers: the degrees of freedom, the plain and the reported
     sigma scale (NaN without dof), the measurement with the largest ``|studentized|`` (numpy's ``argmax``:
-    the first NaN, else the first largest) and its value, and the verdict bits (``ILL`` ...; ``converged``
-    ``(B,)``: the estimator's)."""
+    the first NaN, else the first largest) and its value, and the verdict bits (``ILL`` ...; with the
+    estimator's own ``converged``)."""
+    studentized, robust_factor = numbers.measured[2], numbers.measured[3]
+    behind, zenith = numbers.seen_lines[0], numbers.seen_lines[1]
+    chi2, known_count, robust_cost, smallest = numbers.chi2, numbers.known_count, numbers.robust_cost, numbers.smallest
+    spread, runaway, separation = numbers.spread, numbers.runaway, numbers.separation
+    is_line, n_measurements, valid = measurements.is_line, measurements.n_measurements, measurements.valid
+    altitude_m, has_toa = frames.altitude_m, frames.has_toa
+    excluded, sigmas, converged = estimate.excluded, estimate.sigmas, estimate.converged
+    robust = estimate.loss_code >= 0
     size, width = studentized.shape
     dof, worst = np.empty(size, dtype=np.int64), np.zeros(size, dtype=np.int64)
     plain_scale, sigma_scale = np.full(size, np.nan), np.full(size, np.nan)
@@ -395,37 +528,20 @@ def _verdicts_kernel(studentized, chi2, known_count, robust_cost, robust_factor,
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def fix_kernel(positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas,
-                n_measurements, valid, excluded, altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss,
-                c2, is_line, elevation_rad, converged, source_index):
-    """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call, in six arrays (views of them unpack
-    the rest, :func:`core.estimators.finish.finish`).
+def fix_kernel(measurements, frames, estimate):
+    """:func:`_finish_kernel` then :func:`_verdicts_kernel` in one call; returns the fields of a
+    :class:`Finished`.
 
-    Returns
-    -------
-    measured : ndarray, shape (4, B, M)
-        The residuals (problem units), normalized and studentized residuals, and the loss's weight factors.
-    bounds : ndarray, shape (2, B, 3, 3)
-        The CRLB and the covariance (made symmetric).
-    seen_lines : ndarray of bool, shape (2, B, M)
-        Per line of sight, whether the fix is behind its station, and at its zenith.
-    scalars : ndarray, shape (8, B)
-        Chi-square, the smallest unit-diagonal information eigenvalue, the lines' smallest spread, the degrees
-        of freedom as floats (NaN where there are none: the p-value's), the plain and the reported sigma scale,
-        the worst measurement's studentized residual, and GDOP.
-    counts : ndarray of int, shape (3, B)
-        The degrees of freedom, the worst measurement and the verdict bits.
-    isolated : ndarray of bool, shape (B,)
-
-    ``excluded`` ``(B, M)``: measurements outlier exclusion set aside; ``converged`` ``(B,)``: the estimator's.
+    ``measurements``, ``frames``: the batch's (:mod:`core.kernel_data`); ``estimate``: an :class:`Estimate`
+    (each a plain tuple or named).
     """
-    (measured, bounds, seen_lines, raw, normalized, studentized, chi2, known_count, crlb, covariance, smallest,
-     robust_factor, robust_cost, sigma_ref, behind, zenith, spread, runaway, separation) = _finish_kernel(
-        positions_enu_m, bias_in_m, has_bias, stations_enu_m, rotations, kinds, values, sigmas, n_measurements, valid,
-        altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation, loss, c2, is_line, elevation_rad, source_index)
-    dof, plain_scale, sigma_scale, worst, worst_value, flags, isolated = _verdicts_kernel(
-        studentized, chi2, known_count, robust_cost, robust_factor, smallest, spread, behind, zenith, runaway,
-        is_line, n_measurements, valid, excluded, sigmas, altitude_m, has_toa, loss >= 0, converged, separation)
+    measurements, frames, estimate = Measurements(*measurements), Frames(*frames), Estimate(*estimate)
+    numbers = _finish_kernel(measurements, frames, estimate)
+    dof, plain_scale, sigma_scale, worst, worst_value, flags, isolated = _verdicts_kernel(numbers, measurements,
+                                                                                         frames, estimate)
+    measured, bounds, seen_lines, chi2, smallest, spread = (numbers.measured, numbers.bounds, numbers.seen_lines,
+                                                            numbers.chi2, numbers.smallest, numbers.spread)
+    crlb, covariance, sigma_ref = bounds[0], bounds[1], numbers.sigma_ref
     size = dof.size
     scalars, counts = np.empty((8, size)), np.empty((3, size), dtype=np.int64)
     for b in range(size):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -25,6 +26,7 @@ import numpy as np
 from core.angles import wrap_point
 from core.estimators.base import SolveOptions
 from core.estimators.loss import CURVATURE_FLOOR, loss_code, loss_point
+from core.kernel_data import Fitting, Frames, Measurements
 from core.measurements import AZIMUTH, ELEVATION, RANGE, TOA, measure_point, toa_offset_point
 from core.problem import local_axes_point, onto_altitude_point
 from core.problem_batch import ProblemBatch
@@ -72,18 +74,51 @@ class Solution:
     converged: np.ndarray
     cost: np.ndarray
 
+    @classmethod
+    def empty(cls, size: int) -> "Solution":
+        """A solution of ``size`` problems for :func:`_lm_kernel` to fill (a compiled call costs more for each
+        array it returns than for each it is given)."""
+        return cls(np.empty((size, 3)), np.empty(size), np.zeros(size, dtype=np.int64), np.zeros(size, dtype=np.bool_),
+                   np.empty(size))
+
     def put(self, rows, other: "Solution", picks) -> None:
         """Rows ``rows`` of this solution become rows ``picks`` of ``other`` (in place; int or ``(K,)`` each)."""
         for name in self.__dataclass_fields__:
             getattr(self, name)[rows] = getattr(other, name)[picks]
 
 
+class Linearization(NamedTuple):
+    """One problem's measurements linearised at a point (:func:`_evaluate` writes them; zero where unweighted).
+
+    Attributes
+    ----------
+    residual : ndarray, shape (M,)
+        Model units, angles wrapped.
+    jacobian : ndarray, shape (4, M)
+        Of the predictions by ``(east, north, up, bias)``.
+    gradient_w, curvature_w : ndarray, shape (M,)
+        Each measurement's weight in the gradient (``w rho'``) and in the Gauss-Newton matrix.
+    """
+
+    residual: np.ndarray
+    jacobian: np.ndarray
+    gradient_w: np.ndarray
+    curvature_w: np.ndarray
+
+
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _evaluate(position_enu_m, bias_m, stations, rotations, kinds, values, weights, loss_code, c2,
-              residual, jacobian, gradient_w, curvature_w):
-    """Residuals, Jacobian and the gradient and Gauss-Newton weights of one problem's measurements (written
-    in place; zero where the weight is); returns the cost ``sum C^2 rho(z / C^2)`` of the squared whitened
-    residuals ``z``."""
+def _linearization(width):
+    return Linearization(np.empty(width), np.empty((4, width)), np.empty(width), np.empty(width))
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _evaluate(position_enu_m, bias_m, measurements, b, fitting, out):
+    """Problem ``b``'s measurements linearised at a point (into ``out``, a :class:`Linearization`); returns the
+    cost ``sum C^2 rho(z / C^2)`` of the squared whitened residuals ``z`` under ``fitting``'s loss."""
+    stations, rotations = measurements.stations_enu_m[b], measurements.rotations[b]
+    kinds, values, weights = measurements.kinds[b], measurements.model_values[b], measurements.weights[b]
+    residual, jacobian, gradient_w, curvature_w = out
+    loss_code, c2 = fitting.loss_code, fitting.c2
     cost = 0.0
     east, north, up = position_enu_m[0], position_enu_m[1], position_enu_m[2]
     for m in range(kinds.size):
@@ -224,17 +259,18 @@ def _add_distance_curvature(x, stations, kinds, count, gradient_w, residual, axe
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, geodetic, origin_ecef_m,
-               origin_rotation, has_toa, loss_code, c2, max_iterations, tolerance_m):
-    size, count = kinds.shape
-    position_out = np.empty((size, 3))
-    bias_out = np.empty(size)
-    iterations_out = np.zeros(size, dtype=np.int64)
-    converged_out = np.zeros(size, dtype=np.bool_)
-    cost_out = np.empty(size)
-    residual, gradient_w, curvature_w = np.empty(count), np.empty(count), np.empty(count)
-    residual_new, gradient_w_new, curvature_w_new = np.empty(count), np.empty(count), np.empty(count)
-    jacobian, jacobian_new = np.empty((4, count)), np.empty((4, count))
+def _lm_kernel(measurements, frames, starts_enu_m, fitting, out):
+    """Every problem's Levenberg-Marquardt iteration (:func:`levenberg_marquardt`) from ``starts_enu_m``
+    ``(B, 3)``: a batch's :class:`~core.kernel_data.Measurements` and :class:`~core.kernel_data.Frames`, and
+    the :class:`~core.kernel_data.Fitting` (named or plain tuples); into ``out``, the fields of a
+    :class:`Solution` (:meth:`Solution.empty`)."""
+    measurements, frames, fitting = Measurements(*measurements), Frames(*frames), Fitting(*fitting)
+    position_out, bias_out, iterations_out, converged_out, cost_out = out
+    size, count = measurements.kinds.shape
+    altitude_m, geodetic, has_toa = frames.altitude_m, frames.geodetic, frames.has_toa
+    origin_ecef_m, origin_rotation = frames.origin_ecef_m, frames.origin_rotation
+    loss_code = fitting.loss_code
+    current, trial = _linearization(count), _linearization(count)
     local = np.empty((4, count))
     axes = np.empty((3, 3))
     information, scaled, undamped, curvature = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((3, 3))
@@ -242,17 +278,17 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
     gradient, scale, right, step, free = np.empty(4), np.empty(4), np.empty(4), np.empty(4), np.empty(4)
     x, x_new, delta = np.empty(3), np.empty(3), np.empty(3)
     for b in range(size):
-        st, rot, kd, val, wt = stations[b], rotations[b], kinds[b], values[b], weights[b]
+        st, kd = measurements.stations_enu_m[b], measurements.kinds[b]
+        val, wt = measurements.model_values[b], measurements.weights[b]
         constrained = not math.isnan(altitude_m[b])
-        x[:] = starts[b]
+        x[:] = starts_enu_m[b]
         if constrained:
             onto_altitude_point(x, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
         bias = toa_offset_point(x[0], x[1], x[2], st, kd, val, wt)
         free[0] = free[1] = 1.0
         free[2] = 0.0 if constrained else 1.0
         free[3] = 1.0 if has_toa[b] else 0.0
-        cost = _evaluate(x, bias, st, rot, kd, val, wt, loss_code, c2, residual, jacobian, gradient_w,
-                         curvature_w)
+        cost = _evaluate(x, bias, measurements, b, fitting, current)
         has_distance = False
         for m in range(count):
             has_distance |= wt[m] > 0.0 and (kd[m] == RANGE or kd[m] == TOA)
@@ -260,7 +296,8 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
         stationary = False
         iterations = 0
         converged = False
-        for _ in range(max_iterations):
+        for _ in range(fitting.max_iterations):
+            residual, jacobian, gradient_w, curvature_w = current
             if constrained:
                 local_axes_point(x, geodetic[b], origin_ecef_m[b], origin_rotation[b], axes)
             for m in range(count):
@@ -325,20 +362,16 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
             if constrained:
                 onto_altitude_point(x_new, altitude_m[b], geodetic[b], origin_ecef_m[b], origin_rotation[b])
             bias_new = bias + step[3]
-            cost_new = _evaluate(x_new, bias_new, st, rot, kd, val, wt, loss_code, c2, residual_new,
-                                 jacobian_new, gradient_w_new, curvature_w_new)
+            cost_new = _evaluate(x_new, bias_new, measurements, b, fitting, trial)
             iterations += 1
             if math.isfinite(cost_new) and cost_new <= cost * (1.0 + 1e-12) + 1e-300:
                 x[:] = x_new
                 bias, cost = bias_new, cost_new
-                residual, residual_new = residual_new, residual
-                jacobian, jacobian_new = jacobian_new, jacobian
-                gradient_w, gradient_w_new = gradient_w_new, gradient_w
-                curvature_w, curvature_w_new = curvature_w_new, curvature_w
+                current, trial = trial, current
                 damping = max(damping / 10.0, LAMBDA_MIN)
             else:
                 damping *= 10.0
-            if math.sqrt(length2) < tolerance_m:
+            if math.sqrt(length2) < fitting.tolerance_m:
                 converged = True
                 break
             if damping > LAMBDA_MAX:
@@ -347,7 +380,6 @@ def _lm_kernel(stations, rotations, kinds, values, weights, starts, altitude_m, 
         position_out[b] = x
         bias_out[b], cost_out[b] = bias, cost
         iterations_out[b], converged_out[b] = iterations, converged
-    return position_out, bias_out, iterations_out, converged_out, cost_out
 
 
 def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tolerance_m=1e-3,
@@ -377,14 +409,20 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     -------
     Solution
     """
-    stations, rotations = batch.measurement_stations()
-    origin_ecef, origin_rotation = batch.frame_placements()
-    arrays = batch.kernel_inputs
-    out = _lm_kernel(stations, rotations, arrays.kinds, batch.model_values(), batch.weights(),
-                     np.ascontiguousarray(start_enu_m, dtype=float), arrays.altitude_m, arrays.geodetic, origin_ecef,
-                     origin_rotation, arrays.has_toa, loss_code(loss[0]), float(loss[1]) ** 2, int(max_iterations),
-                     float(tolerance_m))
-    return Solution(*out)
+    solution = Solution.empty(batch.size)
+    _lm_kernel(tuple(batch.kernel_measurements), tuple(batch.kernel_frames), np.ascontiguousarray(start_enu_m, dtype=float),
+               tuple(fitting_of(loss, max_iterations, tolerance_m)), _fields(solution))
+    return solution
+
+
+def _fields(solution: Solution) -> tuple:
+    """A solution's arrays in :func:`_lm_kernel`'s order, for it to fill."""
+    return solution.position_enu_m, solution.bias_m, solution.iterations, solution.converged, solution.cost
+
+
+def fitting_of(loss, max_iterations, tolerance_m) -> Fitting:
+    """The :class:`~core.kernel_data.Fitting` of a loss ``(name, scale in sigmas)`` and the iteration's limits."""
+    return Fitting(loss_code(loss[0]), float(loss[1]) ** 2, int(max_iterations), float(tolerance_m))
 
 
 def loss_of(options: SolveOptions) -> tuple[str, float]:

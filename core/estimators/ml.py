@@ -39,14 +39,15 @@ from scipy.special import chdtrc
 from core.crlb import batch_information
 from core.errors import LocalizationError
 from core.estimators.base import SolveOptions, register
-from core.estimators.lm import Solution, _lm_kernel, iterate, levenberg_marquardt, loss_of
-from core.estimators.loss import REDESCENDING, loss_code
+from core.estimators.lm import Solution, _fields, _lm_kernel, fitting_of, iterate, levenberg_marquardt, loss_of
+from core.estimators.loss import REDESCENDING
 from core.estimators.orthogonal_vector import SOLVED, _orthogonal_kernel
 from core.estimators.result import Estimates, FixWarning
 from core.estimators.starting_points import START_PASSES, initial_positions
 from core.estimators.ties import (REFINE_ITERATIONS, Fits, above_ground, fit_from, mirror_applies, mirror_points,
                                   refine, rivals, searched_starts, second_solution)
 from core.estimators.unscented_fix import CURVED_VARIANCE_RATIO, curved_covariance
+from core.kernel_data import Frames, Measurements
 from core.measurements import AZIMUTH, ELEVATION, ahead_point, predict, residuals
 from core.problem_batch import ProblemBatch
 
@@ -106,9 +107,12 @@ IMPLAUSIBLE_P = 1e-9
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _one_basin_kernel(positions_enu_m, stations_enu_m, rotations, kinds, valid, is_line, values, elevation_rad,
-                      n_measurements):
-    """:func:`one_basin` of ``(B, M)`` arrays (the lines of sight on their azimuth rows)."""
+def _one_basin_kernel(positions_enu_m, measurements):
+    """:func:`one_basin` of a batch's :class:`~core.kernel_data.Measurements` (a plain tuple or named)."""
+    measurements = Measurements(*measurements)
+    kinds, valid, is_line, values = measurements.kinds, measurements.valid, measurements.is_line, measurements.values
+    stations_enu_m, rotations = measurements.stations_enu_m, measurements.rotations
+    elevation_rad, n_measurements = measurements.elevation_rad, measurements.n_measurements
     size = kinds.shape[0]
     out = np.zeros(size, dtype=np.bool_)
     for b in range(size):
@@ -140,37 +144,30 @@ def one_basin(batch: ProblemBatch, positions_enu_m) -> np.ndarray:
     four-bearing problems with sigmas stated 5x too small took 7.6 s of ML (53 LM runs a problem, every
     search fit implausible too) against 0.14 s with true ones.
     """
-    stations, rotations = batch.measurement_stations()
-    is_line, elevation, _ = batch.lines_of_sight()
-    arrays = batch.kernel_inputs
-    return _one_basin_kernel(np.ascontiguousarray(positions_enu_m, dtype=float), stations, rotations, arrays.kinds,
-                             batch.valid, is_line, arrays.values, elevation, arrays.n_measurements)
+    return _one_basin_kernel(np.ascontiguousarray(positions_enu_m, dtype=float), tuple(batch.kernel_measurements))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _eove_fit_kernel(is_line, values, elevation_rad, sigma_elevation_rad, sigmas, stations_enu_m, rotations,
-                     altitude_m, geodetic, origin_ecef_m, origin_rotation, passes, kinds, model_values, weights,
-                     has_toa, loss, c2, max_iterations, tolerance_m, kind_counts, initial_guess_enu_m):
+def _eove_fit_kernel(measurements, frames, fitting, kind_counts, initial_guess_enu_m, out):
     """Every problem's weighted-EOVE start (the orthogonal kernel as :func:`initial_positions` runs it: both
-    normals, first-order weights) and ML's iteration from it (the LM kernel as :func:`iterate` runs it), in one
-    call; ``solved`` False, and no fits, where some problem is not started so: it has no azimuth
-    (``kind_counts`` ``(B, 4)``), an initial guess (a row of ``initial_guess_enu_m`` ``(B, 3)`` not NaN), or no
-    solution of its rows."""
+    normals, first-order weights, ``START_PASSES``) and ML's iteration from it (the LM kernel as :func:`iterate`
+    runs it, into ``out``: :func:`core.estimators.lm._fields`), in one call; returns ``(starts, solved)``,
+    ``solved`` False, and no fits, where some problem is not started so: it has no azimuth (``kind_counts``
+    ``(B, 4)``), an initial guess (a row of ``initial_guess_enu_m`` ``(B, 3)`` not NaN), or no solution of its
+    rows (the structures: plain tuples or named, :mod:`core.kernel_data`)."""
+    measurements, frames = Measurements(*measurements), Frames(*frames)
     for b in range(kind_counts.shape[0]):
         if kind_counts[b, AZIMUTH] == 0 or not math.isnan(initial_guess_enu_m[b, 0]):
-            return (np.empty((0, 3)), False, np.empty((0, 3)), np.empty(0), np.zeros(0, dtype=np.int64),
-                    np.zeros(0, dtype=np.bool_), np.empty(0))
-    _, _, _, starts, status, _ = _orthogonal_kernel(is_line, values, elevation_rad, sigma_elevation_rad, sigmas,
-                                                    stations_enu_m, rotations, True, True, altitude_m, geodetic,
-                                                    origin_ecef_m, origin_rotation, True, passes)
+            return np.empty((0, 3)), False
+    _, _, _, starts, status, _ = _orthogonal_kernel(
+        measurements.is_line, measurements.values, measurements.elevation_rad, measurements.sigma_elevation_rad,
+        measurements.sigmas, measurements.stations_enu_m, measurements.rotations, True, True, frames.altitude_m,
+        frames.geodetic, frames.origin_ecef_m, frames.origin_rotation, True, START_PASSES)
     for b in range(status.size):
         if status[b] != SOLVED:
-            return (starts, False, np.empty((0, 3)), np.empty(0), np.zeros(0, dtype=np.int64),
-                    np.zeros(0, dtype=np.bool_), np.empty(0))
-    position, bias, iterations, converged, cost = _lm_kernel(
-        stations_enu_m, rotations, kinds, model_values, weights, starts, altitude_m, geodetic, origin_ecef_m,
-        origin_rotation, has_toa, loss, c2, max_iterations, tolerance_m)
-    return starts, True, position, bias, iterations, converged, cost
+            return starts, False
+    _lm_kernel(measurements, frames, starts, fitting, out)
+    return starts, True
 
 
 def _eove_started_fits(batch: ProblemBatch, options: SolveOptions):
@@ -178,17 +175,12 @@ def _eove_started_fits(batch: ProblemBatch, options: SolveOptions):
     whose every problem its first stage starts (weighted EOVE: an azimuth, no initial guess) and does start;
     None otherwise (the stages in turn then find each start, or say why there is none). The same kernels on
     the same arrays: the same numbers, without the stages' per-call work between them."""
-    is_line, elevation, sigma_elevation = batch.lines_of_sight()
-    stations, rotations = batch.measurement_stations()
-    origin_ecef, origin_rotation = batch.frame_placements()
-    arrays = batch.kernel_inputs
-    loss = loss_of(options)
-    starts, solved, *fit = _eove_fit_kernel(
-        is_line, arrays.values, elevation, sigma_elevation, arrays.sigmas, stations, rotations, arrays.altitude_m,
-        arrays.geodetic, origin_ecef, origin_rotation, START_PASSES, arrays.kinds, batch.model_values(),
-        batch.weights(), arrays.has_toa, loss_code(loss[0]), float(loss[1]) ** 2, int(options.max_iterations),
-        float(options.tolerance_m), batch.kind_counts, batch.initial_guess_enu_m)
-    return (starts, Solution(*fit)) if solved else None
+    solution = Solution.empty(batch.size)
+    starts, solved = _eove_fit_kernel(
+        tuple(batch.kernel_measurements), tuple(batch.kernel_frames),
+        tuple(fitting_of(loss_of(options), options.max_iterations, options.tolerance_m)), batch.kind_counts,
+        batch.initial_guess_enu_m, _fields(solution))
+    return (starts, solution) if solved else None
 
 
 def normalized_residuals(batch: ProblemBatch, solution: Solution) -> np.ndarray:
@@ -240,6 +232,10 @@ def ml(batch: ProblemBatch, options: SolveOptions) -> Estimates:
             implausible &= ~one_basin(batch, solution.position_enu_m)
         retry |= implausible
     warnings: list[tuple] = [()] * batch.size
+    if options.loss == "linear" and not np.count_nonzero(
+            retry | mirror_applies(batch) & ~missing & (p_value >= IMPLAUSIBLE_P)):
+        # Every fit is settled from its start: no search, subset or mirror image to try (the usual batch).
+        return estimate_from(batch, starts, options, names, failures, solution, warnings)
     covariance = np.full((batch.size, 3, 3), np.nan)  # a two-solution mixture's, where a rival is plausible
     if np.count_nonzero(retry):
         rows = np.flatnonzero(retry)

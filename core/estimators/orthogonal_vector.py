@@ -403,15 +403,13 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
         UnobservableGeometry.
     """
     size = batch.size
-    is_line, elevation, sigma_elevation = batch.lines_of_sight()
-    stations, rotations = batch.measurement_stations()
-    origin_ecef, origin_rotation = batch.frame_placements()
     weighted = weighting is Weighting.FIRST_ORDER
-    arrays = batch.kernel_inputs
+    measurements, frames = batch.kernel_measurements, batch.kernel_frames
     rows, used, sigma, position, status, scale = _orthogonal_kernel(
-        is_line, arrays.values, elevation, sigma_elevation, arrays.sigmas, stations, rotations,
-        normals is not Normals.AZIMUTH_PLANE, normals is not Normals.ELEVATION_PLANE, arrays.altitude_m,
-        arrays.geodetic, origin_ecef, origin_rotation, weighted, int(passes))
+        measurements.is_line, measurements.values, measurements.elevation_rad, measurements.sigma_elevation_rad,
+        measurements.sigmas, measurements.stations_enu_m, measurements.rotations, normals is not Normals.AZIMUTH_PLANE,
+        normals is not Normals.ELEVATION_PLANE, frames.altitude_m, frames.geodetic, frames.origin_ecef_m,
+        frames.origin_rotation, weighted, int(passes))
     errors: dict[int, LocalizationError] = {}
     failed = status != SOLVED
     if np.count_nonzero(failed):
