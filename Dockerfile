@@ -48,7 +48,7 @@ RUN groupadd --system --gid 10001 locator \
 COPY --from=build /opt/venv /opt/venv
 # Writable by the service's user, so a plain `run` adds to it; under a read-only root filesystem (the
 # manifests in deploy/) `passive-locator serve` copies it to a fresh temporary directory first, since numba
-# ignores a cache directory it cannot write (service/kernel_cache.py).
+# ignores a cache directory it cannot write (service/ops/kernel_cache.py).
 COPY --from=build --chown=10001:10001 /opt/numba-cache /opt/numba-cache
 WORKDIR /app
 USER 10001:10001

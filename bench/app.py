@@ -21,9 +21,9 @@ from fastapi import FastAPI, Request
 from starlette.responses import Response
 
 from service.app import create_app
-from service.deps import get_owner, parse_json
 from service.fixes.decode import decode_fix
 from service.settings import Settings
+from service.web.deps import get_owner, parse_json
 
 
 def create_bench_app(settings: Settings | None = None) -> FastAPI:

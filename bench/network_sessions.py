@@ -31,7 +31,7 @@ BATCH = 50
 def scene_sessions(count: int, seed: int = 0) -> tuple[list[bytes], list[list[dict]]]:
     """Create bodies and report lists of ``count`` DF-network runs (the HTTP API's JSON)."""
     from core.simulation.network import SCENES, simulate_network
-    from service.scene_requests import api_report, create_body
+    from service.sessions.scene_requests import api_report, create_body
 
     scene = SCENES["df_network"]()
     creates, reports = [], []

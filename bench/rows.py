@@ -73,11 +73,11 @@ def _single_phase_times(count: int = 300) -> dict[str, float]:
     """Where one fix's server time goes (us), phase by phase, in this process: the route's own steps."""
     from core.error_summary import error_summary
     from core.estimators import solve_many
-    from service.deps import parse_json
     from service.fixes.decode import decode_fix
     from service.fixes.read import read_fix_requests
     from service.fixes.write import fix_bodies
-    from service.responses import JsonResponse
+    from service.web.deps import parse_json
+    from service.web.responses import JsonResponse
 
     bodies = [orjson.dumps(b) for b in four_station_requests(count, np.random.default_rng(12))]
     error_summary(np.eye(3))  # its interpolation tables are built once per process, on first use: not per fix
@@ -268,7 +268,7 @@ def _phase_times(problems: list) -> dict[str, float]:
     from service.fixes.decode import decode_batch
     from service.fixes.read import read_fix_requests
     from service.fixes.write import fix_bodies
-    from service.responses import JsonResponse
+    from service.web.responses import JsonResponse
 
     raw = orjson.dumps({"problems": problems})
     times: dict[str, float] = {}
@@ -417,11 +417,12 @@ def paper_002_row() -> Row:
     """Row 6: paper 002's grid, 441 points x 1000 trials of ``los_intersection``."""
     what = "paper 002 grid: 441 points x 1000 trials of los_intersection"
     target = "<= 10 s"
-    if not committed("core/estimators/line_of_sight_intersection.py"):
-        return unavailable(6, what, target, "core/estimators/line_of_sight_intersection.py has not landed")
+    if not committed("core/estimators/methods/line_of_sight_intersection.py"):
+        return unavailable(6, what, target, "core/estimators/methods/line_of_sight_intersection.py has not landed")
     from core.crlb import information_at
-    from core.estimators.line_of_sight_intersection import intersect_lines_of_sight
-    from core.problem import Bearing, LocalPoint, build_problem
+    from core.estimators.methods.line_of_sight_intersection import intersect_lines_of_sight
+    from core.problem.build import Bearing, build_problem
+    from core.problem.frame import LocalPoint
     from core.simulation.measurements import draw_noise, trial_batch, true_values
 
     stations = [("s1", LocalPoint(0.0, 0.0, 0.0)), ("s2", LocalPoint(10_000.0, 0.0, 0.0)),
@@ -706,7 +707,8 @@ def evaluation_throughput_row(trials: int = 20_000, chunk_trials: int = 1_000) -
         import distributed
     except ImportError:
         return unavailable(7, what, target, "distributed is not installed (pip install 'passive-locator[distributed]')")
-    from core.problem import Bearing, LocalPoint, build_problem
+    from core.problem.build import Bearing, build_problem
+    from core.problem.frame import LocalPoint
     from core.simulation.measurements import evaluate
 
     stations = [("a", LocalPoint(0.0, 0.0, 0.0)), ("b", LocalPoint(20_000.0, 0.0, 100.0)),

@@ -20,8 +20,8 @@ import numpy as np
 from core.crlb import batch_information, gdop
 from core.error_summary import error_summary
 from core.parallel import chunk_slices, run_chunks
-from core.problem import Problem
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
+from core.problem.frame import Problem
 
 #: Cells per chunk: one batch through the information code (a few milliseconds each with ten measurements).
 CHUNK_CELLS = 1024
@@ -63,7 +63,7 @@ def grid(template: Problem, centre_enu_m, half_width_m: float, step_m: float, al
 
     Parameters
     ----------
-    template : core.problem.Problem
+    template : core.problem.frame.Problem
         Only its frame is used.
     centre_enu_m : array_like, shape (2,) or (3,)
         East and north of the centre cell (an up coordinate is ignored).
@@ -128,7 +128,7 @@ def coverage_grid(template, cells_enu_m) -> Coverage:
 
     Parameters
     ----------
-    template : core.problem.Problem or ProblemBatch of one problem
+    template : core.problem.frame.Problem or ProblemBatch of one problem
         Its stations, kinds and sigmas (and known altitude, if any) are used, not its values.
     cells_enu_m : ndarray, shape (N, 3)
         Target positions in the template's frame.
@@ -165,7 +165,7 @@ def coverage_map(template, cells_enu_m, *, scheduler=None, should_stop=None, pro
 
     Parameters
     ----------
-    template : core.problem.Problem or ProblemBatch of one problem
+    template : core.problem.frame.Problem or ProblemBatch of one problem
     cells_enu_m : ndarray, shape (N, 3)
         E.g. :attr:`Grid.cells_enu_m`.
     scheduler, should_stop, progress

@@ -17,7 +17,7 @@ import numpy as np
 
 from core.linalg import gram_point, symmetric_eigen_in_place
 from core.measurements import MeasurementModel
-from core.problem import frame_placements, local_axes_point
+from core.problem.frame import frame_placements, local_axes_point
 
 #: Smallest eigenvalue of the unit-diagonal information matrix below which a
 #: direction counts as unobserved (relative, so independent of units).
@@ -372,7 +372,7 @@ def parameterisation(positions_enu_m, altitude_m, has_toa, origin, geodetic, pla
         Each frame's ``(lat_rad, lon_rad, alt_m)``.
     geodetic : ndarray of bool, shape (B,)
     placements : tuple of ndarray, optional
-        :func:`core.problem.frame_placements` of ``origin``, when known.
+        :func:`core.problem.frame.frame_placements` of ``origin``, when known.
 
     Returns
     -------
@@ -393,7 +393,7 @@ def batch_information(batch, positions_enu_m, sigmas=None) -> Information:
 
     Parameters
     ----------
-    batch : core.problem_batch.ProblemBatch
+    batch : core.problem.batch.ProblemBatch
         Its kinds, stations and sigmas are used, not its values.
     positions_enu_m : ndarray, shape (B, 3)
     sigmas : ndarray, shape (B, M), optional
@@ -419,7 +419,7 @@ def information_at(problem, position_enu_m, sigmas=None) -> Information:
 
     Parameters
     ----------
-    problem : core.problem.Problem
+    problem : core.problem.frame.Problem
         Its kinds, stations and sigmas are used, not its values.
     position_enu_m : ndarray, shape (3,)
     sigmas : ndarray, shape (M,), optional
@@ -430,7 +430,7 @@ def information_at(problem, position_enu_m, sigmas=None) -> Information:
     Information
         ``covariance_enu_m2[0]`` is the CRLB ``(3, 3)``.
     """
-    from core.problem_batch import ProblemBatch
+    from core.problem.batch import ProblemBatch
 
     return batch_information(ProblemBatch.from_problems([problem]), np.reshape(position_enu_m, (1, 3)),
                              None if sigmas is None else np.reshape(sigmas, (1, -1)))

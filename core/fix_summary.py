@@ -57,7 +57,7 @@ def summary_kernel(ok, position_enu_m, covariance_enu_m2, crlb_enu_m2, geodetic,
     position_enu_m, covariance_enu_m2, crlb_enu_m2 : ndarray, shape (B, 3), (B, 3, 3), (B, 3, 3)
         In the common frame.
     origin_ecef_m, rotation : ndarray, shape (B, 3), (B, 3, 3)
-        Each frame's placement (:meth:`core.problem_batch.ProblemBatch.frame_placements`).
+        Each frame's placement (:meth:`core.problem.batch.ProblemBatch.frame_placements`).
     circle, sphere : ndarray
         :func:`core.error_summary.radius50_tables`.
 

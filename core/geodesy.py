@@ -262,7 +262,7 @@ def enu_to_ecef(position_enu_m, origin_lat_rad, origin_lon_rad, origin_alt_m):
 
 
 def enu_to_ecef_placed(position_enu_m, origin_ecef_m, rotation):
-    """:func:`enu_to_ecef` for frames already placed (as :func:`core.problem.frame_placements` places them).
+    """:func:`enu_to_ecef` for frames already placed (as :func:`core.problem.frame.frame_placements` places them).
 
     Parameters
     ----------

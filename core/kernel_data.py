@@ -3,7 +3,7 @@
 Numba passes a ``typing.NamedTuple`` of arrays as one argument and reads its
 fields at no cost inside a kernel, so a kernel takes these few named
 structures rather than a long row of positional arrays. A
-:class:`~core.problem_batch.ProblemBatch` makes its :class:`Measurements` and
+:class:`~core.problem.batch.ProblemBatch` makes its :class:`Measurements` and
 :class:`Frames` once (``kernel_measurements``, ``kernel_frames``).
 
 From Python, a kernel is handed each structure as a plain tuple

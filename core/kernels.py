@@ -1,9 +1,9 @@
 """Every compiled (numba) kernel of the core, compiled or loaded from numba's on-disk cache in one call.
 
 The per-problem inner loops are compiled: the point conversions of
-:mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem_frame`,
-the frame and station placement and the padding of :mod:`core.problem_batch_build`,
-the model values and weights of :mod:`core.problem_batch`, the measurement model and TOA offset of :mod:`core.measurements`, the robust
+:mod:`core.geodesy`, the altitude surface and local axes of :mod:`core.problem.frame`,
+the frame and station placement and the padding of :mod:`core.problem.batch_build`,
+the model values and weights of :mod:`core.problem.batch`, the measurement model and TOA offset of :mod:`core.measurements`, the robust
 losses, the small SVD and eigen-decomposition of :mod:`core.linalg`, the
 information pieces of :mod:`core.crlb`, the error summaries, the
 orthogonal-vector passes, the ML iteration, the finisher and the tracking
@@ -26,7 +26,8 @@ def compile_kernels() -> None:
     from core.error_summary import error_summary
     from core.errors import LocalizationError
     from core.estimators import REGISTRY, SolveOptions, solve
-    from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
+    from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+    from core.problem.frame import GeodeticPoint, LocalPoint
     from core.tracking import unscented
 
     local = [(name, LocalPoint(east, north, 0.0)) for name, east, north in

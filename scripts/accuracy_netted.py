@@ -28,9 +28,10 @@ import numpy as np
 from core.crlb import information_at
 from core.estimators import SolveOptions
 from core.estimators import solve_batch
-from core.estimators.line_of_sight_intersection import intersect_lines_of_sight
+from core.estimators.methods.line_of_sight_intersection import intersect_lines_of_sight
 from core.measurements import Kind, predict
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, build_problem
+from core.problem.build import Bearing, Range, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 from core.simulation.measurements import draw_noise, trial_batch, true_values
 
 DEG = np.pi / 180.0

@@ -26,7 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from core.errors import LocalizationError  # noqa: E402
 from core.estimators import solve_batch  # noqa: E402
-from core.problem import Bearing, GeodeticPoint, LocalPoint, TimeOfArrival, build_problem  # noqa: E402
+from core.problem.build import Bearing, TimeOfArrival, build_problem  # noqa: E402
+from core.problem.frame import GeodeticPoint, LocalPoint  # noqa: E402
 from core.simulation.measurements import measure  # noqa: E402
 
 SIGMA_RAD, SIGMA_TOA_S = np.deg2rad(0.5), 1e-8

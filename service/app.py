@@ -16,12 +16,14 @@ from contextlib import asynccontextmanager
 
 from fastapi import FastAPI
 
-from service import logs, openapi, problems, tak, web
-from service import kernel_cache
-from service.coalesce import Coalescer
+from service.ops import logs
+from service.web import openapi, problems, browsers as web
+from service.renderings import tak
+from service.ops import kernel_cache
+from service.fixes.coalesce import Coalescer
 from service.fixes.pipeline import compile_kernels
-from service.metrics import InFlight, Metrics
-from service.middleware import ServiceMiddleware, TokenBucket
+from service.ops.metrics import InFlight, Metrics
+from service.web.middleware import ServiceMiddleware, TokenBucket
 from service.routes import ROUTERS
 from service.settings import Settings
 from service.stores import open_store, store_kind

@@ -22,7 +22,7 @@ import tempfile
 def _settings_help() -> str:
     """The environment variables the service reads, from its settings models themselves."""
     from service.settings import Settings
-    from service.tak import TakSettings
+    from service.renderings.tak import TakSettings
 
     lines = ["environment (lists as JSON, e.g. PASSIVE_LOCATOR_CORS_ALLOW_ORIGINS='[\"https://c2.example\"]'; "
              "see README.md):"]
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.command != "serve":
         sys.exit(args.run(args))
 
-    from service.logs import uvicorn_log_config
+    from service.ops.logs import uvicorn_log_config
     from service.settings import Settings
 
     settings = Settings()
@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> None:
 
     import uvicorn
 
-    from service import kernel_cache, logs
+    from service.ops import kernel_cache, logs
 
     logs.configure(level, settings.log_format)
     kernel_cache.usable_cache_dir()  # before uvicorn imports the app (and numba its kernels)
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> None:
     uvicorn.run("service.main:app", factory=False, host=args.host, port=args.port, workers=args.workers,
                 log_level=level, log_config=uvicorn_log_config(level, settings.log_format), access_log=False,
                 proxy_headers=False, timeout_graceful_shutdown=settings.graceful_timeout_s,
-                http="service.server:BoundedHttpToolsProtocol",  # read deadlines, connection bound
+                http="service.ops.server:BoundedHttpToolsProtocol",  # read deadlines, connection bound
                 ws="none")  # no WebSocket routes: an upgrade is served as the HTTP request it also is
 
 
@@ -194,7 +194,7 @@ def _run_evaluate(args) -> int:
 
     from pydantic import ValidationError
 
-    from service.reports import ProgressBar
+    from service.renderings.reports import ProgressBar
 
     path = pathlib.Path(args.scenario)
     try:
@@ -228,7 +228,7 @@ def _run_evaluate(args) -> int:
 def _evaluate_fixes(data, out, title, scheduler, bar):
     from core.errors import LocalizationError
     from service import schemas
-    from service.reports import write_evaluation
+    from service.renderings.reports import write_evaluation
     from service.planning import crlb_problem, evaluation_body
 
     request = schemas.EvaluationRequest.model_validate(data)
@@ -245,7 +245,7 @@ def _evaluate_fixes(data, out, title, scheduler, bar):
 def _evaluate_tracking(spec, out, title, scheduler, bar):
     from core.simulation.emitter import paper_001_scenario
     from core.simulation.tracking import against_bound, paper_config
-    from service.reports import write_tracking_evaluation
+    from service.renderings.reports import write_tracking_evaluation
 
     known = spec.get("known", spec.get("period_known", True))
     lists_as_tuples = {k: tuple(v) if isinstance(v, list) else v for k, v in spec.get("scenario", {}).items()}
@@ -258,10 +258,10 @@ def _evaluate_tracking(spec, out, title, scheduler, bar):
 
 
 def _evaluate_network(data, out, title):
-    from service.network_sessions import network_evaluation_body
-    from service.problems import ApiError
-    from service.reports import write_network_evaluation
-    from service.session_schemas import NetworkEvaluationRequest
+    from service.sessions.network import network_evaluation_body
+    from service.web.problems import ApiError
+    from service.renderings.reports import write_network_evaluation
+    from service.schemas.sessions import NetworkEvaluationRequest
 
     request = NetworkEvaluationRequest.model_validate(data)
     try:
@@ -272,9 +272,9 @@ def _evaluate_network(data, out, title):
 
 
 def _evaluate_multi(data, out, title):
-    from service.multi_evaluation import multi_evaluation_body
-    from service.reports import write_multi_evaluation
-    from service.session_schemas import MultiEmitterEvaluationRequest
+    from service.sessions.multi_evaluation import multi_evaluation_body
+    from service.renderings.reports import write_multi_evaluation
+    from service.schemas.sessions import MultiEmitterEvaluationRequest
 
     request = MultiEmitterEvaluationRequest.model_validate(data)
     return write_multi_evaluation(multi_evaluation_body(request.multi_emitter), out, title)
@@ -288,8 +288,8 @@ def _run_map(args) -> int:
 
     from core.errors import LocalizationError
     from service import schemas
-    from service.problems import ApiError
-    from service.reports import ProgressBar
+    from service.web.problems import ApiError
+    from service.renderings.reports import ProgressBar
     from service.planning import coverage_renderings, grid_of_request
 
     path = pathlib.Path(args.grid)
@@ -318,7 +318,7 @@ def _run_reproduce(args) -> int:
     import time
 
     from core.simulation.papers import reproduce
-    from service.reports import write_papers
+    from service.renderings.reports import write_papers
 
     size = "quick" if args.quick else "full"
     out = pathlib.Path(args.out) if args.out else pathlib.Path("reports") / ("quick" if args.quick else "")

@@ -14,7 +14,8 @@ import numpy as np
 
 from core.errors import InvalidInput
 from core.estimators import SolveOptions
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint, Problem
 from service import schemas
 
 

@@ -31,7 +31,7 @@ exclusion may take (:func:`exclusion_solves`): its refits run the method again, 
 
 from __future__ import annotations
 
-from service.problems import ApiError
+from service.web.problems import ApiError
 from service.fixes.decode import measurement_count, requested_method, requests_exclusion, station_count
 
 #: The key of pydantic's validation context (``model_validate(..., context=...)``) that carries the app's

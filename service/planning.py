@@ -1,7 +1,7 @@
 """Planning: the bound of a sensor geometry at a target, its coverage map, and Monte Carlo evaluations.
 
 The requests are read into core problems by :mod:`service.convert`; the
-maps are drawn by :mod:`service.maps`.
+maps are drawn by :mod:`service.renderings.maps`.
 """
 
 from __future__ import annotations
@@ -13,14 +13,15 @@ from core.coverage import Grid, cells_per_side, coverage_map, grid
 from core.crlb import gdop, information_at
 from core.error_summary import error_summary
 from core.errors import InvalidInput, UnobservableGeometry
-from core.problem import Bearing, Problem, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import Problem
 from core.simulation.measurements import evaluate
 from service import schemas
 from service.convert import (error_dict, finite_or_none, in_frame, known_altitude, radians_or_none, to_options,
                              to_point)
 from service.limits import check_grid
-from service.maps import coverage_geojson, coverage_geotiff, coverage_kmz, coverage_png
-from service.problems import ApiError
+from service.renderings.maps import coverage_geojson, coverage_geotiff, coverage_kmz, coverage_png
+from service.web.problems import ApiError
 
 
 def planning_problem(request: schemas.PlanningGeometry) -> Problem:
@@ -89,7 +90,7 @@ def grid_of_request(request: schemas.CrlbGridRequest, max_grid_cost: int | None 
 def coverage_renderings(request: schemas.CrlbGridRequest, problem: Problem, grid_cells: Grid, formats, *,
                         scheduler=None, should_stop=None, progress=None) -> dict:
     """A coverage map computed once and rendered as asked: ``{"geojson": dict, "png": bytes, "kmz": bytes,
-    "tiff": bytes}`` for ``formats`` (a KMZ or GeoTIFF raises :class:`service.maps.NotOnTheEarth` in a flat
+    "tiff": bytes}`` for ``formats`` (a KMZ or GeoTIFF raises :class:`service.renderings.maps.NotOnTheEarth` in a flat
     frame).
 
     Raises core.parallel.Stopped when ``should_stop`` says so; ``scheduler`` as for :func:`core.parallel.run_chunks`.

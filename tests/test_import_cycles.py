@@ -114,7 +114,7 @@ def test_the_checker_finds_a_circle():
 
 def test_the_graph_sees_module_and_function_level_imports():
     graph = import_graph()
-    assert "core.problem_frame" in graph["core.problem_batch"]  # at module level
+    assert "core.problem.frame" in graph["core.problem.batch"]  # at module level
     assert "core.tracking.network" in graph["core.kernels"]  # inside a function only
 
 

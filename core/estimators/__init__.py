@@ -1,7 +1,7 @@
 """Estimators behind one interface, batch first.
 
 Every estimator is registered in :data:`core.estimators.base.REGISTRY` under
-its API name and consumes a :class:`~core.problem_batch.ProblemBatch`
+its API name and consumes a :class:`~core.problem.batch.ProblemBatch`
 (``spec.solve_batch(batch, options) -> FixBatch``). :func:`solve_many` runs
 many problems, each with its own method and options, grouped so that each
 group is one batched call; :func:`solve` is a batch of one, squeezed.
@@ -27,13 +27,13 @@ from core.estimators.loss import LOSSES
 from core.estimators.result import Fix, FixBatch, FixWarning
 from core.measurements import AZIMUTH
 from core.parallel import Stopped
-from core.problem import Problem
-from core.problem_batch import ProblemBatch, size_groups
+from core.problem.batch import ProblemBatch, size_groups
+from core.problem.frame import Problem
 
 AUTO = "auto"
 
-for _module in pkgutil.iter_modules(__path__):
-    importlib.import_module(f"{__name__}.{_module.name}")
+for _module in pkgutil.walk_packages(__path__, prefix=f"{__name__}."):
+    importlib.import_module(_module.name)
 
 
 def resolve_methods(batch: ProblemBatch, methods: list[str]) -> list[str]:

@@ -39,7 +39,7 @@ import math
 import numpy as np
 
 from core.estimators.region import holding, normal_draws
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 
 #: A rival whose cost is within this of the best's (chi-square units) ties with it: 422 ``ambiguous_geometry``.
 AMBIGUITY_COST = 4.0

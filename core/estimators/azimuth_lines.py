@@ -37,8 +37,8 @@ from scipy.stats import chi2 as chi2_distribution
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.linalg import gram_eigenvalues_2x2, row_sums
 from core.measurements import ELEVATION, KIND_NAMES, RANGE, TOA
-from core.problem import frame_placements, local_axes_point, onto_altitude
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
+from core.problem.frame import frame_placements, local_axes_point, onto_altitude
 
 #: Probability with which azimuth lines from a truly collinear geometry are
 #: recognised as such: the crossing test rejects collinearity only when the

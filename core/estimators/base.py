@@ -1,7 +1,7 @@
 """The one interface every estimator implements, and the registry.
 
 An estimator is a function ``estimate(batch, options) -> Estimates`` over a
-whole :class:`~core.problem_batch.ProblemBatch`, registered under its API name with
+whole :class:`~core.problem.batch.ProblemBatch`, registered under its API name with
 :func:`register`. Its :class:`EstimatorSpec` adds the finisher:
 ``spec.solve_batch(batch, options) -> FixBatch``. One problem is a batch of
 one (:func:`core.estimators.solve`).
@@ -18,7 +18,7 @@ from core.errors import InvalidInput
 from core.estimators.finish import finish
 from core.estimators.result import Estimates, FixBatch
 from core.measurements import Kind
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 
 #: Every measurement kind.
 ALL_KINDS = frozenset(Kind)

@@ -29,7 +29,7 @@ from core.estimators.finish_kernels import (BEHIND, COARSE_TOA, COLLINEAR, DOWNW
 from core.estimators.loss import loss_code
 from core.estimators.result import Estimates, FixBatch, FixWarning
 from core.measurements import KIND_NAMES, RANGE, SPEED_OF_LIGHT_MPS, TOA, toa_spacing_s
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 
 #: Chi-square p-value below which the stated sigmas are reported as too small.
 SIGMA_MISMATCH_P = 1e-3

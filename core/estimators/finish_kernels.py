@@ -25,7 +25,7 @@ from core.crlb import (OBSERVABILITY_THRESHOLD, gdop_point, invert_point, normal
 from core.estimators.loss import loss_point
 from core.kernel_data import Frames, Measurements
 from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, ahead_point, measure_point, toa_offset_point
-from core.problem import onto_altitude_point
+from core.problem.frame import onto_altitude_point
 
 #: Studentized residual above which a measurement is flagged as a suspected outlier.
 OUTLIER_SIGMAS = 4.0

@@ -1,4 +1,4 @@
-"""The Levenberg-Marquardt iteration of ML (:mod:`core.estimators.ml`), over a batch of problems.
+"""The Levenberg-Marquardt iteration of ML (:mod:`core.estimators.methods.ml`), over a batch of problems.
 
 Minimises ``sum (z - h(p))^2 / sigma^2`` for any mix of azimuth, elevation,
 range and TOA. One compiled kernel iterates each problem of a batch on its
@@ -28,8 +28,8 @@ from core.estimators.base import SolveOptions
 from core.estimators.loss import CURVATURE_FLOOR, loss_code, loss_point
 from core.kernel_data import Fitting, Frames, Measurements
 from core.measurements import AZIMUTH, ELEVATION, RANGE, TOA, measure_point, toa_offset_point
-from core.problem import local_axes_point, onto_altitude_point
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
+from core.problem.frame import local_axes_point, onto_altitude_point
 
 #: Plain least squares: ``(loss name, scale in sigmas)``.
 LINEAR = ("linear", 1.0)
@@ -391,7 +391,7 @@ def levenberg_marquardt(batch: ProblemBatch, start_enu_m, max_iterations=50, tol
     damping ``lambda diag(J^T W J)`` (with a robust loss, the larger of the Gauss-Newton and the ``rho'``
     weighted diagonal: :mod:`core.estimators.loss`), a step accepted when the cost does not rise; with a
     known altitude the step moves along the local east and north and the point is put back on the altitude surface
-    (:func:`core.problem.onto_altitude`, the same geodesy). The model is
+    (:func:`core.problem.frame.onto_altitude`, the same geodesy). The model is
     :func:`core.measurements.measure_point`, the loss :func:`core.estimators.loss.loss_point`.
 
     Parameters

@@ -1,6 +1,6 @@
 """What an estimator hands the finisher, and the fixes that come back.
 
-An estimator computes :class:`Estimates` for a whole :class:`~core.problem_batch.ProblemBatch`:
+An estimator computes :class:`Estimates` for a whole :class:`~core.problem.batch.ProblemBatch`:
 positions, and where it has them its own covariances, iteration counts and
 method-specific facts. :func:`core.estimators.finish.finish` turns them into a
 :class:`FixBatch`, which adds what every fix reports. A single :class:`Fix` is
@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from core.errors import LocalizationError
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 
 #: Warning codes a fix may carry, with what each means.
 WARNING_CODES = {

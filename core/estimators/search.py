@@ -21,8 +21,8 @@ from __future__ import annotations
 import numpy as np
 
 from core.angles import line_of_sight_enu
-from core.problem import onto_altitude
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
+from core.problem.frame import onto_altitude
 
 #: Distances (m) at which candidates are placed from a station or the stations' centroid (a factor 2.15
 #: apart: every basin of a precise TOA or range is reached from one of them).

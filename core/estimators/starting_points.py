@@ -2,7 +2,7 @@
 
 In order of preference, for each problem without an initial guess:
 
-- bearings: weighted EOVE (:func:`core.estimators.orthogonal_vector.solve_orthogonal_batch`);
+- bearings: weighted EOVE (:func:`core.estimators.methods.orthogonal_vector.solve_orthogonal_batch`);
 - a station with a bearing with elevation and a range: its polar point
   ``s + R u``, fused over stations by inverse covariance;
 - four or more TOAs: Bancroft's algebraic solution (exact without noise);
@@ -20,11 +20,11 @@ import numpy as np
 
 from core.angles import line_of_sight_enu
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
-from core.estimators.orthogonal_vector import Normals, Weighting, normal_vectors, solve_orthogonal_batch
+from core.estimators.methods.orthogonal_vector import Normals, Weighting, normal_vectors, solve_orthogonal_batch
 from core.linalg import jacobi_svd, last_dot, matvec
 from core.measurements import AZIMUTH, RANGE, TOA
-from core.problem import Problem
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
+from core.problem.frame import Problem
 
 #: Smallest standard deviation (m) of a polar point along any axis.
 MIN_POLAR_SD_M = 1e-9

@@ -3,7 +3,7 @@
 Where the measurements leave (almost) no degree of freedom, a second point
 may fit as well: a line of sight crosses a TDOA hyperboloid twice, or
 ranges, TOAs and azimuths from nearly coplanar stations fit a point and its
-mirror image through their plane. ML (:mod:`core.estimators.ml`) looks for
+mirror image through their plane. ML (:mod:`core.estimators.methods.ml`) looks for
 one among the search's solutions (:func:`searched_starts`: from the geometry's
 candidates and from the best fit's own uncertainty,
 :func:`~core.estimators.ambiguity.axis_starts`) and from the fix's
@@ -41,7 +41,7 @@ from core.estimators.search import candidates
 from core.geodesy import enu_to_geodetic
 from core.linalg import jacobi_svd
 from core.measurements import ELEVATION
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 
 #: (candidates x padded width): the expanded problems then take megabytes, not gigabytes.
 CHUNK_ENTRIES = 1 << 15

@@ -25,7 +25,7 @@ import numpy as np
 from core.crlb import batch_information, normal_matrix, parameterisation
 from core.estimators.region import holding, normal_draws
 from core.measurements import SPEED_OF_LIGHT_MPS, TOA, MeasurementModel
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 
 #: A fix warns ``curved_uncertainty`` where its unscented covariance exceeds the bound by more than this factor
 #: (variance) along some direction: the inverse information then understates the fix's error.

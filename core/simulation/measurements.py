@@ -10,8 +10,8 @@ import numpy as np
 from core.errors import LocalizationError, UnobservableGeometry
 from core.measurements import predict
 from core.parallel import chunk_seeds, chunk_slices, run_chunks
-from core.problem import Problem
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
+from core.problem.frame import Problem
 
 NOISE_KINDS = ("gaussian", "uniform", "outlier")
 #: ``"outlier"`` noise, a contaminated gaussian: each measurement's error is N(0, sigma^2), except with this

@@ -9,7 +9,7 @@ in :func:`core.simulation.tracking.paper_config`.
 A :class:`Scene` is a geometry (stations, a target, what each station
 measures and how well); :meth:`Scene.measurements` draws one set of
 measurements from it (noise-free without an ``rng``) and :func:`build`
-turns measurements into a :class:`~core.problem.Problem`, so that the same
+turns measurements into a :class:`~core.problem.frame.Problem`, so that the same
 noisy draw can be re-ordered or moved before it is solved.
 """
 
@@ -19,7 +19,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Problem, Range, build_problem
+from core.problem.build import Bearing, Range, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint, Problem
 from core.simulation.measurements import true_values
 
 DEG = np.pi / 180.0

@@ -362,8 +362,8 @@ def in_track_axes(track: Track, frame) -> tuple[np.ndarray, np.ndarray]:
     Parameters
     ----------
     track : Track
-    frame : core.problem_frame.CommonFrame
-        The session's frame (:meth:`~core.problem_frame.CommonFrame.local_axes` gives the rotation).
+    frame : core.problem.frame.CommonFrame
+        The session's frame (:meth:`~core.problem.frame.CommonFrame.local_axes` gives the rotation).
 
     Returns
     -------

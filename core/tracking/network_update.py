@@ -329,7 +329,8 @@ def _fix_start(report: Report, rows: ReportRows, config: NetworkConfig):
     (``exp(-chi2 / 2)`` times the square root of its CRLB's determinant). None when nothing fits.
     """
     from core.estimators import solve, solve_batch
-    from core.problem import LocalPoint, Range, TimeOfArrival, build_problem
+    from core.problem.build import Range, TimeOfArrival, build_problem
+    from core.problem.frame import LocalPoint
 
     used = [int(i) for i in rows.rows] + ([rows.toa_reference] if rows.toa_reference >= 0 else [])
     if not used:

@@ -1,7 +1,7 @@
 """The fix road, top to bottom: decode, read into one core batch, solve, summarise, write.
 
 :func:`fix_results` is its one entry point, called by ``POST /v1/fixes`` (through
-:class:`service.coalesce.Coalescer`) and ``POST /v1/fixes/batch``:
+:class:`service.fixes.coalesce.Coalescer`) and ``POST /v1/fixes/batch``:
 
 1. decode: the routes decode bodies into typed structs (:mod:`service.fixes.decode`);
 2. read: :func:`service.fixes.read.read_fix_requests` reads them into one core batch under the
@@ -26,11 +26,11 @@ from core import kernels as core_kernels
 from core.errors import LocalizationError
 from core.estimators import PART_PROBLEMS, iter_solutions, resolve_methods
 from core.parallel import Stopped
-from core.problem_batch import size_groups
+from core.problem.batch import size_groups
 from service.fixes import decode
 from service.fixes.read import read_fix_requests
 from service.fixes.write import fix_bodies
-from service.problems import for_request, localization_problem, problem_body
+from service.web.problems import for_request, localization_problem, problem_body
 
 logger = logging.getLogger("passive_locator")
 
@@ -183,7 +183,7 @@ def _size_classes(bodies: list) -> list[list[int]]:
     memory grow with the number of problems times the largest one: 9,000
     four-bearing problems and one of 1,024 bearings took 750 MB more than
     the 9,000 alone, and twice the time. Grouped by
-    :func:`core.problem_batch.size_groups` on each body's station and
+    :func:`core.problem.batch.size_groups` on each body's station and
     measurement counts (a bearing is one or two rows), a problem is padded
     to at most four times its own rows. Anything but a problem counts as size 1.
     """

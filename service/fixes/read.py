@@ -16,17 +16,17 @@ from pydantic import ValidationError
 
 from core.errors import LocalizationError
 from core.estimators import SolveOptions
-from core.problem import Problem
-from core.problem_batch import ProblemBatch
-from core.problem_batch_build import build_problem_batch
+from core.problem.frame import Problem
+from core.problem.batch import ProblemBatch
+from core.problem.batch_build import build_problem_batch
 from service import schemas
 from service.convert import to_options, to_problem
 from service.fixes import decode
 from service.fixes.rules import (AZ, CHOICES, COORDINATE_BOUNDS, DEFAULT_OPTIONS, DEFAULT_SOLVE, EL, FRAME, METHOD,
                                  RG, RULES, SIGMA_BOUNDS, TOA, VALUE_BOUNDS)
 from service.limits import fix_cost_context, fix_within_limit
-from service.problems import localization_problem, problem_body, validation_errors
-from service.renderings import Renderings, of_request
+from service.web.problems import localization_problem, problem_body, validation_errors
+from service.renderings.points import Renderings, of_request
 
 # The rules the reader applies, each from the one table (service.fixes.rules).
 _FixRequest, _Options = schemas.FixRequest, schemas.Options
@@ -353,7 +353,7 @@ def read_fix_requests(bodies: list, max_fix_cost: int | None = None) -> FixReque
     one, within the bounds of :class:`schemas.FixRequest`, with known and
     unique station ids) is read in bulk: structure problem by problem, numbers
     range-checked for all at once, the frames placed by
-    :func:`core.problem_batch_build.build_problem_batch`.
+    :func:`core.problem.batch_build.build_problem_batch`.
     Any other body is validated by the schema and built by :func:`to_problem`,
     which decide and word its error, and joins the same batch. A body over
     ``max_fix_cost`` (the app's limit; None: no limit) takes the schema's road,

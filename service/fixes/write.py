@@ -1,7 +1,7 @@
 """Write fix bodies from a solved core batch (:func:`fix_bodies`): the last step of the fix road.
 
 Every body is JSON text made from the batch's arrays by compiled loops, read
-as a mapping on demand (:class:`service.responses.JsonObject`).
+as a mapping on demand (:class:`service.web.responses.JsonObject`).
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from core.estimators import FixBatch
 from core.error_summary import radius50_tables
 from core.fix_summary import summary_kernel
 from core.measurements import KIND_NAMES, Kind
-from service.problems import localization_problem
-from service.renderings import fix_cot, fix_geojson
-from service.responses import JsonObject
+from service.web.problems import localization_problem
+from service.renderings.points import fix_cot, fix_geojson
+from service.web.responses import JsonObject
 
 _AZ, _EL = int(Kind.AZIMUTH), int(Kind.ELEVATION)
 
@@ -433,8 +433,8 @@ _ELLIPSE_FIELDS = ("semi_major_m", "semi_minor_m", "orientation_deg")
 
 
 def _rendered_fields(numbers: np.ndarray, method: str, source: str, geodetic: bool) -> dict:
-    """The fields of a fix body its renderings read (:func:`service.renderings.fix_geojson`,
-    :func:`service.renderings.fix_cot`), from the fix's row of :func:`_fix_numbers`: the very numbers its text
+    """The fields of a fix body its renderings read (:func:`service.renderings.points.fix_geojson`,
+    :func:`service.renderings.points.fix_cot`), from the fix's row of :func:`_fix_numbers`: the very numbers its text
     holds (and, as there, a number that is not finite is null).
 
     Parameters
@@ -459,7 +459,7 @@ def _rendered_fields(numbers: np.ndarray, method: str, source: str, geodetic: bo
 
 
 def _with_renderings(text: bytes, fields: dict, wanted) -> bytes:
-    """A fix body's text with the renderings ``wanted`` asks for (a :class:`service.renderings.Renderings`)
+    """A fix body's text with the renderings ``wanted`` asks for (a :class:`service.renderings.points.Renderings`)
     appended as its last members, ``geojson`` then ``cot``."""
     members = b""
     if "geojson" in wanted:

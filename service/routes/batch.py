@@ -3,7 +3,7 @@
 The problems go through :func:`~service.fixes.pipeline.fix_results`, the same
 read, solve and write as ``POST /v1/fixes``; a problem's error stays in its
 slot; the solve stops between parts at the request deadline, when the
-client goes away or when the server stops (:mod:`service.watch`: 503
+client goes away or when the server stops (:mod:`service.web.watch`: 503
 ``deadline_exceeded``). The body is decoded here (:mod:`service.fixes.decode`), not by the framework, and the
 cyclic garbage collector is paused while the request's million small objects
 are made and dropped (it would otherwise rescan them over and over: about
@@ -21,13 +21,14 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from service import schemas, tak
-from service.deps import OwnerDep, parse_json, request_id
+from service import schemas
+from service.renderings import tak
+from service.web.deps import OwnerDep, parse_json, request_id
 from service.limits import check_batch, fix_cost_context
-from service.renderings import batch_geojson
-from service.responses import JsonResponse
+from service.renderings.points import batch_geojson
+from service.web.responses import JsonResponse
 from service.fixes.pipeline import fix_results
-from service.watch import in_pool, watched
+from service.web.watch import in_pool, watched
 from service.fixes.decode import decode_batch
 
 router = APIRouter(prefix="/v1", tags=["fixes"])

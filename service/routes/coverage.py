@@ -4,13 +4,13 @@ The grid is priced before anything is computed (``service.limits``: 422
 ``over_limit`` above ``max_grid_cost``); the cells are then computed in
 chunks (:func:`service.planning.coverage_renderings`) on the app's CPU pool, or on the
 Dask cluster of ``dask_scheduler``, and stop at the request deadline, on
-disconnect and at shutdown like an evaluation (:func:`service.watch.watched`).
+disconnect and at shutdown like an evaluation (:func:`service.web.watch.watched`).
 
 ``POST /v1/crlb/grid`` answers the rendering ``Accept`` prefers
-(:func:`negotiate`): GeoJSON (:func:`service.maps.coverage_geojson`), the PNG
-heat map with axes and legend (:func:`service.maps.coverage_png`), a KMZ
-GroundOverlay for TAK and Google Earth (:func:`service.maps.coverage_kmz`) or
-a GeoTIFF for a GIS (:func:`service.maps.coverage_geotiff`). ``POST
+(:func:`negotiate`): GeoJSON (:func:`service.renderings.maps.coverage_geojson`), the PNG
+heat map with axes and legend (:func:`service.renderings.maps.coverage_png`), a KMZ
+GroundOverlay for TAK and Google Earth (:func:`service.renderings.maps.coverage_kmz`) or
+a GeoTIFF for a GIS (:func:`service.renderings.maps.coverage_geotiff`). ``POST
 /v1/crlb/grid/map`` gives the same pictures as a download named by a
 ``format`` query parameter, ``application/octet-stream``: what a generated
 client passes through as bytes (it parses one declared media type per
@@ -25,13 +25,14 @@ from fastapi import APIRouter, Query, Request
 from pydantic import Field
 from starlette.responses import Response
 
-from service import headers, schemas
-from service.deps import OwnerDep
-from service.headers import MediaRange
-from service.problems import ApiError
-from service.responses import JsonResponse
+from service.web import headers
+from service import schemas
+from service.web.deps import OwnerDep
+from service.web.headers import MediaRange
+from service.web.problems import ApiError
+from service.web.responses import JsonResponse
 from service.planning import coverage_renderings, grid_of_request
-from service.watch import in_pool, watched
+from service.web.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 
@@ -59,7 +60,7 @@ def negotiate(accept: tuple[MediaRange, ...]) -> str | None:
     Parameters
     ----------
     accept : tuple of MediaRange
-        The request's ``Accept`` as the middleware parsed it (:func:`service.headers.parse_accept`); empty
+        The request's ``Accept`` as the middleware parsed it (:func:`service.web.headers.parse_accept`); empty
         when absent.
 
     Each offered type takes the q-value of the most specific range that names it (``type/subtype``, then

@@ -3,7 +3,7 @@
 The one long computation of the service. It is priced before it starts
 (``service.limits``: 422 ``over_limit`` above ``max_evaluation_cost``), runs
 on the app's CPU pool (never the threads or the loop that serve the probes),
-in chunks of trials that each ask whether to stop (:mod:`service.watch`): at
+in chunks of trials that each ask whether to stop (:mod:`service.web.watch`): at
 the request deadline (503 ``deadline_exceeded``), when the client
 disconnects, or when the server shuts down. A stopped evaluation stops using
 the CPU within one chunk (for the network and multi-emitter scenes, one
@@ -17,12 +17,15 @@ from typing import Annotated, Callable, NamedTuple, Union
 from fastapi import APIRouter, Request
 from pydantic import Discriminator, Tag
 
-from service import multi_evaluation, network_sessions, schemas, session_schemas
-from service.deps import OwnerDep
+from service import schemas
 from service.limits import check_evaluation, method_weight
 from service.planning import crlb_problem, evaluation_body
-from service.responses import JsonResponse
-from service.watch import in_pool, watched
+from service.schemas import sessions as session_schemas
+from service.sessions import multi_evaluation
+from service.sessions import network as network_sessions
+from service.web.deps import OwnerDep
+from service.web.responses import JsonResponse
+from service.web.watch import in_pool, watched
 
 router = APIRouter(prefix="/v1", tags=["evaluations"])
 

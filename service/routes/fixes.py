@@ -1,13 +1,13 @@
 """Fixes and planning bounds.
 
 ``POST /v1/fixes`` hands its decoded body (:mod:`service.fixes.decode`) to the app's
-:class:`~service.coalesce.Coalescer`, which solves every fix queued at that
+:class:`~service.fixes.coalesce.Coalescer`, which solves every fix queued at that
 moment as one batch, through the same :func:`~service.fixes.pipeline.fix_results`
 as ``POST /v1/fixes/batch``: a single fix is a batch of one. A fix whose cost
 estimate is at most ``inline_fix_cost`` is solved on the event loop
-(:meth:`~service.coalesce.Coalescer.inline`): it holds the loop a few hundred
+(:meth:`~service.fixes.coalesce.Coalescer.inline`): it holds the loop a few hundred
 microseconds at most, and is not watched. Larger ones are solved on a
-worker thread and, like batches, wait under :func:`service.watch.watched`: 503
+worker thread and, like batches, wait under :func:`service.web.watch.watched`: 503
 ``deadline_exceeded`` past ``request_deadline_s``, and the solve stops between
 parts once its clients are gone.
 """
@@ -18,14 +18,15 @@ import orjson
 from fastapi import APIRouter, Request
 from starlette.responses import Response
 
-from service import schemas, tak
-from service.deps import OwnerDep, get_owner, json_request_body, parse_json, request_id
+from service import schemas
 from service.fixes.decode import decode_fix
 from service.planning import crlb_response
-from service.problems import MEDIA_TYPE
-from service.renderings import problem_renderings
-from service.responses import JsonResponse
-from service.watch import on_the_loop, watched
+from service.renderings import tak
+from service.renderings.points import problem_renderings
+from service.web.deps import OwnerDep, get_owner, json_request_body, parse_json, request_id
+from service.web.problems import MEDIA_TYPE
+from service.web.responses import JsonResponse
+from service.web.watch import on_the_loop, watched
 
 router = APIRouter(prefix="/v1", tags=["fixes"])
 

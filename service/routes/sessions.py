@@ -9,16 +9,19 @@ import orjson
 from fastapi import APIRouter, Depends, Header, Query, Request
 from starlette.responses import Response, StreamingResponse
 
-from service import events, network_sessions, sessions, tak
-from service import session_schemas as schemas
-from service.deps import OwnerDep
-from service.headers import of as parsed_headers
-from service.problems import ApiError
-from service.responses import JsonResponse
+from service.renderings import tak
 from service.schemas import Problem
-from service.session_records import PrepareFirst
+from service.schemas import sessions as schemas
+from service.sessions import events
+from service.sessions import network as network_sessions
+from service.sessions import observer as sessions
+from service.sessions.records import PrepareFirst
 from service.stores.guard import GuardedStore
-from service.watch import in_pool, watched
+from service.web.deps import OwnerDep
+from service.web.headers import of as parsed_headers
+from service.web.problems import ApiError
+from service.web.responses import JsonResponse
+from service.web.watch import in_pool, watched
 
 
 async def get_store(request: Request) -> GuardedStore:
@@ -32,7 +35,7 @@ router = APIRouter(prefix="/v1/sessions", tags=["sessions"])
 _ETAG = {"ETag": {"description": "the session's version, quoted: send it back in If-Match",
                   "schema": {"type": "string"}}}
 #: If-Match as the OpenAPI document declares it; a route reads the tags the middleware parsed
-#: (:func:`service.headers.parse_if_match`), not this raw value.
+#: (:func:`service.web.headers.parse_if_match`), not this raw value.
 IfMatchDoc = Annotated[str | None, Header(alias="If-Match", description='"<version>" from an ETag: apply only if '
                                                                         "the session is still at it")]
 _NOT_FOUND = {404: {"model": Problem, "description": "no such session for this key (or it expired)"}}
@@ -123,7 +126,7 @@ PREPARE_ATTEMPTS = 3
 async def _apply(request: Request, store: GuardedStore, owner: str, session_id: str, change, count: int, apply,
                  too_long: str):
     """Apply a posted change (epochs or reports) to its session: a batch of more than ``INLINE_EPOCHS`` items,
-    or a change that asks for it (:class:`service.session_records.PrepareFirst`), is prepared first in the CPU
+    or a change that asks for it (:class:`service.sessions.records.PrepareFirst`), is prepared first in the CPU
     pool, under the request's deadline and cancellation, so that the store's atomic apply only checks and
     writes; ``too_long`` is the advice when that preparation runs out of time."""
     record = None

@@ -1,7 +1,7 @@
 """The session-store interface and the record every backend keeps.
 
 A store persists :class:`SessionRecord` values and knows nothing about
-filters: the session service (``service/sessions.py``) decides what a record
+filters: the session service (``service/sessions/observer.py``) decides what a record
 becomes. What a store guarantees is that :meth:`SessionStore.update` is a
 read-modify-write applied one at a time per session, across threads and
 across processes (and, for Redis, across replicas), so two concurrent posts
@@ -39,7 +39,7 @@ class StoreError(Exception):
     """A session store could not do what was asked, for now: the client should retry.
 
     The store says what went wrong and when to retry; the app maps it to an
-    HTTP answer in one place (:func:`service.problems.install`).
+    HTTP answer in one place (:func:`service.web.problems.install`).
 
     Parameters
     ----------

@@ -5,11 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 from core.coverage import cells_per_side, coverage_grid, coverage_map, grid
 from core.crlb import information_at
 from core.parallel import Stopped
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 
 SIGMA_RAD = np.radians(1.0)
 BASELINE_M = 10_000.0

@@ -18,7 +18,8 @@ from core.error_summary import error_summary
 from core.crlb import information_at
 from core.estimators import SolveOptions, solve_batch
 from core.measurements import SPEED_OF_LIGHT_MPS
-from core.problem import Bearing, GeodeticPoint, TimeOfArrival, build_problem
+from core.problem.build import Bearing, TimeOfArrival, build_problem
+from core.problem.frame import GeodeticPoint
 from core.parallel import chunk_seeds, chunk_slices
 from core.simulation.measurements import DRAW_BLOCK_TRIALS, evaluate, measure
 

@@ -13,7 +13,8 @@ from scipy.stats import binom
 
 from core.estimators import SolveOptions
 from core.parallel import Stopped
-from core.problem import Bearing, LocalPoint, build_problem
+from core.problem.build import Bearing, build_problem
+from core.problem.frame import LocalPoint
 from core.simulation.measurements import OUTLIER_PROBABILITY, OUTLIER_SCALE, draw_noise, evaluate
 
 DEG = np.pi / 180.0

@@ -8,8 +8,9 @@ from core import geodesy
 from core.error_summary import error_summary
 from core.estimators import SolveOptions, solve_many
 from core.fix_summary import summarise_fixes
-from core.problem import Bearing, GeodeticPoint, LocalPoint, build_problem
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
+from core.problem.build import Bearing, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 
 
 def _bearings(names, stations_enu_m, target_enu_m) -> list[Bearing]:

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from core import geodesy
-from core.problem import CommonFrame, GeodeticPoint
+from core.problem.frame import CommonFrame, GeodeticPoint
 
 A = 6378137.0
 F = 1.0 / 298.257223563

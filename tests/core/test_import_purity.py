@@ -33,7 +33,7 @@ def modules_loaded_by(*imports: str) -> list[str]:
 @pytest.mark.parametrize("imports", [
     ("core",),
     ("core.estimators",),
-    ("core.geodesy", "core.measurements", "core.problem", "core.crlb", "core.error_summary",
+    ("core.geodesy", "core.measurements", "core.problem.build", "core.crlb", "core.error_summary",
      "core.simulation.measurements"),
 ])
 def test_core_imports_no_web_framework(imports):

@@ -36,7 +36,7 @@ _WORKLOAD = textwrap.dedent('''
     from core.errors import LocalizationError
     from core.estimators import REGISTRY, SolveOptions, solve
     from core.estimators.loss import LOSSES
-    from core.problem import Bearing, GeodeticPoint, Range, TimeOfArrival, build_problem
+    from core.problem.build import Bearing, GeodeticPoint, Range, TimeOfArrival, build_problem
 
     rng = np.random.default_rng(5)
     stations = [(f"s{k}", GeodeticPoint(0.59 + 0.004 * rng.standard_normal(), 1.89 + 0.004 * rng.standard_normal(),

@@ -15,7 +15,8 @@ from core.errors import LocalizationError, UnobservableGeometry
 from core.estimators import SolveOptions, solve, solve_batch
 from core.geodesy import ecef_to_enu_rotation
 from core.measurements import SPEED_OF_LIGHT_MPS
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 from core.simulation.measurements import measure
 
 d2r = np.deg2rad
@@ -344,7 +345,8 @@ def test_bearings_meeting_only_behind_a_station_say_so():
     """Contradictory bearings are a 422 that names the cause, not 'add stations'."""
     from core.errors import UnobservableGeometry
     from core.estimators import solve
-    from core.problem import Bearing, LocalPoint, build_problem
+    from core.problem.build import Bearing, build_problem
+    from core.problem.frame import LocalPoint
 
     target = np.array([500.0, -3000.0, 300.0])
     one_degree = np.deg2rad(1.0)
@@ -378,7 +380,7 @@ def test_only_fits_that_may_have_another_basin_are_searched_again(monkeypatch, m
     # of their stations have one basin, so ML does not run the start search (53 LM runs a problem here) that
     # could only find the same fit; a range adds a second crossing of each line, and a redescending loss a
     # minimum per measurement it sets aside, so those are searched.
-    import core.estimators.ml as ml
+    import core.estimators.methods.ml as ml
 
     calls = []
     real = ml.searched_starts
@@ -413,7 +415,7 @@ def test_the_one_call_start_and_fit_is_the_staged_one(monkeypatch):
     # ML starts bearing problems by weighted EOVE and iterates from there in one compiled call; the staged path
     # (initial_positions, then iterate) must give the same numbers, bit for bit, and the same start names.
     from bench.scenarios import four_station_requests
-    from core.estimators import ml as ml_module
+    from core.estimators.methods import ml as ml_module
     from service.fixes.read import read_fix_requests
 
     requests = four_station_requests(40, np.random.default_rng(5))

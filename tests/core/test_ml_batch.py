@@ -8,13 +8,14 @@ import dataclasses
 import numpy as np
 import pytest
 
-from core.problem_batch import ProblemBatch, size_groups
-from core.problem_batch_build import build_problem_batch
+from core.problem.batch import ProblemBatch, size_groups
+from core.problem.batch_build import build_problem_batch
 from core.errors import LocalizationError
 from core.estimators import REGISTRY, SolveOptions, solve_batch
 from core.estimators.base import get_estimator
 from core.measurements import SPEED_OF_LIGHT_MPS, Kind
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 from core.simulation.measurements import measure
 
 d2r = np.deg2rad

@@ -9,7 +9,8 @@ import pytest
 from core import geodesy
 from core.errors import InvalidInput
 from core.measurements import Kind
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 
 d2r = np.deg2rad
 ONE_DEG = d2r(1.0)
@@ -186,7 +187,7 @@ def test_bearing_sigma_may_be_omitted_only_when_allowed():
 
 
 def test_leave_one_out_lists_each_problems_most_suspect_request_measurements_first():
-    from core.problem_batch import ProblemBatch
+    from core.problem.batch import ProblemBatch
 
     stations = [(f"s{k}", LocalPoint(1e3 * k, 5e2 * k * k, 0.0)) for k in range(4)]
     bearings = [Bearing(sid, 0.1 * k, 0.01, 0.01, 0.01) for k, (sid, _) in enumerate(stations)]
@@ -207,7 +208,7 @@ def test_leave_one_out_lists_each_problems_most_suspect_request_measurements_fir
 def test_problems_placed_in_one_batch_are_those_placed_one_by_one():
     """build_problems of checked inputs gives each problem exactly as build_problem does on its own (same
     frame, same bits), whatever the other problems of the batch hold."""
-    from core.problem import build_problems, checked_inputs
+    from core.problem.build import build_problems, checked_inputs
 
     local = [("a", LocalPoint(0.0, 0.0, 0.0)), ("b", LocalPoint(5_000.0, 1_000.0, 20.0))]
     cases = [
@@ -230,7 +231,7 @@ def test_problems_placed_in_one_batch_are_those_placed_one_by_one():
 def test_one_point_of_a_frame_matches_the_broadcast_path_bit_for_bit():
     """CommonFrame's one-point local axes and geodetic position (compiled, on the frame's placement made once)
     equal the broadcast functions' for the same point, in a geodetic and in a flat frame."""
-    from core.problem import CommonFrame, local_axes
+    from core.problem.frame import CommonFrame, local_axes
 
     frame = CommonFrame(GeodeticPoint(d2r(46.0), d2r(8.0), 300.0))
     points = np.random.default_rng(3).normal(scale=80_000.0, size=(50, 3))

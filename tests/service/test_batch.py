@@ -286,7 +286,7 @@ def test_route_is_documented():
     operation = spec["paths"]["/v1/fixes/batch"]["post"]
     assert operation["operationId"] == "fixes-batch"
     schema = operation["requestBody"]["content"]["application/json"]["schema"]
-    if "$ref" in schema:  # named in components (service/openapi.py)
+    if "$ref" in schema:  # named in components (service/web/openapi.py)
         schema = spec["components"]["schemas"][schema["$ref"].rsplit("/", 1)[-1]]
     items = schema["properties"]["problems"]["items"]
     assert items == {"$ref": "#/components/schemas/FixRequest"}
@@ -392,7 +392,7 @@ def test_a_fix_is_the_same_bytes_when_a_larger_problem_pads_it(mix):
     """Padding to a batch's widest problem changes no bit of any method's fix: every sum over measurements,
     lines or pairs is added in order (numpy's pairwise sums over eight or more terms round differently once
     zeros are appended)."""
-    from service.responses import dumps
+    from service.web.responses import dumps
     from service.fixes.pipeline import fix_results
 
     def body(result):

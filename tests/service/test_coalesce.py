@@ -10,8 +10,8 @@ import pytest
 
 from core.parallel import Stopped
 from service.fixes import pipeline
-from service.coalesce import Coalescer
-from service.responses import dumps
+from service.fixes.coalesce import Coalescer
+from service.web.responses import dumps
 from service.fixes.pipeline import fix_results
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.test_batch import _noisy, _subset, assert_close, mixed_batch
@@ -174,7 +174,7 @@ def test_a_bug_in_the_shared_solve_falls_back_to_each_alone(monkeypatch, caplog)
 
 def _threads_that_solve(monkeypatch) -> list:
     """The thread of each ``fix_results`` call the coalescer makes, and how many bodies it took."""
-    import service.coalesce as coalesce
+    import service.fixes.coalesce as coalesce
 
     calls = []
     real = coalesce.fix_results

@@ -14,7 +14,8 @@ import pytest
 from lxml import etree
 from PIL import Image
 
-from service import maps, schemas
+from service.renderings import maps
+from service import schemas
 from service.routes.coverage import KMZ, PNG, TIFF
 from service.planning import grid_of_request
 from tests.service.test_crlb_grid import _grid_across, geodetic_request, local_request

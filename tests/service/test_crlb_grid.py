@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from service import schemas
-from service.headers import parse_accept
+from service.web.headers import parse_accept
 from service.routes.coverage import negotiate as negotiate_ranges
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 from service.app import create_app
+from service.renderings.tak import TakSettings
 from service.settings import Settings
-from service.tak import TakSettings
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
@@ -217,7 +217,7 @@ def test_kernel_cache_hider_is_caught():
 
 def test_start_budgets_cover_a_start_that_compiles(k8s, compose):
     """Every probe and healthcheck allows a start that compiles the kernels (the README's measured figure)."""
-    from service.kernel_cache import COLD_START_S
+    from service.ops.kernel_cache import COLD_START_S
 
     worst = COLD_START_S[1]
     probe = _container(k8s)["startupProbe"]
@@ -231,4 +231,4 @@ def test_start_budgets_cover_a_start_that_compiles(k8s, compose):
 def test_dask_workers_load_the_images_kernels(k8s, compose):
     worker = k8s[("Deployment", "passive-locator-dask-worker")]["spec"]["template"]["spec"]["containers"][0]
     for args in (worker["args"], compose["services"]["dask-worker"]["command"]):
-        assert args[args.index("--preload") + 1] == "service.kernel_cache"
+        assert args[args.index("--preload") + 1] == "service.ops.kernel_cache"

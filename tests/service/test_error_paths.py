@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from service.problems import api_loc
+from service.web.problems import api_loc
 
 
 def test_api_paths_of_core_error_locations():
@@ -19,7 +19,7 @@ def test_every_core_error_location_names_core_fields():
     import ast
     import pathlib
 
-    from service.problems import API_PATH
+    from service.web.problems import API_PATH
 
     prefixes = {path[0] for path in API_PATH.values() if len(path) > 1}
     found = []

@@ -13,7 +13,7 @@ import pytest
 import core.estimators as estimators
 from core.estimators.base import EstimatorSpec
 from core.parallel import Stopped
-from service.coalesce import Coalescer
+from service.fixes.coalesce import Coalescer
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.test_fixes_api import assert_problem
 

@@ -12,12 +12,13 @@ import tracemalloc
 import orjson
 import pytest
 
-from service import cli, logs
+from service import cli
+from service.ops import logs
 from service.fixes import pipeline
-from service.auth import identify
-from service.headers import parse_authorization
-from service.middleware import TokenBucket
-from service.problems import store_headers
+from service.web.auth import identify
+from service.web.headers import parse_authorization
+from service.web.middleware import TokenBucket
+from service.web.problems import store_headers
 from service.stores.base import StoreBusy, StoreUnavailable
 from service.stores.guard import GuardedStore
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
@@ -192,7 +193,7 @@ def test_a_store_error_is_answered_503_problem_json_with_its_code_and_retry_afte
     from fastapi import FastAPI
     from fastapi.testclient import TestClient
 
-    from service import problems
+    from service.web import problems
 
     app = FastAPI()
     problems.install(app)

@@ -16,7 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from service import headers as fields
+from service.web import headers as fields
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 
 

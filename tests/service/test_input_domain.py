@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from service import schemas
-from service import session_schemas
+from service.schemas import sessions as session_schemas
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.sessions.helpers import create_body
 from tests.service.test_fixes_api import assert_problem

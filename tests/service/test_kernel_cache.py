@@ -10,7 +10,7 @@ import sys
 import numba.core.config
 import pytest
 
-from service import kernel_cache
+from service.ops import kernel_cache
 
 KERNEL = '''
 import numba

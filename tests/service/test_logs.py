@@ -10,7 +10,7 @@ import pty
 import orjson
 import pytest
 
-from service import logs
+from service.ops import logs
 from service.settings import Settings
 
 

@@ -15,8 +15,8 @@ import pytest
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
-from service import metrics
 from service.app import create_app
+from service.ops import metrics
 from service.settings import Settings
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.sessions.helpers import REPO, free_port
@@ -105,8 +105,8 @@ def test_a_failed_auto_fix_counts_under_the_method_that_ran(client):
 
 
 def test_open_event_streams_are_a_gauge():
-    from service.events import LocalBus
-    from service.metrics import Metrics
+    from service.ops.metrics import Metrics
+    from service.sessions.events import LocalBus
 
     found = Metrics()
 

@@ -78,8 +78,8 @@ def _configuration_rows() -> list[tuple[list[str], list[str]]]:
 
 def _settings() -> dict[str, object]:
     """Every environment variable the service's settings read, with its default."""
+    from service.renderings.tak import TakSettings
     from service.settings import Settings
-    from service.tak import TakSettings
 
     found = {}
     for model in (Settings, TakSettings):
@@ -118,7 +118,7 @@ def test_one_declaration_per_setting():
     """A class body keeps the last of two annotations of one name: the first is dead text with its own meaning."""
     import ast
 
-    for path in (ROOT / "service" / "settings.py", ROOT / "service" / "tak.py"):
+    for path in (ROOT / "service" / "settings.py", ROOT / "service" / "renderings" / "tak.py"):
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.ClassDef) and node.name.endswith("Settings"):
                 names = [s.target.id for s in node.body if isinstance(s, ast.AnnAssign)]
@@ -158,7 +158,7 @@ def test_the_paths_the_readme_names_exist():
 
 
 def test_the_cold_start_figure_is_the_one_the_service_and_the_manifests_use():
-    from service.kernel_cache import COLD_START_S
+    from service.ops.kernel_cache import COLD_START_S
 
     text = (ROOT / "README.md").read_text()
     assert f"| empty, or from another CPU model: every kernel compiles | {COLD_START_S[0]}-{COLD_START_S[1]} s |" \

@@ -1,4 +1,4 @@
-"""CoT 2.0 and GeoJSON renderings of fixes and batches (service/renderings.py).
+"""CoT 2.0 and GeoJSON renderings of fixes and batches (service/renderings/points.py).
 
 CoT events are validated against the CoT 2.0 event schema kept in tests/service/data; ce and le are checked
 against the fix's own covariance turned into the ENU axes at the fix; GeoJSON is checked with the geojson
@@ -78,7 +78,7 @@ def test_cot_is_valid_with_one_sigma_errors(client):
 
 
 def test_ce_on_a_7_to_1_ellipse_is_the_rms_of_the_axis_sigmas():
-    from service.renderings import one_sigma_errors
+    from service.renderings.points import one_sigma_errors
 
     ce, le = one_sigma_errors(np.diag([49.0, 1.0, 4.0]))  # sigmas 7 m and 1 m horizontally, 2 m up
     assert (ce, le) == (pytest.approx(5.0), pytest.approx(2.0))

@@ -6,7 +6,7 @@ import numpy as np
 import orjson
 
 from bench.scenarios import four_station_requests
-from service.responses import JsonObject, dumps
+from service.web.responses import JsonObject, dumps
 from service.fixes.pipeline import fix_results
 
 

@@ -205,7 +205,7 @@ def test_a_header_trickling_in_byte_by_byte_is_closed_at_the_deadline(serve):
 
 def test_headers_over_their_bound_are_a_431(serve):
     server = serve()
-    from service.server import MAX_HEADER_BYTES
+    from service.ops.server import MAX_HEADER_BYTES
 
     with _connect(server, b"GET /healthz HTTP/1.1\r\nHost: x\r\n") as connection:
         try:
@@ -247,7 +247,7 @@ def test_serve_runs_the_bounded_protocol_and_the_defaults_are_at_most_30_s(monke
     ran = []
     monkeypatch.setattr("uvicorn.run", lambda *args, **kwargs: ran.append(kwargs))
     cli.main(["serve", "--host", "127.0.0.1"])
-    assert ran[0]["http"] == "service.server:BoundedHttpToolsProtocol"
+    assert ran[0]["http"] == "service.ops.server:BoundedHttpToolsProtocol"
     assert ran[0]["ws"] == "none"  # the deadlines are the HTTP protocol's: no connection leaves it for another
     defaults = Settings(_env_file=None)
     assert 0 < defaults.header_timeout_s <= 30 and 0 < defaults.body_timeout_s <= 30

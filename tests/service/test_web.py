@@ -7,8 +7,8 @@ import re
 import pytest
 
 from service.cli import main
+from service.renderings.tak import TakSettings
 from service.settings import Settings
-from service.tak import TakSettings
 
 
 def test_docs_load_only_local_assets(client):

@@ -24,8 +24,8 @@ import pytest
 from service import schemas
 from service.fixes import decode as wire
 from service.fixes import read as reader
-from service.deps import parse_json
-from service.responses import dumps
+from service.web.deps import parse_json
+from service.web.responses import dumps
 from service.fixes.rules import READ_FIELDS
 from service.fixes.pipeline import fix_results
 from tests.service.test_batch import assert_close

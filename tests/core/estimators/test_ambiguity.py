@@ -24,7 +24,8 @@ from core.estimators.ties import (
     Fits,
     rivals,
 )
-from core.problem import Bearing, GeodeticPoint, TimeOfArrival, build_problem
+from core.problem.build import Bearing, TimeOfArrival, build_problem
+from core.problem.frame import GeodeticPoint
 from core.simulation.measurements import measure, true_values
 
 SIGMA_RAD = np.deg2rad(0.5)

@@ -5,14 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 from core.crlb import information_at
 from core.errors import LocalizationError, TooFewMeasurements
 from core.estimators import REGISTRY, SolveOptions, solve
 from core.estimators import solve_batch
-from core.estimators.angle_range import coarse_fix
+from core.estimators.methods.angle_range import coarse_fix
 from core.measurements import Kind
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, build_problem
+from core.problem.build import Bearing, Range, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 from core.simulation.scenarios import PAPER_003_SIGMA_ANGLE_RAD, PAPER_003_STATIONS, PAPER_003_TARGET, paper_003_problem
 from core.simulation.measurements import draw_noise, true_values
 

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from core.estimators import solve_batch
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, build_problem
+from core.problem.build import Bearing, Range, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 from core.simulation.measurements import measure
 
 from core.simulation import scenarios as sc
@@ -58,8 +59,8 @@ def test_each_problem_gets_what_it_gets_alone(method):
 
 
 def test_los_intersection_chunks_do_not_change_results(monkeypatch):
-    import core.estimators.line_of_sight_intersection as los
-    from core.problem_batch import ProblemBatch
+    import core.estimators.methods.line_of_sight_intersection as los
+    from core.problem.batch import ProblemBatch
     from core.estimators import SolveOptions
     from core.estimators.base import get_estimator
 

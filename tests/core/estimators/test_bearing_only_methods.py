@@ -10,7 +10,8 @@ import pytest
 from core.errors import InvalidInput
 from core.estimators import SolveOptions, solve
 from core.measurements import Kind, predict, residuals
-from core.problem import LocalPoint, build_problem
+from core.problem.frame import LocalPoint
+from core.problem.build import build_problem
 from core.simulation.measurements import evaluate
 
 from core.simulation import scenarios as sc

@@ -10,14 +10,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators import SolveOptions
 from core.estimators.base import REGISTRY
 from core.estimators.starting_points import initial_positions
 from core.linalg import jacobi_svd
 from core.measurements import SPEED_OF_LIGHT_MPS, Kind
-from core.problem import Bearing, LocalPoint, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import LocalPoint
 from core.simulation.measurements import measure
 
 from tests.core.test_ml_batch import mixed_problems

@@ -23,7 +23,7 @@ import pytest
 
 from core.errors import InvalidInput, LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators import REGISTRY, SolveOptions, solve
-from core.problem import LocalPoint
+from core.problem.frame import LocalPoint
 
 from core.simulation import scenarios as sc
 

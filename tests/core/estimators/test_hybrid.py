@@ -16,7 +16,8 @@ from hypothesis import strategies as st
 from core.errors import LocalizationError
 from core.estimators import solve_batch
 from core.estimators.ties import DISTINCT_MAHALANOBIS2
-from core.problem import Bearing, GeodeticPoint, LocalPoint, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 from core.simulation.measurements import measure, true_values
 
 SIGMA = np.deg2rad(0.5)

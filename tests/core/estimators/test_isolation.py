@@ -15,7 +15,8 @@ from scipy.stats import binom
 
 from core.errors import LocalizationError
 from core.estimators import EXCLUSION_P, SolveOptions, solve_batch
-from core.problem import LocalPoint, TimeOfArrival, build_problem
+from core.problem.build import TimeOfArrival, build_problem
+from core.problem.frame import LocalPoint
 from core.simulation.measurements import measure
 
 SIGMA_S = 20e-9

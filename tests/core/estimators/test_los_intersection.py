@@ -8,13 +8,10 @@ import pytest
 from core.crlb import information_at
 from core.errors import TooFewMeasurements, UnobservableGeometry
 from core.estimators import REGISTRY, SolveOptions, solve
-from core.estimators.line_of_sight_intersection import (
-    REFERENCE_RATIO_LIMIT,
-    common_perpendicular,
-    fuse_feet,
-    intersect_lines_of_sight,
-)
-from core.problem import Bearing, GeodeticPoint, LocalPoint, build_problem
+from core.estimators.methods.line_of_sight_intersection import (REFERENCE_RATIO_LIMIT, common_perpendicular, fuse_feet,
+                                                                intersect_lines_of_sight)
+from core.problem.build import Bearing, build_problem
+from core.problem.frame import GeodeticPoint, LocalPoint
 from core.simulation.scenarios import PAPER_002_SIGMA_RAD, PAPER_002_STATIONS, PAPER_002_TARGET_HEIGHT_M, paper_002_problem
 from core.simulation.measurements import draw_noise, trial_batch, true_values
 from core.simulation.papers import efficient_gain

@@ -15,7 +15,8 @@ from scipy.stats import chi2 as chi2_distribution
 from core.crlb import information_at
 from core.estimators import SolveOptions, solve_batch
 from core.estimators.loss import loss_terms
-from core.problem import Bearing, LocalPoint, Range, build_problem
+from core.problem.build import Bearing, Range, build_problem
+from core.problem.frame import LocalPoint
 from core.simulation.measurements import measure
 
 SIGMA = np.deg2rad(0.5)
@@ -191,7 +192,7 @@ def test_exclusion_asks_whether_to_stop_before_each_round():
     candidate), not only between parts of a batch."""
     from core.estimators import iter_solutions
     from core.parallel import Stopped
-    from core.problem_batch import ProblemBatch
+    from core.problem.batch import ProblemBatch
 
     batch = ProblemBatch.from_problems(_draws(_problem(), 7)[:20])
     asked = []

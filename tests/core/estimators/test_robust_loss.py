@@ -18,7 +18,8 @@ from scipy.stats import chi2 as chi2_distribution
 from core.errors import InvalidInput
 from core.estimators import EXCLUSION_P, SolveOptions, solve, solve_batch
 from core.estimators.loss import LOSSES, loss_terms
-from core.problem import Bearing, LocalPoint, build_problem
+from core.problem.build import Bearing, build_problem
+from core.problem.frame import LocalPoint
 from core.simulation.measurements import measure
 from tests.core.estimators.test_outliers import (SIGMA, STATIONS, TARGET, _bound_without_culprit, _draws, _problem,
                                                  _rmse)

@@ -28,8 +28,9 @@ from core.estimators.ambiguity import (
 from core.estimators.lm import iterate, levenberg_marquardt
 from core.estimators.ties import second_solution
 from core.estimators.unscented_fix import never_below, unscented_covariance
-from core.problem import Bearing, LocalPoint, Range, TimeOfArrival, build_problem
-from core.problem_batch import ProblemBatch
+from core.problem.batch import ProblemBatch
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import LocalPoint
 from core.simulation.measurements import measure, true_values
 from tests.core.estimators.test_ambiguity import SIGMA_RAD, SIGMA_TOA_S, ground_scene
 

@@ -18,7 +18,8 @@ from scipy.stats import binom, chi2
 
 from core.errors import LocalizationError
 from core.estimators import solve_batch
-from core.problem import Bearing, LocalPoint, Range, TimeOfArrival, build_problem
+from core.problem.build import Bearing, Range, TimeOfArrival, build_problem
+from core.problem.frame import LocalPoint
 from core.simulation.measurements import measure
 from tests.core.estimators.test_ambiguity import GROUND, ground_scene
 

@@ -11,7 +11,8 @@ from scipy.stats import chi2
 
 from core.errors import InvalidInput
 from core.measurements import AZIMUTH, ELEVATION, RANGE, TOA, Kind, predict
-from core.problem import LocalPoint, TimeOfArrival, Bearing, build_problem
+from core.problem.frame import LocalPoint
+from core.problem.build import TimeOfArrival, Bearing, build_problem
 from core.crlb import information_at
 from core.parallel import Stopped
 from core.simulation.network import (START_TIME_S, df_network_scene, evaluate_network, simulate_network,

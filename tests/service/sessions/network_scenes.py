@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.problem import CommonFrame, GeodeticPoint
+from core.problem.frame import CommonFrame, GeodeticPoint
 from core.simulation.network import NetworkScenario, epoch_times
-from service.scene_requests import api_report, create_body
+from service.sessions.scene_requests import api_report, create_body
 
 
 def in_common_frame(track: dict, frame: CommonFrame) -> tuple[np.ndarray, np.ndarray]:

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from core import geodesy
 from service.app import create_app
-from service.session_schemas import MeasurementResult, SessionList, SessionState
+from service.schemas.sessions import MeasurementResult, SessionList, SessionState
 from service.settings import Settings
 
 from .helpers import OBSERVER_WGS84, api_epochs, create_body, filter_view, paper_track
@@ -331,7 +331,7 @@ def test_metrics_count_applied_and_duplicate_epochs(client, epochs):
 def test_a_post_whose_filter_outlasts_the_store_call_deadline_is_applied(store_url, clock, epochs, monkeypatch):
     # The filter steps run before the store's read-modify-write, not inside its call deadline: a post whose
     # steps take longer than store_call_timeout_s is a 200, not a 503 store_unavailable on a healthy store.
-    from service import sessions
+    from service.sessions import observer as sessions
 
     real = sessions.step_many
 
@@ -350,7 +350,7 @@ def test_a_post_whose_filter_outlasts_the_store_call_deadline_is_applied(store_u
 
 
 def test_a_post_past_the_request_deadline_is_503_and_applies_nothing(store_url, clock, epochs, monkeypatch):
-    from service import sessions
+    from service.sessions import observer as sessions
 
     real = sessions.tracker_epoch
     stepped = []
@@ -376,8 +376,8 @@ def test_a_post_past_the_request_deadline_is_503_and_applies_nothing(store_url, 
 def test_a_post_overtaken_by_another_is_decided_again_against_the_latest_record(store, clock, epochs):
     # A change prepared for version 1 while another post wrote version 2: the store reads again, and the
     # change is decided against version 2 (its overlapping epochs are duplicates there), never written over it.
-    from service import session_schemas as schemas
-    from service import sessions
+    from service.schemas import sessions as schemas
+    from service.sessions import observer as sessions
 
     request = schemas.SessionCreate.model_validate(create_body())
     first = sessions.create(store, "alice", request)
@@ -394,7 +394,7 @@ def test_a_post_overtaken_by_another_is_decided_again_against_the_latest_record(
 
 
 def test_a_long_post_prepared_off_the_store_call_answers_as_a_short_one(client, epochs):
-    from service import sessions
+    from service.sessions import observer as sessions
 
     long = sessions.INLINE_EPOCHS + 1
     session = create(client)

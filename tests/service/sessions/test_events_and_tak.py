@@ -13,7 +13,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.events import HEARTBEAT_S
+from service.sessions.events import HEARTBEAT_S
 from service.settings import Settings
 from tests.service.conftest import STATIONS_300KM, TARGET, bearing_request
 from tests.service.sessions.helpers import Server, api_epochs, create_body, paper_track
@@ -259,7 +259,7 @@ def test_tak_feed_over_udp_sends_one_datagram_per_event(monkeypatch, tmp_path):
 def test_a_bad_tak_url_is_refused():
     from pydantic import ValidationError
 
-    from service.tak import TakSettings
+    from service.renderings.tak import TakSettings
 
     for url in ("http://tak:8087", "tcp://tak", "tak:8087"):
         with pytest.raises(ValidationError):
@@ -318,7 +318,7 @@ def test_every_event_is_what_the_spec_declares(server):
     import json
     import re
 
-    from service.session_schemas import SessionState
+    from service.schemas.sessions import SessionState
     from tests.service.sessions.helpers import REPO
 
     spec = json.loads((REPO / "openapi" / "openapi.json").read_text())

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from core.simulation.multi_emitter import evaluate_multi, multi_emitter_scene
 from service.app import create_app
-from service.session_schemas import MultiEmitterEvaluationResponse
+from service.schemas.sessions import MultiEmitterEvaluationResponse
 from service.settings import Settings
 from tests.service.test_cli_tools import run_cli
 

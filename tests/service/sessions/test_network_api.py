@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 
 from core import geodesy
 from service.app import create_app
-from service.session_schemas import NetworkSessionState, ReportResult, SessionList
+from service.schemas.sessions import NetworkSessionState, ReportResult, SessionList
 from service.settings import Settings
 from tests.service.test_metrics import sample
 from tests.service.test_renderings import cot_event

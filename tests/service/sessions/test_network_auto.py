@@ -18,9 +18,9 @@ from fastapi.testclient import TestClient
 from core.simulation.multi_emitter import multi_emitter_scene, simulate_multi
 from core.simulation.network import START_TIME_S
 from core.tracking.association import AssociationConfig
-from service import association_sessions
 from service.app import create_app
-from service.session_schemas import NetworkSessionCreate, NetworkSessionState, ReportResult
+from service.schemas.sessions import NetworkSessionCreate, NetworkSessionState, ReportResult
+from service.sessions import association as association_sessions
 from service.settings import Settings
 from tests.service.test_renderings import cot_event
 
@@ -63,7 +63,7 @@ def _view(body: dict) -> dict:
 
 
 def test_the_api_carries_every_association_setting_of_the_scene():
-    from service.network_sessions import association_config
+    from service.sessions.network import association_config
 
     got = association_config(NetworkSessionCreate.model_validate(create_body(SCENE)))
     # the track filter's own coasting and end do not act under the association (it ends a track first): the
@@ -348,7 +348,7 @@ def test_an_auto_post_is_decided_on_a_worker_thread_not_within_the_store_call(cl
     one-report post is prepared off the store's threads (whose calls have a deadline of their own)."""
     import threading
 
-    from service.network_sessions import ReportsChange
+    from service.sessions.network import ReportsChange
 
     threads = []
     original = ReportsChange._change

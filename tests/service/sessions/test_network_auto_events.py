@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from core.simulation.multi_emitter import multi_emitter_scene, simulate_multi
 from service.app import create_app
-from service.session_schemas import NetworkSessionState
+from service.schemas.sessions import NetworkSessionState
 from service.settings import Settings
 from tests.service.test_renderings import cot_event
 

@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 
 from core.simulation.network import SCENES, evaluate_network
 from service.app import create_app
-from service.session_schemas import NetworkEvaluationResponse
+from service.schemas.sessions import NetworkEvaluationResponse
 from service.settings import Settings
 from tests.service.test_cli_tools import run_cli
 

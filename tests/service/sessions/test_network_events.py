@@ -11,7 +11,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from service.app import create_app
-from service.session_schemas import NetworkSessionState
+from service.schemas.sessions import NetworkSessionState
 from service.settings import Settings
 from tests.service.test_metrics import sample
 from tests.service.test_renderings import cot_event

@@ -13,7 +13,7 @@ from fastapi.testclient import TestClient
 
 from core.simulation.network import SCENES, simulate_network
 from service.app import create_app
-from service.scene_requests import api_report, create_body
+from service.sessions.scene_requests import api_report, create_body
 from service.settings import Settings
 
 from .helpers import Server, batches, post_batch, post_from_clients

@@ -35,9 +35,9 @@ def sqlite_client(tmp_path):
 
 @pytest.mark.parametrize("name", ["df_network", "toa_network", "airborne_df"])
 def test_the_api_carries_every_setting_of_each_scene(name):
-    from service.network_sessions import network_config
-    from service.scene_requests import create_body
-    from service.session_schemas import NetworkSessionCreate
+    from service.schemas.sessions import NetworkSessionCreate
+    from service.sessions.network import network_config
+    from service.sessions.scene_requests import create_body
 
     scene = SCENES[name]()
     assert network_config(NetworkSessionCreate.model_validate(create_body(scene))) == scene.config

@@ -12,7 +12,7 @@ from shapely.geometry import LinearRing
 
 from core import geodesy
 from service.app import create_app
-from service.session_schemas import SessionState
+from service.schemas.sessions import SessionState
 from service.settings import Settings
 from tests.service.test_renderings import cot_event
 

@@ -15,9 +15,9 @@ from fastapi.testclient import TestClient
 
 from core.simulation.network import SCENES, simulate_network
 from core.tracking.network import NetworkState
-from service import network_sessions
 from service.app import create_app
-from service.session_records import decoded_states
+from service.sessions import network as network_sessions
+from service.sessions.records import decoded_states
 from service.settings import Settings
 from service.stores import open_store
 from service.stores.sqlite import SqliteStore

@@ -8,9 +8,9 @@ from dataclasses import replace
 
 import pytest
 
-from service.problems import ApiError
 from service.stores import SessionRecord, open_store
 from service.stores.base import StoreBusy
+from service.web.problems import ApiError
 
 
 def make_record(session_id: str, owner: str = "alice", now: float = 1.7e9, ttl_s: float = 100.0) -> SessionRecord:
