@@ -1,6 +1,7 @@
 """Rival starts: a ghost pairing and the emitters it borrows bearings from start side by side as tentative
 tracks, and their cumulative scores decide which are confirmed."""
 
+import itertools
 import json
 import math
 from dataclasses import replace
@@ -20,7 +21,7 @@ from core.tracking.association import (
     new_association_state,
 )
 from core.tracking.network import Track
-from core.tracking.rival_starts import decide_rivals
+from core.tracking.rival_starts import RIVALS_MAX_GROUP, _best_hypothesis, decide_rivals
 from core.tracking.state import frozen_array
 
 CONFIG = multi_emitter_scene(0).config
@@ -116,3 +117,38 @@ def test_rival_settings_are_validated():
         with pytest.raises(InvalidInput) as error:
             AssociationConfig(**bad)
         assert error.value.loc == (next(iter(bad)),)
+
+
+def _brute_force_best(scores: np.ndarray, conflict: np.ndarray) -> float:
+    """The best joint hypothesis's value by enumerating every subset (independent of the module's arithmetic)."""
+    best = 0.0
+    for size in range(1, scores.size + 1):
+        for subset in itertools.combinations(range(scores.size), size):
+            value = sum(scores[k] for k in subset) - sum(conflict[i, j] for i, j in itertools.combinations(subset, 2))
+            best = max(best, value)
+    return best
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_best_joint_hypothesis_is_the_best_subset(seed):
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 9))
+    scores = rng.normal(5.0, 5.0, n)
+    conflict = np.triu(rng.exponential(4.0, (n, n)) * (rng.random((n, n)) < 0.5), 1)
+    conflict = conflict + conflict.T
+    value, mask = _best_hypothesis(scores, conflict, np.ones(n, dtype=bool))
+    assert value == pytest.approx(_brute_force_best(scores, conflict), abs=1e-9)
+    assert value == pytest.approx(scores[mask].sum() - np.triu(conflict, 1)[np.ix_(mask, mask)].sum(), abs=1e-9)
+
+
+def test_a_group_too_large_to_enumerate_is_packed_greedily_into_a_consistent_hypothesis():
+    """Past RIVALS_MAX_GROUP candidates every subset is not tried: the pick is greedy by score, and no track whose
+    conflicts with those already picked outweigh its score joins (two rivals of 20 never both)."""
+    n = RIVALS_MAX_GROUP + 4
+    scores = np.linspace(10.0, 5.0, n)
+    conflict = np.zeros((n, n))
+    for k in range(0, n, 2):  # pairs (0, 1), (2, 3), ...: rivals that cannot both be emitters
+        conflict[k, k + 1] = conflict[k + 1, k] = 20.0
+    value, mask = _best_hypothesis(scores, conflict, np.ones(n, dtype=bool))
+    assert mask.tolist() == [k % 2 == 0 for k in range(n)]
+    assert value == pytest.approx(scores[::2].sum())
