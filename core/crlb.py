@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -22,6 +23,26 @@ from core.problem.frame import frame_placements, local_axes_point
 #: Smallest eigenvalue of the unit-diagonal information matrix below which a
 #: direction counts as unobserved (relative, so independent of units).
 OBSERVABILITY_THRESHOLD = 1e-11
+
+
+class SandwichScratch(NamedTuple):
+    """The work arrays of one problem's :func:`sandwich_point` (``M`` measurements); what it leaves in them is
+    of no use after.
+
+    Attributes
+    ----------
+    local : ndarray, shape (4, M)
+        The local Jacobian.
+    bread, meat, params, work, vectors : ndarray, shape (4, 4)
+        The bread's information, the meat, the bread's inverse and :func:`invert_point`'s scratch.
+    """
+
+    local: np.ndarray
+    bread: np.ndarray
+    meat: np.ndarray
+    params: np.ndarray
+    work: np.ndarray
+    vectors: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -195,19 +216,20 @@ def _invert_many(information, axes, rotate, free):
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _sandwich_many(jacobian, bread_weights, meat_weights, axes, rotate, free):
     size, _, width = jacobian.shape
-    local, bread, meat = np.empty((4, width)), np.empty((4, 4)), np.empty((4, 4))
-    params, work, vectors = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
+    scratch = SandwichScratch(np.empty((4, width)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)),
+                              np.empty((4, 4)), np.empty((4, 4)))
     out = np.empty((size, 3, 3))
     for b in range(size):
-        sandwich_point(jacobian[b], bread_weights[b], meat_weights[b], axes[b], rotate, free[b], local, bread, meat,
-                       params, work, vectors, out[b])
+        sandwich_point(jacobian[b], bread_weights[b], meat_weights[b], axes[b], rotate, free[b], scratch, out[b])
     return out
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def sandwich_point(jacobian, bread_weights, meat_weights, axes, rotate, free, local, bread, meat, params, work,
-                   vectors, position):
-    """One problem's :func:`sandwich_covariance` into ``position`` ``(3, 3)`` (the rest: scratch; compiled)."""
+def sandwich_point(jacobian, bread_weights, meat_weights, axes, rotate, free, scratch, position):
+    """One problem's :func:`sandwich_covariance` into ``position`` ``(3, 3)``, with the work arrays ``scratch``
+    (:class:`SandwichScratch`; compiled)."""
+    local, bread, meat, params = scratch.local, scratch.bread, scratch.meat, scratch.params
+    work, vectors = scratch.work, scratch.vectors
     normal_point(jacobian, bread_weights, axes, rotate, free, local, bread)
     invert_point(bread, axes, False, free, params, position, work, vectors)
     gram_point(local, meat_weights, meat)

@@ -368,24 +368,24 @@ def plane_and_equations(lines: Lines, position_enu_m) -> tuple[TangentPlane, Azi
     """The planes tangent to the altitude surfaces at points ``(B, 3)``, centred under the stations (the foot
     of the stations' centroid), and every azimuth line written as a linear equation in their coordinates
     (compiled, one problem at a time)."""
-    size, width = lines.mask.shape
-    centre, axes = np.empty((size, 3)), np.empty((size, 2, 3))
-    rows, along_rows = np.zeros((size, width, 2)), np.zeros((size, width, 2))
-    rhs, along_rhs = np.zeros((size, width)), np.zeros((size, width))
     origin_ecef_m, origin_rotation = frame_placements(lines.origin)
-    _plane_equations_kernel(lines.count, np.ascontiguousarray(lines.origins_enu_m),
-                            np.ascontiguousarray(lines.rotations), np.ascontiguousarray(lines.azimuth_rad),
-                            np.ascontiguousarray(position_enu_m, dtype=float), np.ascontiguousarray(lines.geodetic),
-                            np.ascontiguousarray(origin_ecef_m), np.ascontiguousarray(origin_rotation), centre, axes,
-                            rows, rhs, along_rows, along_rhs)
+    centre, axes, rows, rhs, along_rows, along_rhs = _plane_equations_kernel(
+        lines.count, np.ascontiguousarray(lines.origins_enu_m), np.ascontiguousarray(lines.rotations),
+        np.ascontiguousarray(lines.azimuth_rad), np.ascontiguousarray(position_enu_m, dtype=float),
+        np.ascontiguousarray(lines.geodetic), np.ascontiguousarray(origin_ecef_m),
+        np.ascontiguousarray(origin_rotation))
     return TangentPlane(centre, axes), AzimuthEquations(rows, rhs, along_rows, along_rhs)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _plane_equations_kernel(count, origins, rotations, azimuth, position, geodetic, origin_ecef_m, origin_rotation,
-                            centre, axes, rows, rhs, along_rows, along_rhs):
-    """Each problem's tangent plane (``centre``, ``axes``) and its lines' equations (see
-    :func:`plane_and_equations`); the equations of padding lines stay zero."""
+def _plane_equations_kernel(count, origins, rotations, azimuth, position, geodetic, origin_ecef_m, origin_rotation):
+    """Each problem's tangent plane (``centre`` ``(B, 3)``, ``axes`` ``(B, 2, 3)``) and its lines' equations
+    (``rows``, ``rhs``, ``along_rows``, ``along_rhs``: :class:`AzimuthEquations`), see :func:`plane_and_equations`;
+    the equations of padding lines are zero."""
+    size, width = azimuth.shape
+    centre, axes = np.empty((size, 3)), np.empty((size, 2, 3))
+    rows, along_rows = np.zeros((size, width, 2)), np.zeros((size, width, 2))
+    rhs, along_rhs = np.zeros((size, width)), np.zeros((size, width))
     local = np.empty((3, 3))
     normal, horizontal = np.empty(3), np.empty(3)
     for b in range(count.size):
@@ -413,6 +413,7 @@ def _plane_equations_kernel(count, origins, rotations, azimuth, position, geodet
                 r0 += normal[j] * relative
                 r1 += horizontal[j] * relative
             rhs[b, k], along_rhs[b, k] = r0, r1
+    return centre, axes, rows, rhs, along_rows, along_rhs
 
 
 def plane_spread_m(lines: Lines, plane: TangentPlane) -> np.ndarray:

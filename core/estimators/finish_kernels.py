@@ -20,8 +20,8 @@ import numba
 import numpy as np
 
 from core.angles import wrap_point
-from core.crlb import (OBSERVABILITY_THRESHOLD, gdop_point, invert_point, normal_point, parameters_point,
-                       reference_sigma_point, sandwich_point)
+from core.crlb import (OBSERVABILITY_THRESHOLD, SandwichScratch, gdop_point, invert_point, normal_point,
+                       parameters_point, reference_sigma_point, sandwich_point)
 from core.estimators.loss import loss_point
 from core.kernel_data import Frames, Measurements
 from core.measurements import AZIMUTH, ELEVATION, SPEED_OF_LIGHT_MPS, TOA, ahead_point, measure_point, toa_offset_point
@@ -289,12 +289,14 @@ def _ml_residuals(position, bias, measurements, frames, b, at_estimate, fit):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _separation(studentized, room, weights, local, params, source_index, count, valid, sigmas):
+def _separation(studentized, room, weights, local, params, sigmas, measurements, b):
     """How far one problem's largest studentized residual stands out: the least, over the other request
     measurements ``j``, of ``(|t_w| - |t_j|) / sd(t_w -+ t_j)``, the sd ``sqrt(2 (1 -+ rho_wj))`` from their
     correlation ``rho_wj = -H_wj / sqrt((1 - h_w)(1 - h_j))`` (``H`` the hat matrix of ``local`` ``(4, M)`` and
-    ``params`` ``(4, 4)``; ``room`` ``(M,)``: ``1 - h``). Infinite where no other measurement is judged; 0 with
-    one degree of freedom, where every ``|t|`` is the same."""
+    ``params`` ``(4, 4)``; ``room`` ``(M,)``: ``1 - h``) of problem ``b`` of ``measurements``
+    (:class:`~core.kernel_data.Measurements`), whose sigmas the estimate took are ``sigmas`` ``(M,)``. Infinite
+    where no other measurement is judged; 0 with one degree of freedom, where every ``|t|`` is the same."""
+    count, valid, source_index = measurements.n_measurements[b], measurements.valid[b], measurements.source_index[b]
     worst, largest = -1, -1.0
     for m in range(count):
         if valid[m] and math.isfinite(sigmas[m]) and abs(studentized[m]) > largest:
@@ -326,8 +328,7 @@ def _finish_kernel(measurements, frames, estimate):
     the fix ran off (``RUNAWAY_SIGMA_RATIO``)."""
     kinds, n_measurements, valid, values = measurements.kinds, measurements.n_measurements, measurements.valid, \
         measurements.values
-    stations_enu_m, rotations, source_index = measurements.stations_enu_m, measurements.rotations, \
-        measurements.source_index
+    stations_enu_m, rotations = measurements.stations_enu_m, measurements.rotations
     is_line, elevation_rad = measurements.is_line, measurements.elevation_rad
     altitude_m, has_toa, geodetic, origin_ecef_m, origin_rotation = frames
     positions_enu_m, bias_in_m, has_bias, sigmas = estimate.position_enu_m, estimate.bias_m, estimate.has_bias, \
@@ -354,6 +355,7 @@ def _finish_kernel(measurements, frames, estimate):
     axes, free = np.empty((3, 3)), np.empty(4, dtype=np.bool_)
     information, params, work, vectors = np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4)), np.empty((4, 4))
     bread, meat = np.empty((4, 4)), np.empty((4, 4))
+    sandwich = SandwichScratch(local, bread, meat, params, work, vectors)
     bread_weights, meat_weights = np.empty(width), np.empty(width)
     model_residual, whitened, gradient, step = np.empty(width), np.empty(width), np.empty(4), np.empty(4)
     fitted_residual, local_fit, params_fit = np.empty(width), np.empty((4, width)), np.empty((4, 4))
@@ -432,8 +434,7 @@ def _finish_kernel(measurements, frames, estimate):
             if loss >= 0:
                 rho, robust_factor[b, m], _ = loss_point(normalized[b, m] ** 2, loss, c2)
                 robust_cost[b] += rho
-        separation[b] = _separation(studentized[b], room, weights, hat_local, hat_params, source_index[b],
-                                    n_measurements[b], valid[b], sigmas[b])
+        separation[b] = _separation(studentized[b], room, weights, hat_local, hat_params, sigmas[b], measurements, b)
         if loss >= 0:
             # The sandwich of the final weights rho': the meat holds each measurement's squared score
             # rho'^2 z (z its squared whitened residual), but never less than a clean measurement of that weight
@@ -443,8 +444,7 @@ def _finish_kernel(measurements, frames, estimate):
             for m in range(width):
                 bread_weights[m] = weights[m] * robust_factor[b, m]
                 meat_weights[m] = weights[m] * robust_factor[b, m] ** 2 * max(normalized[b, m] ** 2, 1.0)
-            sandwich_point(jacobian, bread_weights, meat_weights, axes, constrained, free, local, bread, meat,
-                           params, work, vectors, covariance[b])
+            sandwich_point(jacobian, bread_weights, meat_weights, axes, constrained, free, sandwich, covariance[b])
         else:
             covariance[b] = crlb[b]
         lines = 0

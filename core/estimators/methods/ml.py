@@ -159,10 +159,7 @@ def _eove_fit_kernel(measurements, frames, fitting, kind_counts, initial_guess_e
     for b in range(kind_counts.shape[0]):
         if kind_counts[b, AZIMUTH] == 0 or not math.isnan(initial_guess_enu_m[b, 0]):
             return np.empty((0, 3)), False
-    _, _, _, starts, status, _ = _orthogonal_kernel(
-        measurements.is_line, measurements.values, measurements.elevation_rad, measurements.sigma_elevation_rad,
-        measurements.sigmas, measurements.stations_enu_m, measurements.rotations, True, True, frames.altitude_m,
-        frames.geodetic, frames.origin_ecef_m, frames.origin_rotation, True, START_PASSES)
+    _, _, _, starts, status, _ = _orthogonal_kernel(measurements, frames, True, True, True, START_PASSES)
     for b in range(status.size):
         if status[b] != SOLVED:
             return starts, False

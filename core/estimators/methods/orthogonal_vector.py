@@ -42,6 +42,7 @@ import numpy as np
 from core.errors import LocalizationError, TooFewMeasurements, UnobservableGeometry
 from core.estimators.base import ANGLES, SolveOptions, register
 from core.estimators.result import Estimates
+from core.kernel_data import Frames, Measurements
 from core.linalg import SVD_LANES, jacobi_svd, matvec, svd_in_place, weighted_gram
 from core.measurements import seen_from_station
 from core.problem.batch import ProblemBatch
@@ -106,24 +107,6 @@ class StackedRows(NamedTuple):
     sigma: np.ndarray
 
 
-class StationFrames(NamedTuple):
-    """Each measurement's station ``(B, M, 3)`` (m) and rotation ``(B, M, 3, 3)`` (station ENU <- common ENU)."""
-
-    stations_enu_m: np.ndarray
-    rotations: np.ndarray
-
-
-class AltitudeSurfaces(NamedTuple):
-    """Each problem's known target altitude ``(B,)`` (m, NaN where unknown), whether its frame is geodetic
-    ``(B,)``, and the frame's placement: origin ``(B, 3)`` (ECEF, m) and rotation ``(B, 3, 3)``
-    (:func:`core.problem.frame.frame_placements`)."""
-
-    altitude_m: np.ndarray
-    geodetic: np.ndarray
-    origin_ecef_m: np.ndarray
-    origin_rotation: np.ndarray
-
-
 def normal_vectors(azimuth_rad, elevation_rad):
     """The two unit vectors orthogonal to lines of sight, in the station's ENU.
 
@@ -156,11 +139,14 @@ def _noise_scale(position_enu_m, stations_enu_m, rotations, out):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _rows_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad, stations_enu_m, rotations,
-                 use_vertical, use_horizontal):
+def _rows_kernel(measurements, use_vertical, use_horizontal):
     """Each line of sight's normals ``c`` (in its vertical plane, where it has an elevation) and ``c'``
     (horizontal) in the common frame, ``(B, 2M, 3)``, their right-hand sides ``c . r`` ``(B, 2M)``, which
-    are used and their angle sigmas (1 where none); the normals of :func:`normal_vectors`, compiled."""
+    are used and their angle sigmas (1 where none), from the batch's :class:`~core.kernel_data.Measurements`
+    (an azimuth row's value and sigma are the line's azimuth); the normals of :func:`normal_vectors`, compiled."""
+    is_line, azimuth_rad, sigma_rad = measurements.is_line, measurements.values, measurements.sigmas
+    elevation_rad, sigma_elevation_rad = measurements.elevation_rad, measurements.sigma_elevation_rad
+    stations_enu_m, rotations = measurements.stations_enu_m, measurements.rotations
     size, width = is_line.shape
     rows, rhs = np.zeros((size, 2 * width, 3)), np.zeros((size, 2 * width))
     used, sigma = np.zeros((size, 2 * width), dtype=np.bool_), np.ones((size, 2 * width))
@@ -194,28 +180,54 @@ def _where(mask):
     return slice(None) if np.all(mask) else np.flatnonzero(mask)
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _stack_lane(rows, rhs, up, up_rhs, weights, kept, count, depth, columns, side, lane):
-    """One weighted system into lane ``lane`` of ``columns`` ``(L, 3, R)`` and ``side`` ``(L, 1, R)``, zero
-    from ``count`` to ``depth``.
+class LaneSystems(NamedTuple):
+    """The weighted systems of the problems :func:`_positions_kernel` solves side by side, one a lane
+    (``L`` = ``SVD_LANES``; ``R`` rows a problem): each its problem's :class:`StackedRows` then an up row.
 
-    The system's rows are ``rows`` ``(N, 3)`` then ``up`` ``(3,)`` (right-hand sides ``rhs`` ``(N,)`` and
-    ``up_rhs``, weights ``weights`` ``(N + 1,)``), of which only rows ``kept[:count]`` are stacked: the others
-    must weigh 0 and come after the first three (the SVD then only adds zeros in their place, as it does
-    for the zero rows at the end, and the Householder pivots are the same rows).
+    Attributes
+    ----------
+    up : ndarray, shape (L, 3)
+        The up row: the known altitude's local vertical, common frame.
+    up_rhs : ndarray, shape (L,)
+        Its right-hand side (m).
+    weights : ndarray, shape (L, R + 1)
+        Each row's weight, the up row's last (0: unused).
+    kept : ndarray of int64, shape (L, R + 1)
+        The rows stacked, in order: the first three and every row that can weigh more than 0.
+    stacked : ndarray of int64, shape (L,)
+        How many of ``kept`` are.
     """
-    last = rows.shape[0]
+
+    up: np.ndarray
+    up_rhs: np.ndarray
+    weights: np.ndarray
+    kept: np.ndarray
+    stacked: np.ndarray
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _stack_lane(rows, rhs, systems, i, depth, columns, side, lane):
+    """System ``i`` of ``systems`` (:class:`LaneSystems`) into lane ``lane`` of ``columns`` ``(L, 3, R)`` and
+    ``side`` ``(L, 1, R)``, zero from its row count to ``depth``.
+
+    The system's rows are its problem's ``rows`` ``(N, 3)`` (right-hand sides ``rhs`` ``(N,)``) then its up row,
+    of which only rows ``kept[i, :stacked[i]]`` are stacked: the others must weigh 0 and come after the first
+    three (the SVD then only adds zeros in their place, as it does for the zero rows at the end, and the
+    Householder pivots are the same rows).
+    """
+    last, count = rows.shape[0], systems.stacked[i]
+    kept, weights = systems.kept, systems.weights
     for k in range(count):
-        t = kept[k]
-        w = weights[t]
+        t = kept[i, k]
+        w = weights[i, t]
         if t < last:
             for j in range(3):
                 columns[lane, j, k] = rows[t, j] * w
             side[lane, 0, k] = rhs[t] * w
         else:
             for j in range(3):
-                columns[lane, j, k] = up[j] * w
-            side[lane, 0, k] = up_rhs * w
+                columns[lane, j, k] = systems.up[i, j] * w
+            side[lane, 0, k] = systems.up_rhs[i] * w
     for k in range(count, depth):
         for j in range(3):
             columns[lane, j, k] = 0.0
@@ -240,10 +252,11 @@ def _least_squares(s, v, projected, lane, out):
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _positions_kernel(stacked_rows, stations_frames, surfaces, weighted, passes):
+def _positions_kernel(stacked_rows, measurements, frames, weighted, passes):
     """Each problem's orthogonal-vector fix (see :func:`solve_orthogonal_batch`), its status (``SOLVED``,
     ``NO_ROWS`` or ``RANK_DEFICIENT``) and each row's noise per unit angle at the fix (:func:`_noise_scale`;
-    1 where no fix), from its :class:`StackedRows`, :class:`StationFrames` and :class:`AltitudeSurfaces`;
+    1 where no fix), from its :class:`StackedRows`, the stations of its :class:`~core.kernel_data.Measurements`
+    and the altitude surfaces of its :class:`~core.kernel_data.Frames`;
     ``weighted``: the rows weighed by their first-order noise from the second of ``passes`` on.
 
     The known altitude's up row is the last of the stacked system (zero weight without one). Rows of zero
@@ -254,9 +267,9 @@ def _positions_kernel(stacked_rows, stations_frames, surfaces, weighted, passes)
     # The pass loop stays in one function: a helper taking the bundles, called per group of problems, pays for
     # their arguments and refcounts on every call, a visible share of a four-line problem's solution.
     rows, rhs, used, sigma = stacked_rows.rows, stacked_rows.rhs, stacked_rows.used, stacked_rows.sigma
-    stations, rotations = stations_frames.stations_enu_m, stations_frames.rotations
-    altitude_m, geodetic = surfaces.altitude_m, surfaces.geodetic
-    origin_ecef_m, origin_rotation = surfaces.origin_ecef_m, surfaces.origin_rotation
+    stations, rotations = measurements.stations_enu_m, measurements.rotations
+    altitude_m, geodetic = frames.altitude_m, frames.geodetic
+    origin_ecef_m, origin_rotation = frames.origin_ecef_m, frames.origin_rotation
     size, count, _ = rows.shape
     position = np.full((size, 3), np.nan)
     status = np.full(size, NO_ROWS, dtype=np.int8)
@@ -266,6 +279,7 @@ def _positions_kernel(stacked_rows, stations_frames, surfaces, weighted, passes)
                                np.empty(SVD_LANES, dtype=np.int64))
     active = np.zeros(SVD_LANES, dtype=np.bool_)
     up, up_rhs = np.empty((SVD_LANES, 3)), np.empty(SVD_LANES)
+    systems = LaneSystems(up, up_rhs, w, kept, stacked)
     columns, side = np.empty((SVD_LANES, 3, count + 1)), np.empty((SVD_LANES, 1, count + 1))
     s, v, projected = np.empty((SVD_LANES, 3)), np.empty((SVD_LANES, 3, 3)), np.empty((SVD_LANES, 3, 1))
     reflector, norms = np.empty((SVD_LANES, count + 1)), np.empty((SVD_LANES, 3))
@@ -333,14 +347,14 @@ def _positions_kernel(stacked_rows, stations_frames, surfaces, weighted, passes)
             for lane in range(tall):
                 i = order[lane]
                 p = members[i]
-                _stack_lane(rows[p], rhs[p], up[i], up_rhs[i], w[i], kept[i], stacked[i], depth, columns, side, lane)
+                _stack_lane(rows[p], rhs[p], systems, i, depth, columns, side, lane)
             if tall:
                 svd_in_place(columns[:tall, :, :depth], side[:tall, :, :depth], s, v, projected, reflector, norms)
             for lane in range(SVD_LANES - short, SVD_LANES):
                 i = order[lane]
                 p = members[i]
                 n = stacked[i]
-                _stack_lane(rows[p], rhs[p], up[i], up_rhs[i], w[i], kept[i], n, n, columns, side, lane)
+                _stack_lane(rows[p], rhs[p], systems, i, n, columns, side, lane)
                 svd_in_place(columns[lane:lane + 1, :, :n], side[lane:lane + 1, :, :n], s[lane:lane + 1],
                              v[lane:lane + 1], projected[lane:lane + 1], reflector, norms)
             for lane in range(SVD_LANES):
@@ -362,19 +376,14 @@ def _positions_kernel(stacked_rows, stations_frames, surfaces, weighted, passes)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _orthogonal_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad, stations_enu_m,
-                       rotations, use_vertical, use_horizontal, altitude_m, geodetic, origin_ecef_m, origin_rotation,
-                       weighted, passes):
+def _orthogonal_kernel(measurements, frames, use_vertical, use_horizontal, weighted, passes):
     """:func:`_rows_kernel` then :func:`_positions_kernel`, in one call: the stacked rows, which are used and
     their sigmas (what the propagated covariance needs), then each problem's fix, its status and each row's noise
-    scale. Flat from Python (numba types a named tuple there at more than a small batch costs); named inside
-    (:class:`StackedRows`, :class:`StationFrames`, :class:`AltitudeSurfaces`)."""
-    rows, rhs, used, sigma = _rows_kernel(is_line, azimuth_rad, elevation_rad, sigma_elevation_rad, sigma_rad,
-                                          stations_enu_m, rotations, use_vertical, use_horizontal)
-    position, status, scale = _positions_kernel(StackedRows(rows, rhs, used, sigma),
-                                                StationFrames(stations_enu_m, rotations),
-                                                AltitudeSurfaces(altitude_m, geodetic, origin_ecef_m, origin_rotation),
-                                                weighted, passes)
+    scale. The structures: plain tuples or named (:mod:`core.kernel_data`)."""
+    measurements, frames = Measurements(*measurements), Frames(*frames)
+    rows, rhs, used, sigma = _rows_kernel(measurements, use_vertical, use_horizontal)
+    position, status, scale = _positions_kernel(StackedRows(rows, rhs, used, sigma), measurements, frames, weighted,
+                                                passes)
     return rows, used, sigma, position, status, scale
 
 
@@ -404,12 +413,9 @@ def solve_orthogonal_batch(batch: ProblemBatch, *, normals: Normals, weighting: 
     """
     size = batch.size
     weighted = weighting is Weighting.FIRST_ORDER
-    measurements, frames = batch.kernel_measurements, batch.kernel_frames
     rows, used, sigma, position, status, scale = _orthogonal_kernel(
-        measurements.is_line, measurements.values, measurements.elevation_rad, measurements.sigma_elevation_rad,
-        measurements.sigmas, measurements.stations_enu_m, measurements.rotations, normals is not Normals.AZIMUTH_PLANE,
-        normals is not Normals.ELEVATION_PLANE, frames.altitude_m, frames.geodetic, frames.origin_ecef_m,
-        frames.origin_rotation, weighted, int(passes))
+        tuple(batch.kernel_measurements), tuple(batch.kernel_frames), normals is not Normals.AZIMUTH_PLANE,
+        normals is not Normals.ELEVATION_PLANE, weighted, int(passes))
     errors: dict[int, LocalizationError] = {}
     failed = status != SOLVED
     if np.count_nonzero(failed):
