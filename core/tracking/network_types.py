@@ -249,26 +249,40 @@ class Track:
         Made once per track and shared by every later call (read it, never change it): a track is an
         immutable value (frozen arrays), and a state's history repeats most of its tracks from one post to
         the next, so a state's :meth:`~core.tracking.network.NetworkState.to_dict` converts only its new ones.
+        A track of one component whose moments are that component, bit for bit (every ``single`` track), leaves
+        ``mean_enu`` and ``covariance_enu`` out: they would repeat ``means[0]`` and ``covariances[0]``, and a
+        session's record carries a track per report of its reorder window.
         """
         made = self.__dict__.get("_as_dict")
         if made is None:
-            made = {"id": self.id, "status": self.status, "time_s": self.time_s, "mean_enu": self.mean_enu.tolist(),
-                    "covariance_enu": self.covariance_enu.tolist(), "updates": self.updates,
+            made = {"id": self.id, "status": self.status, "time_s": self.time_s, "updates": self.updates,
                     "warnings": [list(w) for w in self.warnings], "stage": self.stage,
                     "weights": self.weights.tolist(), "means": self.means.tolist(),
                     "covariances": self.covariances.tolist(), "agreeing": self.agreeing, "confirmed": self.confirmed,
                     "reference_range_m": None if math.isinf(self.reference_range_m) else self.reference_range_m}
+            if not self._moments_are_component():
+                made["mean_enu"] = self.mean_enu.tolist()
+                made["covariance_enu"] = self.covariance_enu.tolist()
             object.__setattr__(self, "_as_dict", made)
         return made
+
+    def _moments_are_component(self) -> bool:
+        """Whether the track is one component and its moments are that component's, bit for bit."""
+        return (self.means.shape[0] == 1 and self.mean_enu.tobytes() == self.means[0].tobytes()
+                and self.covariance_enu.tobytes() == self.covariances[0].tobytes())
 
     @classmethod
     def from_dict(cls, data: dict) -> "Track":
         reference = data.get("reference_range_m")
-        return cls(str(data["id"]), str(data["status"]), float(data["time_s"]), frozen_array(data["mean_enu"]),
-                   frozen_array(data["covariance_enu"]), int(data["updates"]),
-                   tuple(tuple(w) for w in data["warnings"]), str(data["stage"]), frozen_array(data["weights"]),
-                   frozen_array(data["means"]), frozen_array(data["covariances"]), int(data["agreeing"]),
-                   bool(data["confirmed"]), math.inf if reference is None else float(reference))
+        means, covariances = frozen_array(data["means"]), frozen_array(data["covariances"])
+        if "mean_enu" in data:
+            mean, covariance = frozen_array(data["mean_enu"]), frozen_array(data["covariance_enu"])
+        else:
+            mean, covariance = frozen_array(means[0]), frozen_array(covariances[0])
+        return cls(str(data["id"]), str(data["status"]), float(data["time_s"]), mean, covariance,
+                   int(data["updates"]), tuple(tuple(w) for w in data["warnings"]), str(data["stage"]),
+                   frozen_array(data["weights"]), means, covariances, int(data["agreeing"]), bool(data["confirmed"]),
+                   math.inf if reference is None else float(reference))
 
 
 def check_real(name: str, value, loc=None) -> None:
