@@ -38,6 +38,8 @@ PROBE_PATHS = frozenset(("/healthz", "/readyz", "/metrics"))
 _GONE = object()
 #: Methods whose body must be JSON (the only one any route takes a body with; others get 405 from the router).
 _BODY_METHODS = frozenset(("POST",))
+#: Route-match answers :meth:`ServiceMiddleware._route_matches` keeps (by method and path).
+_ROUTE_ANSWERS_KEPT = 4096
 
 
 def is_json_media_type(media: bytes | None) -> bool:
@@ -66,6 +68,7 @@ class ServiceMiddleware:
     def __init__(self, app, max_body_bytes: int, metrics: Metrics, rate_limiter=None,
                  key_digests: frozenset[bytes] = frozenset(), routes=()):
         self.routes = routes
+        self._route_answers: OrderedDict[tuple, bool] = OrderedDict()
         self._id_prefix = uuid.uuid4().hex[:16]
         self._id_counter = itertools.count(1)
         self.app = app
@@ -156,8 +159,22 @@ class ServiceMiddleware:
 
     def _route_matches(self, scope) -> bool:
         """Whether a route serves this method at this path (else the router answers 404 or 405, reading
-        nothing of the request)."""
-        return any(route.matches(scope)[0] == Match.FULL for route in self.routes)
+        nothing of the request).
+
+        The answer depends on the method and path only (the routes are fixed once the app is built), and a
+        client posts to the same session's path again and again, so the last :data:`_ROUTE_ANSWERS_KEPT`
+        answers are kept rather than matched against every route per request."""
+        key = (scope.get("method"), scope.get("root_path", ""), scope.get("path", ""))
+        answers = self._route_answers
+        found = answers.get(key)
+        if found is not None:
+            answers.move_to_end(key)
+            return found
+        found = any(route.matches(scope)[0] == Match.FULL for route in self.routes)
+        answers[key] = found
+        if len(answers) > _ROUTE_ANSWERS_KEPT:
+            answers.popitem(last=False)
+        return found
 
     async def _read_body(self, declared: int | None, receive):
         """The whole body; None once it is over the limit (``declared`` by Content-Length, or as it streams);
