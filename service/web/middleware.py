@@ -38,8 +38,10 @@ PROBE_PATHS = frozenset(("/healthz", "/readyz", "/metrics"))
 _GONE = object()
 #: Methods whose body must be JSON (the only one any route takes a body with; others get 405 from the router).
 _BODY_METHODS = frozenset(("POST",))
-#: Route-match answers :meth:`ServiceMiddleware._route_matches` keeps (by method and path).
+#: Route-match answers :meth:`ServiceMiddleware._route_matches` keeps (by method and path), and the longest
+#: path kept: a session's path is under 100 characters, and the bound keeps what unknown paths can fill small.
 _ROUTE_ANSWERS_KEPT = 4096
+_ROUTE_PATH_KEPT = 256
 
 
 def is_json_media_type(media: bytes | None) -> bool:
@@ -171,9 +173,10 @@ class ServiceMiddleware:
             answers.move_to_end(key)
             return found
         found = any(route.matches(scope)[0] == Match.FULL for route in self.routes)
-        answers[key] = found
-        if len(answers) > _ROUTE_ANSWERS_KEPT:
-            answers.popitem(last=False)
+        if len(key[1]) + len(key[2]) <= _ROUTE_PATH_KEPT:
+            answers[key] = found
+            if len(answers) > _ROUTE_ANSWERS_KEPT:
+                answers.popitem(last=False)
         return found
 
     async def _read_body(self, declared: int | None, receive):

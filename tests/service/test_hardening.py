@@ -17,7 +17,7 @@ from service.ops import logs
 from service.fixes import pipeline
 from service.web.auth import identify
 from service.web.headers import parse_authorization
-from service.web.middleware import TokenBucket
+from service.web.middleware import ServiceMiddleware, TokenBucket
 from service.web.problems import store_headers
 from service.stores.base import StoreBusy, StoreUnavailable
 from service.stores.guard import GuardedStore
@@ -58,6 +58,24 @@ def test_405_lists_every_method_of_the_path(client):
         response = client.request(method, path)
         assert_problem(response, 405, code="method_not_allowed")
         assert response.headers["allow"] == allowed
+
+
+def test_route_answers_agree_with_the_router_when_kept_and_stay_bounded(client):
+    """The middleware keeps its route-match answers by method and path: a kept answer is the router's, and
+    unknown or long paths cannot grow what it keeps."""
+    middleware = ServiceMiddleware(None, max_body_bytes=1, metrics=None, routes=client.app.routes)
+
+    def matches(method: str, path: str) -> bool:
+        return middleware._route_matches({"type": "http", "method": method, "path": path, "root_path": ""})
+
+    for _ in range(2):  # the second round answers from what the first kept
+        assert matches("POST", "/v1/sessions/0123/reports") and matches("GET", "/healthz")
+        assert not matches("PUT", "/v1/sessions") and not matches("GET", "/v1/nowhere")
+    for i in range(5000):
+        assert not matches("GET", f"/v1/nowhere/{i}")
+    assert not matches("GET", "/v1/" + "x" * 5000)
+    kept = middleware._route_answers
+    assert len(kept) <= 4096 and all(len(path) <= 256 for _, _, path in kept)
 
 
 def _digest(key: str) -> str:
