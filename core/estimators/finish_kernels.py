@@ -53,7 +53,6 @@ RUNAWAY_SIGMA_RATIO = 1e6
  NOT_CONVERGED, NOT_ISOLABLE) = (1 << k for k in range(13))
 
 
-
 class Estimate(NamedTuple):
     """An estimator's estimates of a batch, as the finisher judges them (:func:`fix_kernel`).
 

@@ -30,7 +30,6 @@ PAD_KIND = Kind.RANGE
 _PAD_KIND_CODE = int(PAD_KIND)
 
 
-
 class _Masks(NamedTuple):
     """What :func:`masks_kernel` returns, by name (shapes in :class:`ProblemBatch`'s properties)."""
 

@@ -76,7 +76,6 @@ class TimeOfArrival:
 Measurement = Bearing | Range | TimeOfArrival
 
 
-
 def _check_finite(value, loc):
     if value is None or not math.isfinite(value):  # a Python or numpy scalar (math's test: no array made)
         raise InvalidInput(f"{_words(loc[-1])} must be a finite number", loc)

@@ -45,8 +45,6 @@ class LocalPoint:
     up_m: float
 
 
-
-
 @dataclass(frozen=True)
 class CommonFrame:
     """The tangent frame every estimator works in.

@@ -33,8 +33,6 @@ TWO_PI = 2.0 * math.pi
 NIS_LIMIT = {2: 13.816, 3: 16.266, 4: 18.467}
 
 
-
-
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _polar(east_m, north_m, up_m):
     """Range, azimuth and elevation of a point seen from the observer (:func:`core.measurements.measure_point`)."""

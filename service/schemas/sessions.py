@@ -178,8 +178,6 @@ class MeasurementResult(SessionState):
                                         "(acknowledged, not applied)")
 
 
-
-
 # -- network sessions (API.md, "Network sessions") ------------------------------------------------------------
 
 MAX_REPORTS_PER_POST = 1_000

@@ -264,7 +264,6 @@ STOP_CHECK_EPOCHS = 256
 INLINE_EPOCHS = 32
 
 
-
 class MeasurementsChange:
     """What a batch of epochs does to its session: all of its new epochs, or (on any error) none.
 

@@ -37,7 +37,6 @@ def reference(reports) -> dict:
         return client.get(f"/v1/sessions/{session_id}").json()
 
 
-
 def _filter_view(body: dict) -> dict:
     return {k: body[k] for k in ("last_seq", "last_time_s", "updates", "tracks", "stations", "ended_tracks")}
 
