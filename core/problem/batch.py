@@ -85,6 +85,18 @@ def _frozen(array: np.ndarray) -> np.ndarray:
     return array
 
 
+class MeasurementRows(NamedTuple):
+    """One problem's measurements in use (:meth:`ProblemBatch.rows_in_use`), ``(M_b,)`` each, in request order;
+    ``station_index`` counts within the problem, ``source_index`` is the request's measurement index."""
+
+    kinds: np.ndarray
+    station_index: np.ndarray
+    values: np.ndarray
+    sigmas: np.ndarray
+    bearing_index: np.ndarray
+    source_index: np.ndarray
+
+
 @dataclass(frozen=True)
 class ProblemBatch:
     """B problems padded to N stations and M measurements.
@@ -329,13 +341,19 @@ class ProblemBatch:
         lat, lon, alt = (float(v) for v in self.origin[b])
         return CommonFrame(GeodeticPoint(lat, lon, alt))
 
+    def rows_in_use(self, b: int) -> MeasurementRows:
+        """Problem ``b``'s measurements in use, unpadded (copies: a caller may change them)."""
+        m = np.flatnonzero(self.valid[b])
+        return MeasurementRows(self.kinds[b, m], self.station_index[b, m], self.values[b, m], self.sigmas[b, m],
+                               self.bearing_index[b, m], self.source_index[b, m])
+
     def problem(self, b: int) -> Problem:
         """Problem ``b`` on its own: no padding, and only the measurements in use."""
         n = int(self.n_stations[b])
-        m = np.flatnonzero(self.valid[b])
+        rows = self.rows_in_use(b)
         altitude = float(self.altitude_m[b])
         guess = self.initial_guess_enu_m[b]
-        bearing = self.bearing_index[b, m]
+        bearing = rows.bearing_index
         lines = bearing >= 0
         bearing[lines] = np.unique(bearing[lines], return_inverse=True)[1]
         return Problem(
@@ -343,12 +361,12 @@ class ProblemBatch:
             station_ids=self.station_ids[b],
             stations_enu_m=self.stations_enu_m[b, :n].copy(),
             station_rotations=self.station_rotations[b, :n].copy(),
-            kinds=self.kinds[b, m],
-            station_index=self.station_index[b, m],
-            values=self.values[b, m],
-            sigmas=self.sigmas[b, m],
+            kinds=rows.kinds,
+            station_index=rows.station_index,
+            values=rows.values,
+            sigmas=rows.sigmas,
             bearing_index=bearing,
-            source_index=self.source_index[b, m],
+            source_index=rows.source_index,
             toa_reference_s=float(self.toa_reference_s[b]),
             altitude_m=None if np.isnan(altitude) else altitude,
             initial_guess_enu_m=None if np.isnan(guess[0]) else guess.copy(),

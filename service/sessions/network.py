@@ -186,23 +186,19 @@ def core_reports(reports, first: int, registry: dict, frame: str, origin: Geodet
         inputs.append(_report_inputs(report, index, registry, frame, origin))
         _register(registry, report)
     batch = build_problems(inputs)
-    valid = batch.valid
     out = []
     for b, (index, report) in enumerate(zip(range(first, first + len(reports)), reports)):
-        m = np.flatnonzero(valid[b])
-        rows = batch.station_index[b, m]
-        values = batch.values[b, m]
-        source = batch.source_index[b, m]
-        kinds = batch.kinds[b, m]
-        toa = kinds == _TOA
+        used = batch.rows_in_use(b)
+        rows, values, source = used.station_index, used.values, used.source_index
+        toa = used.kinds == _TOA
         if toa.any():  # the client's own TOAs: core takes its own reference, so no digit is lost to a round trip
             values[toa] = [report.measurements[s].toa_s for s in source[toa]]
         ids = batch.station_ids[b]
         core = Report(seq=report.seq, time_s=report.time_s,
                       emitter_id=report.emitter_id or schemas.DEFAULT_EMITTER_ID,
                       station_ids=tuple(ids[s] for s in rows), stations_enu_m=batch.stations_enu_m[b, rows],
-                      rotations=batch.station_rotations[b, rows], kinds=kinds, values=values,
-                      sigmas=batch.sigmas[b, m])
+                      rotations=batch.station_rotations[b, rows], kinds=used.kinds, values=values,
+                      sigmas=used.sigmas)
         try:
             check(core)
         except LocalizationError as error:
